@@ -1,0 +1,19 @@
+# make test   set up .venv (first time: a few minutes) and run the default test tier
+# make demo   set up .venv and turn a shipped example photo into a 4D clip
+VENV := .venv
+STAMP := $(VENV)/.physgm-installed
+
+.PHONY: setup test test-slow demo bench lint
+setup: $(STAMP)
+$(STAMP): pyproject.toml scripts/setup.sh
+	bash scripts/setup.sh
+	touch $(STAMP)
+
+test: setup
+	$(VENV)/bin/python -m pytest
+
+test-slow: setup
+	$(VENV)/bin/python -m pytest -m slow
+
+lint: setup
+	$(VENV)/bin/ruff check src tests train.py simulate.py

@@ -1,0 +1,15 @@
+"""Photo to 4D clip: ``python simulate.py input=examples/duck.png [scene=drop]``."""
+
+import hydra
+from omegaconf import DictConfig
+
+
+@hydra.main(version_base="1.3", config_path="conf", config_name="simulate")
+def main(cfg: DictConfig) -> None:
+    from physgm.pipeline import run
+
+    run(cfg)
+
+
+if __name__ == "__main__":
+    main()

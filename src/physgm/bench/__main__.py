@@ -1,0 +1,34 @@
+"""``python -m physgm.bench SUITE [args]``: run one benchmark suite and print its JSON."""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+# Suite name -> module with a ``main(argv: list[str]) -> dict`` function.
+SUITES = {
+    "render": "physgm.bench.render",
+    "sim": "physgm.bench.sim",
+    "sim-verify": "physgm.bench.sim_verify",
+    "sim-stability": "physgm.bench.sim_stability",
+    "e2e": "physgm.bench.e2e",
+}
+
+
+def main(argv: list[str] | None = None) -> None:
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or argv[0] not in SUITES:
+        names = ", ".join(SUITES)
+        sys.exit(f"usage: python -m physgm.bench SUITE [args]; SUITE is one of: {names}")
+    module_name = SUITES[argv[0]]
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as err:
+        if err.name == module_name:
+            sys.exit(f"benchmark suite {argv[0]!r} is not implemented yet ({module_name})")
+        raise
+    module.main(argv[1:])
+
+
+if __name__ == "__main__":
+    main()

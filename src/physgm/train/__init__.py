@@ -1,0 +1,1 @@
+"""Training stages: LightningModules (losses, optimisers, logging), callbacks and the run entry."""

@@ -1,0 +1,15 @@
+"""Train PhysGM: ``python train.py stage=pretrain`` or ``python train.py stage=dpo stage.init_ckpt=...``."""
+
+import hydra
+from omegaconf import DictConfig
+
+
+@hydra.main(version_base="1.3", config_path="conf", config_name="train")
+def main(cfg: DictConfig) -> None:
+    from physgm.train.run import run
+
+    run(cfg)
+
+
+if __name__ == "__main__":
+    main()
