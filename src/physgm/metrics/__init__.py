@@ -1,0 +1,1 @@
+"""Metrics: images (PSNR, SSIM, LPIPS), physics predictions, and trajectories against reference videos."""
