@@ -12,6 +12,7 @@ SUITES = {
     "sim-verify": "physgm.bench.sim_verify",
     "sim-stability": "physgm.bench.sim_stability",
     "e2e": "physgm.bench.e2e",
+    "model": "physgm.bench.model",
 }
 
 

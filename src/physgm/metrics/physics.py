@@ -1,0 +1,65 @@
+"""Metrics of predicted physics against the *true* values (not only the noisy annotation)."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+from torchmetrics import Metric
+from torchmetrics.classification import MulticlassConfusionMatrix
+from torchmetrics.utilities import dim_zero_cat
+
+from physgm.model.posterior import PhysicsPosterior, PhysicsSample
+
+# Two-sided 90 % interval of a Gaussian: mean +- 1.6449 std.
+Z90 = 1.6448536269514722
+
+
+class PhysicsMetrics(Metric):
+    """Material accuracy and confusion, |log10 E - true|, |nu - true|, NLL and 90 % interval coverage.
+
+    ``compute()`` returns a dict of scalars plus ``confusion`` [M, M] (rows true, columns predicted).
+    """
+
+    full_state_update = False
+
+    def __init__(self, num_materials: int) -> None:
+        super().__init__()
+        self.confusion = MulticlassConfusionMatrix(num_classes=num_materials)
+        for name in ["correct", "err_E", "err_nu", "nll", "in90_E", "in90_nu"]:
+            self.add_state(name, default=[], dist_reduce_fx="cat")
+
+    def update(
+        self,
+        posterior: PhysicsPosterior,
+        material: Tensor,  # [B] true material index
+        log10_E: Tensor,  # [B] true log10 E, Pa
+        nu: Tensor,  # [B] true Poisson ratio
+    ) -> None:
+        posterior = posterior.detach()
+        pred = posterior.material_logits.argmax(-1)
+        self.confusion.update(pred, material)
+        self.correct.append((pred == material).float())
+        self.err_E.append((posterior.log10_E_mean - log10_E).abs())
+        self.err_nu.append((posterior.nu_mean - nu).abs())
+        truth = PhysicsSample(material[:, None], log10_E[:, None], nu[:, None])
+        self.nll.append(-posterior.log_prob(truth)[:, 0])
+        self.in90_E.append(((posterior.log10_E_mean - log10_E).abs() <= Z90 * posterior.log10_E_std).float())
+        self.in90_nu.append(((posterior.nu_mean - nu).abs() <= Z90 * posterior.nu_std).float())
+
+    def compute(self) -> dict[str, Tensor]:
+        cat = {name: dim_zero_cat(getattr(self, name)) for name in ["correct", "err_E", "err_nu", "nll", "in90_E", "in90_nu"]}
+        return {
+            "material_acc": cat["correct"].mean(),
+            "abs_log10E_median": cat["err_E"].median(),
+            "abs_log10E_mean": cat["err_E"].mean(),
+            "abs_nu_median": cat["err_nu"].median(),
+            "abs_nu_mean": cat["err_nu"].mean(),
+            "nll": cat["nll"].mean(),
+            "coverage90_E": cat["in90_E"].mean(),
+            "coverage90_nu": cat["in90_nu"].mean(),
+            "confusion": self.confusion.compute(),
+        }
+
+    def reset(self) -> None:
+        super().reset()
+        self.confusion.reset()

@@ -1,0 +1,103 @@
+"""Multi-view token backbone: image tokens + Plücker camera tokens, global tokens, joint transformer.
+
+How the image encoder and the backbone relate: the encoder (timm ViT or DINOv3) sees one view at a
+time and gives one token per patch. A small conv turns the view's Plücker ray map into a camera
+token on the same patch grid. Per patch the two are concatenated and linearly projected to the
+backbone width, as in the paper. Three learned global tokens are prepended and the tokens of all V
+views attend jointly (sequence length 3 + V * h * w) in ``depth`` plain pre-norm transformer blocks.
+Positions need no extra embedding: the encoder embeds positions within a view and the Plücker rays
+tell apart every pixel of every view.
+"""
+
+from __future__ import annotations
+
+import torch
+from timm.models.vision_transformer import Block
+from torch import Tensor, nn
+from torch.utils.checkpoint import checkpoint
+
+from physgm.model.config import BackboneConfig
+from physgm.model.encoder import build_encoder
+
+
+class PluckerEncoder(nn.Module):
+    """Dense camera encoder: Plücker map [6, H, W] -> one camera token per patch."""
+
+    def __init__(self, patch_size: int, hidden: int, out_dim: int) -> None:
+        super().__init__()
+        self.net = nn.Sequential(
+            nn.Conv2d(6, hidden, kernel_size=patch_size, stride=patch_size),  # patchify to the token grid
+            nn.GELU(),
+            nn.Conv2d(hidden, out_dim, kernel_size=1),
+        )
+        self.norm = nn.LayerNorm(out_dim)
+
+    def forward(
+        self,
+        plucker: Tensor,  # [B, 6, H, W] (direction, moment)
+    ) -> Tensor:  # [B, (H / p) * (W / p), out_dim]
+        return self.norm(self.net(plucker).flatten(2).transpose(1, 2))
+
+
+class Backbone(nn.Module):
+    """Encodes V posed views into global tokens and per-layer patch tokens."""
+
+    def __init__(self, cfg: BackboneConfig, load_pretrained: bool = True) -> None:
+        super().__init__()
+        if cfg.width % cfg.head_dim:
+            raise ValueError(f"backbone width {cfg.width} is not divisible by head_dim {cfg.head_dim}")
+        if len(cfg.out_layers) != 4 or len(set(cfg.out_layers)) != 4 or not all(0 <= i < cfg.depth for i in cfg.out_layers):
+            raise ValueError(
+                f"backbone.out_layers must be 4 distinct block indices in [0, {cfg.depth}), got {list(cfg.out_layers)}"
+            )
+        self.cfg = cfg
+        self.patch_size = cfg.encoder.patch_size
+        self.encoder = build_encoder(cfg.encoder, load_pretrained)
+        self.camera_encoder = PluckerEncoder(self.patch_size, cfg.camera_hidden, cfg.camera_dim)
+        self.fuse = nn.Linear(cfg.encoder.embed_dim + cfg.camera_dim, cfg.width, bias=False)
+        self.input_norm = nn.LayerNorm(cfg.width)
+        # Random (not zero) init: identical global tokens would stay identical through every block.
+        self.global_tokens = nn.Parameter(torch.randn(1, cfg.num_global_tokens, cfg.width) * 0.02)
+        self.blocks = nn.ModuleList(
+            Block(cfg.width, num_heads=cfg.width // cfg.head_dim, mlp_ratio=cfg.mlp_ratio, qkv_bias=True)
+            for _ in range(cfg.depth)
+        )
+        for module in (self.camera_encoder, self.fuse, self.blocks):  # never the (maybe pretrained) encoder
+            module.apply(_init_linear)
+
+    def forward(
+        self,
+        images: Tensor,  # [B, V, 3, H, W] RGB in [0, 1]
+        plucker: Tensor,  # [B, V, 6, H, W]
+    ) -> tuple[Tensor, list[Tensor]]:  # global [B, 3, D]; 4 x patch tokens [B * V, h * w, D]
+        """Run the encoder per view and the joint transformer over all views.
+
+        Returns:
+            The global tokens after the last block, and the patch tokens after each block in
+            ``cfg.out_layers`` (views folded into the batch, row-major patches).
+        """
+        b, v = images.shape[:2]
+        image_tokens = self.encoder(images.flatten(0, 1))  # [B*V, L, D_enc]
+        camera_tokens = self.camera_encoder(plucker.flatten(0, 1))  # [B*V, L, D_cam]
+        tokens = self.fuse(torch.cat([image_tokens, camera_tokens], dim=-1))  # [B*V, L, D]
+        patches = tokens.shape[1]
+        tokens = torch.cat([self.global_tokens.expand(b, -1, -1), tokens.reshape(b, v * patches, -1)], dim=1)
+        x = self.input_norm(tokens)  # [B, G + V*L, D]
+
+        taken: dict[int, Tensor] = {}
+        g = self.cfg.num_global_tokens
+        for i, block in enumerate(self.blocks):
+            if self.cfg.grad_checkpointing and self.training and torch.is_grad_enabled():
+                x = checkpoint(block, x, use_reentrant=False)
+            else:
+                x = block(x)
+            if i in self.cfg.out_layers:
+                taken[i] = x[:, g:].reshape(b * v, patches, -1)
+        return x[:, :g], [taken[i] for i in self.cfg.out_layers]
+
+
+def _init_linear(module: nn.Module) -> None:
+    if isinstance(module, nn.Linear):
+        nn.init.trunc_normal_(module.weight, std=0.02)
+        if module.bias is not None:
+            nn.init.zeros_(module.bias)

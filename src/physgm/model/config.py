@@ -1,0 +1,114 @@
+"""Plain dataclass configuration of the PhysGM model (loads without Hydra).
+
+The defaults are the tiny CPU model (``conf/model/backbone/vit_tiny.yaml``): 4 views of 64 x 64 run
+forward in tens of milliseconds on a laptop CPU. The YAML files under ``conf/model/`` map onto these
+dataclasses one to one; checkpoints store ``PhysGMConfig.to_dict()`` and rebuild with ``from_dict``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any
+
+
+@dataclass
+class EncoderConfig:
+    """Per-view image encoder (a timm ViT); see ``physgm.model.encoder.ENCODERS``."""
+
+    kind: str = "vit"  # "vit": timm VisionTransformer trained from scratch; "dinov3": timm DINOv3 + local weights
+    arch: str = ""  # timm architecture for kind="dinov3", e.g. "vit_large_patch16_dinov3" (ignored for "vit")
+    weights: str | None = None  # local .pth/.safetensors for kind="dinov3"; nothing is ever downloaded
+    img_size: int = 64  # grid of the learned position embedding (other sizes are interpolated), px
+    patch_size: int = 8  # pixels per patch side; H and W must be multiples of it (DINOv3: 16)
+    embed_dim: int = 192  # encoder width (DINOv3 fixes it by arch: S 384, L 1024; checked on build)
+    depth: int = 2  # encoder blocks; shallow for CPU (DINOv3 fixes it: S 12, L 24; checked on build)
+    num_heads: int = 3  # encoder attention heads (kind="vit" only)
+    freeze: bool = False  # no gradients into the encoder (the paper freezes DINOv3)
+
+
+@dataclass
+class BackboneConfig:
+    """Camera tokens, global tokens and the joint multi-view transformer."""
+
+    encoder: EncoderConfig = field(default_factory=EncoderConfig)
+    width: int = 192  # token width D of the joint transformer (paper 1024)
+    depth: int = 6  # joint transformer blocks (paper 24)
+    head_dim: int = 64  # attention head size; heads = width // head_dim (paper 64)
+    mlp_ratio: float = 4.0  # MLP hidden size / width
+    num_global_tokens: int = 3  # learned tokens read by the physics head: material, E, nu
+    camera_dim: int = 32  # channels of the Plücker camera token concatenated to each image token
+    camera_hidden: int = 64  # hidden channels of the Plücker patchify conv
+    out_layers: tuple[int, ...] = (1, 3, 4, 5)  # 0-based blocks fed to the DPT head (paper 4, 11, 17, 23)
+    grad_checkpointing: bool = False  # recompute blocks in backward to save memory (large configs)
+
+
+@dataclass
+class GaussianHeadConfig:
+    """DPT head that turns patch tokens into one Gaussian per input pixel."""
+
+    features: int = 32  # channels of the DPT fusion path (paper-size 256)
+    layer_channels: tuple[int, ...] = (32, 64, 96, 128)  # channels of the 4 reassembled maps, fine to coarse
+    hidden: int = 32  # channels of the full-resolution output conv
+    near: float = 0.001  # closest depth along a pixel ray, normalised object-frame units
+    far: float = 2.0  # farthest depth along a pixel ray
+    max_offset: float = 0.05  # bound of the free 3D offset added to the ray point (0 disables it)
+    scale_min: float = 0.0005  # smallest Gaussian std
+    scale_max: float = 0.1  # largest Gaussian std
+    mask_threshold: float = 0.5  # pixels with mask > threshold get a Gaussian
+
+
+@dataclass
+class PhysicsHeadConfig:
+    """Physics head on the global tokens: material class, log10 E and nu posteriors."""
+
+    num_materials: int = 15  # M = len(physgm.physics.materials.MATERIAL_NAMES)
+    hidden: int = 64  # hidden size of the E and nu MLPs
+    logvar_min: float = -9.0  # smallest log-variance of the normalised E and nu (std 0.011)
+    logvar_max: float = 2.0  # largest log-variance (std 2.7, wider than the whole [-1, 1] range)
+
+
+@dataclass
+class PhysGMConfig:
+    """Everything needed to build ``PhysGM``; defaults are the tiny CPU model."""
+
+    backbone: BackboneConfig = field(default_factory=BackboneConfig)
+    gaussian_head: GaussianHeadConfig = field(default_factory=GaussianHeadConfig)
+    physics_head: PhysicsHeadConfig = field(default_factory=PhysicsHeadConfig)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain nested dict (store it in checkpoints)."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> PhysGMConfig:
+        """Build from a nested mapping (YAML, checkpoint hparams); unknown keys are an error."""
+        return _from_mapping(cls, data, "model")
+
+
+def _from_mapping(cls: type, data: Mapping[str, Any] | None, where: str):
+    data = {} if data is None else dict(data)
+    data = {k: v for k, v in data.items() if not str(k).startswith("_")}  # Hydra's _target_ etc.
+    known = {f.name: f for f in fields(cls)}
+    unknown = sorted(set(data) - set(known))
+    if unknown:
+        raise ValueError(f"unknown key(s) {unknown} in {where}; valid keys are {sorted(known)}")
+    kwargs = {}
+    for name, value in data.items():
+        sub = _NESTED.get((cls.__name__, name))
+        if sub is not None:
+            kwargs[name] = _from_mapping(sub, value, f"{where}.{name}")
+        elif isinstance(value, list | tuple):
+            kwargs[name] = tuple(value)
+        else:
+            kwargs[name] = value
+    return cls(**kwargs)
+
+
+# Which fields hold nested configs (dataclass annotations are strings under `from __future__`).
+_NESTED: dict[tuple[str, str], type] = {
+    ("BackboneConfig", "encoder"): EncoderConfig,
+    ("PhysGMConfig", "backbone"): BackboneConfig,
+    ("PhysGMConfig", "gaussian_head"): GaussianHeadConfig,
+    ("PhysGMConfig", "physics_head"): PhysicsHeadConfig,
+}

@@ -1,0 +1,212 @@
+"""DPT head: patch tokens from 4 backbone layers -> one 3D Gaussian per input pixel.
+
+The four token maps are reassembled at 4x, 2x, 1x and 1/2x the patch grid, fused coarse to fine
+(DPT, Ranftl et al. 2021), upsampled to the input resolution and, concatenated with the input
+image, decoded by a small conv into raw per-pixel channels. ``GaussianActivations`` turns those
+into Gaussians: each one sits on its pixel's camera ray at a predicted depth, plus a small free
+offset. Pixels outside the object mask are kept in the batched tensors (so every sample has
+N = V * H * W rows) but flagged invalid and given zero opacity.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from physgm.gaussians import Gaussians
+from physgm.model.config import GaussianHeadConfig
+
+# Raw output channels of the head, in order; activations live in GaussianActivations.forward.
+RAW_CHANNELS = {"depth": 1, "offset": 3, "scale": 3, "quat": 4, "opacity": 1, "color": 3}
+
+
+@dataclass
+class GaussianPrediction:
+    """Batched per-pixel Gaussians, N = V * H * W (view-major, then row-major pixels).
+
+    Attributes:
+        means: [B, N, 3] centres = ray origin + depth * ray direction + offset.
+        quats: [B, N, 4] unit quaternions (w, x, y, z).
+        scales: [B, N, 3] linear standard deviations.
+        opacities: [B, N] in [0, 1]; exactly 0 where ``valid`` is False.
+        colors: [B, N, 3] RGB in [0, 1].
+        depths: [B, N] distance along the unit pixel ray, in [near, far].
+        valid: [B, N] bool, the input mask was above the threshold at this pixel.
+        views, height, width: the V, H, W that N unfolds into.
+    """
+
+    means: Tensor  # [B, N, 3]
+    quats: Tensor  # [B, N, 4]
+    scales: Tensor  # [B, N, 3]
+    opacities: Tensor  # [B, N]
+    colors: Tensor  # [B, N, 3]
+    depths: Tensor  # [B, N]
+    valid: Tensor  # [B, N] bool
+    views: int
+    height: int
+    width: int
+
+    @property
+    def count(self) -> Tensor:  # [B] int64
+        """Number of valid (in-mask) Gaussians per sample."""
+        return self.valid.sum(dim=1)
+
+    def to_gaussians(self, b: int) -> Gaussians:
+        """The valid Gaussians of sample ``b`` as a ``physgm.gaussians.Gaussians``."""
+        keep = self.valid[b]
+        return Gaussians(
+            means=self.means[b][keep],
+            quats=self.quats[b][keep],
+            scales=self.scales[b][keep],
+            opacities=self.opacities[b][keep],
+            colors=self.colors[b][keep],
+        )
+
+    def detach(self) -> GaussianPrediction:
+        return GaussianPrediction(
+            **{f.name: v.detach() if isinstance(v := getattr(self, f.name), Tensor) else v for f in fields(self)}
+        )
+
+
+class GaussianActivations(nn.Module):
+    """Maps raw head channels to Gaussian parameters; the only place output activations live."""
+
+    def __init__(self, cfg: GaussianHeadConfig) -> None:
+        super().__init__()
+        if not 0 < cfg.near < cfg.far:
+            raise ValueError(f"gaussian_head needs 0 < near < far, got near={cfg.near}, far={cfg.far}")
+        if not 0 < cfg.scale_min < cfg.scale_max:
+            raise ValueError(f"gaussian_head needs 0 < scale_min < scale_max, got {cfg.scale_min}, {cfg.scale_max}")
+        self.cfg = cfg
+        self.register_buffer("quat_bias", torch.tensor([1.0, 0.0, 0.0, 0.0]), persistent=False)
+
+    def forward(
+        self,
+        raw: dict[str, Tensor],  # name -> [..., RAW_CHANNELS[name]]
+        rgb: Tensor,  # [..., 3] input pixel colour in [0, 1]
+        origins: Tensor,  # [..., 3] ray origins
+        directions: Tensor,  # [..., 3] unit ray directions
+    ) -> dict[str, Tensor]:
+        c = self.cfg
+        depth = c.near + (c.far - c.near) * torch.sigmoid(raw["depth"])  # [..., 1], inside [near, far]
+        offset = c.max_offset * torch.tanh(raw["offset"])  # bounded so Gaussians stay near their ray
+        log_lo, log_hi = math.log(c.scale_min), math.log(c.scale_max)
+        scale = torch.exp(log_lo + (log_hi - log_lo) * torch.sigmoid(raw["scale"]))  # log-uniform range
+        # Bias towards the identity rotation so a zero output is a valid unit quaternion.
+        quat = F.normalize(raw["quat"] + self.quat_bias, dim=-1, eps=1e-6)
+        opacity = torch.sigmoid(raw["opacity"][..., 0])
+        # Residual on the input colour in logit space: a zero output reproduces the pixel colour.
+        color = torch.sigmoid(raw["color"] + torch.logit(rgb.clamp(0.0, 1.0), eps=1e-3))
+        means = origins + depth * directions + offset
+        return {"means": means, "quats": quat, "scales": scale, "opacities": opacity, "colors": color, "depths": depth[..., 0]}
+
+
+class _ResidualConv(nn.Module):
+    def __init__(self, channels: int) -> None:
+        super().__init__()
+        self.conv1 = nn.Conv2d(channels, channels, 3, padding=1)
+        self.conv2 = nn.Conv2d(channels, channels, 3, padding=1)
+
+    def forward(self, x: Tensor) -> Tensor:  # [B, C, h, w] -> same
+        return x + self.conv2(F.relu(self.conv1(F.relu(x))))
+
+
+class _Fusion(nn.Module):
+    """Adds a skip map to the coarser path, refines it and resizes to the next finer map."""
+
+    def __init__(self, channels: int, has_skip: bool) -> None:
+        super().__init__()
+        self.skip = _ResidualConv(channels) if has_skip else None
+        self.refine = _ResidualConv(channels)
+        self.out = nn.Conv2d(channels, channels, 1)
+
+    def forward(self, x: Tensor, skip: Tensor | None, size: tuple[int, int]) -> Tensor:
+        if self.skip is not None:
+            x = x + self.skip(skip)
+        x = F.interpolate(self.refine(x), size=size, mode="bilinear", align_corners=False)
+        return self.out(x)
+
+
+class DPTHead(nn.Module):
+    """Dense prediction head on 4 token layers; see the module docstring."""
+
+    def __init__(self, cfg: GaussianHeadConfig, dim: int, patch_size: int) -> None:
+        super().__init__()
+        if len(cfg.layer_channels) != 4:
+            raise ValueError(f"gaussian_head.layer_channels needs 4 entries, got {list(cfg.layer_channels)}")
+        self.patch_size = patch_size
+        ch = cfg.layer_channels
+        self.norms = nn.ModuleList(nn.LayerNorm(dim) for _ in range(4))
+        self.projects = nn.ModuleList(nn.Conv2d(dim, c, 1) for c in ch)
+        # Reassemble into a pyramid: 4x, 2x, 1x and 1/2x the patch grid.
+        self.resamples = nn.ModuleList([
+            nn.ConvTranspose2d(ch[0], ch[0], kernel_size=4, stride=4),
+            nn.ConvTranspose2d(ch[1], ch[1], kernel_size=2, stride=2),
+            nn.Identity(),
+            nn.Conv2d(ch[3], ch[3], kernel_size=3, stride=2, padding=1),
+        ])
+        self.to_features = nn.ModuleList(nn.Conv2d(c, cfg.features, 3, padding=1, bias=False) for c in ch)
+        self.fusions = nn.ModuleList(_Fusion(cfg.features, has_skip=i < 3) for i in range(4))
+        self.pre_upsample = nn.Conv2d(cfg.features, cfg.features // 2, 3, padding=1)
+        out_channels = sum(RAW_CHANNELS.values())
+        self.output = nn.Sequential(
+            nn.Conv2d(cfg.features // 2 + 3, cfg.hidden, 3, padding=1),  # + input RGB for sharp detail
+            nn.ReLU(),
+            nn.Conv2d(cfg.hidden, out_channels, 1),
+        )
+        # Small last layer: at init every Gaussian sits mid-range on its ray with the pixel's colour.
+        nn.init.normal_(self.output[-1].weight, std=1e-3)
+        nn.init.zeros_(self.output[-1].bias)
+
+    def forward(
+        self,
+        tokens: list[Tensor],  # 4 x [B', h * w, D], fine to coarse backbone layers
+        images: Tensor,  # [B', 3, H, W] in [0, 1]
+    ) -> dict[str, Tensor]:  # name -> [B', H, W, RAW_CHANNELS[name]]
+        height, width = images.shape[-2:]
+        h, w = height // self.patch_size, width // self.patch_size
+        maps = []
+        for i, t in enumerate(tokens):
+            x = self.norms[i](t).transpose(1, 2).reshape(t.shape[0], -1, h, w)  # [B', D, h, w]
+            maps.append(self.to_features[i](self.resamples[i](self.projects[i](x))))
+        x = self.fusions[3](maps[3], None, maps[2].shape[-2:])
+        x = self.fusions[2](x, maps[2], maps[1].shape[-2:])
+        x = self.fusions[1](x, maps[1], maps[0].shape[-2:])
+        x = self.fusions[0](x, maps[0], maps[0].shape[-2:])
+        x = F.interpolate(self.pre_upsample(x), size=(height, width), mode="bilinear", align_corners=False)
+        raw = self.output(torch.cat([x, images * 2.0 - 1.0], dim=1)).permute(0, 2, 3, 1)  # [B', H, W, C]
+        return dict(zip(RAW_CHANNELS, raw.split(list(RAW_CHANNELS.values()), dim=-1), strict=True))
+
+
+class GaussianHead(nn.Module):
+    """DPT head + activations + masking: tokens and rays -> ``GaussianPrediction``."""
+
+    def __init__(self, cfg: GaussianHeadConfig, dim: int, patch_size: int) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.dpt = DPTHead(cfg, dim, patch_size)
+        self.activations = GaussianActivations(cfg)
+
+    def forward(
+        self,
+        tokens: list[Tensor],  # 4 x [B * V, h * w, D]
+        images: Tensor,  # [B, V, 3, H, W] in [0, 1]
+        masks: Tensor,  # [B, V, 1, H, W] in [0, 1]
+        origins: Tensor,  # [B, V, 3] camera centres
+        directions: Tensor,  # [B, V, H, W, 3] unit pixel-ray directions
+    ) -> GaussianPrediction:
+        b, v, _, height, width = images.shape
+        raw = self.dpt(tokens, images.flatten(0, 1))
+        raw = {k: r.reshape(b, v * height * width, -1) for k, r in raw.items()}  # [B, N, c]
+        rgb = images.permute(0, 1, 3, 4, 2).reshape(b, -1, 3)
+        dirs = directions.reshape(b, -1, 3)
+        origins = origins[:, :, None, :].expand(b, v, height * width, 3).reshape(b, -1, 3)
+        out = self.activations(raw, rgb, origins, dirs)
+        valid = masks.reshape(b, -1) > self.cfg.mask_threshold  # [B, N]
+        # Zero opacity outside the mask keeps batched rendering exact without ragged tensors.
+        out["opacities"] = out["opacities"] * valid
+        return GaussianPrediction(**out, valid=valid, views=v, height=height, width=width)

@@ -1,0 +1,100 @@
+"""PhysGM: posed views -> per-pixel 3D Gaussians + a physics posterior, in one forward pass."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from torch import Tensor, nn
+
+from physgm.cameras import Cameras, plucker_rays
+from physgm.model.backbone import Backbone
+from physgm.model.config import PhysGMConfig
+from physgm.model.gaussian_head import GaussianHead, GaussianPrediction
+from physgm.model.physics_head import PhysicsHead
+from physgm.model.posterior import PhysicsPosterior
+
+
+@dataclass
+class PhysGMOutput:
+    """What the model predicts for a batch of scenes."""
+
+    gaussians: GaussianPrediction  # N = V * H * W Gaussians per scene, invalid ones flagged
+    physics: PhysicsPosterior  # [B] posterior over material, log10 E, nu
+
+
+class PhysGM(nn.Module):
+    """Feed-forward physical Gaussian model.
+
+    Args:
+        config: sizes and output ranges; ``PhysGMConfig()`` is the tiny CPU model.
+        load_pretrained: read the encoder's local pretrained weights (DINOv3); False when a
+            checkpoint's state dict will overwrite them anyway.
+    """
+
+    def __init__(self, config: PhysGMConfig | None = None, load_pretrained: bool = True) -> None:
+        super().__init__()
+        self.config = config = config or PhysGMConfig()
+        self.backbone = Backbone(config.backbone, load_pretrained)
+        self.gaussian_head = GaussianHead(config.gaussian_head, config.backbone.width, self.backbone.patch_size)
+        self.physics_head = PhysicsHead(config.physics_head, config.backbone.width, config.backbone.num_global_tokens)
+
+    @property
+    def patch_size(self) -> int:
+        return self.backbone.patch_size
+
+    def forward(
+        self,
+        images: Tensor,  # [B, V, 3, H, W] RGB in [0, 1]
+        masks: Tensor,  # [B, V, 1, H, W] object mask in [0, 1]
+        c2w: Tensor,  # [B, V, 4, 4] OpenCV camera-to-world
+        Ks: Tensor,  # [B, V, 3, 3] pixel intrinsics
+    ) -> PhysGMOutput:
+        """Predict Gaussians (one per in-mask input pixel) and the physics posterior.
+
+        Any V >= 1 and any H, W that are multiples of the patch size work; the views of a scene
+        attend to each other jointly.
+        """
+        self._check_inputs(images, masks, c2w, Ks)
+        b, v, _, height, width = images.shape
+        cameras = Cameras(c2w.reshape(b * v, 4, 4).to(images.dtype), Ks.reshape(b * v, 3, 3).to(images.dtype), width, height)
+        plucker = plucker_rays(cameras).reshape(b, v, 6, height, width)  # (direction, moment)
+        global_tokens, patch_tokens = self.backbone(images, plucker)
+        directions = plucker[:, :, :3].permute(0, 1, 3, 4, 2)  # [B, V, H, W, 3] unit
+        gaussians = self.gaussian_head(patch_tokens, images, masks, cameras.centers.reshape(b, v, 3), directions)
+        return PhysGMOutput(gaussians=gaussians, physics=self.physics_head(global_tokens))
+
+    def physics_parameters(self) -> Iterator[nn.Parameter]:
+        """Parameters of the physics head: the only ones the DPO stage trains."""
+        return self.physics_head.parameters()
+
+    def backbone_parameters(self) -> Iterator[nn.Parameter]:
+        """Everything but the physics head (encoder, backbone, Gaussian head): frozen during DPO."""
+        head = {id(p) for p in self.physics_head.parameters()}
+        return (p for p in self.parameters() if id(p) not in head)
+
+    def _check_inputs(self, images: Tensor, masks: Tensor, c2w: Tensor, Ks: Tensor) -> None:
+        if images.ndim != 5 or images.shape[2] != 3:
+            raise ValueError(f"images must have shape [B, V, 3, H, W], got {tuple(images.shape)}")
+        b, v, _, height, width = images.shape
+        expected = {"masks": (masks, (b, v, 1, height, width)), "c2w": (c2w, (b, v, 4, 4)), "Ks": (Ks, (b, v, 3, 3))}
+        for name, (tensor, shape) in expected.items():
+            if tuple(tensor.shape) != shape:
+                raise ValueError(f"{name} must have shape {list(shape)} to match images {tuple(images.shape)}, got {tuple(tensor.shape)}")
+        p = self.patch_size
+        if height % p or width % p:
+            raise ValueError(f"image size {height}x{width} must be a multiple of the patch size {p}; resize the views")
+
+
+def build_physgm(**config: Any) -> PhysGM:
+    """Hydra entry (``_target_: physgm.model.build_physgm``): nested config mapping -> ``PhysGM``."""
+    return PhysGM(PhysGMConfig.from_dict(config))
+
+
+def load_physgm(config: Mapping[str, Any], state_dict: Mapping[str, Tensor] | None = None) -> PhysGM:
+    """Rebuild a model from a checkpoint's ``PhysGMConfig.to_dict()`` and (optionally) its weights."""
+    model = PhysGM(PhysGMConfig.from_dict(config), load_pretrained=state_dict is None)
+    if state_dict is not None:
+        model.load_state_dict(state_dict, strict=True)
+    return model

@@ -1,0 +1,155 @@
+"""The physics posterior P(theta | I): a categorical over materials and Gaussians on log10 E and nu.
+
+Normalisation (the one place it is defined): the Gaussians live on normalised coordinates z in
+roughly [-1, 1], so both regressions have the same scale:
+    z_E  = 2 * (log10 E - 3.0) / (11.7 - 3.0) - 1   (E in Pa: 1 kPa .. 500 GPa)
+    z_nu = 2 * (nu - 0.0) / (0.5 - 0.0) - 1
+Samples are reported in physical units (log10 E in log10 Pa, nu). ``log_prob`` is the exact log
+density of the *normalised* values (categorical log prob + two Gaussian log densities), which is
+what the pretraining NLL and the DPO ratio need; the constant Jacobian of the affine map is left out.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+LOG10_E_RANGE = (3.0, 11.7)  # log10(Pa) mapped to z in [-1, 1]
+NU_RANGE = (0.0, 0.5)  # Poisson ratio mapped to z in [-1, 1]
+NU_MAX = 0.49  # physical clip: nu -> 0.5 makes the Lamé lambda blow up in the simulator
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+def normalise_log10_E(log10_E: Tensor) -> Tensor:
+    lo, hi = LOG10_E_RANGE
+    return 2.0 * (log10_E - lo) / (hi - lo) - 1.0
+
+
+def denormalise_log10_E(z: Tensor) -> Tensor:
+    lo, hi = LOG10_E_RANGE
+    return lo + (z + 1.0) * 0.5 * (hi - lo)
+
+
+def normalise_nu(nu: Tensor) -> Tensor:
+    lo, hi = NU_RANGE
+    return 2.0 * (nu - lo) / (hi - lo) - 1.0
+
+
+def denormalise_nu(z: Tensor) -> Tensor:
+    lo, hi = NU_RANGE
+    return lo + (z + 1.0) * 0.5 * (hi - lo)
+
+
+@dataclass
+class PhysicsSample:
+    """K physics candidates per sample, in physical units, unclipped as drawn.
+
+    Attributes:
+        material: [B, K] int64 index into ``physgm.physics.materials.MATERIAL_NAMES``.
+        log10_E: [B, K] log10 of Young's modulus in Pa.
+        nu: [B, K] Poisson ratio.
+    """
+
+    material: Tensor  # [B, K] int64
+    log10_E: Tensor  # [B, K]
+    nu: Tensor  # [B, K]
+
+    def youngs_modulus(self) -> Tensor:  # [B, K] Pa
+        """Young's modulus in Pa, log10 E clipped to ``LOG10_E_RANGE`` so tails stay simulable."""
+        return 10.0 ** self.log10_E.clamp(*LOG10_E_RANGE)
+
+    def poisson_ratio(self) -> Tensor:  # [B, K]
+        """Poisson ratio clipped to [0, ``NU_MAX``] (strictly below 0.5)."""
+        return self.nu.clamp(NU_RANGE[0], NU_MAX)
+
+    def __getitem__(self, index) -> PhysicsSample:
+        return PhysicsSample(self.material[index], self.log10_E[index], self.nu[index])
+
+
+@dataclass
+class PhysicsPosterior:
+    """Per-sample posterior over (material, log10 E, nu), Gaussians on normalised coordinates.
+
+    Attributes:
+        material_logits: [B, M] unnormalised log probabilities of the M materials.
+        z_E_mean, z_E_logvar: [B] mean and log-variance of normalised log10 E.
+        z_nu_mean, z_nu_logvar: [B] mean and log-variance of normalised nu.
+    """
+
+    material_logits: Tensor  # [B, M]
+    z_E_mean: Tensor  # [B]
+    z_E_logvar: Tensor  # [B]
+    z_nu_mean: Tensor  # [B]
+    z_nu_logvar: Tensor  # [B]
+
+    @property
+    def material_probs(self) -> Tensor:  # [B, M]
+        return self.material_logits.softmax(dim=-1)
+
+    @property
+    def log10_E_mean(self) -> Tensor:  # [B] log10 Pa
+        return denormalise_log10_E(self.z_E_mean)
+
+    @property
+    def log10_E_std(self) -> Tensor:  # [B] decades
+        return torch.exp(0.5 * self.z_E_logvar) * 0.5 * (LOG10_E_RANGE[1] - LOG10_E_RANGE[0])
+
+    @property
+    def nu_mean(self) -> Tensor:  # [B]
+        return denormalise_nu(self.z_nu_mean)
+
+    @property
+    def nu_std(self) -> Tensor:  # [B]
+        return torch.exp(0.5 * self.z_nu_logvar) * 0.5 * (NU_RANGE[1] - NU_RANGE[0])
+
+    def sample(self, num_samples: int, generator: torch.Generator | None = None) -> PhysicsSample:
+        """Draw K = ``num_samples`` independent candidates per batch element (no gradient)."""
+        with torch.no_grad():
+            b = self.material_logits.shape[0]
+            material = torch.multinomial(self.material_probs, num_samples, replacement=True, generator=generator)
+            noise = torch.randn(2, b, num_samples, generator=generator, device=self.z_E_mean.device, dtype=self.z_E_mean.dtype)
+            z_E = self.z_E_mean[:, None] + torch.exp(0.5 * self.z_E_logvar)[:, None] * noise[0]
+            z_nu = self.z_nu_mean[:, None] + torch.exp(0.5 * self.z_nu_logvar)[:, None] * noise[1]
+        return PhysicsSample(material, denormalise_log10_E(z_E), denormalise_nu(z_nu))
+
+    def mean(self) -> PhysicsSample:
+        """The most likely material and the mean E and nu, as a K = 1 sample."""
+        return PhysicsSample(
+            self.material_logits.argmax(dim=-1, keepdim=True),
+            self.log10_E_mean[:, None],
+            self.nu_mean[:, None],
+        )
+
+    def log_prob_terms(self, sample: PhysicsSample) -> tuple[Tensor, Tensor, Tensor]:  # 3 x [B, K]
+        """Exact log probabilities of (material, normalised log10 E, normalised nu), separately."""
+        log_p = F.log_softmax(self.material_logits, dim=-1).gather(1, sample.material)
+        log_E = _gaussian_log_density(normalise_log10_E(sample.log10_E), self.z_E_mean, self.z_E_logvar)
+        log_nu = _gaussian_log_density(normalise_nu(sample.nu), self.z_nu_mean, self.z_nu_logvar)
+        return log_p, log_E, log_nu
+
+    def log_prob(self, sample: PhysicsSample) -> Tensor:  # [B, K]
+        """Joint log probability (sum of ``log_prob_terms``); differentiable w.r.t. the posterior."""
+        log_p, log_E, log_nu = self.log_prob_terms(sample)
+        return log_p + log_E + log_nu
+
+    def entropy(self) -> Tensor:  # [B]
+        """Entropy of the categorical plus the differential entropies of the two normalised Gaussians."""
+        log_p = F.log_softmax(self.material_logits, dim=-1)
+        categorical = -(log_p.exp() * log_p).sum(dim=-1)
+        gaussians = 1.0 + _LOG_2PI + 0.5 * (self.z_E_logvar + self.z_nu_logvar)
+        return categorical + gaussians
+
+    def detach(self) -> PhysicsPosterior:
+        return PhysicsPosterior(**{f.name: getattr(self, f.name).detach() for f in fields(self)})
+
+
+def _gaussian_log_density(
+    z: Tensor,  # [B, K]
+    mean: Tensor,  # [B]
+    logvar: Tensor,  # [B]
+) -> Tensor:  # [B, K]
+    return -0.5 * (_LOG_2PI + logvar[:, None] + (z - mean[:, None]) ** 2 * torch.exp(-logvar)[:, None])

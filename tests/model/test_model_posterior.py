@@ -1,0 +1,141 @@
+"""PhysicsPosterior against torch.distributions, sampling statistics, normalisation."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from torch.distributions import Categorical, Normal
+
+from physgm.model import PhysicsPosterior, PhysicsSample
+from physgm.model.posterior import (
+    LOG10_E_RANGE,
+    NU_MAX,
+    NU_RANGE,
+    denormalise_log10_E,
+    denormalise_nu,
+    normalise_log10_E,
+    normalise_nu,
+)
+
+
+def make_posterior(b: int = 3, m: int = 15, seed: int = 0) -> PhysicsPosterior:
+    gen = torch.Generator().manual_seed(seed)
+    return PhysicsPosterior(
+        material_logits=torch.randn(b, m, generator=gen, dtype=torch.float64) * 2,
+        z_E_mean=torch.rand(b, generator=gen, dtype=torch.float64) * 1.6 - 0.8,
+        z_E_logvar=torch.rand(b, generator=gen, dtype=torch.float64) * 4 - 5,
+        z_nu_mean=torch.rand(b, generator=gen, dtype=torch.float64) * 1.6 - 0.8,
+        z_nu_logvar=torch.rand(b, generator=gen, dtype=torch.float64) * 4 - 5,
+    )
+
+
+def test_normalisation_maps_ranges_to_unit_interval():
+    ends = torch.tensor(LOG10_E_RANGE, dtype=torch.float64)
+    torch.testing.assert_close(normalise_log10_E(ends), torch.tensor([-1.0, 1.0], dtype=torch.float64))
+    torch.testing.assert_close(normalise_nu(torch.tensor(NU_RANGE)), torch.tensor([-1.0, 1.0]))
+    x = torch.linspace(-2, 2, 9, dtype=torch.float64)
+    torch.testing.assert_close(normalise_log10_E(denormalise_log10_E(x)), x)
+    torch.testing.assert_close(normalise_nu(denormalise_nu(x)), x)
+    # log10 E = 7.35 (22 MPa) is the middle of [3, 11.7].
+    assert normalise_log10_E(torch.tensor(7.35)).abs() < 1e-6
+
+
+def test_log_prob_matches_torch_distributions():
+    post = make_posterior()
+    sample = PhysicsSample(
+        material=torch.tensor([[0, 3, 14, 7], [1, 1, 2, 9], [13, 0, 5, 5]]),
+        log10_E=torch.tensor([[3.5, 6.0, 9.0, 11.0], [4.0, 7.0, 7.5, 10.0], [5.0, 5.5, 8.0, 12.5]], dtype=torch.float64),
+        nu=torch.tensor([[0.1, 0.2, 0.3, 0.45], [0.0, 0.25, 0.33, 0.4], [0.49, 0.05, 0.15, 0.6]], dtype=torch.float64),
+    )
+    cat = Categorical(logits=post.material_logits[:, None, :])
+    e_dist = Normal(post.z_E_mean[:, None], torch.exp(0.5 * post.z_E_logvar)[:, None])
+    nu_dist = Normal(post.z_nu_mean[:, None], torch.exp(0.5 * post.z_nu_logvar)[:, None])
+    z_E = 2 * (sample.log10_E - 3.0) / 8.7 - 1  # written out by hand on purpose
+    z_nu = 2 * sample.nu / 0.5 - 1
+    expected = cat.log_prob(sample.material) + e_dist.log_prob(z_E) + nu_dist.log_prob(z_nu)
+    torch.testing.assert_close(post.log_prob(sample), expected)
+    terms = post.log_prob_terms(sample)
+    torch.testing.assert_close(terms[0], cat.log_prob(sample.material))
+    torch.testing.assert_close(terms[1], e_dist.log_prob(z_E))
+    torch.testing.assert_close(terms[2], nu_dist.log_prob(z_nu))
+    assert post.log_prob(sample).shape == (3, 4)
+
+
+def test_entropy_matches_torch_distributions():
+    post = make_posterior()
+    expected = (
+        Categorical(logits=post.material_logits).entropy()
+        + Normal(post.z_E_mean, torch.exp(0.5 * post.z_E_logvar)).entropy()
+        + Normal(post.z_nu_mean, torch.exp(0.5 * post.z_nu_logvar)).entropy()
+    )
+    torch.testing.assert_close(post.entropy(), expected)
+
+
+def test_log_prob_is_differentiable_for_dpo():
+    post = make_posterior()
+    leaves = [post.material_logits, post.z_E_mean, post.z_E_logvar, post.z_nu_mean, post.z_nu_logvar]
+    for t in leaves:
+        t.requires_grad_(True)
+    sample = post.sample(5, torch.Generator().manual_seed(0))
+    assert not sample.log10_E.requires_grad  # samples are data, not part of the graph
+    post.log_prob(sample).sum().backward()
+    assert all(t.grad is not None and t.grad.abs().sum() > 0 for t in leaves)
+
+
+def test_sample_statistics_match_mean_and_variance():
+    post = make_posterior(b=2, seed=4)
+    k = 40000
+    s = post.sample(k, torch.Generator().manual_seed(1))
+    assert s.material.shape == (2, k) and s.material.dtype == torch.int64
+    probs = post.material_probs
+    freq = torch.stack([torch.bincount(s.material[i], minlength=15) for i in range(2)]).double() / k
+    # 5 binomial standard errors (plus a floor for tiny probabilities).
+    assert ((freq - probs).abs() <= 5 * (probs * (1 - probs) / k).sqrt() + 1e-3).all()
+    std_E = post.log10_E_std
+    torch.testing.assert_close(s.log10_E.mean(1), post.log10_E_mean, atol=float(5 * std_E.max() / math.sqrt(k)), rtol=0)
+    torch.testing.assert_close(s.log10_E.std(1), std_E, rtol=0.03, atol=0)
+    std_nu = post.nu_std
+    torch.testing.assert_close(s.nu.mean(1), post.nu_mean, atol=float(5 * std_nu.max() / math.sqrt(k)), rtol=0)
+    torch.testing.assert_close(s.nu.std(1), std_nu, rtol=0.03, atol=0)
+    # Half-range of log10 E is 4.35 decades: std = exp(logvar / 2) * 4.35.
+    torch.testing.assert_close(std_E, torch.exp(0.5 * post.z_E_logvar) * 4.35)
+
+
+def test_sampling_is_reproducible_with_a_generator():
+    post = make_posterior()
+    a = post.sample(8, torch.Generator().manual_seed(7))
+    b = post.sample(8, torch.Generator().manual_seed(7))
+    c = post.sample(8, torch.Generator().manual_seed(8))
+    assert torch.equal(a.material, b.material) and torch.equal(a.log10_E, b.log10_E) and torch.equal(a.nu, b.nu)
+    assert not torch.equal(a.log10_E, c.log10_E)
+
+
+def test_mean_and_physical_conversions():
+    post = make_posterior()
+    m = post.mean()
+    assert m.material.shape == (3, 1)
+    assert torch.equal(m.material[:, 0], post.material_logits.argmax(-1))
+    torch.testing.assert_close(m.log10_E[:, 0], 3.0 + (post.z_E_mean + 1) * 4.35)
+    torch.testing.assert_close(m.nu[:, 0], (post.z_nu_mean + 1) * 0.25)
+    s = PhysicsSample(
+        material=torch.zeros(1, 4, dtype=torch.long),
+        log10_E=torch.tensor([[2.0, 6.0, 9.5, 13.0]]),
+        nu=torch.tensor([[-0.1, 0.3, 0.499, 0.7]]),
+    )
+    torch.testing.assert_close(s.youngs_modulus(), torch.tensor([[1e3, 1e6, 10**9.5, 10**11.7]]), rtol=1e-5, atol=0)
+    torch.testing.assert_close(s.poisson_ratio(), torch.tensor([[0.0, 0.3, NU_MAX, NU_MAX]]))
+    assert (s.poisson_ratio() < 0.5).all()
+
+
+@pytest.mark.parametrize("raw", [-50.0, 0.0, 50.0])
+def test_head_logvar_stays_in_configured_bounds(raw):
+    from physgm.model.config import PhysicsHeadConfig
+    from physgm.model.physics_head import PhysicsHead
+
+    head = PhysicsHead(PhysicsHeadConfig(logvar_min=-9.0, logvar_max=2.0), dim=8, num_global_tokens=3)
+    lv = head._logvar(torch.tensor([raw]))
+    assert -9.0 <= float(lv) <= 2.0
+    post = head(torch.randn(4, 3, 8))
+    assert post.material_logits.shape == (4, 15) and post.z_E_mean.shape == (4,)
