@@ -5,13 +5,15 @@ Scene: an object of radius 0.5 m (Gaussian centres uniform in the ball) seen fro
 orientations, opacities and colours. Each case is warmed up once (Warp compiles / caches its
 kernels), then timed as the median of a few repeats: `fwd_ms` is an inference forward
 (no autograd graph), `fwd_bwd_ms` a forward with autograd plus the backward of a random
-linear loss on rgb and alpha. Wall-clock numbers depend on machine load, reported under
-"machine".
+linear loss on rgb and alpha; `threads` is torch's intra-op thread count for the torch
+reference and the raster thread count for warp. The two backends are timed in alternation so
+both see the same machine load; wall-clock numbers still depend on it (see "machine").
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -31,8 +33,13 @@ def make_scene(num: int, res: int, seed: int = 0) -> dict:
     radius = 0.5 * torch.rand(num, 1, generator=gen) ** (1.0 / 3.0)  # uniform in the ball
     log_s = torch.empty(num, 3).uniform_(math.log(0.01), math.log(0.03), generator=gen)
     azimuth, elevation = 0.3, 0.2
-    eye = 1.8 * torch.tensor([math.cos(azimuth) * math.cos(elevation),
-                              math.sin(azimuth) * math.cos(elevation), math.sin(elevation)])
+    eye = 1.8 * torch.tensor(
+        [
+            math.cos(azimuth) * math.cos(elevation),
+            math.sin(azimuth) * math.cos(elevation),
+            math.sin(elevation),
+        ]
+    )
     forward = -eye / eye.norm()  # OpenCV camera: x right, y down, z forward; world +z up
     right = torch.nn.functional.normalize(torch.linalg.cross(forward, torch.tensor([0.0, 0.0, 1.0])), dim=0)
     down = torch.linalg.cross(forward, right)
@@ -55,66 +62,100 @@ def make_scene(num: int, res: int, seed: int = 0) -> dict:
     }
 
 
-def _forward(scene: dict, backend: str, grad: bool):
+def _forward(scene: dict, backend: str, grad: bool, **options):
     from physgm.render import rasterize  # late import, see main()
 
     params = {k: v.clone().requires_grad_(grad) for k, v in scene.items()
               if k in ("means", "quats", "scales", "opacities", "colors")}  # fmt: skip
     rgb, alpha, _ = rasterize(**params, viewmats=scene["viewmats"], Ks=scene["Ks"],
-                              width=scene["width"], height=scene["height"], backend=backend)  # fmt: skip
+                              width=scene["width"], height=scene["height"], backend=backend,
+                              **options)  # fmt: skip
     return rgb, alpha
 
 
-def _time_ms(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(1e3 * (time.perf_counter() - start))
-    return statistics.median(times)
+@contextlib.contextmanager
+def _torch_threads(num: int | None):
+    previous = torch.get_num_threads()
+    torch.set_num_threads(num or previous)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
 
 
-def run_case(scene: dict, backend: str, repeats: int) -> tuple[dict, torch.Tensor]:
-    weights = torch.Generator().manual_seed(1)
-    w_rgb = torch.randn(1, scene["height"], scene["width"], 3, generator=weights)
-    w_alpha = torch.randn(1, scene["height"], scene["width"], 1, generator=weights)
+class _Timer:
+    """Runs one backend on one scene and records wall-clock times (ms) of each call."""
 
-    def fwd():
-        with torch.no_grad():
-            return _forward(scene, backend, grad=False)
+    def __init__(self, scene: dict, backend: str, threads: int):
+        self.scene, self.backend, self.threads = scene, backend, threads
+        gen = torch.Generator().manual_seed(1)
+        self.w_rgb = torch.randn(1, scene["height"], scene["width"], 3, generator=gen)
+        self.w_alpha = torch.randn(1, scene["height"], scene["width"], 1, generator=gen)
+        # torch: intra-op threads; warp: raster threads (its torch glue runs on one thread)
+        self.torch_threads = threads if backend == "torch" else None
+        self.options = {"num_threads": threads} if backend == "warp" else {}
+        self.times = {"fwd": [], "fwd_bwd": []}
 
-    def fwd_bwd():
-        rgb, alpha = _forward(scene, backend, grad=True)
-        ((rgb * w_rgb).sum() + (alpha * w_alpha).sum()).backward()
+    def image(self) -> torch.Tensor:
+        with torch.no_grad(), _torch_threads(self.torch_threads):
+            rgb, alpha = _forward(self.scene, self.backend, grad=False, **self.options)
+        return torch.cat([rgb, alpha], dim=-1)
 
-    fwd_bwd()  # warm-up: Warp kernel load, allocator, thread pool
-    rgb, alpha = fwd()
-    case = {
-        "backend": backend,
-        "n": scene["means"].shape[0],
-        "res": scene["width"],
-        "fwd_ms": round(_time_ms(fwd, repeats), 2),
-        "fwd_bwd_ms": round(_time_ms(fwd_bwd, repeats), 2),
-    }
-    return case, torch.cat([rgb, alpha], dim=-1)
+    def fwd_bwd(self) -> float:
+        with _torch_threads(self.torch_threads):
+            start = time.perf_counter()
+            rgb, alpha = _forward(self.scene, self.backend, grad=True, **self.options)
+            ((rgb * self.w_rgb).sum() + (alpha * self.w_alpha).sum()).backward()
+            elapsed = 1e3 * (time.perf_counter() - start)
+        self.times["fwd_bwd"].append(elapsed)
+        return elapsed
+
+    def fwd(self) -> float:
+        with torch.no_grad(), _torch_threads(self.torch_threads):
+            start = time.perf_counter()
+            _forward(self.scene, self.backend, grad=False, **self.options)
+            elapsed = 1e3 * (time.perf_counter() - start)
+        self.times["fwd"].append(elapsed)
+        return elapsed
+
+    def case(self) -> dict:
+        return {
+            "backend": self.backend,
+            "n": self.scene["means"].shape[0],
+            "res": self.scene["width"],
+            "fwd_ms": round(statistics.median(self.times["fwd"]), 2),
+            "fwd_bwd_ms": round(statistics.median(self.times["fwd_bwd"]), 2),
+            "threads": self.threads,
+        }
 
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(prog="python -m physgm.bench render")
-    parser.add_argument("--repeats", type=int, default=5, help="timed runs per warp case")
-    parser.add_argument("--torch-repeats", type=int, default=3, help="timed runs per torch case")
+    parser.add_argument("--repeats", type=int, default=5, help="timed runs per case (median)")
+    parser.add_argument("--threads", type=int, default=2, help="raster threads of the warp backend")
     args = parser.parse_args(argv)
     # Warp prints a banner when physgm.render is first imported, which would break the
     # one-JSON-object output, so it is silenced before that (late) import in _forward.
-    wp.config.quiet = True
+    wp.config.log_level = wp.LOG_WARNING
     load_before = os.getloadavg()
     cases, speedup = [], {}
     for num, res in SIZES:
         scene = make_scene(num, res)
-        ref_case, ref_img = run_case(scene, "torch", args.torch_repeats)
-        warp_case, warp_img = run_case(scene, "warp", args.repeats)
+        # The torch reference runs with 1 or with all intra-op threads, whichever is faster in
+        # a warm-up: on a shared 2-core machine two OpenMP threads can be many times slower.
+        probes = [_Timer(scene, "torch", t) for t in sorted({1, torch.get_num_threads()})]
+        ref = min(probes, key=lambda timer: timer.fwd_bwd())
+        ref.times["fwd_bwd"].clear()
+        warp = _Timer(scene, "warp", args.threads)
+        warp.fwd_bwd()  # warm-up: Warp kernel load, allocator, thread pool
+        warp.times["fwd_bwd"].clear()
+        for _ in range(args.repeats):  # interleaved, so both see the same machine load
+            for timer in (ref, warp):
+                timer.fwd()
+                timer.fwd_bwd()
+        ref_case, warp_case = ref.case(), warp.case()
         ref_case["max_abs_diff_vs_torch"] = 0.0
-        warp_case["max_abs_diff_vs_torch"] = float((warp_img - ref_img).abs().max())
+        warp_case["max_abs_diff_vs_torch"] = float((warp.image() - ref.image()).abs().max())
         cases += [ref_case, warp_case]
         speedup[f"{num}x{res}"] = round(ref_case["fwd_bwd_ms"] / warp_case["fwd_bwd_ms"], 1)
     report = {
@@ -122,7 +163,6 @@ def main(argv: list[str] | None = None) -> dict:
         "speedup_vs_torch": speedup,
         "machine": {
             "cpus": os.cpu_count(),
-            "torch_threads": torch.get_num_threads(),
             "loadavg_1min_before": round(load_before[0], 2),
             "loadavg_1min_after": round(os.getloadavg()[0], 2),
         },

@@ -1,0 +1,9 @@
+"""Gaussian-splatting renderer: `rasterize(...)` with warp (CPU/CUDA), torch and gsplat backends.
+
+`Renderer` is the small config object Hydra builds from conf/renderer/*.yaml.
+"""
+
+from physgm.render.api import BACKENDS, Renderer, rasterize
+from physgm.render.settings import RasterSettings
+
+__all__ = ["BACKENDS", "RasterSettings", "Renderer", "rasterize"]

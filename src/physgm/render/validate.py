@@ -1,0 +1,108 @@
+"""Input checks for `rasterize`: every failure is a ValueError naming the argument and the
+expected shape, so bad inputs never become a silent NaN image."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+# argument name -> trailing shape after the shared leading dims; "N"/"C" are per-call sizes
+_GAUSSIAN_SHAPES = {
+    "means": ("N", 3),
+    "quats": ("N", 4),
+    "scales": ("N", 3),
+    "opacities": ("N",),
+    "colors": ("N", 3),
+}
+_CAMERA_SHAPES = {"viewmats": ("C", 4, 4), "Ks": ("C", 3, 3)}
+
+
+def _spec(tail: tuple) -> str:
+    return "[..., " + ", ".join(str(t) for t in tail) + "]"
+
+
+def _check_tensor(name: str, x, tail: tuple) -> None:
+    if not isinstance(x, Tensor):
+        raise ValueError(f"{name} must be a torch.Tensor of shape {_spec(tail)}, got {type(x).__name__}")
+    if not x.is_floating_point():
+        raise ValueError(f"{name} must be a floating-point tensor (float32 or float64), got {x.dtype}")
+    fixed = tail[1:] if isinstance(tail[0], str) else tail
+    ok = x.dim() >= len(tail) and all(
+        want == got for want, got in zip(fixed, x.shape[x.dim() - len(fixed):], strict=True)
+    )  # fmt: skip
+    if not ok:
+        raise ValueError(f"{name} must have shape {_spec(tail)}, got {tuple(x.shape)}")
+    if not bool(torch.isfinite(x).all()):
+        raise ValueError(f"{name} contains NaN or Inf values; check the upstream computation")
+
+
+def validate_inputs(
+    means, quats, scales, opacities, colors, viewmats, Ks, width, height, background,
+    near_plane: float, far_plane: float, eps2d: float,
+) -> tuple[tuple[int, ...], int, int]:  # fmt: skip
+    """Checks every argument of `rasterize`.
+
+    Returns:
+        (leading batch shape, N, C).
+
+    Raises:
+        ValueError: naming the offending argument and the expected shape or range.
+    """
+    args = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
+                viewmats=viewmats, Ks=Ks)  # fmt: skip
+    for name, tail in {**_GAUSSIAN_SHAPES, **_CAMERA_SHAPES}.items():
+        _check_tensor(name, args[name], tail)
+
+    lead = tuple(means.shape[:-2])
+    num_n = means.shape[-2]
+    num_c = viewmats.shape[-3]
+    for name, tail in _GAUSSIAN_SHAPES.items():
+        want = (*lead, num_n, *tail[1:])
+        if tuple(args[name].shape) != want:
+            raise ValueError(
+                f"{name} must have shape {list(want)} to match means {list(means.shape)} "
+                f"(batch dims {list(lead)}, N = {num_n}), got {tuple(args[name].shape)}"
+            )
+    for name, tail in _CAMERA_SHAPES.items():
+        want = (*lead, num_c, *tail[1:])
+        if tuple(args[name].shape) != want:
+            raise ValueError(
+                f"{name} must have shape {list(want)}: the same batch dims as means "
+                f"{list(lead)} and C = {num_c} cameras like viewmats, got {tuple(args[name].shape)}"
+            )
+    devices = {str(t.device) for t in args.values()}
+    if len(devices) > 1:
+        raise ValueError(f"all tensors must be on one device, got {sorted(devices)}")
+    dtypes = {t.dtype for t in args.values()}
+    if len(dtypes) > 1:
+        raise ValueError(f"all tensors must share one dtype, got {sorted(map(str, dtypes))}")
+
+    for name, value in (("width", width), ("height", height)):
+        if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+            raise ValueError(f"{name} must be a positive int (pixels), got {value!r}")
+    if not 0.0 < near_plane < far_plane:
+        raise ValueError(f"near_plane and far_plane must satisfy 0 < near_plane < far_plane (m), "
+                         f"got near_plane={near_plane}, far_plane={far_plane}")  # fmt: skip
+    if not eps2d >= 0.0:
+        raise ValueError(f"eps2d must be >= 0 (px^2), got {eps2d}")
+    if bool((scales < 0).any()):
+        raise ValueError("scales must be non-negative linear standard deviations (m); "
+                         "if you hold log-scales, pass scales.exp()")  # fmt: skip
+    if bool(((opacities < 0) | (opacities > 1)).any()):
+        raise ValueError("opacities must lie in [0, 1]; if you hold logits, pass opacities.sigmoid()")
+    if bool((quats.norm(dim=-1) == 0).any()):
+        raise ValueError("quats must have non-zero norm (w, x, y, z); use (1, 0, 0, 0) for identity")
+    if bool(((Ks[..., 0, 0] <= 0) | (Ks[..., 1, 1] <= 0)).any()):
+        raise ValueError("Ks must have positive focal lengths Ks[..., 0, 0] and Ks[..., 1, 1] (px)")
+
+    if background is not None:
+        if not isinstance(background, Tensor) or not background.is_floating_point():
+            raise ValueError("background must be a float tensor of shape [3] or [..., C, 3]")
+        if tuple(background.shape) not in ((3,), (*lead, num_c, 3)):
+            raise ValueError(f"background must have shape [3] or {[*lead, num_c, 3]}, "
+                             f"got {tuple(background.shape)}")  # fmt: skip
+        if str(background.device) != str(means.device):
+            raise ValueError(f"background must be on {means.device}, got {background.device}")
+        if not bool(torch.isfinite(background).all()):
+            raise ValueError("background contains NaN or Inf values")
+    return lead, num_n, num_c

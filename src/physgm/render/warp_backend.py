@@ -1,0 +1,275 @@
+"""Tiled Warp rasteriser with an explicit backward pass, wrapped as a torch autograd Function.
+
+Pipeline (kernels in `warp_kernels.py` and `warp_raster_kernels.py`, torch ops in between):
+project (I*N pairs) -> count tiles per pair -> prefix sum -> emit (tile, pair) entries ->
+sort by (image, tile, depth) -> gather entry data contiguously -> raster forward.
+Backward: raster backward into per-entry slots -> index_add to pairs / Gaussians -> Warp's
+generated adjoint of the projection kernel. The same code runs on CPU and CUDA (tile layout
+on CPU, pixel layout on CUDA); on CPU the raster launches are split over Python threads,
+which run in parallel because a Warp launch releases the GIL.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+import torch
+import warp as wp
+from torch import Tensor
+
+from physgm.render import warp_kernels as K
+from physgm.render import warp_raster_kernels as R
+from physgm.render.projection import radii_px
+from physgm.render.settings import RasterSettings, single_threaded_torch
+
+_POOLS: dict[tuple[int, int], ThreadPoolExecutor] = {}
+_POOL_LOCK = threading.Lock()
+
+
+def _pool(num_threads: int) -> ThreadPoolExecutor:
+    # keyed by process id: a forked child (e.g. a DataLoader worker) inherits the pool object
+    # but not its threads, and would wait forever on it
+    key = (os.getpid(), num_threads)
+    with _POOL_LOCK:
+        if key not in _POOLS:
+            _POOLS[key] = ThreadPoolExecutor(num_threads, thread_name_prefix="physgm-raster")
+        return _POOLS[key]
+
+
+def _arr(t: Tensor, dtype) -> wp.array:
+    """Zero-copy Warp view of a contiguous torch tensor (never tracks Warp gradients)."""
+    return wp.from_torch(t.contiguous(), dtype=dtype, requires_grad=False)
+
+
+def _launch(kernel, dim: int, inputs: list, device: torch.device, **kwargs) -> None:
+    if dim == 0:
+        return
+    stream = wp.stream_from_torch(device) if device.type == "cuda" else None
+    wp.launch(kernel, dim=dim, inputs=inputs, device=wp.device_from_torch(device), stream=stream,
+              **kwargs)  # fmt: skip
+
+
+def _tile_ranges(tile_start: Tensor, tile_end: Tensor, parts: int) -> list[tuple[int, int]]:
+    """Splits the global tile list into `parts` contiguous ranges of about equal work."""
+    num_tiles = tile_start.numel()
+    if parts <= 1 or num_tiles < 2:
+        return [(0, num_tiles)]
+    # a tile's cost grows with its entry count; +1 keeps empty tiles from being free
+    work = torch.cumsum((tile_end - tile_start).to(torch.float64) + 1.0, dim=0)
+    targets = work[-1] * torch.arange(1, parts, dtype=torch.float64) / parts
+    cuts = torch.searchsorted(work, targets).tolist()
+    bounds = sorted({0, num_tiles, *[min(max(c, 1), num_tiles - 1) for c in cuts]})
+    return [(a, b - a) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+
+
+def _launch_tiles(kernels, ranges, settings: RasterSettings, args: list, device: torch.device):
+    """Launches a raster kernel over tile ranges, in parallel Python threads on CPU.
+
+    Args:
+        kernels: (tile-layout kernel, pixel-layout kernel); the layout follows settings/device.
+    """
+    layout = settings.warp_layout
+    if layout == "auto":
+        layout = "tile" if device.type == "cpu" else "pixel"
+    kernel = kernels[0] if layout == "tile" else kernels[1]
+    per_tile = 1 if layout == "tile" else settings.tile_size * settings.tile_size
+    head = [settings.tile_size, settings.tiles_x, settings.tiles_x * settings.tiles_y,
+            settings.width, settings.height]  # fmt: skip
+
+    def run(r: tuple[int, int]) -> None:
+        _launch(kernel, r[1] * per_tile, [r[0], *head, *args], device)
+
+    if device.type == "cpu" and len(ranges) > 1:
+        list(_pool(len(ranges)).map(run, ranges))  # list() re-raises worker exceptions
+    else:
+        for r in ranges:
+            run(r)
+
+
+_FORWARD = (R.raster_forward_tile_kernel, R.raster_forward_pixel_kernel)
+_BACKWARD = (R.raster_backward_tile_kernel, R.raster_backward_pixel_kernel)
+
+
+def _projection_args(means, quats, scales, opacities, viewmats, Ks, num_n, num_c, s) -> list:
+    """Argument list of `project_kernel` (also used for its adjoints, which share the layout)."""
+    return [_arr(means, wp.vec3), _arr(quats, wp.vec4), _arr(scales, wp.vec3),
+            _arr(opacities, wp.float32), _arr(viewmats, wp.mat44), _arr(Ks, wp.mat33),
+            num_n, num_c, s.width, s.height, s.near_plane, s.far_plane, s.eps2d]  # fmt: skip
+
+
+def _projection_outputs(means2d, conics, depths, cov_diag) -> list:
+    return [_arr(means2d, wp.vec2), _arr(conics, wp.vec3), _arr(depths, wp.float32),
+            _arr(cov_diag, wp.vec2)]  # fmt: skip
+
+
+def _entry_arrays(entries: list[Tensor]) -> list[wp.array]:
+    """Warp views of the gathered entry data: means2d, conics, opacity, qmax, colour, extent."""
+    dtypes = (wp.vec2, wp.vec3, wp.float32, wp.float32, wp.vec3, wp.vec2)
+    return [_arr(x, dtype) for x, dtype in zip(entries, dtypes, strict=True)]
+
+
+class _RasterizeWarp(torch.autograd.Function):
+    """Differentiable w.r.t. means, quats, scales, opacities and colours (float32, flattened)."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, colors, viewmats, Ks, settings, num_c):
+        device = means.device
+        num_bn, num_i = means.shape[0], viewmats.shape[0]
+        num_n = num_bn * num_c // num_i
+        num_pairs = num_i * num_n
+        s = settings
+        ints = [num_n, num_c, s.width, s.height]
+        proj_in = _projection_args(means, quats, scales, opacities, viewmats, Ks, num_n, num_c, s)
+        means2d = means.new_empty(num_pairs, 2)
+        conics = means.new_empty(num_pairs, 3)
+        depths = means.new_empty(num_pairs)
+        cov_diag = means.new_empty(num_pairs, 2)
+        proj_out = _projection_outputs(means2d, conics, depths, cov_diag)
+        _launch(K.project_kernel, num_pairs, proj_in + proj_out, device)
+
+        # --- binning: box per pair, prefix sum, emit (tile, pair), sort by (image, tile, depth) ---
+        extents = means.new_empty(num_pairs, 2)
+        qmax = means.new_empty(num_pairs)
+        counts = torch.empty(num_pairs, dtype=torch.int32, device=device)
+        bounds = [_arr(extents, wp.vec2), _arr(qmax, wp.float32), _arr(counts, wp.int32)]
+        _launch(K.pair_bounds_kernel, num_pairs,
+                [proj_out[0], proj_out[3], proj_in[3], *ints, s.tile_size, *bounds], device)  # fmt: skip
+        csum = torch.cumsum(counts, dim=0, dtype=torch.int64)
+        num_entries = int(csum[-1]) if num_pairs else 0
+        offsets = (csum - counts).to(torch.int32)
+        entry_tile = torch.empty(num_entries, dtype=torch.int32, device=device)
+        entry_pair = torch.empty(num_entries, dtype=torch.int32, device=device)
+        tiles_per_image = s.tiles_x * s.tiles_y
+        _launch(K.emit_entries_kernel, num_pairs,
+                [proj_out[0], bounds[0], _arr(offsets, wp.int32), num_n, s.width, s.height,
+                 s.tile_size, s.tiles_x, tiles_per_image, _arr(entry_tile, wp.int32),
+                 _arr(entry_pair, wp.int32)], device)  # fmt: skip
+        # depths are > 0 for every emitted pair, so their float bits sort like the floats
+        depth_bits = depths.view(torch.int32).to(torch.int64)
+        keys = (entry_tile.to(torch.int64) << 32) | depth_bits[entry_pair.to(torch.int64)]
+        keys, order = torch.sort(keys, stable=True)  # stable: equal depths keep Gaussian order
+        tile_counts = torch.bincount(keys >> 32, minlength=num_i * tiles_per_image)
+        tile_end = torch.cumsum(tile_counts, dim=0).to(torch.int32)
+        tile_start = tile_end - tile_counts.to(torch.int32)
+
+        # --- gather each entry's data into contiguous arrays, in sorted order ---
+        e_pair = torch.empty(num_entries, dtype=torch.int64, device=device)
+        e_gauss = torch.empty_like(e_pair)
+        entries = [means.new_empty(num_entries, k) for k in (2, 3)]
+        entries += [means.new_empty(num_entries), means.new_empty(num_entries)]
+        entries += [means.new_empty(num_entries, 3), means.new_empty(num_entries, 2)]
+        entry_arrs = _entry_arrays(entries)
+        _launch(K.gather_entries_kernel, num_entries,
+                [_arr(order, wp.int64), _arr(entry_pair, wp.int32), num_n, num_c, proj_out[0],
+                 proj_out[1], bounds[1], bounds[0], proj_in[3], _arr(colors, wp.vec3),
+                 _arr(e_pair, wp.int64), _arr(e_gauss, wp.int64), *entry_arrs], device)  # fmt: skip
+
+        num_pix = num_i * s.height * s.width
+        rgb = means.new_zeros(num_pix, 3)
+        trans = means.new_ones(num_pix)
+        end = torch.zeros(num_pix, dtype=torch.int32, device=device)
+        done = torch.zeros(num_pix, dtype=torch.int32, device=device)
+        ranges = _tile_ranges(tile_start, tile_end, s.num_threads if device.type == "cpu" else 1)
+        if num_entries:
+            _launch_tiles(_FORWARD, ranges, s,
+                          [_arr(tile_start, wp.int32), _arr(tile_end, wp.int32), *entry_arrs,
+                           _arr(rgb, wp.vec3), _arr(trans, wp.float32), _arr(end, wp.int32),
+                           _arr(done, wp.int32)],
+                          device)  # fmt: skip
+
+        ctx.settings, ctx.num_c, ctx.ranges = s, num_c, ranges
+        ctx.save_for_backward(means, quats, scales, opacities, viewmats, Ks, means2d, conics,
+                              depths, cov_diag, tile_start, tile_end, e_pair, e_gauss, *entries, trans,
+                              end)  # fmt: skip
+        alpha = 1.0 - trans
+        ctx.mark_non_differentiable(means2d, depths, extents, counts)
+        return rgb, alpha, means2d, depths, extents, counts
+
+    @staticmethod
+    def backward(ctx, v_rgb, v_alpha, *_unused):
+        with single_threaded_torch():
+            return _RasterizeWarp._backward(ctx, v_rgb, v_alpha)
+
+    @staticmethod
+    def _backward(ctx, v_rgb, v_alpha):
+        (means, quats, scales, opacities, viewmats, Ks, means2d, conics, depths, cov_diag,
+         tile_start, tile_end, e_pair, e_gauss, *entries, trans, end) = ctx.saved_tensors  # fmt: skip
+        s, num_c, device = ctx.settings, ctx.num_c, means.device
+        num_bn, num_e = means.shape[0], e_pair.numel()
+        num_pairs = means2d.shape[0]
+        num_n = num_bn * num_c // viewmats.shape[0]
+        v_means, v_quats = torch.zeros_like(means), torch.zeros_like(quats)
+        v_scales, v_opac = torch.zeros_like(scales), torch.zeros_like(opacities)
+        v_colors = torch.zeros(num_bn, 3, dtype=means.dtype, device=device)
+        if num_e == 0:
+            return v_means, v_quats, v_scales, v_opac, v_colors, None, None, None, None
+
+        v_e_means2d = means.new_zeros(num_e, 2)
+        v_e_conics = means.new_zeros(num_e, 3)
+        v_e_opac = means.new_zeros(num_e)
+        v_e_colors = means.new_zeros(num_e, 3)
+        entry_arrs = _entry_arrays(entries)
+        scratch_trans = torch.empty_like(trans)
+        scratch_behind = means.new_empty(trans.shape[0], 3)
+        _launch_tiles(_BACKWARD, ctx.ranges, s,
+                      [_arr(tile_start, wp.int32), _arr(tile_end, wp.int32), *entry_arrs,
+                       _arr(trans, wp.float32), _arr(end, wp.int32),
+                       _arr(v_rgb.reshape(-1, 3), wp.vec3), _arr(v_alpha.reshape(-1), wp.float32),
+                       _arr(scratch_trans, wp.float32), _arr(scratch_behind, wp.vec3),
+                       _arr(v_e_means2d, wp.vec2),
+                       _arr(v_e_conics, wp.vec3), _arr(v_e_opac, wp.float32),
+                       _arr(v_e_colors, wp.vec3)],
+                      device)  # fmt: skip
+        v_opac.index_add_(0, e_gauss, v_e_opac)
+        v_colors.index_add_(0, e_gauss, v_e_colors)
+        v_means2d = means.new_zeros(num_pairs, 2).index_add_(0, e_pair, v_e_means2d)
+        v_conics = means.new_zeros(num_pairs, 3).index_add_(0, e_pair, v_e_conics)
+
+        # Warp's generated adjoint of the projection kernel: sums over cameras into each Gaussian.
+        # It replays the forward, so it gets fresh output arrays to leave the meta tensors alone.
+        fwd = _projection_args(means, quats, scales, opacities, viewmats, Ks, num_n, num_c, s)
+        outs = _projection_outputs(*(torch.empty_like(x) for x in (means2d, conics, depths, cov_diag)))
+        zeros = [torch.zeros_like(x) for x in (opacities, viewmats, Ks, depths, cov_diag)]
+        adj = _projection_args(v_means, v_quats, v_scales, *zeros[:3], num_n, num_c, s)
+        adj_outs = _projection_outputs(v_means2d, v_conics, *zeros[3:])
+        _launch(K.project_kernel, num_pairs, fwd, device, outputs=outs, adj_inputs=adj,
+                adj_outputs=adj_outs, adjoint=True)  # fmt: skip
+        return v_means, v_quats, v_scales, v_opac, v_colors, None, None, None, None
+
+
+def rasterize_warp(
+    means: Tensor,  # [B, N, 3]
+    quats: Tensor,  # [B, N, 4]
+    scales: Tensor,  # [B, N, 3]
+    opacities: Tensor,  # [B, N]
+    colors: Tensor,  # [B, N, 3]
+    viewmats: Tensor,  # [B, C, 4, 4]
+    Ks: Tensor,  # [B, C, 3, 3]
+    settings: RasterSettings,
+) -> tuple[Tensor, Tensor, dict]:
+    """Renders B x C images in one pass; returns rgb [B, C, H, W, 3] (no background), alpha."""
+    wp.init()  # no-op after the first call
+    num_b, num_c = viewmats.shape[:2]
+    num_n = means.shape[1]
+    dtype = means.dtype
+
+    def flat(x: Tensor, *tail: int) -> Tensor:
+        # float32 is the kernels' type; the cast is part of the autograd graph
+        return x.reshape(-1, *tail).to(torch.float32).contiguous()
+
+    rgb, alpha, means2d, depths, extents, counts = _RasterizeWarp.apply(
+        flat(means, 3), flat(quats, 4), flat(scales, 3), flat(opacities), flat(colors, 3),
+        flat(viewmats, 4, 4), flat(Ks, 3, 3), settings, num_c,
+    )  # fmt: skip
+    shape = (num_b, num_c, settings.height, settings.width)
+    nonempty = counts.reshape(num_b, num_c, num_n) > 0
+    meta = {
+        "means2d": means2d.reshape(num_b, num_c, num_n, 2),  # px
+        "depths": depths.reshape(num_b, num_c, num_n),  # m
+        "radii": radii_px(extents.reshape(num_b, num_c, num_n, 2), nonempty),  # [B, C, N, 2]
+        "n_visible": nonempty.sum(-1),  # [B, C]
+        "n_intersections": counts.reshape(num_b, num_c, num_n).sum(-1, dtype=torch.int64),
+    }
+    return rgb.reshape(*shape, 3).to(dtype), alpha.reshape(*shape, 1).to(dtype), meta
