@@ -1,0 +1,129 @@
+"""The material table: one YAML per material under conf/sim/material/, loaded into a registry.
+
+``MATERIAL_NAMES`` fixes the class order of the model's material head (15 classes). Each entry
+names its constitutive model (``physgm.sim.constitutive.MODELS``), density, default E and nu,
+the typical E and nu ranges, the plasticity extras of its model and a ``source`` for every
+value. ``get_material(name)`` returns a validated ``Material``; ``Material.params(E, nu)`` the
+solver parameters.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from functools import cache
+from pathlib import Path
+
+import yaml
+
+MATERIAL_NAMES: tuple[str, ...] = (
+    "plastic", "wood", "metal", "fabric", "ceramic", "stone", "paper", "leather",
+    "glass", "rubber", "foam", "snow", "sand", "jelly", "plasticine",
+)  # fmt: skip
+
+MATERIAL_DIR = Path(__file__).resolve().parents[3] / "conf" / "sim" / "material"
+PLASTICITY_KEYS = ("yield_stress", "hardening", "friction_angle", "cohesion", "viscosity")
+
+
+@dataclass(frozen=True)
+class Material:
+    """One row of the material table (SI units)."""
+
+    name: str
+    model: str  # constitutive model name in physgm.sim.constitutive.MODELS
+    density: float  # kg/m^3
+    E: float  # default Young's modulus, Pa
+    nu: float  # default Poisson ratio
+    E_range: tuple[float, float]  # typical Young's moduli, Pa
+    nu_range: tuple[float, float]  # typical Poisson ratios
+    plasticity: dict[str, float] = field(default_factory=dict)  # model extras (yield_stress, ...)
+    source: dict[str, str] = field(default_factory=dict)  # value name -> citation
+
+    @property
+    def index(self) -> int:
+        """Class index of this material in ``MATERIAL_NAMES``."""
+        return MATERIAL_NAMES.index(self.name)
+
+    def params(self, E: float | None = None, nu: float | None = None):
+        """Solver parameters (``physgm.sim.constitutive.MaterialParams``) at this or another E / nu."""
+        from physgm.sim.constitutive import MaterialParams
+
+        return MaterialParams.from_material(self, E=E, nu=nu)
+
+
+def _fail(path: Path, message: str) -> None:
+    raise ValueError(f"material file {path}: {message}")
+
+
+def _validate(m: Material, path: Path) -> None:
+    from physgm.sim.constitutive import MODELS
+
+    if m.model not in MODELS:
+        _fail(path, f"unknown constitutive model {m.model!r}; known models: {', '.join(MODELS)}")
+    if not (math.isfinite(m.density) and m.density > 0):
+        _fail(path, f"density={m.density!r} kg/m^3 must be > 0")
+    lo, hi = m.E_range
+    if not (0 < lo <= m.E <= hi and math.isfinite(hi)):
+        _fail(path, f"need 0 < E_range[0] <= E <= E_range[1], got E={m.E!r}, E_range={m.E_range!r}")
+    nlo, nhi = m.nu_range
+    if not (-1 < nlo <= m.nu <= nhi < 0.5):
+        _fail(
+            path,
+            f"need -1 < nu_range[0] <= nu <= nu_range[1] < 0.5, got nu={m.nu!r}, nu_range={m.nu_range!r}",
+        )
+    unknown = set(m.plasticity) - set(PLASTICITY_KEYS)
+    if unknown:
+        _fail(path, f"unknown plasticity keys {sorted(unknown)}; allowed: {', '.join(PLASTICITY_KEYS)}")
+    missing = [k for k in ("E", "nu", "density", *m.plasticity) if not m.source.get(k)]
+    if missing:
+        _fail(path, f"no source given for {missing}; every value needs a `source:` entry")
+    m.params()  # the solver's own validation (e.g. yield stress > 0 for von Mises)
+
+
+def load_material(path: Path) -> Material:
+    """Read and validate one material YAML file."""
+    with open(path) as f:
+        raw = yaml.safe_load(f)
+    required = ("name", "model", "density", "E", "nu", "E_range", "nu_range", "source")
+    absent = [k for k in required if k not in raw]
+    if absent:
+        _fail(path, f"missing keys {absent}")
+    material = Material(
+        name=str(raw["name"]),
+        model=str(raw["model"]),
+        density=float(raw["density"]),
+        E=float(raw["E"]),
+        nu=float(raw["nu"]),
+        E_range=tuple(float(v) for v in raw["E_range"]),
+        nu_range=tuple(float(v) for v in raw["nu_range"]),
+        plasticity={str(k): float(v) for k, v in (raw.get("plasticity") or {}).items()},
+        source={str(k): str(v) for k, v in raw["source"].items()},
+    )
+    if material.name != path.stem:
+        _fail(path, f"name {material.name!r} must match the file name {path.stem!r}")
+    _validate(material, path)
+    return material
+
+
+@cache
+def material_table() -> dict[str, Material]:
+    """All materials, in ``MATERIAL_NAMES`` order."""
+    if not MATERIAL_DIR.is_dir():
+        raise FileNotFoundError(
+            f"material table directory {MATERIAL_DIR} not found (conf/sim/material/*.yaml)"
+        )
+    table = {}
+    for name in MATERIAL_NAMES:
+        path = MATERIAL_DIR / f"{name}.yaml"
+        if not path.exists():
+            raise FileNotFoundError(f"material {name!r} has no file {path}")
+        table[name] = load_material(path)
+    return table
+
+
+def get_material(name: str) -> Material:
+    """The material called ``name``; raises ValueError listing the known names otherwise."""
+    table = material_table()
+    if name not in table:
+        raise ValueError(f"unknown material {name!r}; known materials: {', '.join(MATERIAL_NAMES)}")
+    return table[name]

@@ -1,0 +1,84 @@
+"""physgm.sim: MLS-MPM simulator in NVIDIA Warp (CPU and CUDA, one code path).
+
+This docstring is the contract other modules (planner, rigid, coupling, benches) build on.
+Everything is SI: metres, seconds, kilograms, pascals. World frame: +z up, ground z = 0.
+
+Building blocks (all importable from ``physgm.sim``)
+----------------------------------------------------
+``GridSpec(origin, dx, res)``                       (grid.py)
+    Box grid, not necessarily cubic: ``origin`` (3,) m is node (0, 0, 0), ``dx`` the cell size,
+    ``res = (nx, ny, nz)`` node counts (>= 8 each). ``GridSpec.fit(lo, hi, dx, margin_cells=3)``
+    is the smallest grid whose free interior holds the box [lo, hi] (m); the planner fits it to
+    the object's reachable region. ``grid.interior(cells)`` gives the region away from the faces.
+
+``MaterialParams(model, E, nu, density, yield_stress=0, hardening=0, friction_angle=0,
+cohesion=0, viscosity=0)``                          (constitutive/__init__.py)
+    Solver-level parameters of one material; validated (E > 0, -1 < nu < 0.5, density > 0,
+    model extras) with a ValueError naming the bad value. ``MaterialParams.from_material(
+    get_material("rubber"), E=..., nu=...)`` or ``get_material(name).params(E, nu)`` build one
+    from the material table (``physgm.physics.materials``). ``.mu``, ``.lam``, ``.bulk``,
+    ``.wave_speed()`` (P-wave speed, m/s). ``constitutive.MODELS``: the registry
+    name -> ``ConstitutiveModel(id, stiffness, validate, plastic)``; models: fixed_corotated,
+    neo_hookean, drucker_prager, von_mises, foam, fluid.
+
+``Particles(x [P, 3], volume [P] m^3, material [P] int, v=None [P, 3], F=None [P, 3, 3])``
+    Input particle set (state.py), validated (P > 0, finite x, volume > 0). ``Particles.lattice
+    (lo, hi, spacing, material, inside=None)`` and ``Particles.cat([...])`` help build scenes.
+    ``ParticleState`` (x, v, F, C, plastic, escaped) is what ``solver.state()`` returns: numpy,
+    in the caller's particle order (the solver sorts particles by cell internally).
+
+``Scene(gravity=(0, 0, -9.81), ground=None, boxes=(), damping=0.0)`` (scenes.py, boundary.py)
+    ``GroundPlane(height=0.0, friction=0.3, mode="separate"|"slip"|"sticky")`` acts on grid
+    nodes at or below the plane. ``VelocityBox(lo, hi, velocity, start=0, stop=inf, hold=True)``
+    prescribes the velocity of grid nodes and particles inside a box that moves with it (grips,
+    clamps with velocity 0, pushers); after ``stop`` a held box fixes its contents.
+    ``damping`` (1/s) is a mass-proportional drag. The domain walls (``boundary_cells`` cells
+    inside each grid face) always stop particles; a particle the final clamp has to hold is
+    counted once in ``solver.escaped``, and no grid index can ever leave its array.
+    ``SCENES`` registry and ``build_scene(name, x, material=None, **overrides) -> SceneSetup
+    (scene, x, v, duration, reach_lo, reach_hi, driver_work)`` apply conf/sim/scene/<name>.yaml
+    (drop, stretch, push, two_objects) to rest particles.
+
+``SolverConfig`` (stepping.py; conf/sim/solver/default.yaml)
+    frame_dt 0.04 s, cfl 0.4, flip 0.95 (affine-FLIP share of the particle update, 0 = pure
+    APIC), max_retries, j_min / j_max (divergence guard), boundary_cells, threads (0 = auto: 2
+    CPU threads from 8k particles), cfl_check_every, sort_every, max_substeps.
+    ``SolverConfig.load("default")`` reads the YAML.
+
+``MPMSolver(particles, materials, grid, scene=None, config=None, device="cpu")``  (solver.py)
+    Allocates every array once, then only launches kernels.
+    ``.step_frame(frame_dt=None) -> FrameStats``  CFL sub-steps (dt = cfl dx / (c_p + |v|max),
+        |v|max re-read every ``cfl_check_every`` steps); checks the state (finite, J in
+        [j_min, j_max]); on failure restores the frame start and retries with half the CFL
+        number, finally raises ``SimulationDiverged``. Never returns a NaN frame.
+    ``.run(n_frames) -> Trajectory(x [T, P, 3], F [T, P, 3, 3], stats)``, frame 0 = initial.
+    ``.substep(dt)``   one raw MLS-MPM step (no guard), for tests and couplings.
+    ``.stable_dt()``, ``.state()``, ``.set_velocities(v [P, 3])``, ``.energy() -> Energy``
+    (kinetic incl. APIC affine part, gravitational, elastic; J), ``.driver_work`` (J put in by
+    velocity boxes), ``.time``, ``.frame``, ``.escaped``, ``.threads``, ``.close()``.
+    ``.hooks``: list of ``GridHook``; ``hook.apply(solver, dt)`` runs after each grid update.
+    ``solver.grid_v`` is a wp.array3d [nx, ny, nz] of ``kernels.vec8`` = (vx, vy, vz, mass,
+    dvx, dvy, dvz, 0); a hook that changes a node velocity must add the same change to
+    components 4-6 (``kernels.set_node_velocity`` does both). Only nodes inside
+    ``solver.active_box`` (node index lo, hi) are current.
+
+``simulate(particles, materials, grid, scene, n_frames, config=None, device="cpu")`` builds a
+solver, runs it and returns the ``Trajectory``.
+
+``cfl_dt(dx, materials, vmax, cfl)``, ``wave_speed(materials)`` and ``substeps_per_frame(...)``
+predict the cost of a run before building a solver (for the planner).
+"""
+
+from physgm.sim.boundary import GridHook, GroundPlane, VelocityBox
+from physgm.sim.constitutive import MODELS, MaterialParams
+from physgm.sim.grid import GridSpec
+from physgm.sim.scenes import SCENES, Scene, SceneSetup, build_scene
+from physgm.sim.solver import MPMSolver, simulate
+from physgm.sim.state import Energy, FrameStats, Particles, ParticleState, Trajectory
+from physgm.sim.stepping import SimulationDiverged, SolverConfig, cfl_dt, substeps_per_frame, wave_speed
+
+__all__ = [
+    "MODELS", "SCENES", "Energy", "FrameStats", "GridHook", "GridSpec", "GroundPlane", "MPMSolver",
+    "MaterialParams", "ParticleState", "Particles", "Scene", "SceneSetup", "SimulationDiverged", "SolverConfig",
+    "Trajectory", "VelocityBox", "build_scene", "cfl_dt", "simulate", "substeps_per_frame", "wave_speed",
+]  # fmt: skip

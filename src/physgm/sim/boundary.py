@@ -1,0 +1,160 @@
+"""Boundary conditions acting on the grid: ground plane, moving velocity boxes, grid hooks.
+
+The domain walls are not configured here: the solver always keeps particles ``boundary_cells``
+cells away from the grid edge (separating walls on the grid, plus a clamp that stops and counts
+any particle that still reaches the edge), so no grid index can leave its array.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+import warp as wp
+
+if TYPE_CHECKING:
+    from physgm.sim.solver import MPMSolver
+
+GROUND_SEPARATE = wp.constant(0)  # Coulomb friction, may lift off
+GROUND_SLIP = wp.constant(1)  # frictionless, may lift off
+GROUND_STICKY = wp.constant(2)  # nodes below the plane are fixed
+_GROUND_MODES = {"separate": 0, "slip": 1, "sticky": 2}
+
+
+@wp.struct
+class GroundStruct:
+    enabled: int
+    height: float  # plane z = height, m
+    friction: float  # Coulomb coefficient
+    mode: int  # GROUND_SEPARATE / GROUND_SLIP / GROUND_STICKY
+
+
+@wp.struct
+class BoxStruct:
+    lo: wp.vec3  # box corner at t = start, m
+    hi: wp.vec3
+    velocity: wp.vec3  # m/s, imposed on the nodes inside and moving the box
+    start: float  # s
+    stop: float  # s
+    hold: int  # 1: after stop the box stays and fixes its nodes; 0: it is released
+
+
+@dataclass(frozen=True)
+class GroundPlane:
+    """Plane z = ``height`` acting on grid nodes at or below it.
+
+    mode: "separate" (Coulomb friction ``friction``, lift-off allowed), "slip" (frictionless,
+    lift-off allowed) or "sticky" (nodes below the plane do not move).
+    """
+
+    height: float = 0.0
+    friction: float = 0.3
+    mode: str = "separate"
+
+    def __post_init__(self) -> None:
+        if self.mode not in _GROUND_MODES:
+            raise ValueError(f"ground mode {self.mode!r} unknown; use one of {', '.join(_GROUND_MODES)}")
+        if not (math.isfinite(self.friction) and self.friction >= 0.0):
+            raise ValueError(f"ground friction={self.friction!r} must be finite and >= 0")
+
+    def pack(self) -> GroundStruct:
+        s = GroundStruct()
+        s.enabled = 1
+        s.height = float(self.height)
+        s.friction = float(self.friction)
+        s.mode = _GROUND_MODES[self.mode]
+        return s
+
+
+@dataclass(frozen=True)
+class VelocityBox:
+    """Grid nodes inside [lo, hi] (moving with ``velocity`` from ``start`` to ``stop``) take that velocity.
+
+    Grips of a stretch test are two boxes moving apart; a clamp is a box with zero velocity.
+    After ``stop`` a held box stays where it ended and fixes its nodes (velocity 0).
+    """
+
+    lo: tuple[float, float, float]
+    hi: tuple[float, float, float]
+    velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    start: float = 0.0
+    stop: float = math.inf
+    hold: bool = True
+
+    def __post_init__(self) -> None:
+        lo, hi = np.asarray(self.lo, float), np.asarray(self.hi, float)
+        if lo.shape != (3,) or hi.shape != (3,) or not np.all(lo < hi):
+            raise ValueError(f"velocity box needs lo < hi componentwise, got lo={self.lo}, hi={self.hi}")
+        vel = np.asarray(self.velocity, float)
+        if vel.shape != (3,) or not np.isfinite(vel).all():
+            raise ValueError(f"velocity box velocity must be three finite numbers, got {self.velocity}")
+        for name, value in (("lo", lo), ("hi", hi), ("velocity", vel)):
+            object.__setattr__(self, name, tuple(float(c) for c in value))
+
+    def pack(self) -> BoxStruct:
+        s = BoxStruct()
+        s.lo = wp.vec3(*self.lo)
+        s.hi = wp.vec3(*self.hi)
+        s.velocity = wp.vec3(*self.velocity)
+        s.start = float(self.start)
+        s.stop = float(min(self.stop, 1.0e30))
+        s.hold = int(self.hold)
+        return s
+
+
+def no_ground() -> GroundStruct:
+    s = GroundStruct()
+    s.enabled = 0
+    return s
+
+
+class GridHook(Protocol):
+    """Extension point called after the grid update of every sub-step.
+
+    ``solver.grid_v`` (wp.array3d of vec4, [nx, ny, nz]: xyz node velocity in m/s, w node mass
+    in kg) may be modified in place with Warp kernels on ``solver.device``; e.g. a rigid
+    collider sets the velocity of the nodes it covers and reads the momentum change.
+    """
+
+    def apply(self, solver: MPMSolver, dt: float) -> None: ...
+
+
+@wp.func
+def box_velocity(box: BoxStruct, pos: wp.vec3, t: float, v: wp.vec3) -> wp.vec3:
+    """Velocity of a node at ``pos`` after box ``box`` acted on velocity ``v``."""
+    if t < box.start:
+        return v
+    moving = t < box.stop
+    if not moving and box.hold == 0:
+        return v
+    shift = box.velocity * (wp.min(t, box.stop) - box.start)
+    lo = box.lo + shift
+    hi = box.hi + shift
+    if pos[0] < lo[0] or pos[1] < lo[1] or pos[2] < lo[2]:
+        return v
+    if pos[0] > hi[0] or pos[1] > hi[1] or pos[2] > hi[2]:
+        return v
+    if moving:
+        return box.velocity
+    return wp.vec3(0.0)
+
+
+@wp.func
+def ground_velocity(ground: GroundStruct, pos: wp.vec3, v: wp.vec3) -> wp.vec3:
+    """Velocity of a node at ``pos`` after the ground plane acted on ``v``."""
+    if ground.enabled == 0 or pos[2] > ground.height:
+        return v
+    if ground.mode == GROUND_STICKY:
+        return wp.vec3(0.0)
+    vn = v[2]
+    if vn >= 0.0:
+        return v  # separating: leaving the ground is free
+    vt = wp.vec3(v[0], v[1], 0.0)
+    if ground.mode == GROUND_SLIP:
+        return vt
+    vt_norm = wp.length(vt)
+    if vt_norm <= -ground.friction * vn:
+        return wp.vec3(0.0)
+    return vt * (1.0 + ground.friction * vn / vt_norm)

@@ -1,0 +1,152 @@
+"""Shared pieces of the constitutive models: the packed material struct, model ids, Hencky helpers.
+
+Every model exposes two Warp functions with the same signature so one dispatch covers all:
+
+    update(H_trial: mat33, mat: MaterialStruct, plastic: float, dt: float)
+        -> (H_new: mat33, tau: mat33, plastic_new: float)
+    energy(H: mat33, mat: MaterialStruct) -> float     # strain energy density, J/m^3
+
+H = F - I is the displacement gradient of the elastic deformation gradient F. Models work in H,
+not F: a stiff material (E ~ 1e11 Pa) strains ~1e-5 per impact, and forming I + H in float32
+rounds that strain to a few significant digits; the resulting stress noise (lam x 1e-7) made the
+explicit step unstable. ``update`` applies the return mapping (if any) to the trial state and
+returns the Kirchhoff stress tau = P F^T of the projected state, in Pa. ``plastic`` is one scalar
+of history per particle (accumulated plastic strain for the hardening models).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from physgm.sim.linalg import rv_svd, sym_eig3
+
+EYE = wp.constant(wp.mat33(1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0))
+
+# Model ids used inside kernels. The name -> id table is ``constitutive.MODELS``.
+FIXED_COROTATED = wp.constant(0)
+NEO_HOOKEAN = wp.constant(1)
+DRUCKER_PRAGER = wp.constant(2)
+VON_MISES = wp.constant(3)
+FOAM = wp.constant(4)
+FLUID = wp.constant(5)
+
+# Smallest principal stretch the Hencky models keep (log strain -6.9): inverted or collapsed
+# trial states are projected to this barely-positive stretch instead of producing log(<=0).
+SIGMA_MIN = wp.constant(1.0e-3)
+
+
+@wp.struct
+class MaterialStruct:
+    """One material as the kernels see it (SI units). Unused fields are 0 for a model."""
+
+    model: int  # model id (FIXED_COROTATED, ...)
+    mu: float  # shear modulus, Pa
+    lam: float  # first Lame parameter, Pa
+    yield_stress: float  # von Mises / foam initial yield stress sigma_y, Pa
+    hardening: float  # linear isotropic hardening modulus H, Pa
+    alpha: float  # Drucker-Prager cone slope sqrt(2/3) 2 sin(phi) / (3 - sin(phi))
+    tension_strain: float  # Drucker-Prager apex in log volumetric strain (cohesion), >= 0
+    viscosity: float  # foam Perzyna viscosity, Pa s
+    bulk: float  # fluid bulk modulus, Pa
+
+
+@wp.func
+def log1p(x: float) -> float:
+    """log(1 + x), accurate for small x (Goldberg's trick)."""
+    u = 1.0 + x
+    if u == 1.0:
+        return x
+    return wp.log(u) * x / (u - 1.0)
+
+
+@wp.func
+def expm1(x: float) -> float:
+    """exp(x) - 1, accurate for small x (Kahan's trick)."""
+    u = wp.exp(x)
+    if u == 1.0:
+        return x
+    um1 = u - 1.0
+    if um1 == -1.0:
+        return -1.0
+    return um1 * x / wp.log(u)
+
+
+@wp.func
+def det_minus_one(H: wp.mat33) -> float:
+    """det(I + H) - 1 without the float32 cancellation of forming det(I + H) first."""
+    minors = (
+        (H[0, 0] * H[1, 1] - H[0, 1] * H[1, 0])
+        + (H[0, 0] * H[2, 2] - H[0, 2] * H[2, 0])
+        + (H[1, 1] * H[2, 2] - H[1, 2] * H[2, 1])
+    )
+    return wp.trace(H) + minors + wp.determinant(H)
+
+
+@wp.func
+def green_minus_identity(H: wp.mat33) -> wp.mat33:
+    """b - I = F F^T - I = H + H^T + H H^T, exact to float32 relative to the strain."""
+    return H + wp.transpose(H) + H * wp.transpose(H)
+
+
+@wp.func
+def hencky_decompose(H: wp.mat33):
+    """Eigenvectors U of b = F F^T, signed principal stretches and clamped Hencky strains.
+
+    Decomposes b - I (small numbers, full relative precision) rather than b; eps_i =
+    log1p(d_i) / 2. sigma[0] (the smallest stretch) carries the sign of det F. Returns (U, sigma,
+    eps, clamped) where ``clamped`` says a stretch was below SIGMA_MIN (or inverted), so its strain
+    is not log(sigma) and F must be rebuilt.
+    """
+    U, d = sym_eig3(green_minus_identity(H))
+    sigma = wp.vec3(
+        wp.sqrt(wp.max(1.0 + d[0], 0.0)), wp.sqrt(wp.max(1.0 + d[1], 0.0)), wp.sqrt(wp.max(1.0 + d[2], 0.0))
+    )
+    if det_minus_one(H) < -1.0:
+        sigma[0] = -sigma[0]
+    clamped = sigma[0] < SIGMA_MIN
+    eps = wp.vec3(0.5 * log1p(d[0]), 0.5 * log1p(d[1]), 0.5 * log1p(d[2]))
+    if clamped:
+        eps[0] = wp.log(SIGMA_MIN)
+        eps[1] = wp.log(wp.max(sigma[1], SIGMA_MIN))
+        eps[2] = wp.log(wp.max(sigma[2], SIGMA_MIN))
+    return U, sigma, eps, clamped
+
+
+@wp.func
+def hencky_finish(
+    H: wp.mat33,
+    U: wp.mat33,
+    sigma: wp.vec3,
+    eps_old: wp.vec3,
+    eps: wp.vec3,
+    rebuild: bool,
+    clamped: bool,
+    mu: float,
+    lam: float,
+):
+    """Projected displacement gradient and StVK-Hencky Kirchhoff stress U diag(2 mu eps + lam tr eps) U^T.
+
+    F = U diag(sigma) V^T, so the state with strains ``eps`` is F' = U diag(exp(eps) / sigma) U^T F
+    and H' = H + U diag(exp(eps) / sigma - 1) U^T F, with exp(eps) / sigma - 1 = expm1(eps -
+    eps_old) whenever eps_old = log(sigma) is exact: no right singular vectors, no cancellation.
+    """
+    tr = eps[0] + eps[1] + eps[2]
+    tau = U * wp.diag(2.0 * mu * eps + wp.vec3(lam * tr)) * wp.transpose(U)
+    if not rebuild:
+        return H, tau
+    if not clamped:
+        r = wp.vec3(expm1(eps[0] - eps_old[0]), expm1(eps[1] - eps_old[1]), expm1(eps[2] - eps_old[2]))
+        return H + U * wp.diag(r) * (wp.transpose(U) * (EYE + H)), tau
+    if wp.abs(sigma[0]) > 1.0e-6:
+        r = wp.vec3(
+            wp.exp(eps[0]) / sigma[0] - 1.0, wp.exp(eps[1]) / sigma[1] - 1.0, wp.exp(eps[2]) / sigma[2] - 1.0
+        )
+        return H + U * wp.diag(r) * (wp.transpose(U) * (EYE + H)), tau
+    Us, s, V = rv_svd(EYE + H)
+    return Us * wp.diag(wp.vec3(wp.exp(eps[0]), wp.exp(eps[1]), wp.exp(eps[2]))) * wp.transpose(V) - EYE, tau
+
+
+@wp.func
+def hencky_energy(eps: wp.vec3, mu: float, lam: float) -> float:
+    tr = eps[0] + eps[1] + eps[2]
+    return mu * wp.dot(eps, eps) + 0.5 * lam * tr * tr

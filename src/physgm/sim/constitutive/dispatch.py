@@ -1,0 +1,55 @@
+"""One Warp entry point over all constitutive models, switched on the integer model id."""
+
+from __future__ import annotations
+
+import warp as wp
+
+from physgm.sim.constitutive.common import (
+    DRUCKER_PRAGER,
+    FIXED_COROTATED,
+    FLUID,
+    FOAM,
+    NEO_HOOKEAN,
+    VON_MISES,
+    MaterialStruct,
+)
+from physgm.sim.constitutive.drucker_prager import drucker_prager_energy, drucker_prager_update
+from physgm.sim.constitutive.fixed_corotated import fixed_corotated_energy, fixed_corotated_update
+from physgm.sim.constitutive.fluid import fluid_energy, fluid_update
+from physgm.sim.constitutive.foam import foam_energy, foam_update
+from physgm.sim.constitutive.neo_hookean import neo_hookean_energy, neo_hookean_update
+from physgm.sim.constitutive.von_mises import von_mises_energy, von_mises_update
+
+
+@wp.func
+def constitutive_update(H: wp.mat33, mat: MaterialStruct, plastic: float, dt: float):
+    """Return mapping + Kirchhoff stress of F = I + H: (H_new, tau [Pa], plastic_new)."""
+    if mat.model == FIXED_COROTATED:
+        return fixed_corotated_update(H, mat, plastic, dt)
+    if mat.model == NEO_HOOKEAN:
+        return neo_hookean_update(H, mat, plastic, dt)
+    if mat.model == DRUCKER_PRAGER:
+        return drucker_prager_update(H, mat, plastic, dt)
+    if mat.model == VON_MISES:
+        return von_mises_update(H, mat, plastic, dt)
+    if mat.model == FOAM:
+        return foam_update(H, mat, plastic, dt)
+    return fluid_update(H, mat, plastic, dt)
+
+
+@wp.func
+def energy_density(H: wp.mat33, mat: MaterialStruct) -> float:
+    """Strain energy per unit rest volume of F = I + H, J/m^3 (H keeps small strains exact)."""
+    if mat.model == FIXED_COROTATED:
+        return fixed_corotated_energy(H, mat)
+    if mat.model == NEO_HOOKEAN:
+        return neo_hookean_energy(H, mat)
+    if mat.model == DRUCKER_PRAGER:
+        return drucker_prager_energy(H, mat)
+    if mat.model == VON_MISES:
+        return von_mises_energy(H, mat)
+    if mat.model == FOAM:
+        return foam_energy(H, mat)
+    if mat.model == FLUID:
+        return fluid_energy(H, mat)
+    return 0.0

@@ -1,0 +1,36 @@
+"""Viscoplastic foam: Perzyna-type viscoplastic von Mises with linear hardening (Hencky strain).
+
+The overstress above the von Mises yield surface relaxes at a finite rate set by the viscosity
+eta (Pa s) instead of being removed at once (Simo and Hughes 1998, section 2.7, Perzyna model
+discretised by backward Euler). In the radial return of ``von_mises`` the plastic multiplier
+becomes
+    dgamma = (||e|| - r) / (1 + H / (3 mu) + eta / (2 mu dt)),
+so eta -> 0 is rate-independent von Mises and eta -> infinity is purely elastic. Foams squash and
+slowly keep their new shape, which is this behaviour; volumetric crushing is not modelled.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from physgm.sim.constitutive.common import MaterialStruct, hencky_decompose, hencky_energy, hencky_finish
+from physgm.sim.constitutive.von_mises import von_mises_project
+
+
+@wp.func
+def foam_update(H: wp.mat33, mat: MaterialStruct, plastic: float, dt: float):
+    U, sigma, eps, clamped = hencky_decompose(H)
+    viscous_term = 0.0
+    if dt > 0.0:
+        viscous_term = mat.viscosity / (2.0 * mat.mu * dt)
+    eps_new, kappa = von_mises_project(eps, mat, plastic, viscous_term)
+    H_new, tau = hencky_finish(
+        H, U, sigma, eps, eps_new, clamped or kappa > plastic, clamped, mat.mu, mat.lam
+    )
+    return H_new, tau, kappa
+
+
+@wp.func
+def foam_energy(H: wp.mat33, mat: MaterialStruct) -> float:
+    U, sigma, eps, clamped = hencky_decompose(H)
+    return hencky_energy(eps, mat.mu, mat.lam)

@@ -1,0 +1,161 @@
+"""Plain numpy twins of the constitutive models, float64, for tests only.
+
+Written independently of the Warp code: stretches come from ``np.linalg.svd`` (made rotation
+variant), stresses from the textbook formulas. Shapes: F [N, 3, 3]; returns (F_new, tau, plastic).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+SIGMA_MIN = 1.0e-3
+J_E = 0.1
+J_MIN_FLUID = 0.05
+
+
+def rv_svd(F: np.ndarray):  # F: [N, 3, 3]
+    """Rotation-variant SVD: det U = det V = +1, the smallest singular value carries det's sign."""
+    U, s, Vt = np.linalg.svd(F)
+    U, s, Vt = U.copy(), s.copy(), Vt.copy()
+    flip_u = np.linalg.det(U) < 0
+    U[flip_u, :, 2] *= -1
+    s[flip_u, 2] *= -1
+    flip_v = np.linalg.det(Vt) < 0
+    Vt[flip_v, 2, :] *= -1
+    s[flip_v, 2] *= -1
+    return U, s, Vt
+
+
+def _diag_sandwich(U: np.ndarray, d: np.ndarray, Vt: np.ndarray) -> np.ndarray:
+    return np.einsum("nij,nj,njk->nik", U, d, Vt)
+
+
+def fixed_corotated(F, mu, lam, plastic=None, dt=0.0):
+    U, s, Vt = rv_svd(F)
+    R = U @ Vt
+    J = np.linalg.det(F)
+    tau = 2 * mu * (F - R) @ np.swapaxes(F, 1, 2) + (lam * (J - 1) * J)[:, None, None] * np.eye(3)
+    return F.copy(), tau, plastic
+
+
+def _g(J):
+    return np.where(J >= J_E, np.log(np.maximum(J, J_E)), math.log(J_E) + (J - J_E) / J_E)
+
+
+def _dg(J):
+    return np.where(J >= J_E, 1.0 / np.maximum(J, J_E), 1.0 / J_E)
+
+
+def cofactor(F):
+    return np.stack(
+        [
+            np.cross(F[:, :, 1], F[:, :, 2]),
+            np.cross(F[:, :, 2], F[:, :, 0]),
+            np.cross(F[:, :, 0], F[:, :, 1]),
+        ],
+        axis=2,
+    )
+
+
+def neo_hookean_first_pk(F, mu, lam):
+    """P = mu F + (lam g(J) - mu) g'(J) cof(F), defined for every F (cof F = J F^-T)."""
+    J = np.linalg.det(F)
+    return mu * F + ((lam * _g(J) - mu) * _dg(J))[:, None, None] * cofactor(F)
+
+
+def neo_hookean(F, mu, lam, plastic=None, dt=0.0):
+    return F.copy(), neo_hookean_first_pk(F, mu, lam) @ np.swapaxes(F, 1, 2), plastic
+
+
+def _hencky(F):
+    U, s, Vt = rv_svd(F)
+    return U, Vt, np.log(np.maximum(s, SIGMA_MIN))
+
+
+def _hencky_out(U, Vt, eps, mu, lam):
+    F_new = _diag_sandwich(U, np.exp(eps), Vt)
+    tau = _diag_sandwich(U, 2 * mu * eps + lam * eps.sum(1, keepdims=True), np.swapaxes(U, 1, 2))
+    return F_new, tau
+
+
+def drucker_prager(F, mu, lam, friction_angle, cohesion, plastic, dt=0.0):
+    """Klar et al. 2016 projection with the apex shifted by the cohesion."""
+    U, Vt, eps = _hencky(F)
+    sin_phi = math.sin(math.radians(friction_angle))
+    alpha = math.sqrt(2 / 3) * 2 * sin_phi / (3 - sin_phi)
+    eps_t = 3 * cohesion / math.tan(math.radians(friction_angle)) / (3 * lam + 2 * mu)
+    out = eps.copy()
+    dgamma = np.zeros(len(F))
+    for n in range(len(F)):
+        tr = eps[n].sum()
+        dev = eps[n] - tr / 3
+        norm = np.linalg.norm(dev)
+        if tr >= eps_t:
+            out[n] = eps_t / 3
+            dgamma[n] = norm + tr - eps_t
+            continue
+        dg = norm + alpha * (3 * lam + 2 * mu) / (2 * mu) * (tr - eps_t)
+        if dg > 0 and norm > 0:
+            out[n] = eps[n] - dg * dev / norm
+            dgamma[n] = dg
+    F_new, tau = _hencky_out(U, Vt, out, mu, lam)
+    return F_new, tau, plastic + dgamma
+
+
+def von_mises(F, mu, lam, yield_stress, hardening, plastic, dt=0.0, viscosity=0.0):
+    """Radial return with linear hardening; viscosity > 0 gives the Perzyna (foam) update."""
+    U, Vt, eps = _hencky(F)
+    out = eps.copy()
+    kappa = plastic.copy()
+    viscous = viscosity / (2 * mu * dt) if viscosity > 0 else 0.0
+    for n in range(len(F)):
+        dev = eps[n] - eps[n].sum() / 3
+        norm = np.linalg.norm(dev)
+        radius = math.sqrt(2 / 3) * (yield_stress + hardening * plastic[n]) / (2 * mu)
+        if norm > radius:
+            dg = (norm - radius) / (1 + hardening / (3 * mu) + viscous)
+            out[n] = eps[n] - dg * dev / norm
+            kappa[n] = plastic[n] + math.sqrt(2 / 3) * dg
+    F_new, tau = _hencky_out(U, Vt, out, mu, lam)
+    return F_new, tau, kappa
+
+
+def fluid(F, bulk, plastic=None, dt=0.0):
+    J = np.maximum(np.linalg.det(F), J_MIN_FLUID)
+    F_new = np.cbrt(J)[:, None, None] * np.eye(3)
+    return F_new, (bulk * (J - 1) * J)[:, None, None] * np.eye(3), plastic
+
+
+def energy_density(model: str, F: np.ndarray, mu: float, lam: float, bulk: float = 0.0) -> np.ndarray:
+    """Strain energy per rest volume, J/m^3, for every model of the registry."""
+    J = np.linalg.det(F)
+    if model == "fixed_corotated":
+        s = rv_svd(F)[1]
+        return mu * ((s - 1) ** 2).sum(1) + 0.5 * lam * (J - 1) ** 2
+    if model == "neo_hookean":
+        g = _g(J)
+        return 0.5 * mu * ((F**2).sum((1, 2)) - 3) - mu * g + 0.5 * lam * g**2
+    if model == "fluid":
+        return 0.5 * bulk * (J - 1) ** 2
+    eps = _hencky(F)[2]
+    return mu * (eps**2).sum(1) + 0.5 * lam * eps.sum(1) ** 2
+
+
+def update(params, F: np.ndarray, plastic: np.ndarray, dt: float):
+    """Dispatch on a ``MaterialParams``: (F_new, tau, plastic_new)."""
+    mu, lam = params.mu, params.lam
+    if params.model == "fixed_corotated":
+        return fixed_corotated(F, mu, lam, plastic)
+    if params.model == "neo_hookean":
+        return neo_hookean(F, mu, lam, plastic)
+    if params.model == "drucker_prager":
+        return drucker_prager(F, mu, lam, params.friction_angle, params.cohesion, plastic)
+    if params.model == "von_mises":
+        return von_mises(F, mu, lam, params.yield_stress, params.hardening, plastic)
+    if params.model == "foam":
+        return von_mises(F, mu, lam, params.yield_stress, params.hardening, plastic, dt, params.viscosity)
+    if params.model == "fluid":
+        return fluid(F, params.bulk, plastic)
+    raise ValueError(f"no reference for model {params.model!r}")

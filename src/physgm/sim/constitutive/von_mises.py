@@ -1,0 +1,47 @@
+"""von Mises (J2) plasticity with linear isotropic hardening on Hencky strain.
+
+Radial return (Simo and Hughes 1998, box 3.1) in principal log strain: with deviatoric trial
+strain e = dev(eps), yield radius r = sqrt(2/3) (sigma_y + H kappa) / (2 mu), and accumulated
+equivalent plastic strain kappa (the particle's ``plastic`` scalar):
+    ||e|| <= r  -> elastic
+    otherwise   -> dgamma = (||e|| - r) / (1 + H / (3 mu)),  e -= dgamma e/||e||,
+                   kappa += sqrt(2/3) dgamma.
+The volumetric part stays elastic (metals and plasticine keep their volume when they yield).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from physgm.sim.constitutive.common import MaterialStruct, hencky_decompose, hencky_energy, hencky_finish
+
+SQRT_2_3 = wp.constant(0.816496580927726)
+
+
+@wp.func
+def von_mises_project(eps: wp.vec3, mat: MaterialStruct, kappa: float, viscous_term: float):
+    """Radial return; ``viscous_term`` eta / (2 mu dt) turns it into a Perzyna (foam) update."""
+    tr = eps[0] + eps[1] + eps[2]
+    dev = eps - wp.vec3(tr / 3.0)
+    dev_norm = wp.length(dev)
+    radius = SQRT_2_3 * (mat.yield_stress + mat.hardening * kappa) / (2.0 * mat.mu)
+    if dev_norm <= radius:
+        return eps, kappa
+    dgamma = (dev_norm - radius) / (1.0 + mat.hardening / (3.0 * mat.mu) + viscous_term)
+    return eps - (dgamma / dev_norm) * dev, kappa + SQRT_2_3 * dgamma
+
+
+@wp.func
+def von_mises_update(H: wp.mat33, mat: MaterialStruct, plastic: float, dt: float):
+    U, sigma, eps, clamped = hencky_decompose(H)
+    eps_new, kappa = von_mises_project(eps, mat, plastic, 0.0)
+    H_new, tau = hencky_finish(
+        H, U, sigma, eps, eps_new, clamped or kappa > plastic, clamped, mat.mu, mat.lam
+    )
+    return H_new, tau, kappa
+
+
+@wp.func
+def von_mises_energy(H: wp.mat33, mat: MaterialStruct) -> float:
+    U, sigma, eps, clamped = hencky_decompose(H)
+    return hencky_energy(eps, mat.mu, mat.lam)

@@ -1,0 +1,328 @@
+"""MLS-MPM transfer kernels (APIC, quadratic B-splines), one code path for CPU and CUDA.
+
+Per sub-step the solver launches three kernels:
+
+    p2g          particles -> grid momentum, mass and stress impulse (stress and APIC fused)
+    grid_update  momentum -> velocity, gravity, boundary conditions; clears the accumulators
+    g2p          grid -> particle velocity and affine matrix C (APIC blended with affine FLIP),
+                 F update, return mapping, Kirchhoff stress for the next p2g, advection,
+                 domain clamp, statistics
+
+Grid nodes are ``vec8``. Accumulators: (momentum xyz, mass, stress impulse xyz, 0). Velocity grid
+``grid_v``: (velocity xyz, mass, velocity change of this step xyz, 0); a hook that overrides a
+node velocity adds the same change to components 4-6 (``set_node_velocity``).
+
+Particle kernels take an ``offset`` so the CPU solver can split the particles over threads,
+each p2g thread scattering into its own accumulator; grid_update sums them over the active box
+(``lo`` + launch dims), the only nodes particles can touch before the next re-fit.
+Particle stencils are clamped inside the grid, so no index can leave an array whatever the state.
+The numpy twin of one sub-step is ``physgm.sim.reference_mpm`` (tests only).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from physgm.sim.boundary import BoxStruct, GroundStruct, box_velocity, ground_velocity
+from physgm.sim.constitutive.common import EYE, MaterialStruct, det_minus_one
+from physgm.sim.constitutive.dispatch import constitutive_update
+
+wp.set_module_options({"enable_backward": False})
+
+vec8 = wp.types.vector(length=8, dtype=wp.float32)
+
+# Columns of the per-sub-step statistics (one row per worker thread).
+STAT_VMAX = wp.constant(0)  # max squared particle speed, m^2/s^2
+STAT_JMIN = wp.constant(1)  # min det F
+STAT_JMAX = wp.constant(2)  # max det F
+STAT_BAD = wp.constant(3)  # particles with a non-finite state
+STAT_ESCAPED = wp.constant(4)  # particles newly stopped by the domain clamp
+STAT_OVERRUN = wp.constant(5)  # particles that left the active grid box (CFL estimate exceeded)
+NUM_STATS = 6
+
+
+@wp.func
+def stencil(xp: wp.vec3, shape: wp.vec3i):
+    """Base node (clamped inside the grid), fractional offset and quadratic weights (rows)."""
+    bx = wp.clamp(int(xp[0] - 0.5), 0, shape[0] - 3)
+    by = wp.clamp(int(xp[1] - 0.5), 0, shape[1] - 3)
+    bz = wp.clamp(int(xp[2] - 0.5), 0, shape[2] - 3)
+    fx = xp - wp.vec3(float(bx), float(by), float(bz))
+    a = wp.vec3(1.5) - fx
+    b = fx - wp.vec3(1.0)
+    c = fx - wp.vec3(0.5)
+    w0 = 0.5 * wp.cw_mul(a, a)
+    w1 = wp.vec3(0.75) - wp.cw_mul(b, b)
+    w2 = 0.5 * wp.cw_mul(c, c)
+    return wp.vec3i(bx, by, bz), fx, wp.mat33(w0[0], w0[1], w0[2], w1[0], w1[1], w1[2], w2[0], w2[1], w2[2])
+
+
+@wp.func
+def set_node_velocity(grid_v: wp.array3d(dtype=vec8), i: int, j: int, k: int, vel: wp.vec3):
+    """Override a node velocity in ``grid_v`` keeping its FLIP increment consistent."""
+    g = grid_v[i, j, k]
+    g[4] = g[4] + vel[0] - g[0]
+    g[5] = g[5] + vel[1] - g[1]
+    g[6] = g[6] + vel[2] - g[2]
+    g[0] = vel[0]
+    g[1] = vel[1]
+    g[2] = vel[2]
+    grid_v[i, j, k] = g
+
+
+@wp.func
+def scatter_column(
+    grid: wp.array(dtype=vec8),
+    row: int,
+    wz: wp.vec3,
+    wij: float,
+    m: float,
+    q: wp.vec3,
+    f: wp.vec3,
+    az: wp.vec3,
+    fz: wp.vec3,
+):
+    """Add the three nodes row, row+1, row+2 (k = 0, 1, 2) of one stencil column."""
+    for k in range(3):
+        w = wij * wz[k]
+        wp.atomic_add(
+            grid, row + k, vec8(w * q[0], w * q[1], w * q[2], w * m, w * f[0], w * f[1], w * f[2], 0.0)
+        )
+        q = q + az
+        f = f + fz
+
+
+@wp.kernel
+def p2g(
+    x: wp.array(dtype=wp.vec3),  # [P] m
+    v: wp.array(dtype=wp.vec3),  # [P] m/s
+    C: wp.array(dtype=wp.mat33),  # [P] 1/s, APIC affine velocity
+    stress: wp.array(dtype=wp.mat33),  # [P] rest volume x Kirchhoff stress, N m
+    mass: wp.array(dtype=float),  # [P] kg
+    origin: wp.vec3,
+    dx: float,
+    dt: float,
+    offset: int,
+    shape: wp.vec3i,  # grid node counts
+    grid: wp.array(dtype=vec8),  # [G] flat (i ny + j) nz + k: momentum, mass, stress impulse
+):
+    p = wp.tid() + offset
+    inv_dx = 1.0 / dx
+    base, fx, w = stencil((x[p] - origin) * inv_dx, shape)
+    m = mass[p]
+    # MLS-MPM (Hu et al. 2018): node term w (m v + (m C + impulse)(x_i - x_p)) with the stress
+    # impulse -dt (4 / dx^2) V0 tau, built incrementally along i, j, k (adds only, no 0 * x).
+    impulse = -(dt * 4.0 * inv_dx * inv_dx) * stress[p]
+    affine = m * C[p] + impulse
+    q = m * v[p] - affine * (fx * dx)
+    f = -(impulse * (fx * dx))
+    a = affine * dx
+    s = impulse * dx
+    ax = wp.vec3(a[0, 0], a[1, 0], a[2, 0])
+    ay = wp.vec3(a[0, 1], a[1, 1], a[2, 1])
+    az = wp.vec3(a[0, 2], a[1, 2], a[2, 2])
+    fx_ = wp.vec3(s[0, 0], s[1, 0], s[2, 0])
+    fy_ = wp.vec3(s[0, 1], s[1, 1], s[2, 1])
+    fz_ = wp.vec3(s[0, 2], s[1, 2], s[2, 2])
+    wz = wp.vec3(w[0, 2], w[1, 2], w[2, 2])
+    nyz = shape[1] * shape[2]
+    b0 = (base[0] * shape[1] + base[1]) * shape[2] + base[2]
+    for i in range(3):
+        qj = q
+        fj = f
+        for j in range(3):
+            scatter_column(grid, b0 + i * nyz + j * shape[2], wz, w[i, 0] * w[j, 1], m, qj, fj, az, fz_)
+            qj = qj + ay
+            fj = fj + fy_
+        q = q + ax
+        f = f + fx_
+
+
+@wp.kernel
+def grid_update(
+    acc0: wp.array3d(dtype=vec8),  # [nx, ny, nz] first thread's accumulator, cleared here
+    acc1: wp.array3d(dtype=vec8),  # [nx, ny, nz] second thread's accumulator (zeros if unused)
+    lo: wp.vec3i,  # first node of the launched (active) box
+    origin: wp.vec3,
+    dx: float,
+    dt: float,
+    t: float,
+    gravity: wp.vec3,
+    damping: float,  # velocity kept per step, exp(-k dt) of a drag rate k (1/s); 1 = none
+    bound: int,
+    ground: GroundStruct,
+    boxes: wp.array(dtype=BoxStruct),
+    num_boxes: int,
+    slot: int,
+    work: wp.array(dtype=wp.float64),  # [threads] energy put in by the velocity boxes, J
+    grid_v: wp.array3d(dtype=vec8),  # [nx, ny, nz] out: velocity, mass, velocity change
+):
+    i, j, k = wp.tid()
+    i += lo[0]
+    j += lo[1]
+    k += lo[2]
+    g = acc0[i, j, k] + acc1[i, j, k]
+    m = g[3]
+    if m <= 0.0:
+        grid_v[i, j, k] = vec8(0.0)
+        return
+    # Only nodes that received mass were written by p2g, so only they need clearing.
+    acc0[i, j, k] = vec8(0.0)
+    acc1[i, j, k] = vec8(0.0)
+    momentum = wp.vec3(g[0], g[1], g[2])
+    v_transfer = (momentum - wp.vec3(g[4], g[5], g[6])) / m
+    vel = damping * (momentum / m + dt * gravity)
+    pos = origin + wp.vec3(float(i), float(j), float(k)) * dx
+    if num_boxes > 0:
+        v_free = vel
+        for b in range(num_boxes):
+            vel = box_velocity(boxes[b], pos, t, vel)
+        # Mechanical work of the imposed impulse m (v_box - v_free) moving at v_box.
+        wp.atomic_add(work, slot, wp.float64(m * wp.dot(vel - v_free, vel)))
+    vel = ground_velocity(ground, pos, vel)
+    # Separating walls in the margin keep particles off the grid edge.
+    if (i < bound and vel[0] < 0.0) or (i >= grid_v.shape[0] - bound and vel[0] > 0.0):
+        vel[0] = 0.0
+    if (j < bound and vel[1] < 0.0) or (j >= grid_v.shape[1] - bound and vel[1] > 0.0):
+        vel[1] = 0.0
+    if (k < bound and vel[2] < 0.0) or (k >= grid_v.shape[2] - bound and vel[2] > 0.0):
+        vel[2] = 0.0
+    dv = vel - v_transfer
+    grid_v[i, j, k] = vec8(vel[0], vel[1], vel[2], m, dv[0], dv[1], dv[2], 0.0)
+
+
+@wp.func
+def gather_column(grid_v: wp.array(dtype=vec8), row: int, wz: wp.vec3):
+    """Over k = 0, 1, 2 of one column: sum w v, sum k w v, sum w dv, sum k w dv."""
+    g0 = grid_v[row]
+    g1 = grid_v[row + 1]
+    g2 = grid_v[row + 2]
+    a0 = wz[0] * wp.vec3(g0[0], g0[1], g0[2])
+    a1 = wz[1] * wp.vec3(g1[0], g1[1], g1[2])
+    a2 = wz[2] * wp.vec3(g2[0], g2[1], g2[2])
+    d0 = wz[0] * wp.vec3(g0[4], g0[5], g0[6])
+    d1 = wz[1] * wp.vec3(g1[4], g1[5], g1[6])
+    d2 = wz[2] * wp.vec3(g2[4], g2[5], g2[6])
+    return a0 + a1 + a2, a1 + a2 + a2, d0 + d1 + d2, d1 + d2 + d2
+
+
+@wp.func
+def gather_plane(grid_v: wp.array(dtype=vec8), row: int, nz: int, wy: wp.vec3, wz: wp.vec3):
+    """Over j, k of one plane: sum w v, sum j w v, sum k w v and the same for dv."""
+    s0, z0, d0, e0 = gather_column(grid_v, row, wz)
+    s1, z1, d1, e1 = gather_column(grid_v, row + nz, wz)
+    s2, z2, d2, e2 = gather_column(grid_v, row + 2 * nz, wz)
+    return (
+        wy[0] * s0 + wy[1] * s1 + wy[2] * s2,
+        wy[1] * s1 + (2.0 * wy[2]) * s2,
+        wy[0] * z0 + wy[1] * z1 + wy[2] * z2,
+        wy[0] * d0 + wy[1] * d1 + wy[2] * d2,
+        wy[1] * d1 + (2.0 * wy[2]) * d2,
+        wy[0] * e0 + wy[1] * e1 + wy[2] * e2,
+    )
+
+
+@wp.kernel
+def g2p(
+    grid_v: wp.array(dtype=vec8),  # [G] flat: velocity, mass, velocity change
+    shape: wp.vec3i,  # grid node counts
+    origin: wp.vec3,
+    dx: float,
+    dt: float,
+    clamp_lo: wp.vec3,  # particles are kept inside [clamp_lo, clamp_hi], m
+    clamp_hi: wp.vec3,
+    active_lo: wp.vec3,  # particles must stay inside the active grid box until the next re-fit, m
+    active_hi: wp.vec3,
+    t: float,
+    boxes: wp.array(dtype=BoxStruct),
+    num_boxes: int,
+    flip: float,  # affine-FLIP share of the particle (v, C) update; 0 = pure APIC
+    materials: wp.array(dtype=MaterialStruct),  # [M]
+    material: wp.array(dtype=int),  # [P] index into materials
+    vol0: wp.array(dtype=float),  # [P] rest volume, m^3
+    mass: wp.array(dtype=float),  # [P] kg
+    offset: int,
+    slot: int,
+    x: wp.array(dtype=wp.vec3),  # [P] in/out
+    v: wp.array(dtype=wp.vec3),  # [P] in/out
+    C: wp.array(dtype=wp.mat33),  # [P] in/out
+    H: wp.array(dtype=wp.mat33),  # [P] in/out, F - I of the elastic deformation gradient F
+    stress: wp.array(dtype=wp.mat33),  # [P] out, rest volume x Kirchhoff stress
+    plastic: wp.array(dtype=float),  # [P] in/out, plastic history scalar
+    escaped: wp.array(dtype=int),  # [P] in/out, 1 once the clamp stopped the particle
+    stats: wp.array2d(dtype=float),  # [threads, NUM_STATS] running reductions
+    work: wp.array(dtype=wp.float64),  # [threads] energy put in by the velocity boxes, J
+):
+    p = wp.tid() + offset
+    inv_dx = 1.0 / dx
+    xp = x[p]
+    base, fx, w = stencil((xp - origin) * inv_dx, shape)
+    # Factored gather (``gather_plane``): velocity and velocity-change sums with their first
+    # moments along each axis, so B = sum w v (node - fx)^T needs no per-node outer product.
+    nyz = shape[1] * shape[2]
+    b0 = (base[0] * shape[1] + base[1]) * shape[2] + base[2]
+    wy = wp.vec3(w[0, 1], w[1, 1], w[2, 1])
+    wz = wp.vec3(w[0, 2], w[1, 2], w[2, 2])
+    s0, sj0, sk0, t0, tj0, tk0 = gather_plane(grid_v, b0, shape[2], wy, wz)
+    s1, sj1, sk1, t1, tj1, tk1 = gather_plane(grid_v, b0 + nyz, shape[2], wy, wz)
+    s2, sj2, sk2, t2, tj2, tk2 = gather_plane(grid_v, b0 + 2 * nyz, shape[2], wy, wz)
+    wx0 = w[0, 0]
+    wx1 = w[1, 0]
+    wx2 = w[2, 0]
+    vel = wx0 * s0 + wx1 * s1 + wx2 * s2
+    bi = wx1 * s1 + (2.0 * wx2) * s2
+    bj = wx0 * sj0 + wx1 * sj1 + wx2 * sj2
+    bk = wx0 * sk0 + wx1 * sk1 + wx2 * sk2
+    dvel = wx0 * t0 + wx1 * t1 + wx2 * t2
+    di = wx1 * t1 + (2.0 * wx2) * t2
+    dj = wx0 * tj0 + wx1 * tj1 + wx2 * tj2
+    dk = wx0 * tk0 + wx1 * tk1 + wx2 * tk2
+    c_grid = (4.0 * inv_dx) * (wp.matrix_from_cols(bi, bj, bk) - wp.outer(vel, fx))
+    # Affine FLIP: the particle keeps its own (v, C) plus the grid's change of them this step,
+    # blended with the APIC (PIC) values. Pure APIC damps every mode the grid cannot hold on
+    # each transfer, so stiff materials (many sub-steps) lose energy quickly; incrementing C
+    # along with v keeps angular momentum exact.
+    dc = (4.0 * inv_dx) * (wp.matrix_from_cols(di, dj, dk) - wp.outer(dvel, fx))
+    v_new = vel + flip * (v[p] + dvel - vel)
+    c_new = c_grid + flip * (C[p] + dc - c_grid)
+    # Particles inside a velocity box move with it: grid conditions alone let the particles at
+    # the box edge (whose stencil reaches free nodes) creep out of a clamp or a grip.
+    if num_boxes > 0:
+        v_free = v_new
+        for b in range(num_boxes):
+            v_new = box_velocity(boxes[b], xp, t, v_new)
+        wp.atomic_add(work, slot, wp.float64(mass[p] * wp.dot(v_new - v_free, v_new)))
+    # The state is H = F - I: stiff materials take steps with strain increments below float32's
+    # resolution of numbers near 1, and accumulating F itself would round them away (creep).
+    H_trial = H[p] + dt * c_grid * (EYE + H[p])
+    H_new, tau, pl = constitutive_update(H_trial, materials[material[p]], plastic[p], dt)
+    x_new = xp + dt * v_new
+    clamped = wp.min(wp.max(x_new, clamp_lo), clamp_hi)
+    if clamped[0] != x_new[0] or clamped[1] != x_new[1] or clamped[2] != x_new[2]:
+        x_new = clamped
+        v_new = wp.vec3(0.0)
+        if escaped[p] == 0:
+            escaped[p] = 1
+            wp.atomic_add(stats, slot, STAT_ESCAPED, 1.0)
+    for a in range(3):
+        if x_new[a] < active_lo[a] or x_new[a] > active_hi[a]:
+            wp.atomic_add(stats, slot, STAT_OVERRUN, 1.0)
+            break
+    J = 1.0 + det_minus_one(H_new)
+    # One finiteness test: a NaN or inf anywhere in the new state propagates into this sum.
+    check = wp.dot(x_new + v_new, wp.vec3(1.0)) + J + wp.ddot(tau, wp.mat33(1.0))
+    if not wp.isfinite(check):
+        # Keep the state usable for indexing; the solver rejects the frame.
+        wp.atomic_add(stats, slot, STAT_BAD, 1.0)
+        x_new = xp
+        v_new = wp.vec3(0.0)
+    else:
+        wp.atomic_max(stats, slot, STAT_VMAX, wp.dot(v_new, v_new))  # squared; the solver takes the root
+        wp.atomic_min(stats, slot, STAT_JMIN, J)
+        wp.atomic_max(stats, slot, STAT_JMAX, J)
+    x[p] = x_new
+    v[p] = v_new
+    C[p] = c_new
+    H[p] = H_new
+    stress[p] = vol0[p] * tau
+    plastic[p] = pl

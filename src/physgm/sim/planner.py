@@ -1,0 +1,427 @@
+"""Simulation planner: the cheapest simulation whose visual error stays under a pixel bound.
+
+Inputs are the object (rest particles), its physics (material, E, nu, density), the scene
+(gravity, ground, prescribed boxes, initial velocities) and the output cameras. The planner
+converts physical deformation estimates to pixels with the cameras' focal length over depth and
+chooses, in order of cost:
+
+1. **rigid**: if the elastic + plastic deformation the scene can cause stays under the bound
+   (a steel or ceramic object dropped on the floor); granular and fluid materials never go rigid,
+   nor do scenes that prescribe motion (grips, pushers).
+2. **MPM with a stiffness cap**: the explicit step scales as dx / c_p with the P-wave speed
+   c_p ~ sqrt(E / rho), so a stiff object costs many sub-steps. The cap is the smallest E' whose
+   *extra* deformation over the true E stays under (a share of) the bound; E' = min(E, cap) is
+   simulated and reported.
+3. **MPM at full stiffness** (the reference).
+
+Deformation model (object size L, density rho, impact speed v, P-wave speed c_p):
+    sag under gravity          d_sag  = rho g L^2 / E
+    elastic impact compression d_imp  = v L / c_0        (c_0 = sqrt(E / rho): 1/2 m v^2 = 1/2 (E L) d^2)
+    plastic dent past yield    d_pl   = rho L v^2 / (2 sigma_y)   if rho c_p v > sigma_y
+All three are order-of-magnitude estimates: the plan reports them so the choice can be audited.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from physgm.cameras import Cameras
+from physgm.sim.constitutive import MODELS, MaterialParams
+from physgm.sim.scenes import Scene
+from physgm.sim.stepping import substeps_per_frame
+
+# Constitutive models whose material flows instead of springing back: never rigid.
+FLOWING_MODELS = frozenset({"drucker_prager", "fluid"})
+
+
+@dataclass
+class PlannerConfig:
+    """Planner knobs (conf/sim/planner/default.yaml)."""
+
+    bound_px: float = 0.5  # largest visual error allowed, pixels at the output resolution
+    cells_across: int = 12  # grid cells across the object's largest extent
+    max_cells: int = 96  # cap on grid cells per axis (dx grows to respect it)
+    particles_per_cell: float = 4.0  # MPM particles per grid cell (sets the particle spacing)
+    min_opacity: float = 0.05  # Gaussians fainter than this carry no mass
+    fill_interior: bool = True  # fill the inside of closed Gaussian shells with particles
+    follower_k: int = 8  # nearest particles each Gaussian follows
+    allow_rigid: bool = True  # rigid-body path for objects that would not deform visibly
+    allow_stiffness_cap: bool = True  # lower E while the extra deformation stays under the bound
+    min_cap_gain: float = 1.25  # cap only if it saves at least this factor of sub-steps
+    cap_budget: float = 0.5  # fraction of bound_px the stiffness cap may use (rebound changes too)
+    cfl: float = 0.4  # CFL number for predicting sub-steps (the solver's config runs)
+    rigid_dt: float = 1e-3  # rigid-body step, s
+    restitution: float = 0.6  # rigid-path ground restitution (the material table has none)
+    rest_px: float = 0.05  # a frame is still when no particle moved more than this, pixels
+    rest_frames: int = 5  # still frames in a row before the remaining frames are held
+    spread_factor: float = 0.5  # horizontal grid margin for sagging / splashing, object sizes
+    ballistic: bool = True  # free flight before the first contact in closed form
+    fit_grid: bool = True  # False: a fixed cube of domain_size on the ground (naive baseline)
+    domain_size: float = 1.0  # m, only with fit_grid = False
+
+    def __post_init__(self) -> None:
+        positive = ("bound_px", "cells_across", "max_cells", "particles_per_cell", "cfl", "rigid_dt")
+        for name in (*positive, "domain_size"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"planner setting {name}={getattr(self, name)!r} must be > 0")
+        if not 0.0 <= self.cap_budget <= 1.0:
+            raise ValueError(f"planner cap_budget={self.cap_budget!r} must be in [0, 1]")
+        if not 0.0 <= self.restitution <= 1.0:
+            raise ValueError(f"planner restitution={self.restitution!r} must be in [0, 1]")
+
+
+@dataclass
+class Deformation:
+    """Estimated visible deformation of the object in the scene, metres."""
+
+    sag: float
+    impact: float
+    plastic: float
+    flows: bool  # granular / fluid / prescribed motion: unbounded
+
+    @property
+    def total(self) -> float:
+        return math.inf if self.flows else self.sag + self.impact + self.plastic
+
+
+@dataclass
+class Plan:
+    """What to simulate and why.
+
+    Attributes:
+        mode: "rigid" or "mpm".
+        E_requested, E_used: Young's modulus asked for and simulated (after the cap), Pa.
+        predicted_error_px: visual error of this plan relative to full-stiffness MPM, pixels.
+        error_terms: named parts of the estimate, pixels.
+        px_per_m: pixels per metre at the object for the closest output camera.
+        grid_lo, grid_hi: [3] reachable region the grid must hold, m (before boundary margin).
+        dx: grid cell size, m.  particle_spacing: m.
+        substeps_per_frame: predicted (rigid: integration steps per frame).
+        predicted_cost: predicted particle-substeps (rigid: body steps).
+        rest_px, rest_frames: early stop once no particle moved more than rest_px pixels per
+            frame for rest_frames frames.
+        reason: one human-readable sentence.
+    """
+
+    mode: str
+    material: str
+    E_requested: float
+    E_used: float
+    predicted_error_px: float
+    error_terms: dict[str, float]
+    px_per_m: float
+    grid_lo: np.ndarray
+    grid_hi: np.ndarray
+    dx: float
+    particle_spacing: float
+    n_particles: int
+    substeps_per_frame: int
+    predicted_cost: float
+    frame_dt: float
+    n_frames: int
+    rest_px: float
+    rest_frames: int
+    restitution: float
+    reason: str
+    alternatives: dict[str, float] = field(default_factory=dict)  # mode -> predicted cost
+
+    def summary(self) -> dict:
+        """JSON-friendly view (grid as cell counts)."""
+        out = {k: v for k, v in asdict(self).items() if not isinstance(v, np.ndarray)}
+        out["grid_cells"] = [int(math.ceil(c)) for c in (self.grid_hi - self.grid_lo) / self.dx]
+        return out
+
+
+def pixels_per_metre(
+    cameras: Cameras,
+    points: Tensor,  # [P, 3] world points of the object, m
+) -> float:
+    """Largest image-plane scale f / depth over cameras and points (the closest view), px/m."""
+    pts = points.detach().to(cameras.c2w)
+    cam = pts @ cameras.viewmats[:, :3, :3].transpose(-1, -2) + cameras.viewmats[:, None, :3, 3]  # [C, P, 3]
+    depth = cam[..., 2]
+    if not (depth > 0).any():
+        raise ValueError(
+            "the object is behind every output camera; check the cameras' c2w (OpenCV: +z looks forward)"
+        )
+    focal = torch.maximum(cameras.Ks[:, 0, 0], cameras.Ks[:, 1, 1])  # [C]
+    # A point at depth ~0 would give an infinite scale; the object cannot come closer than 1 mm.
+    scale = focal[:, None] / depth.clamp_min(1e-3)
+    return float(scale[depth > 0].max())
+
+
+def deformation_estimate(
+    E: float,  # Pa
+    density: float,  # kg/m^3
+    size: float,  # largest object extent, m
+    impact_speed: float,  # m/s
+    gravity: float = 9.81,  # m/s^2
+    yield_stress: float | None = None,  # Pa; None: purely elastic
+    flows: bool = False,
+    wave_factor: float = 1.0,  # P-wave modulus / E, e.g. (1 - nu) / ((1 + nu)(1 - 2 nu))
+) -> Deformation:
+    """Order-of-magnitude deformation of the object in metres (see module docstring).
+
+    Both choices are the conservative ones: the compression uses the bar speed sqrt(E / rho) (a
+    free block, larger than the constrained P-wave estimate), the impact stress the P-wave speed
+    sqrt(wave_factor E / rho) (larger stress, earlier yield).
+    """
+    if E <= 0 or density <= 0 or size <= 0:
+        raise ValueError(
+            f"deformation_estimate needs positive E, density and size, got {E}, {density}, {size}"
+        )
+    sag = density * gravity * size**2 / E
+    impact = impact_speed * size / math.sqrt(E / density)
+    c_p = math.sqrt(wave_factor * E / density)
+    plastic = 0.0
+    if yield_stress is not None and yield_stress > 0:
+        if density * gravity * size > yield_stress:
+            flows = True  # slumps under its own weight
+        elif density * c_p * impact_speed > yield_stress:  # impact stress rho c_p v
+            plastic = density * size * impact_speed**2 / (2 * yield_stress)
+    return Deformation(sag, impact, plastic, flows)
+
+
+def stiffness_cap(
+    E: float,  # Pa, true stiffness
+    density: float,  # kg/m^3
+    size: float,  # m
+    impact_speed: float,  # m/s
+    bound: float,  # extra deformation allowed, m
+    gravity: float = 9.81,
+) -> float:
+    """Smallest E' <= E whose elastic deformation exceeds that at E by at most ``bound``, Pa.
+
+    Elastic deformation is a / E + b / sqrt(E) (sag + impact); with u = 1 / sqrt(E') the
+    condition a u^2 + b u = d(E) + bound is a quadratic with one positive root.
+    Monotone: a larger bound gives a smaller (cheaper) cap.
+    """
+    if bound < 0:
+        raise ValueError(f"bound must be >= 0, got {bound}")
+    a = density * gravity * size**2
+    b = impact_speed * size * math.sqrt(density)
+    target = a / E + b / math.sqrt(E) + bound
+    if a > 0:
+        u = (-b + math.sqrt(b * b + 4 * a * target)) / (2 * a)
+    elif b > 0:
+        u = target / b
+    else:
+        return E
+    return min(E, 1.0 / (u * u))
+
+
+def impact_speed(z_bottom: float, ground: float | None, vz0: float, gravity: float) -> float:
+    """Speed at which the lowest point reaches the ground (0 without a ground), m/s."""
+    if ground is None:
+        return abs(vz0)
+    fall = max(z_bottom - ground, 0.0)
+    return math.sqrt(vz0 * vz0 + 2 * gravity * fall) if vz0 <= 0 or fall > 0 else abs(vz0)
+
+
+def reachable_region(
+    x: Tensor,  # [P, 3] rest particles, m
+    v0: Tensor,  # [P, 3] initial velocities, m/s
+    duration: float,  # s
+    gravity: np.ndarray,  # [3] m/s^2
+    ground: float | None,  # ground height, m
+    spread: float,  # horizontal margin for tipping / flowing, m
+    boxes: list[tuple[np.ndarray, np.ndarray, np.ndarray, float]] = (),  # (lo, hi, velocity, moving time)
+    friction: float = 0.0,  # ground Coulomb coefficient
+) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned box [lo, hi] (m) the object can reach during ``duration``.
+
+    Falls to the ground (or freely for ``duration``), tumbles about its centre, rises by
+    v0z^2 / 2g, drifts horizontally by |v0| T (or, with ground friction, flies until it lands
+    and then slides v^2 / (2 mu g)), spreads by ``spread``, and follows any prescribed box it is
+    gripped by. A ball rolling without resistance could go further: the domain walls stop it.
+    """
+    pts = x.detach().double().cpu().numpy()
+    vel = v0.detach().double().cpu().numpy()
+    lo, hi = pts.min(0), pts.max(0)
+    # Tumbling: any point may end up anywhere within its distance of the centre; spreading
+    # (sag, splash, heap) widens the footprint. Either margin covers the other.
+    center = pts.mean(0)
+    radius = float(np.linalg.norm(pts - center, axis=1).max())
+    lo[:2] = np.minimum(lo[:2] - spread, center[:2] - radius)
+    hi[:2] = np.maximum(hi[:2] + spread, center[:2] + radius)
+    hi[2] = max(hi[2], center[2] + radius)
+    g = float(np.linalg.norm(gravity))
+    vmax = np.abs(vel).max(0) if len(vel) else np.zeros(3)
+    drift = vmax * duration
+    vz_up = max(float(vel[:, 2].max()), 0.0) if len(vel) else 0.0
+    if ground is not None and friction > 0 and g > 0:
+        height = max(float(pts[:, 2].min()) - ground, 0.0)
+        t_air = (vz_up + math.sqrt(vz_up**2 + 2 * g * height)) / g
+        drift[:2] = np.minimum(drift[:2], vmax[:2] * t_air + vmax[:2] ** 2 / (2 * friction * g))
+    lo[:2] -= drift[:2]
+    hi[:2] += drift[:2]
+    hi[2] += vz_up**2 / (2 * g) if g > 0 else vz_up * duration
+    if ground is not None:
+        lo[2] = min(lo[2], ground)
+    else:
+        lo[2] -= drift[2] + 0.5 * g * duration**2
+    for b_lo, b_hi, b_vel, t_move in boxes:
+        travel = np.asarray(b_vel, dtype=np.float64) * t_move
+        lo = np.minimum(lo, np.minimum(b_lo, b_lo + travel))
+        hi = np.maximum(hi, np.maximum(b_hi, b_hi + travel))
+    return lo, hi
+
+
+def heap_radius(volume: float, friction_angle_deg: float) -> float:
+    """Radius of a cone of granular material of this volume at its angle of repose, m."""
+    tan = math.tan(math.radians(max(friction_angle_deg, 5.0)))
+    return (3 * volume / (math.pi * tan)) ** (1 / 3)
+
+
+# Materials that never go rigid whatever their stiffness (granular: they pour and heap).
+NEVER_RIGID_MATERIALS = frozenset({"sand", "snow"})
+
+
+def choose_spacing(size: float, config: PlannerConfig) -> tuple[float, float]:
+    """(grid dx, particle spacing) in m for an object of largest extent ``size`` (m)."""
+    if not size > 0:
+        raise ValueError(f"object size must be positive, got {size} m; are all Gaussians at one point?")
+    dx = size / config.cells_across
+    return dx, dx / config.particles_per_cell ** (1 / 3)
+
+
+def plan_simulation(
+    x: Tensor,  # [P, 3] rest particles, m
+    volume: Tensor,  # [P] rest volumes, m^3
+    v0: Tensor,  # [P, 3] initial velocities, m/s
+    name: str,
+    material: MaterialParams,
+    scene: Scene,
+    cameras: Cameras,
+    n_frames: int,
+    frame_dt: float,
+    dx: float,
+    particle_spacing: float,
+    config: PlannerConfig | None = None,
+) -> Plan:
+    """Choose rigid / MPM with capped E / MPM, fit the grid and set early stop; see module doc.
+
+    Args:
+        name: material name (granular names never go rigid).
+        n_frames: output frames including the rest frame 0.
+        dx, particle_spacing: from ``choose_spacing`` (dx may grow to respect ``max_cells``).
+    """
+    cfg = config or PlannerConfig()
+    if n_frames < 1 or frame_dt <= 0:
+        raise ValueError(f"need n_frames >= 1 and frame_dt > 0, got {n_frames} and {frame_dt}")
+    pts = x.detach().double().cpu()
+    lo, hi = pts.min(0).values.numpy(), pts.max(0).values.numpy()
+    size = float((hi - lo).max())
+    gravity = np.asarray(scene.gravity, dtype=np.float64)
+    g = float(np.linalg.norm(gravity))
+    ground = None if scene.ground is None else float(scene.ground.height)
+    vel = v0.detach().double().cpu().numpy().reshape(-1, 3)
+    duration = (n_frames - 1) * frame_dt  # frame 0 is the rest state
+    box_speed = max((float(np.linalg.norm(b.velocity)) for b in scene.boxes), default=0.0)
+    v_impact = impact_speed(float(lo[2]), ground, float(vel[:, 2].min(initial=0.0)), g)
+    # The loading speed: an impact, or grips pulling (the elastic lag is the same v L / c).
+    v_load = max(v_impact, box_speed)
+    v_max = max(v_load, float(np.linalg.norm(vel, axis=1).max(initial=0.0)))
+
+    # Pixel scale: the object where it starts and where it lands, seen by the closest camera.
+    landed = pts.clone()
+    if ground is not None:
+        landed[:, 2] -= float(lo[2]) - ground
+    px_per_m = max(pixels_per_metre(cameras, pts.float()), pixels_per_metre(cameras, landed.float()))
+
+    flows = material.model in FLOWING_MODELS or name in NEVER_RIGID_MATERIALS
+    yield_stress = (
+        material.yield_stress if MODELS[material.model].plastic and material.yield_stress > 0 else None
+    )
+    wave_factor = material.wave_speed() ** 2 * material.density / material.E
+    deform = deformation_estimate(
+        material.E, material.density, size, v_load, g, yield_stress, flows, wave_factor
+    )
+    terms = {"sag_px": deform.sag * px_per_m, "impact_px": deform.impact * px_per_m}
+    terms["plastic_px"] = deform.plastic * px_per_m
+
+    g_lo, g_hi, grid_dx = _grid_region(cfg, material, x, v0, volume, scene, duration, dx, ground)
+    n_nodes = int(np.prod(np.ceil((g_hi - g_lo) / grid_dx) + 9))  # + boundary margins of GridSpec.fit
+    steps = {"mpm": substeps_per_frame(grid_dx, [material], v_max, cfg.cfl, frame_dt)}
+    steps["rigid"] = max(1, math.ceil(frame_dt / cfg.rigid_dt - 1e-9))
+    P = len(pts)
+    cost = {"mpm": float((n_frames - 1) * steps["mpm"] * P), "rigid": float((n_frames - 1) * steps["rigid"])}
+    common = dict(material=name, E_requested=material.E, px_per_m=px_per_m, grid_lo=g_lo, grid_hi=g_hi, dx=grid_dx,
+                  particle_spacing=particle_spacing, n_particles=P, frame_dt=frame_dt, n_frames=n_frames,
+                  rest_px=cfg.rest_px, rest_frames=cfg.rest_frames, restitution=cfg.restitution,
+                  alternatives=cost)  # fmt: skip
+    rigid_px = deform.total * px_per_m
+    if cfg.allow_rigid and not scene.boxes and rigid_px <= cfg.bound_px:
+        parts = ", ".join(f"{k[:-3]} {v:.2g}" for k, v in terms.items())
+        reason = f"{name} (E={material.E:.3g} Pa) deforms ~{rigid_px:.3g} px <= {cfg.bound_px} px ({parts}): rigid body"
+        return Plan("rigid", E_used=material.E, predicted_error_px=rigid_px, error_terms=terms,
+                    substeps_per_frame=steps["rigid"], predicted_cost=cost["rigid"], reason=reason, **common)  # fmt: skip
+    if flows:
+        why = "it flows (granular / fluid)"
+    elif scene.boxes:
+        why = "the scene prescribes motion"
+    elif not cfg.allow_rigid:
+        why = "rigid mode is disabled"
+    else:
+        why = f"it deforms ~{rigid_px:.3g} px > {cfg.bound_px} px"
+
+    # Stiffness cap (see module doc). It may use only ``cap_budget`` of the bound: the deformation
+    # estimate does not see that a softer body also rebounds differently (the bench measures it).
+    E_used, n_steps, note, cap_px = material.E, steps["mpm"], "", 0.0
+    if cfg.allow_stiffness_cap:
+        bound = cfg.cap_budget * cfg.bound_px / px_per_m
+        cap = stiffness_cap(material.E, material.density, size, v_load, bound, g)
+        cap_steps = substeps_per_frame(grid_dx, [material.with_elasticity(E=cap)], v_max, cfg.cfl, frame_dt)
+        if steps["mpm"] >= cfg.min_cap_gain * cap_steps:
+            E_used, n_steps = cap, cap_steps
+            note = f"; E capped to {cap:.3g} Pa ({steps['mpm']} -> {cap_steps} sub-steps/frame)"
+            soft = deformation_estimate(cap, material.density, size, v_load, g)
+            cap_px = (soft.sag + soft.impact - deform.sag - deform.impact) * px_per_m
+    terms["stiffness_cap_px"] = cap_px
+    cost["mpm_capped"] = float((n_frames - 1) * n_steps * P)
+    reason = f"MPM because {why}{note}; grid {n_nodes} nodes, dx={grid_dx:.3g} m"
+    return Plan("mpm", E_used=E_used, predicted_error_px=cap_px, error_terms=terms, substeps_per_frame=n_steps,
+                predicted_cost=cost["mpm_capped"], reason=reason, **common)  # fmt: skip
+
+
+def _grid_region(
+    cfg: PlannerConfig,
+    material: MaterialParams,
+    x: Tensor,  # [P, 3] m
+    v0: Tensor,  # [P, 3] m/s
+    volume: Tensor,  # [P] m^3
+    scene: Scene,
+    duration: float,
+    dx: float,
+    ground: float | None,
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """(lo [3], hi [3], dx) of the grid: the reachable region, or the naive fixed cube."""
+    pts = x.detach().double().cpu().numpy()
+    lo, hi = pts.min(0), pts.max(0)
+    if not cfg.fit_grid:
+        center, half = 0.5 * (lo + hi), cfg.domain_size / 2
+        g_lo = np.array([center[0] - half, center[1] - half, lo[2] if ground is None else ground])
+        return g_lo, g_lo + cfg.domain_size, dx
+    size = float((hi - lo).max())
+    spread = cfg.spread_factor * size
+    if material.model == "drucker_prager":  # pours into a heap at its angle of repose
+        spread = max(spread, heap_radius(float(volume.sum()), material.friction_angle) - 0.5 * size)
+    elif material.model == "fluid":
+        spread = 2.0 * size
+    boxes = [
+        (
+            np.asarray(b.lo),
+            np.asarray(b.hi),
+            np.asarray(b.velocity),
+            max(0.0, min(b.stop, duration) - b.start),
+        )
+        for b in scene.boxes
+    ]
+    friction = scene.ground.friction if scene.ground is not None and scene.ground.mode == "separate" else 0.0
+    g_lo, g_hi = reachable_region(x, v0, duration, np.asarray(scene.gravity), ground, spread, boxes, friction)
+    return g_lo, g_hi, max(dx, float((g_hi - g_lo).max()) / cfg.max_cells)

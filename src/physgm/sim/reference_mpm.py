@@ -1,0 +1,118 @@
+"""Plain numpy twin of one MLS-MPM sub-step (p2g, grid update, g2p), float64, for tests only.
+
+Mirrors ``kernels.p2g`` / ``grid_update`` / ``g2p`` node by node with explicit loops; the
+constitutive update comes from ``constitutive.reference``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from physgm.sim.constitutive import reference as cref
+
+
+def _weights(fx: np.ndarray) -> np.ndarray:  # fx: [3] -> [3 (node), 3 (axis)]
+    return np.stack([0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2])
+
+
+def _box_velocity(box, pos, t, v):
+    if t < box.start:
+        return v
+    moving = t < box.stop
+    if not moving and not box.hold:
+        return v
+    shift = np.asarray(box.velocity) * (min(t, box.stop) - box.start)
+    lo, hi = np.asarray(box.lo) + shift, np.asarray(box.hi) + shift
+    if np.any(pos < lo) or np.any(pos > hi):
+        return v
+    return np.asarray(box.velocity, float) if moving else np.zeros(3)
+
+
+def _ground_velocity(ground, pos, v):
+    if ground is None or pos[2] > ground.height:
+        return v
+    if ground.mode == "sticky":
+        return np.zeros(3)
+    if v[2] >= 0:
+        return v
+    vt = np.array([v[0], v[1], 0.0])
+    if ground.mode == "slip":
+        return vt
+    n = np.linalg.norm(vt)
+    if n <= -ground.friction * v[2]:
+        return np.zeros(3)
+    return vt * (1 + ground.friction * v[2] / n)
+
+
+def substep(state: dict, params: list, grid, scene, dt: float, t: float, flip: float, bound: int) -> dict:
+    """One sub-step. ``state``: x [P,3], v [P,3], C [P,3,3], F [P,3,3], plastic [P], mass [P],
+    vol0 [P], material [P]; ``params``: [M] MaterialParams. Returns the new state and ``grid_v``."""
+    x, v, C, F = state["x"], state["v"], state["C"], state["F"]
+    mass, vol0, material, plastic = state["mass"], state["vol0"], state["material"], state["plastic"]
+    res, dx, origin = np.array(grid.res), grid.dx, np.asarray(grid.origin)
+    n = len(x)
+    # Stress of the current (already projected) F.
+    tau = np.zeros((n, 3, 3))
+    for m, p in enumerate(params):
+        sel = material == m
+        if sel.any():
+            tau[sel] = cref.update(p, F[sel], plastic[sel], 0.0)[1]
+    mom = np.zeros((*res, 3))
+    force = np.zeros((*res, 3))
+    gm = np.zeros(tuple(res))
+    stencils = []
+    for p in range(n):
+        xp = (x[p] - origin) / dx
+        base = np.clip((xp - 0.5).astype(int), 0, res - 3)
+        fx = xp - base
+        w = _weights(fx)
+        stencils.append((base, fx, w))
+        impulse = -dt * 4 / dx**2 * vol0[p] * tau[p]
+        affine = mass[p] * C[p] + impulse
+        for o in np.ndindex(3, 3, 3):
+            wi = w[o[0], 0] * w[o[1], 1] * w[o[2], 2]
+            dpos = (np.array(o) - fx) * dx
+            node = tuple(base + o)
+            mom[node] += wi * (mass[p] * v[p] + affine @ dpos)
+            force[node] += wi * (impulse @ dpos)
+            gm[node] += wi * mass[p]
+    gv = np.zeros((*res, 3))
+    gdv = np.zeros((*res, 3))
+    g = np.asarray(scene.gravity, float)
+    for node in zip(*np.nonzero(gm > 0), strict=True):
+        m = gm[node]
+        v_transfer = (mom[node] - force[node]) / m
+        vel = mom[node] / m + dt * g
+        pos = origin + np.array(node) * dx
+        for box in scene.boxes:
+            vel = _box_velocity(box, pos, t, vel)
+        vel = _ground_velocity(scene.ground, pos, vel)
+        for a in range(3):
+            if (node[a] < bound and vel[a] < 0) or (node[a] >= res[a] - bound and vel[a] > 0):
+                vel[a] = 0.0
+        gv[node], gdv[node] = vel, vel - v_transfer
+    out = {k: np.array(val, dtype=np.float64, copy=True) for k, val in state.items()}
+    out["grid_v"] = gv
+    for p in range(n):
+        base, fx, w = stencils[p]
+        vel, dvel, B, dB = np.zeros(3), np.zeros(3), np.zeros((3, 3)), np.zeros((3, 3))
+        for o in np.ndindex(3, 3, 3):
+            wi = w[o[0], 0] * w[o[1], 1] * w[o[2], 2]
+            node = tuple(base + o)
+            vel += wi * gv[node]
+            dvel += wi * gdv[node]
+            B += wi * np.outer(gv[node], np.array(o) - fx)
+            dB += wi * np.outer(gdv[node], np.array(o) - fx)
+        c_grid = 4 / dx * B
+        v_new = vel + flip * (v[p] + dvel - vel)
+        c_new = c_grid + flip * (C[p] + 4 / dx * dB - c_grid)
+        for box in scene.boxes:
+            v_new = _box_velocity(box, x[p], t, v_new)
+        F_trial = (np.eye(3) + dt * c_grid) @ F[p]
+        prm = params[material[p]]
+        F_new, _, pl = cref.update(prm, F_trial[None], plastic[p : p + 1], dt)
+        out["x"][p] = x[p] + dt * v_new
+        out["v"][p], out["C"][p], out["F"][p] = v_new, c_new, F_new[0]
+        if pl is not None:
+            out["plastic"][p] = pl[0]
+    return out

@@ -1,0 +1,323 @@
+"""``simulate(gaussians, physics, scene, cameras)``: plan, execute, and move the Gaussians.
+
+The one entry the rest of physgm calls. Steps: choose the grid and particle spacing from the
+object size, sample particles from the Gaussians, build the scene (initial velocities,
+boundaries), plan (rigid / MPM with capped E / MPM), then run either the rigid-body path or the
+Warp MPM solver, with an exact ballistic prefix while the object is still in free flight above
+the ground (uniform gravity does not deform a body at rest) and early stop once everything is
+still. The result holds particle positions and deformation gradients per frame; deformed
+Gaussians are computed per frame on request.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+
+import numpy as np
+import torch
+
+from physgm.cameras import Cameras
+from physgm.gaussians import Gaussians
+from physgm.sim.constitutive import MaterialParams
+from physgm.sim.coupling import follow_and_deform, rigid_transform_gaussians
+from physgm.sim.grid import GridSpec
+from physgm.sim.planner import Plan, PlannerConfig, choose_spacing, plan_simulation
+from physgm.sim.rigid import ContactParams, RigidBody, RigidSimulator, RigidTrajectory
+from physgm.sim.sampling import Followers, ParticleSample, build_followers, sample_particles
+from physgm.sim.scenes import Scene, SceneSetup, build_scene
+from physgm.sim.solver import MPMSolver
+from physgm.sim.state import Particles
+from physgm.sim.stepping import SolverConfig
+
+
+@dataclass
+class GaussianTrajectory:
+    """A planned, executed simulation of Gaussians.
+
+    Attributes:
+        plan: what was simulated and why.
+        gaussians: [N] rest Gaussians.
+        particles: [P] rest simulation particles.
+        followers: how each Gaussian follows the particles.
+        x: [T, P, 3] particle positions per frame, m (frame 0 = rest).
+        F: [T, P, 3, 3] particle (elastic) deformation gradients per frame.
+        rigid: rigid poses per frame when plan.mode == "rigid", else None.
+        rest_frame: first held frame after early stop (None: moved until the end).
+        ballistic_frames: leading frames computed in closed form (free fall), not simulated.
+        substeps: MPM sub-steps (or rigid steps) actually taken.
+        seconds: wall-clock time of planning + simulation, s.
+        plan_seconds: the part of ``seconds`` spent sampling particles and planning, s.
+    """
+
+    plan: Plan
+    gaussians: Gaussians
+    particles: ParticleSample
+    followers: Followers | None
+    x: np.ndarray
+    F: np.ndarray
+    rigid: RigidTrajectory | None
+    rest_frame: int | None
+    ballistic_frames: int
+    substeps: int
+    seconds: float
+    plan_seconds: float = 0.0
+
+    def __len__(self) -> int:
+        return self.x.shape[0]
+
+    def gaussians_at(self, t: int) -> Gaussians:
+        """Deformed Gaussians at frame t."""
+        if self.rigid is not None:
+            rot = torch.from_numpy(self.rigid.rotations[t]).float()
+            com0 = torch.from_numpy(self.rigid.rest_com).float()
+            shift = torch.from_numpy(self.rigid.coms[t]).float() - com0
+            return rigid_transform_gaussians(self.gaussians, rot, shift, com0)
+        return follow_and_deform(
+            self.gaussians, self.followers, torch.from_numpy(self.x[t]), torch.from_numpy(self.F[t])
+        )
+
+    def frames(self) -> Iterator[Gaussians]:
+        for t in range(len(self)):
+            yield self.gaussians_at(t)
+
+    def means(self) -> torch.Tensor:
+        """Gaussian centres per frame, [T, N, 3] m (cheap: no covariance decomposition)."""
+        if self.rigid is not None:
+            rest = self.gaussians.means.detach().double().cpu().numpy()
+            return torch.from_numpy(
+                np.stack([self.rigid.transform(rest, t) for t in range(len(self))])
+            ).float()
+        x = torch.from_numpy(self.x)
+        return torch.stack(
+            [self.followers.apply(x[t], torch.from_numpy(self.F[t]))[0] for t in range(len(self))]
+        )
+
+
+def resolve_material(physics) -> tuple[str, MaterialParams]:
+    """(material name, solver parameters at the requested E and nu) from a physics description.
+
+    Accepts ``MaterialParams`` (name "custom"), or anything with ``material``, ``E``, ``nu`` and
+    optionally ``density`` as attributes or mapping keys (e.g. the contents of physical.json).
+    """
+    if isinstance(physics, MaterialParams):
+        return "custom", physics
+    get = physics.get if isinstance(physics, dict) else lambda k, d=None: getattr(physics, k, d)
+    name = get("material")
+    if name is None:
+        raise ValueError(f"physics must name a material (physics.material), got {physics!r}")
+    from physgm.physics.materials import get_material
+
+    params = MaterialParams.from_material(get_material(str(name)), E=get("E"), nu=get("nu"))
+    density = get("density")
+    if density is not None:
+        params = replace(params, density=float(density))
+    return str(name), params
+
+
+def apply_scene(scene, x: np.ndarray, overrides: dict | None) -> SceneSetup:
+    """The scene applied to rest particles x [P, 3]: placed particles, velocities, boundaries.
+
+    ``scene`` is a registered scene name (conf/sim/scene; it may move the object, e.g. "drop"
+    lifts it to its drop height), a ``SceneSetup``, a ``Scene`` (object left where it is, at rest)
+    or a (Scene, v0 [P, 3] or [3]) pair.
+    """
+    if isinstance(scene, str):
+        return build_scene(scene, x, **(overrides or {}))
+    if overrides:
+        raise ValueError("scene_overrides only apply to a registered scene given by name")
+    if isinstance(scene, SceneSetup):
+        return scene
+    v0 = np.zeros_like(x)
+    if isinstance(scene, tuple):
+        scene, v = scene
+        v0 = np.broadcast_to(np.asarray(v, dtype=np.float64), x.shape).copy()
+    if not isinstance(scene, Scene):
+        raise TypeError(
+            f"scene must be a scene name, Scene, SceneSetup or (Scene, v0), got {type(scene).__name__}"
+        )
+    inf = np.full(3, np.inf)
+    return SceneSetup(scene, x, v0, duration=math.inf, reach_lo=-inf, reach_hi=inf)
+
+
+def _place_gaussians(gaussians: Gaussians, x_rest: torch.Tensor, x_placed: np.ndarray) -> Gaussians:
+    """Gaussians moved the way the scene moved the particles (a translation per object)."""
+    shift = x_placed - x_rest.double().numpy()  # [P, 3]
+    if np.abs(shift).max() == 0.0:
+        return gaussians
+    if np.ptp(shift, axis=0).max() < 1e-9:
+        delta = torch.from_numpy(shift[0]).to(gaussians.means)
+    else:  # several objects placed apart: each Gaussian moves with its nearest particle
+        nearest = build_followers(gaussians.means, x_rest, k=1)
+        delta = torch.from_numpy(shift).to(gaussians.means)[nearest.index[:, 0]]
+    return replace(gaussians, means=gaussians.means + delta)
+
+
+def ballistic_frames(
+    x: np.ndarray, v0: np.ndarray, scene: Scene, frame_dt: float, n_frames: int, gap: float
+) -> int:
+    """Number of leading frames (incl. frame 0) during which the object is in free flight.
+
+    Only for a body moving as a whole (uniform v0), with nothing prescribed, while its lowest
+    point stays ``gap`` (m) above the ground: there uniform gravity leaves it undeformed.
+    """
+    if scene.ground is None or scene.boxes or len(x) == 0 or np.ptp(v0, axis=0).max() > 1e-9:
+        return 1
+    g = np.asarray(scene.gravity, dtype=np.float64)
+    height = x[:, 2].min() - scene.ground.height - gap
+    vz, gz = float(v0[0, 2]), float(g[2])
+    if height <= 0 or gz >= 0:
+        return 1
+    # Solve height + vz t + gz t^2 / 2 = 0 for the first t > 0.
+    t_hit = (-vz - math.sqrt(vz * vz - 2 * gz * height)) / gz
+    return int(min(n_frames, max(1, math.floor(t_hit / frame_dt) + 1)))
+
+
+def simulate(
+    gaussians: Gaussians,
+    physics,
+    scene: str | Scene | tuple,
+    cameras: Cameras,
+    n_frames: int = 50,
+    planner: PlannerConfig | dict | None = None,
+    solver: SolverConfig | None = None,
+    scene_overrides: dict | None = None,
+    device: str = "cpu",
+) -> GaussianTrajectory:
+    """Plan and run the cheapest simulation that stays within the pixel bound.
+
+    Args:
+        gaussians: [N] object Gaussians in SI metres, +z up, placed where the scene starts.
+        physics: material name + E + nu (+ density, + restitution for the rigid path), see
+            ``resolve_material``.
+        scene: registered scene name (conf/sim/scene), a Scene, or (Scene, v0 [P, 3] or [3]).
+        cameras: output cameras and resolution (the pixel bound is measured there).
+        n_frames: output frames T including the rest frame 0.
+        planner: planner settings (conf/sim/planner/default.yaml).
+        solver: MPM solver settings (frame_dt, cfl, ...).
+        device: Warp device of the MPM solver.
+    """
+    start = time.perf_counter()
+    cfg = PlannerConfig(**planner) if isinstance(planner, dict) else planner or PlannerConfig()
+    solver_cfg = solver or SolverConfig()
+    frame_dt = solver_cfg.frame_dt
+    name, material = resolve_material(physics)
+    restitution = (
+        physics.get("restitution") if isinstance(physics, dict) else getattr(physics, "restitution", None)
+    )
+    if restitution is not None:  # the material table has none; a physics description may
+        cfg = replace(cfg, restitution=float(restitution))
+    opaque = gaussians.opacities >= cfg.min_opacity
+    if not opaque.any():
+        raise ValueError(f"no Gaussian has opacity >= {cfg.min_opacity}; nothing to simulate")
+    extent = gaussians.means[opaque].detach().amax(0) - gaussians.means[opaque].detach().amin(0)
+    dx, spacing = choose_spacing(float(extent.max()), cfg)
+    rest = sample_particles(gaussians, spacing, cfg.min_opacity, cfg.fill_interior)
+    setup = apply_scene(scene, rest.x.detach().cpu().double().numpy(), scene_overrides)
+    gaussians = _place_gaussians(gaussians, rest.x.detach().cpu(), setup.x)
+    sample = replace(rest, x=torch.from_numpy(setup.x).float().to(rest.x.device))
+    x0, v0 = setup.x, np.asarray(setup.v, dtype=np.float64)
+    plan = plan_simulation(
+        sample.x.cpu(), sample.volume, torch.from_numpy(v0), name, material, setup.scene, cameras,
+        n_frames, frame_dt, dx, spacing, cfg,
+    )  # fmt: skip
+    plan_seconds = time.perf_counter() - start
+    if plan.mode == "rigid":
+        traj = _run_rigid(plan, setup.scene, x0, v0, sample, material.density, gaussians, cfg)
+        xs = np.stack([traj.transform(x0, t) for t in range(n_frames)]).astype(np.float32)
+        Fs = np.broadcast_to(traj.rotations[:, None].astype(np.float32), (n_frames, len(x0), 3, 3))
+        seconds = time.perf_counter() - start
+        return GaussianTrajectory(
+            plan, gaussians, sample, None, xs, Fs, traj, traj.rest_frame, 1, traj.steps, seconds, plan_seconds
+        )
+    followers = build_followers(gaussians.means, sample.x, k=cfg.follower_k)
+    xs, Fs, substeps, rest_frame, k0 = _run_mpm(
+        plan,
+        material.with_elasticity(E=plan.E_used),
+        setup.scene,
+        x0,
+        v0,
+        sample,
+        solver_cfg,
+        device,
+        cfg.ballistic,
+    )
+    seconds = time.perf_counter() - start
+    return GaussianTrajectory(
+        plan, gaussians, sample, followers, xs, Fs, None, rest_frame, k0, substeps, seconds, plan_seconds
+    )
+
+
+def _run_rigid(plan: Plan, scene: Scene, x0: np.ndarray, v0: np.ndarray, sample: ParticleSample, density: float,
+               gaussians: Gaussians, cfg: PlannerConfig) -> RigidTrajectory:  # fmt: skip
+    """Rigid path: mass and inertia from the particles, contacts on the visible Gaussians' hull."""
+    mass = sample.volume.double().cpu().numpy() * density
+    ground = scene.ground
+    contact = ContactParams(
+        restitution=plan.restitution,
+        friction=ground.friction if ground is not None else 0.0,
+        ground_height=None if ground is None else ground.height,
+        gravity=tuple(scene.gravity),
+    )
+    surface = gaussians.means[gaussians.opacities >= cfg.min_opacity].detach().double().cpu().numpy()
+    body = RigidBody.from_particles(x0, mass, contact_points=surface)
+    sim = RigidSimulator(body, contact, RigidSimulator.initial_state(body, x0, mass, v0))
+    rest_speed = plan.rest_px / plan.px_per_m / plan.frame_dt
+    return sim.run(plan.n_frames, plan.frame_dt, cfg.rigid_dt, rest_speed, cfg.rest_frames)
+
+
+def _run_mpm(
+    plan: Plan,
+    material: MaterialParams,
+    scene: Scene,
+    x0: np.ndarray,
+    v0: np.ndarray,
+    sample: ParticleSample,
+    solver_cfg: SolverConfig,
+    device: str,
+    ballistic: bool = True,
+) -> tuple[np.ndarray, np.ndarray, int, int | None, int]:
+    """MPM with a ballistic prefix and early stop; returns (x [T,P,3], F [T,P,3,3], substeps, rest_frame, k0)."""
+    T, frame_dt, n = plan.n_frames, plan.frame_dt, len(x0)
+    xs = np.empty((T, n, 3), np.float32)
+    Fs = np.empty((T, n, 3, 3), np.float32)
+    g = np.asarray(scene.gravity, dtype=np.float64)
+    k0 = ballistic_frames(x0, v0, scene, frame_dt, T, gap=3 * plan.dx) if ballistic else 1
+    for k in range(k0):
+        t = k * frame_dt
+        xs[k] = x0 + v0 * t + 0.5 * g * t * t
+        Fs[k] = np.eye(3, dtype=np.float32)
+    if k0 == T:
+        return xs, Fs, 0, None, k0
+    t0 = (k0 - 1) * frame_dt
+    if solver_cfg.threads == 0 and n >= 4000:
+        # Two particle threads pay off well below the solver's automatic threshold (20k).
+        solver_cfg = replace(solver_cfg, threads=2)
+    grid = GridSpec.fit(plan.grid_lo, plan.grid_hi, plan.dx, margin_cells=solver_cfg.boundary_cells)
+    particles = Particles(x=xs[k0 - 1], volume=sample.volume.cpu().numpy(), material=0, v=v0 + g * t0)
+    solver = MPMSolver(particles, [material], grid, scene, solver_cfg, device)
+    substeps, quiet, rest_frame = 0, 0, None
+    try:
+        for k in range(k0, T):
+            stats = solver.step_frame()
+            substeps += stats.substeps
+            state = solver.state()
+            xs[k], Fs[k] = state.x, state.F
+            # Still = no particle moved a visible amount in this frame, nor over the quiet window
+            # (a slow creep). Instantaneous speeds are not used: MPM particles jitter at high
+            # frequency with invisible amplitude long after the object has settled.
+            moved = float(np.linalg.norm(xs[k] - xs[k - 1], axis=1).max()) * plan.px_per_m
+            quiet = quiet + 1 if moved < plan.rest_px else 0
+            if quiet >= plan.rest_frames:
+                window = xs[k] - xs[max(k - plan.rest_frames, 0)]
+                if float(np.linalg.norm(window, axis=1).max()) * plan.px_per_m >= plan.rest_px:
+                    quiet = 0
+            if quiet >= plan.rest_frames:
+                rest_frame = k + 1
+                xs[k + 1 :], Fs[k + 1 :] = xs[k], Fs[k]
+                break
+    finally:
+        solver.close()
+    return xs, Fs, substeps, rest_frame, k0

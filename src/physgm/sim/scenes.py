@@ -1,0 +1,201 @@
+"""Scenes: gravity + boundary conditions + initial velocities, one registry of drivers.
+
+A scene config (conf/sim/scene/<name>.yaml) plus the object's rest particles go through the
+driver registered under that name, which places the object, sets initial velocities and builds
+the boundary conditions:
+
+    setup = build_scene("drop", x, height=0.2)        # overrides win over the YAML
+    solver = MPMSolver(Particles(setup.x, volume, material, v=setup.v), materials,
+                       GridSpec.fit(setup.reach_lo, setup.reach_hi, dx), setup.scene)
+
+``reach_lo`` / ``reach_hi`` bound where the particles can go during ``duration`` (for fitting
+the grid; the planner may refine them).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from physgm.sim.boundary import GroundPlane, VelocityBox
+
+SCENE_DIR = Path(__file__).resolve().parents[3] / "conf" / "sim" / "scene"
+
+
+@dataclass(frozen=True)
+class Scene:
+    """Everything the solver needs besides particles, materials and grid."""
+
+    gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)  # m/s^2
+    ground: GroundPlane | None = None
+    boxes: tuple[VelocityBox, ...] = field(default_factory=tuple)
+    damping: float = 0.0  # 1/s, mass-proportional drag on grid velocities (0: none)
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.damping) and self.damping >= 0.0):
+            raise ValueError(f"scene damping={self.damping!r} 1/s must be finite and >= 0")
+        g = np.asarray(self.gravity, dtype=np.float64)
+        if g.shape != (3,) or not np.isfinite(g).all():
+            raise ValueError(f"gravity={self.gravity!r} must be three finite numbers (m/s^2)")
+        object.__setattr__(self, "gravity", tuple(float(c) for c in g))
+        object.__setattr__(self, "boxes", tuple(self.boxes))
+
+
+@dataclass
+class SceneSetup:
+    """A scene applied to one object: placed particles, their velocities and the boundaries."""
+
+    scene: Scene
+    x: np.ndarray  # [P, 3] placed rest positions, m
+    v: np.ndarray  # [P, 3] initial velocities, m/s
+    duration: float  # s, suggested simulated time
+    reach_lo: np.ndarray  # [3] m, lower corner of the region the particles can reach
+    reach_hi: np.ndarray  # [3] m
+    driver_work: bool = False  # the scene moves particles by prescribed velocities (adds energy)
+
+
+def _ground(cfg: dict) -> GroundPlane | None:
+    g = cfg.get("ground")
+    return None if g is None else GroundPlane(**g)
+
+
+def _vec(value, name: str) -> np.ndarray:
+    v = np.asarray(value, dtype=np.float64).reshape(-1)
+    if v.shape != (3,) or not np.isfinite(v).all():
+        raise ValueError(f"scene setting {name}={value!r} must be three finite numbers")
+    return v
+
+
+def _fall_reach(x: np.ndarray, v: np.ndarray, gravity: np.ndarray, duration: float, floor: float | None):
+    """Box swept by a ballistic object (bounded below by the floor), plus one object size of spread."""
+    lo, hi = x.min(0), x.max(0)
+    size = float((hi - lo).max())
+    v_mean = v.mean(0)
+    travel = np.abs(v_mean) * duration + 0.5 * np.abs(gravity) * duration**2
+    reach_lo, reach_hi = lo - travel - 0.5 * size, hi + travel + 0.5 * size
+    if floor is not None:
+        reach_lo[2] = max(floor - 0.1 * size, min(reach_lo[2], lo[2]))
+        reach_hi[2] = hi[2] + max(0.0, float(v_mean[2])) ** 2 / (2 * max(abs(gravity[2]), 1e-9)) + 0.5 * size
+    return reach_lo, reach_hi
+
+
+def drop(x: np.ndarray, material: np.ndarray, cfg: dict) -> SceneSetup:
+    """Place the object ``height`` above the ground with velocity ``velocity``; gravity pulls it down."""
+    ground = _ground(cfg)
+    floor = ground.height if ground is not None else 0.0
+    x = x - np.array([0.0, 0.0, x[:, 2].min() - floor - float(cfg["height"])])
+    v = np.tile(_vec(cfg.get("velocity", (0, 0, 0)), "velocity"), (len(x), 1))
+    gravity = _vec(cfg["gravity"], "gravity")
+    duration = float(cfg["duration"])
+    lo, hi = _fall_reach(x, v, gravity, duration, floor if ground is not None else None)
+    scene = Scene(gravity=tuple(gravity), ground=ground)
+    return SceneSetup(scene, x, v, duration, lo, hi)
+
+
+def stretch(x: np.ndarray, material: np.ndarray, cfg: dict) -> SceneSetup:
+    """Two grips holding ``grip_fraction`` of each end move apart at ``speed`` until length x ``ratio``."""
+    a = int(cfg["axis"])
+    speed, ratio, frac = float(cfg["speed"]), float(cfg["ratio"]), float(cfg["grip_fraction"])
+    if not (speed > 0 and ratio > 1 and 0 < frac < 0.5):
+        raise ValueError(
+            f"stretch needs speed > 0, ratio > 1, 0 < grip_fraction < 0.5; got {speed}, {ratio}, {frac}"
+        )
+    lo, hi = x.min(0), x.max(0)
+    length = float(hi[a] - lo[a])
+    pad = 0.5 * float((hi - lo).max())
+    stop = (ratio - 1.0) * length / (2.0 * speed)
+    boxes = []
+    for sign, end in ((-1.0, lo[a]), (1.0, hi[a])):
+        b_lo, b_hi = lo - pad, hi + pad
+        if sign < 0:
+            b_lo[a], b_hi[a] = end - pad, end + frac * length
+        else:
+            b_lo[a], b_hi[a] = end - frac * length, end + pad
+        vel = np.zeros(3)
+        vel[a] = sign * speed
+        boxes.append(VelocityBox(tuple(b_lo), tuple(b_hi), tuple(vel), start=0.0, stop=stop, hold=True))
+    gravity = _vec(cfg.get("gravity", (0, 0, 0)), "gravity")
+    duration = float(cfg["duration"])
+    grow = np.zeros(3)
+    grow[a] = 0.5 * (ratio - 1.0) * length
+    reach_lo = lo - grow - 0.25 * pad - 0.5 * np.abs(gravity) * duration**2
+    reach_hi = hi + grow + 0.25 * pad
+    scene = Scene(gravity=tuple(gravity), ground=_ground(cfg), boxes=tuple(boxes))
+    return SceneSetup(scene, x.copy(), np.zeros_like(x), duration, reach_lo, reach_hi, driver_work=True)
+
+
+def push(x: np.ndarray, material: np.ndarray, cfg: dict) -> SceneSetup:
+    """Throw the object at ``speed`` along ``axis`` into a fixed wall ``wall_gap`` ahead of it."""
+    a = int(cfg["axis"])
+    ground = _ground(cfg)
+    floor = ground.height if ground is not None else 0.0
+    x = x - np.array([0.0, 0.0, x[:, 2].min() - floor - float(cfg.get("lift", 0.0))])
+    lo, hi = x.min(0), x.max(0)
+    size = float((hi - lo).max())
+    w_lo, w_hi = lo - size, hi + size
+    w_lo[a] = hi[a] + float(cfg["wall_gap"])
+    w_hi[a] = w_lo[a] + float(cfg["wall_thickness"])
+    wall = VelocityBox(tuple(w_lo), tuple(w_hi), (0.0, 0.0, 0.0))
+    v = np.zeros_like(x)
+    v[:, a] = float(cfg["speed"])
+    gravity = _vec(cfg["gravity"], "gravity")
+    duration = float(cfg["duration"])
+    reach_lo, reach_hi = _fall_reach(x, v, gravity, duration, floor if ground is not None else None)
+    reach_hi[a] = min(reach_hi[a], w_hi[a])
+    reach_lo[a] = min(reach_lo[a], lo[a] - abs(float(cfg["speed"])) * duration)
+    scene = Scene(gravity=tuple(gravity), ground=ground, boxes=(wall,))
+    return SceneSetup(scene, x, v, duration, reach_lo, reach_hi)
+
+
+def two_objects(x: np.ndarray, material: np.ndarray, cfg: dict) -> SceneSetup:
+    """Object with material index 1 starts ``gap`` above object 0, which rests on the ground."""
+    top, bottom = material == 1, material == 0
+    if not top.any() or not bottom.any() or not (top | bottom).all():
+        raise ValueError("two_objects needs particles with material index 0 (bottom) and 1 (top) only")
+    ground = _ground(cfg)
+    floor = ground.height if ground is not None else 0.0
+    x = x.copy()
+    x[bottom] -= np.array([0.0, 0.0, x[bottom, 2].min() - floor])
+    x[top] -= np.array([0.0, 0.0, x[top, 2].min() - x[bottom, 2].max() - float(cfg["gap"])])
+    # Centre the top object over the bottom one.
+    x[top, :2] += x[bottom, :2].mean(0) - x[top, :2].mean(0)
+    v = np.zeros_like(x)
+    v[top] = _vec(cfg.get("velocity", (0, 0, 0)), "velocity")
+    gravity = _vec(cfg["gravity"], "gravity")
+    duration = float(cfg["duration"])
+    lo, hi = _fall_reach(x, v, gravity, duration, floor if ground is not None else None)
+    scene = Scene(gravity=tuple(gravity), ground=ground)
+    return SceneSetup(scene, x, v, duration, lo, hi)
+
+
+SceneDriver = Callable[[np.ndarray, np.ndarray, dict], SceneSetup]
+SCENES: dict[str, SceneDriver] = {"drop": drop, "stretch": stretch, "push": push, "two_objects": two_objects}
+
+
+def load_scene_config(name: str) -> dict:
+    """The YAML settings of scene ``name`` (conf/sim/scene/<name>.yaml)."""
+    if name not in SCENES:
+        raise ValueError(f"unknown scene {name!r}; known scenes: {', '.join(SCENES)}")
+    with open(SCENE_DIR / f"{name}.yaml") as f:
+        return yaml.safe_load(f)
+
+
+def build_scene(name: str, x: np.ndarray, material: np.ndarray | None = None, **overrides) -> SceneSetup:
+    """Apply scene ``name`` to rest particles ``x`` [P, 3] (m); ``overrides`` replace YAML settings."""
+    cfg = load_scene_config(name)
+    unknown = set(overrides) - set(cfg)
+    if unknown:
+        raise ValueError(f"scene {name!r} has no settings {sorted(unknown)}; it has {sorted(cfg)}")
+    cfg.update(overrides)
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim != 2 or x.shape[1] != 3 or len(x) == 0 or not np.isfinite(x).all():
+        raise ValueError(f"scene {name!r} needs finite particle positions of shape [P, 3], got {x.shape}")
+    material = np.zeros(len(x), np.int32) if material is None else np.asarray(material)
+    if not math.isfinite(float(cfg.get("duration", 1.0))):
+        raise ValueError("scene duration must be finite")
+    return SCENES[name](x, material, cfg)

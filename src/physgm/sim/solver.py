@@ -1,0 +1,458 @@
+"""The MLS-MPM solver: allocates every array once, then only launches kernels."""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+
+import numpy as np
+import warp as wp
+
+from physgm.sim import kernels as K
+from physgm.sim import particle_ops as ops
+from physgm.sim.boundary import BoxStruct, GridHook, no_ground
+from physgm.sim.constitutive import MaterialParams
+from physgm.sim.grid import GridSpec
+from physgm.sim.parallel import PairWorker
+from physgm.sim.particle_store import ParticleStore
+from physgm.sim.scenes import Scene
+from physgm.sim.state import Energy, FrameStats, Particles, ParticleState, Trajectory
+from physgm.sim.stepping import SimulationDiverged, SolverConfig, wave_speed
+
+_AUTO_THREADS_MIN_PARTICLES = 8_000
+_STATS_INIT = np.array([0.0, 1.0e30, -1.0e30, 0.0, 0.0, 0.0], dtype=np.float32)
+
+
+class MPMSolver:
+    """MLS-MPM on a box grid for one or more materials (see physgm.sim for the full contract).
+
+    Args:
+        particles: input particles; ``particles.material`` indexes ``materials``.
+        materials: [M] solver parameters.
+        grid: background grid; every particle must start inside its free interior.
+        scene: gravity and boundary conditions (default: gravity only).
+        config: solver settings.
+        device: Warp device ("cpu", "cuda:0", ...).
+    """
+
+    def __init__(
+        self,
+        particles: Particles,
+        materials: Sequence[MaterialParams],
+        grid: GridSpec,
+        scene: Scene | None = None,
+        config: SolverConfig | None = None,
+        device: str | wp.Device | None = "cpu",
+    ) -> None:
+        wp.init()
+        self.device = wp.get_device(device)
+        self.grid, self.scene = grid, scene or Scene()
+        self.config = config or SolverConfig()
+        self.materials = list(materials)
+        self.hooks: list[GridHook] = []
+        self._check_inputs(particles)
+        n = self.num_particles = len(particles)
+        self.time, self.frame, self.escaped = 0.0, 0, 0
+        auto = (
+            2 if self.device.is_cpu and n >= _AUTO_THREADS_MIN_PARTICLES and (os.cpu_count() or 1) >= 2 else 1
+        )
+        self.threads = min(self.config.threads or auto, 2) if self.device.is_cpu else 1
+        self._c_max = wave_speed(self.materials)
+        self.particles = ParticleStore(particles, self.materials, self.device)
+        self._alloc_grid()
+        self._record_launches()
+        self._worker = PairWorker() if self.threads == 2 else None
+        self.particles.sort(grid)
+        ps = self.particles
+        wp.launch(
+            ops.init_stress,
+            n,
+            [ps.H, ps.mat_table, ps.material, ps.vol0, ps.plastic, ps.stress],
+            device=self.device,
+        )
+        v0 = particles.v if particles.v is not None else np.zeros((n, 3))
+        self._vmax = float(np.max(np.linalg.norm(v0, axis=1)))
+        self._fit_active(self.stable_dt())
+
+    # ----------------------------------------------------------------------------- setup
+    def _check_inputs(self, particles: Particles) -> None:
+        if not self.materials or not all(isinstance(m, MaterialParams) for m in self.materials):
+            raise ValueError("materials must be a non-empty list of MaterialParams")
+        top = int(particles.material.max())
+        if top >= len(self.materials):
+            raise ValueError(
+                f"particle material index {top} but only {len(self.materials)} materials were given"
+            )
+        lo, hi = self.grid.interior(self.config.boundary_cells)
+        outside = ~np.all((particles.x >= lo) & (particles.x <= hi), axis=1)
+        if outside.any():
+            raise ValueError(
+                f"{int(outside.sum())} of {len(particles)} particles start outside the grid interior "
+                f"[{lo.round(4).tolist()}, {hi.round(4).tolist()}] m (particle bounds "
+                f"{particles.x.min(0).round(4).tolist()} .. {particles.x.max(0).round(4).tolist()}); "
+                "enlarge the grid, e.g. GridSpec.fit(lo, hi, dx)"
+            )
+
+    def _alloc_grid(self) -> None:
+        dev, res = self.device, self.grid.res
+        self.acc = [wp.zeros(res, dtype=K.vec8, device=dev) for _ in range(2)]  # per-thread accumulators
+        self.grid_v = wp.zeros(res, dtype=K.vec8, device=dev)  # velocity, mass, velocity change
+        self.stats = wp.zeros((2, K.NUM_STATS), dtype=float, device=dev)
+        self.boxes = wp.array(
+            [b.pack() for b in self.scene.boxes] or [BoxStruct()], dtype=BoxStruct, device=dev
+        )
+        self.work = wp.zeros(2, dtype=wp.float64, device=dev)  # per-thread driver work, J
+        self._energy = wp.zeros(3, dtype=wp.float64, device=dev)
+        self._bounds = wp.zeros(2, dtype=wp.vec3, device=dev)
+        self._dynamic = [*self.particles.dynamic, self.work]
+        self._backup = [wp.empty_like(a) for a in self._dynamic]
+        self.active_box = (np.zeros(3, int), np.array(res) - 1)  # node index range grid_update covers
+
+    def _record_launches(self) -> None:
+        """Record every launch once; a sub-step then only replays them (low Python overhead)."""
+        g, dev, cfg, ps = self.grid, self.device, self.config, self.particles
+        origin = wp.vec3(*g.origin)
+        lo, hi = g.interior(1)
+        ground = self.scene.ground.pack() if self.scene.ground is not None else no_ground()
+        num_boxes = len(self.scene.boxes)
+        n = self.num_particles
+        shape = wp.vec3i(*g.res)
+        split = [0, n] if self.threads == 1 else [0, n // 2, n]
+        self._p2g, self._grid_update, self._g2p = [], [], []
+        for t in range(self.threads):
+            p0, count = split[t], split[t + 1] - split[t]
+            self._p2g.append(
+                wp.launch(
+                    K.p2g,
+                    count,
+                    [
+                        ps.x,
+                        ps.v,
+                        ps.C,
+                        ps.stress,
+                        ps.mass,
+                        origin,
+                        g.dx,
+                        0.0,
+                        p0,
+                        shape,
+                        self.acc[t].flatten(),
+                    ],
+                    device=dev,
+                    record_cmd=True,
+                )
+            )
+            self._grid_update.append(
+                wp.launch(
+                    K.grid_update,
+                    g.res,
+                    [
+                        self.acc[0],
+                        self.acc[1],
+                        wp.vec3i(0, 0, 0),
+                        origin,
+                        g.dx,
+                        0.0,
+                        0.0,
+                        wp.vec3(*self.scene.gravity),
+                        1.0,
+                        cfg.boundary_cells,
+                        ground,
+                        self.boxes,
+                        num_boxes,
+                        t,
+                        self.work,
+                        self.grid_v,
+                    ],
+                    device=dev,
+                    record_cmd=True,
+                )
+            )
+            self._g2p.append(
+                wp.launch(
+                    K.g2p,
+                    count,
+                    [
+                        self.grid_v.flatten(),
+                        shape,
+                        origin,
+                        g.dx,
+                        0.0,
+                        wp.vec3(*lo),
+                        wp.vec3(*hi),
+                        wp.vec3(*lo),
+                        wp.vec3(*hi),
+                        0.0,
+                        self.boxes,
+                        num_boxes,
+                        cfg.flip,
+                        ps.mat_table,
+                        ps.material,
+                        ps.vol0,
+                        ps.mass,
+                        p0,
+                        t,
+                        ps.x,
+                        ps.v,
+                        ps.C,
+                        ps.H,
+                        ps.stress,
+                        ps.plastic,
+                        ps.escaped,
+                        self.stats,
+                        self.work,
+                    ],
+                    device=dev,
+                    record_cmd=True,
+                )
+            )
+        self._dt_set = None
+        self._timed = bool(num_boxes)  # only the velocity boxes depend on time
+
+    def _fit_active(self, dt: float) -> None:
+        """Limit grid_update to the nodes particles can reach in the next ``cfl_check_every`` steps."""
+        g, cfg = self.grid, self.config
+        self._since_fit = 0
+        self._bounds.assign(np.array([[np.inf] * 3, [-np.inf] * 3], np.float32))
+        wp.launch(ops.bounds, self.num_particles, [self.particles.x, self._bounds], device=self.device)
+        b = self._bounds.numpy().astype(np.float64)
+        seen = float(self._read_stats()[0])
+        vmax = max(self._vmax, seen) if math.isfinite(seen) else self._vmax
+        reach = 2.0 * vmax * dt * cfg.cfl_check_every + 3.0 * g.dx  # doubled speed, 3-cell stencil pad
+        origin, res = np.asarray(g.origin), np.asarray(g.res)
+        lo = np.clip(np.floor((b[0] - reach - origin) / g.dx).astype(int), 0, res - 1)
+        hi = np.clip(np.ceil((b[1] + reach - origin) / g.dx).astype(int), 0, res - 1)
+        self.active_box = (lo, hi)
+        inner_lo = origin + lo * g.dx + 1.5 * g.dx
+        inner_hi = origin + hi * g.dx - 1.5 * g.dx
+        # Faces on the grid boundary never need a guard: the domain clamp holds particles there.
+        inner_lo = np.where(lo == 0, -np.inf, inner_lo)
+        inner_hi = np.where(hi == res - 1, np.inf, inner_hi)
+        cut = [lo[0], (lo[0] + hi[0] + 1) // 2, hi[0] + 1] if self.threads == 2 else [lo[0], hi[0] + 1]
+        for t, launch in enumerate(self._grid_update):
+            launch.set_dim((max(cut[t + 1] - cut[t], 0), hi[1] - lo[1] + 1, hi[2] - lo[2] + 1))
+            launch.set_param_by_name("lo", wp.vec3i(int(cut[t]), int(lo[1]), int(lo[2])))
+        for launch in self._g2p:
+            launch.set_param_by_name("active_lo", wp.vec3(*inner_lo))
+            launch.set_param_by_name("active_hi", wp.vec3(*inner_hi))
+
+    # ----------------------------------------------------------------------------- stepping
+    def _set_dt(self, dt: float) -> None:
+        if dt != self._dt_set:
+            for launch in (*self._p2g, *self._grid_update, *self._g2p):
+                launch.set_param_by_name("dt", dt)
+            if self.scene.damping > 0.0:
+                for launch in self._grid_update:
+                    launch.set_param_by_name("damping", math.exp(-self.scene.damping * dt))
+            self._dt_set = dt
+
+    def substep(self, dt: float) -> None:
+        """One raw MLS-MPM step of ``dt`` seconds (no divergence guard).
+
+        The active grid box is re-fitted every ``cfl_check_every`` calls, so raw stepping loops
+        (benchmarks, couplings) stay correct without ``step_frame``.
+        """
+        if self._since_fit >= self.config.cfl_check_every:
+            self._fit_active(dt)
+        self._since_fit += 1
+        self._set_dt(dt)
+        if self._timed:
+            for launch in (*self._grid_update, *self._g2p):
+                launch.set_param_by_name("t", self.time)
+        if self._worker is None:
+            self._p2g[0].launch()
+            self._grid_update[0].launch()
+            for hook in self.hooks:
+                hook.apply(self, dt)
+            self._g2p[0].launch()
+        else:
+            self._worker.run(self._p2g[1].launch, self._p2g[0].launch)
+            self._worker.run(self._grid_update[1].launch, self._grid_update[0].launch)
+            for hook in self.hooks:
+                hook.apply(self, dt)
+            self._worker.run(self._g2p[1].launch, self._g2p[0].launch)
+        self.time += dt
+
+    def stable_dt(self, cfl: float | None = None) -> float:
+        """CFL step cfl dx / (c_p + |v|max) for the current |v|max, s."""
+        cfl = self.config.cfl if cfl is None else cfl
+        return cfl * self.grid.dx / (self._c_max + self._vmax)
+
+    def _read_stats(self) -> np.ndarray:
+        s = self.stats.numpy()[: self.threads]
+        return np.array(
+            [
+                math.sqrt(max(float(s[:, 0].max()), 0.0)),
+                s[:, 1].min(),
+                s[:, 2].max(),
+                s[:, 3].sum(),
+                s[:, 4].sum(),
+                s[:, 5].sum(),
+            ]
+        )
+
+    def _advance(self, frame_dt: float, cfl: float) -> tuple[int, float, float, np.ndarray]:
+        """Sub-step through one frame; returns (sub-steps, dt_min, dt_max, stats)."""
+        cfg = self.config
+        self.stats.assign(np.tile(_STATS_INIT, (2, 1)))
+        t_end = self.time + frame_dt
+        steps, dt, dt_min, dt_max = 0, 0.0, math.inf, 0.0
+        while t_end - self.time > 1e-9 * frame_dt:
+            remaining = t_end - self.time
+            if steps % cfg.cfl_check_every == 0:
+                if steps:
+                    s = self._read_stats()
+                    if s[3] > 0 or s[5] > 0 or not math.isfinite(s[0]):
+                        break  # rejected below; no point stepping a broken state
+                    self._vmax = max(self._vmax, float(s[0]))
+                dt_cfl = cfl * self.grid.dx / (self._c_max + self._vmax)
+                dt = remaining / math.ceil(remaining / dt_cfl - 1e-9)
+                self._fit_active(dt)
+            dt = min(dt, remaining)
+            self.substep(dt)
+            steps += 1
+            dt_min, dt_max = min(dt_min, dt), max(dt_max, dt)
+            if steps >= cfg.max_substeps:
+                raise SimulationDiverged(
+                    f"frame {self.frame} needs more than max_substeps={cfg.max_substeps} sub-steps "
+                    f"(dt={dt:.3g} s for frame_dt={frame_dt} s, wave speed {self._c_max:.3g} m/s); "
+                    "use a coarser grid, a softer material or the planner's rigid mode"
+                )
+        return steps, dt_min, dt_max, self._read_stats()
+
+    def step_frame(self, frame_dt: float | None = None) -> FrameStats:
+        """Advance one frame with CFL sub-steps; restore and retry with half the CFL on divergence."""
+        cfg = self.config
+        frame_dt = cfg.frame_dt if frame_dt is None else frame_dt
+        if cfg.sort_every and self.frame > 0 and self.frame % cfg.sort_every == 0:
+            self.particles.sort(self.grid)
+        for src, dst in zip(self._dynamic, self._backup, strict=True):
+            wp.copy(dst, src)
+        t0, vmax0, cfl, problems = self.time, self._vmax, cfg.cfl, ""
+        for attempt in range(cfg.max_retries + 1):
+            steps, dt_min, dt_max, s = self._advance(frame_dt, cfl)
+            problems = self._problems(s)
+            if not problems:
+                self.time = t0 + frame_dt
+                self.escaped += int(s[4])
+                self._vmax = float(s[0])
+                self.frame += 1
+                return FrameStats(
+                    self.frame,
+                    self.time,
+                    steps,
+                    dt_min,
+                    dt_max,
+                    cfl,
+                    attempt,
+                    float(s[0]),
+                    float(s[1]),
+                    float(s[2]),
+                    self.escaped,
+                )
+            for src, dst in zip(self._backup, self._dynamic, strict=True):
+                wp.copy(dst, src)
+            for acc in self.acc:  # an overrun may have left mass outside the cleared box
+                acc.zero_()
+            self.time, self._vmax, cfl = t0, vmax0, 0.5 * cfl
+        raise SimulationDiverged(
+            f"MPM diverged in frame {self.frame} (t={t0:.4g} s): {problems} after {cfg.max_retries} retries "
+            f"down to CFL {2 * cfl:.3g}. Materials: "
+            + ", ".join(f"{m.model}(E={m.E:.3g} Pa, nu={m.nu}, rho={m.density})" for m in self.materials)
+            + f"; dx={self.grid.dx} m. Try a lower cfl, a finer grid, or the planner's rigid mode."
+        )
+
+    def _problems(self, s: np.ndarray) -> str:
+        cfg = self.config
+        if s[3] > 0 or not np.all(np.isfinite(s[:3])):
+            return f"{int(s[3])} particles reached a non-finite state"
+        if s[5] > 0:
+            return f"{int(s[5])} particles moved faster than the CFL estimate allowed"
+        if s[1] < cfg.j_min or s[2] > cfg.j_max:
+            return f"det F reached [{s[1]:.3g}, {s[2]:.3g}], outside [j_min={cfg.j_min}, j_max={cfg.j_max}]"
+        return ""
+
+    def run(self, n_frames: int, record: bool = True) -> Trajectory:
+        """Step ``n_frames`` frames; frame 0 of the result is the current state."""
+        st = self.state()
+        xs, Fs, stats = [st.x], [st.F], []
+        for _ in range(n_frames):
+            stats.append(self.step_frame())
+            if record:
+                st = self.state()
+                xs.append(st.x)
+                Fs.append(st.F)
+        return Trajectory(x=np.stack(xs), F=np.stack(Fs), stats=stats)
+
+    # ----------------------------------------------------------------------------- state
+    def state(self) -> ParticleState:
+        """Copy of the particle state in the caller's order."""
+        return self.particles.state()
+
+    def set_velocities(self, v: np.ndarray) -> None:  # v: [P, 3] m/s, caller's order
+        v = np.asarray(v, dtype=np.float32)
+        if v.shape != (self.num_particles, 3) or not np.isfinite(v).all():
+            raise ValueError(f"velocities must be finite with shape [{self.num_particles}, 3], got {v.shape}")
+        self.particles.v.assign(v[self.particles.order.numpy()])
+        self._vmax = float(np.max(np.linalg.norm(v, axis=1)))
+        self._fit_active(self.stable_dt())
+
+    @property
+    def driver_work(self) -> float:
+        """Energy the velocity boxes (grips, pushers) have put into the system so far, J."""
+        return float(self.work.numpy().sum())
+
+    def energy(self) -> Energy:
+        """Kinetic (with the APIC affine part), gravitational and elastic energy, J."""
+        ps = self.particles
+        self._energy.zero_()
+        wp.launch(
+            ops.particle_energy,
+            self.num_particles,
+            [
+                ps.x,
+                ps.v,
+                ps.C,
+                ps.H,
+                ps.mat_table,
+                ps.material,
+                ps.mass,
+                ps.vol0,
+                wp.vec3(*self.scene.gravity),
+                0.25 * self.grid.dx**2,
+                self._energy,
+            ],
+            device=self.device,
+        )
+        e = self._energy.numpy()
+        return Energy(kinetic=float(e[0]), gravitational=float(e[1]), elastic=float(e[2]))
+
+    def close(self) -> None:
+        """Stop the worker thread (also done at garbage collection)."""
+        if self._worker is not None:
+            self._worker.close()
+            self._worker = None
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:
+            pass
+
+
+def simulate(
+    particles: Particles,
+    materials: Sequence[MaterialParams],
+    grid: GridSpec,
+    scene: Scene | None,
+    n_frames: int,
+    config: SolverConfig | None = None,
+    device: str = "cpu",
+) -> Trajectory:
+    """Build a solver, run ``n_frames`` frames and return the trajectory (frame 0 = initial)."""
+    solver = MPMSolver(particles, materials, grid, scene, config, device)
+    try:
+        return solver.run(n_frames)
+    finally:
+        solver.close()

@@ -1,0 +1,185 @@
+"""Warp constitutive models against their numpy twins (stress, return mapping, energy)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+
+from physgm.sim import particle_ops as K
+from physgm.sim.constitutive import MODELS, MaterialParams, MaterialStruct
+from physgm.sim.constitutive import reference as ref
+
+PARAMS = {
+    "fixed_corotated": MaterialParams("fixed_corotated", 1.0e6, 0.3, 1000.0),
+    "neo_hookean": MaterialParams("neo_hookean", 1.0e6, 0.45, 1000.0),
+    "drucker_prager": MaterialParams(
+        "drucker_prager", 1.0e6, 0.3, 1600.0, friction_angle=30.0, cohesion=2.0e3
+    ),
+    "von_mises": MaterialParams("von_mises", 1.0e6, 0.3, 1500.0, yield_stress=2.0e4, hardening=1.0e5),
+    "foam": MaterialParams("foam", 1.0e6, 0.2, 100.0, yield_stress=2.0e4, hardening=1.0e4, viscosity=10.0),
+    "fluid": MaterialParams("fluid", 1.0e6, 0.3, 1000.0),
+}
+DT = 1.0e-3
+
+
+def random_F(n: int, seed: int) -> np.ndarray:
+    """Near-identity, large, rotated and inverted deformation gradients, [n, 3, 3]."""
+    rng = np.random.default_rng(seed)
+    small = np.eye(3) + 1e-3 * rng.standard_normal((n, 3, 3))
+    large = np.eye(3) + 0.3 * rng.standard_normal((n, 3, 3))
+    q, _ = np.linalg.qr(rng.standard_normal((n, 3, 3)))
+    q *= np.sign(np.linalg.det(q))[:, None, None]
+    stretch = np.einsum("nij,nj,nkj->nik", q, rng.uniform(0.5, 1.6, (n, 3)), q)
+    rotated = q @ stretch
+    inverted = large.copy()
+    inverted[:, :, 0] *= -1  # mirror: det < 0
+    F = np.concatenate([small, large, rotated, inverted])
+    return F[np.abs(np.linalg.det(F)) > 0.05]  # keep away from exactly singular matrices
+
+
+def run_warp(params: MaterialParams, F: np.ndarray, plastic: np.ndarray, dt: float = DT):
+    n = len(F)
+    mats = wp.array([params.pack()], dtype=MaterialStruct, device="cpu")
+    outs = dict(
+        F=wp.zeros(n, dtype=wp.mat33, device="cpu"),
+        tau=wp.zeros(n, dtype=wp.mat33, device="cpu"),
+        plastic=wp.zeros(n, dtype=float, device="cpu"),
+        energy=wp.zeros(n, dtype=float, device="cpu"),
+    )
+    wp.launch(
+        K.evaluate_constitutive,
+        n,
+        [
+            wp.array(F.astype(np.float32), dtype=wp.mat33, device="cpu"),
+            wp.array(plastic.astype(np.float32), dtype=float, device="cpu"),
+            mats,
+            wp.zeros(n, dtype=int, device="cpu"),
+            dt,
+            outs["F"],
+            outs["tau"],
+            outs["plastic"],
+            outs["energy"],
+        ],
+        device="cpu",
+    )
+    return {k: v.numpy().astype(np.float64) for k, v in outs.items()}
+
+
+def test_registry_covers_every_model_with_a_twin():
+    assert set(MODELS) == set(PARAMS)
+    assert sorted(m.id for m in MODELS.values()) == list(range(len(MODELS)))
+
+
+@pytest.mark.parametrize("model", list(PARAMS))
+def test_stress_and_return_mapping_match_numpy(model):
+    p = PARAMS[model]
+    F = random_F(200, seed=1)
+    # Reference in float64 on the float32-rounded input the kernel sees.
+    F = F.astype(np.float32).astype(np.float64)
+    plastic = np.zeros(len(F))
+    got = run_warp(p, F, plastic)
+    F_ref, tau_ref, pl_ref = ref.update(p, F, plastic, DT)
+    scale = p.lam + 2 * p.mu
+    # float32 kernel vs float64 twin: error relative to the stress scale and to the stress itself
+    bound = scale * (1 + np.abs(F).max(axis=(1, 2)) ** 2) + 20 * np.abs(tau_ref).max(axis=(1, 2))
+    tau_err = np.abs(got["tau"] - tau_ref).max(axis=(1, 2)) / bound
+    assert tau_err.max() < 5e-5, f"{model}: worst stress error {tau_err.max():.3g} at F={F[tau_err.argmax()]}"
+    np.testing.assert_allclose(got["F"], F_ref, atol=5e-5 * (1 + np.abs(F_ref).max()))
+    if pl_ref is not None:
+        np.testing.assert_allclose(got["plastic"], pl_ref, rtol=1e-3, atol=1e-5)
+    e_ref = ref.energy_density(model, F, p.mu, p.lam, p.bulk)
+    np.testing.assert_allclose(got["energy"], e_ref, rtol=1e-3, atol=2e-6 * scale)
+
+
+@pytest.mark.parametrize("model", ["fixed_corotated", "neo_hookean", "fluid"])
+def test_reference_stress_is_the_energy_gradient(model):
+    """tau = (d psi / d F) F^T: checks the twin itself by central differences, inverted F included."""
+    p = PARAMS[model]
+    F = random_F(20, seed=2)
+    if model == "fluid":  # the fluid clamps J below J_MIN_FLUID, where it is not hyperelastic
+        F = F[np.linalg.det(F) > 2 * ref.J_MIN_FLUID]
+    _, tau, _ = ref.update(p, F, np.zeros(len(F)), DT)
+    h = 1e-6
+    P = np.zeros_like(F)
+    for i in range(3):
+        for j in range(3):
+            dF = np.zeros((3, 3))
+            dF[i, j] = h
+            P[:, i, j] = (
+                ref.energy_density(model, F + dF, p.mu, p.lam, p.bulk)
+                - ref.energy_density(model, F - dF, p.mu, p.lam, p.bulk)
+            ) / (2 * h)
+    np.testing.assert_allclose(P @ np.swapaxes(F, 1, 2), tau, rtol=1e-5, atol=1e-5 * p.E)
+
+
+def test_hencky_stress_is_the_energy_gradient_inside_the_yield_surface():
+    p = MaterialParams("von_mises", 1.0e6, 0.3, 1000.0, yield_stress=1.0e12)  # never yields
+    F = random_F(20, seed=3)
+    F = F[np.linalg.det(F) > 0.1]
+    _, tau, _ = ref.update(p, F, np.zeros(len(F)), DT)
+    h = 1e-6
+    P = np.zeros_like(F)
+    for i in range(3):
+        for j in range(3):
+            dF = np.zeros((3, 3))
+            dF[i, j] = h
+            P[:, i, j] = (
+                ref.energy_density("von_mises", F + dF, p.mu, p.lam)
+                - ref.energy_density("von_mises", F - dF, p.mu, p.lam)
+            ) / (2 * h)
+    np.testing.assert_allclose(P @ np.swapaxes(F, 1, 2), tau, rtol=1e-5, atol=1e-5 * p.E)
+
+
+def test_projected_states_lie_on_or_inside_the_yield_surface():
+    F = random_F(200, seed=4)
+    for model in ("drucker_prager", "von_mises"):
+        p = PARAMS[model]
+        got = run_warp(p, F, np.zeros(len(F)))
+        _, s, _ = ref.rv_svd(got["F"])
+        eps = np.log(np.maximum(s, ref.SIGMA_MIN))
+        tr = eps.sum(1)
+        dev = np.linalg.norm(eps - tr[:, None] / 3, axis=1)
+        if model == "von_mises":
+            radius = np.sqrt(2 / 3) * (p.yield_stress + p.hardening * got["plastic"]) / (2 * p.mu)
+            assert np.all(dev <= radius * (1 + 1e-3) + 1e-6)
+            assert (got["plastic"] > 0).sum() > len(F) // 4  # the test F really do yield
+        else:
+            s_ = p.pack()
+            f = dev + s_.alpha * (3 * p.lam + 2 * p.mu) / (2 * p.mu) * (tr - s_.tension_strain)
+            tol = 3e-5 * (1 + np.abs(eps).sum(1))  # float32 rounding of log strains (up to |eps| ~ 3.4 here)
+            assert np.all(f <= tol) and np.all(tr <= s_.tension_strain + tol)
+        # Elastic, non-inverted states stay untouched (inverted ones are projected to SIGMA_MIN).
+        inside = (got["plastic"] == 0) & (np.linalg.det(F) > 0)
+        np.testing.assert_allclose(got["F"][inside], F[inside], atol=1e-5)
+
+
+def test_foam_relaxes_between_elastic_and_rate_independent():
+    F = np.tile(np.diag([1.2, 1 / 1.2, 1.0]), (1, 1, 1))
+    kappa = {}
+    for eta in (0.0, 10.0, 1e9):
+        p = MaterialParams("foam", 1.0e6, 0.2, 100.0, yield_stress=1.0e4, viscosity=eta)
+        kappa[eta] = run_warp(p, F, np.zeros(1))["plastic"][0]
+    assert kappa[0.0] > kappa[10.0] > kappa[1e9] >= 0
+    assert kappa[1e9] < 1e-6 * kappa[0.0]
+
+
+def test_neo_hookean_is_finite_and_restoring_when_inverted():
+    p = PARAMS["neo_hookean"]
+    J = np.array([0.5, 0.1, 0.05, 0.0, -0.05, -0.3])
+    F = np.cbrt(np.abs(J))[:, None, None] * np.eye(3)
+    F[:, 2, 2] *= np.where(J < 0, -1, 1)
+    F[3] = np.diag([1.0, 1.0, 0.0])
+    got = run_warp(p, F, np.zeros(len(F)))
+    P = ref.neo_hookean_first_pk(F, p.mu, p.lam)
+    assert np.all(np.isfinite(got["tau"])) and np.all(np.isfinite(P))
+    # Energy grows monotonically as the volume collapses and inverts.
+    e = ref.energy_density("neo_hookean", F, p.mu, p.lam)
+    assert np.all(np.diff(e) > 0)
+
+
+def test_fluid_resets_F_to_isotropic():
+    F = random_F(50, seed=5)
+    got = run_warp(PARAMS["fluid"], F, np.zeros(len(F)))
+    J = np.maximum(np.linalg.det(F), ref.J_MIN_FLUID)
+    np.testing.assert_allclose(got["F"], np.cbrt(J)[:, None, None] * np.eye(3), rtol=2e-5, atol=2e-6)

@@ -1,0 +1,200 @@
+"""Planner: deformation estimates, mode choice, stiffness cap, grid fitting, pixel scale."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from physgm.cameras import orbit_cameras
+from physgm.sim.boundary import GroundPlane, VelocityBox
+from physgm.sim.constitutive import MaterialParams
+from physgm.sim.planner import (
+    PlannerConfig,
+    choose_spacing,
+    deformation_estimate,
+    pixels_per_metre,
+    plan_simulation,
+    reachable_region,
+    stiffness_cap,
+)
+from physgm.sim.scenes import Scene
+
+G = 9.81
+CAMERAS = orbit_cameras(
+    [30.0], [20.0], radius=1.0, fov_deg=40.0, width=256, height=256, target=(0.0, 0.0, 0.3)
+)
+
+
+def _cube(side: float = 0.1, bottom: float = 0.5, spacing: float = 0.01) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.arange(-side / 2 + spacing / 2, side / 2, spacing)
+    x = torch.stack(torch.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3) + torch.tensor(
+        [0.0, 0.0, bottom + side / 2]
+    )
+    return x, torch.full((len(x),), spacing**3)
+
+
+def _plan(
+    material: MaterialParams, name: str = "custom", scene: Scene | None = None, bottom: float = 0.5, **cfg
+):
+    x, vol = _cube(bottom=bottom)
+    scene = scene or Scene(ground=GroundPlane(0.0, friction=0.3))
+    config = PlannerConfig(**cfg)
+    dx, spacing = choose_spacing(0.1, config)
+    return plan_simulation(
+        x, vol, torch.zeros_like(x), name, material, scene, CAMERAS, 50, 0.04, dx, spacing, config
+    )
+
+
+STEEL = MaterialParams("von_mises", E=2e11, nu=0.3, density=7850.0, yield_stress=2.5e8)
+JELLY = MaterialParams("fixed_corotated", E=1e5, nu=0.3, density=1000.0)
+SAND = MaterialParams("drucker_prager", E=3.5e7, nu=0.3, density=1600.0, friction_angle=30.0)
+
+
+def test_deformation_estimate_formulas():
+    d = deformation_estimate(E=1e6, density=1000.0, size=0.2, impact_speed=2.0)
+    assert d.sag == pytest.approx(1000 * G * 0.04 / 1e6)
+    assert d.impact == pytest.approx(2.0 * 0.2 / math.sqrt(1e6 / 1000))
+    assert d.plastic == 0.0 and not d.flows
+    # Past yield: the kinetic energy goes into a dent rho L v^2 / (2 sigma_y).
+    d = deformation_estimate(E=7e10, density=2700.0, size=0.1, impact_speed=5.0, yield_stress=3e7)
+    assert d.plastic == pytest.approx(2700 * 0.1 * 25 / (2 * 3e7))
+    # Weaker than its own weight: flows.
+    assert deformation_estimate(E=1e6, density=1500.0, size=0.1, impact_speed=0.0, yield_stress=100.0).flows
+
+
+def test_pixels_per_metre_is_focal_over_depth():
+    cams = orbit_cameras([0.0], [0.0], radius=2.0, fov_deg=60.0, width=200, height=100)
+    focal = 100 / math.tan(math.radians(30))
+    assert pixels_per_metre(cams, torch.zeros(1, 3)) == pytest.approx(focal / 2.0, rel=1e-5)
+    # The closest point sets the scale.
+    pts = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    assert pixels_per_metre(cams, pts) == pytest.approx(focal / 1.0, rel=1e-5)
+
+
+def test_steel_drop_goes_rigid_jelly_goes_mpm():
+    steel = _plan(STEEL, "metal")
+    assert steel.mode == "rigid"
+    assert steel.predicted_error_px < 0.5
+    assert steel.E_used == STEEL.E
+    jelly = _plan(JELLY, "jelly")
+    assert jelly.mode == "mpm" and jelly.E_used == JELLY.E  # its deformation is the point: no cap
+    assert jelly.error_terms["impact_px"] > 0.5
+    assert "deforms" in jelly.reason
+
+
+@pytest.mark.parametrize("name", ["sand", "snow"])
+def test_granular_never_rigid_even_when_stiff(name):
+    stiff = MaterialParams("drucker_prager", E=1e12, nu=0.3, density=1600.0, friction_angle=35.0)
+    plan = _plan(stiff, name, bound_px=50.0)
+    assert plan.mode == "mpm"
+    # By name alone as well (snow may use another model in the table).
+    assert _plan(MaterialParams("fixed_corotated", E=1e12, nu=0.3, density=400.0), name).mode == "mpm"
+
+
+def test_prescribed_motion_is_never_rigid():
+    grip = VelocityBox(lo=(-0.1, -0.1, 0.58), hi=(0.1, 0.1, 0.7), velocity=(0.0, 0.0, 0.1))
+    plan = _plan(STEEL, "metal", scene=Scene(ground=GroundPlane(), boxes=(grip,)))
+    assert plan.mode == "mpm" and "prescribes" in plan.reason
+
+
+def test_stiffness_cap_meets_bound_and_is_monotone():
+    E, rho, size, v = 5e9, 1200.0, 0.1, 3.0
+    bounds = [1e-5, 1e-4, 1e-3, 1e-2]
+    caps = [stiffness_cap(E, rho, size, v, b) for b in bounds]
+    assert all(a > b for a, b in zip(caps, caps[1:], strict=False))
+    for cap, b in zip(caps, bounds, strict=True):
+        extra = deformation_estimate(cap, rho, size, v)
+        base = deformation_estimate(E, rho, size, v)
+        assert (extra.sag + extra.impact) - (base.sag + base.impact) == pytest.approx(b, rel=1e-6)
+    assert stiffness_cap(E, rho, size, v, 0.0) == pytest.approx(E)
+
+
+def test_plan_caps_stiffness_when_plastic_dent_is_visible():
+    # Soft aluminium dropped from 2 m: the dent is visible (MPM), the elastic part is not (cap E).
+    alu = MaterialParams("von_mises", E=7e10, nu=0.33, density=2700.0, yield_stress=1e6)
+    plan = _plan(alu, "metal", bottom=2.0)
+    assert plan.mode == "mpm"
+    assert plan.error_terms["plastic_px"] > 0.5
+    assert plan.E_used < alu.E / 5
+    assert plan.predicted_error_px == pytest.approx(PlannerConfig().cap_budget * 0.5, rel=1e-3)
+    full = plan.alternatives["mpm"]
+    assert plan.predicted_cost < full / 3
+    # A stricter bound keeps more stiffness.
+    strict = _plan(alu, "metal", bottom=2.0, bound_px=0.2)
+    assert plan.E_used < strict.E_used < alu.E
+    assert _plan(alu, "metal", bottom=2.0, allow_stiffness_cap=False).E_used == alu.E
+
+
+def test_grid_fits_reachable_region_and_is_small():
+    plan = _plan(JELLY, "jelly")
+    x, _ = _cube()
+    assert np.all(plan.grid_lo <= x.min(0).values.numpy()) and np.all(plan.grid_hi >= x.max(0).values.numpy())
+    assert plan.grid_lo[2] <= 0.0  # reaches the ground
+    # Top: the centre (0.55 m) plus the farthest particle's distance (tumbling).
+    assert plan.grid_hi[2] == pytest.approx(0.55 + 0.045 * math.sqrt(3), abs=1e-6)
+    cells = np.ceil((plan.grid_hi - plan.grid_lo) / plan.dx)
+    assert cells.max() <= PlannerConfig().max_cells
+    assert cells.prod() < 200**3 / 50
+    # cells_across cells over the object (unless the cell cap coarsened it).
+    cfg = PlannerConfig()
+    expected = min(cfg.cells_across, cfg.max_cells * 0.1 / (plan.grid_hi - plan.grid_lo).max())
+    assert 0.1 / plan.dx == pytest.approx(expected, rel=1e-6)
+    # The naive baseline: a fixed 1 m cube at the same cell size holds far more nodes.
+    naive = _plan(JELLY, "jelly", fit_grid=False)
+    naive_cells = np.ceil((naive.grid_hi - naive.grid_lo) / naive.dx)
+    assert naive.grid_lo[2] == 0.0 and naive_cells.prod() > 20 * cells.prod()
+
+
+def test_reachable_region_includes_velocity_drift_and_grips():
+    x, _ = _cube(bottom=0.0)
+    v0 = torch.zeros_like(x)
+    v0[:, 0] = 1.0
+    lo, hi = reachable_region(x, v0, 0.5, np.array([0, 0, -G]), 0.0, spread=0.0)
+    radius = float((x - x.mean(0)).norm(dim=-1).max())  # tumbling reach about the centre
+    assert hi[0] == pytest.approx(float(x[:, 0].mean()) + radius + 0.5, abs=1e-6)
+    assert lo[0] == pytest.approx(float(x[:, 0].mean()) - radius - 0.5, abs=1e-6)
+    # A spread wider than the tumbling reach sets the footprint instead.
+    lo, hi = reachable_region(x, torch.zeros_like(x), 0.5, np.array([0, 0, -G]), 0.0, spread=0.3)
+    assert hi[1] == pytest.approx(float(x[:, 1].max()) + 0.3, abs=1e-6)
+    assert lo[2] == pytest.approx(0.0, abs=1e-6)
+    # On the ground with friction mu the slide stops after v^2 / (2 mu g).
+    lo, hi = reachable_region(x, v0, 0.5, np.array([0, 0, -G]), 0.0, spread=0.0, friction=0.5)
+    t_air = math.sqrt(2 * float(x[:, 2].min()) / G)  # the lowest particle is 5 mm up: it lands first
+    assert hi[0] == pytest.approx(float(x[:, 0].mean()) + radius + t_air + 1.0 / (2 * 0.5 * G), abs=1e-6)
+    grip = (np.array([0.0, 0.0, 0.0]), np.array([0.1, 0.1, 0.1]), np.array([0.0, 0.0, 0.2]), 1.0)
+    lo, hi = reachable_region(x, torch.zeros_like(x), 1.0, np.array([0, 0, -G]), 0.0, 0.0, [grip])
+    assert hi[2] == pytest.approx(0.3)
+
+
+def test_cap_spends_its_budget_and_keeps_nu():
+    # Stiff rubber dropped from 1 m: a barely visible squash, and nu = 0.48 makes it costly.
+    rubber = MaterialParams("neo_hookean", E=5e7, nu=0.48, density=1100.0)
+    plan = _plan(rubber, "rubber", bottom=1.0)
+    assert plan.mode == "mpm" and plan.E_used < rubber.E
+    # The cap spends only cap_budget of the bound; the extra deformation equals that share.
+    assert plan.predicted_error_px == pytest.approx(PlannerConfig().cap_budget * 0.5, rel=1e-6)
+    assert plan.predicted_cost < plan.alternatives["mpm"] / 1.25
+    assert _plan(rubber, "rubber", bottom=1.0, allow_stiffness_cap=False).E_used == rubber.E
+    # Yield is checked with the impact stress rho c_p v (P-wave speed, the larger one).
+    c_p = rubber.wave_speed()
+    d = deformation_estimate(
+        5e6, 1100.0, 0.1, 2.0, yield_stress=1100 * c_p * 2.0 * 0.99, wave_factor=c_p**2 * 1100 / 5e6
+    )
+    assert d.plastic > 0
+
+
+def test_yaml_config_matches_dataclass_defaults():
+    import dataclasses
+    from pathlib import Path
+
+    import yaml
+
+    path = Path(__file__).resolve().parents[2] / "conf" / "sim" / "planner" / "default.yaml"
+    values = yaml.safe_load(path.read_text())
+    assert set(values) == {f.name for f in dataclasses.fields(PlannerConfig)}
+    assert PlannerConfig(**values) == PlannerConfig()
+    with pytest.raises(ValueError, match="bound_px"):
+        PlannerConfig(bound_px=0.0)

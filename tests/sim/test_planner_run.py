@@ -1,0 +1,134 @@
+"""``simulate``: plan + execute end to end (small objects, few frames, CPU)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from physgm.cameras import orbit_cameras
+from physgm.gaussians import Gaussians, quat_to_rotmat
+from physgm.sim.boundary import GroundPlane
+from physgm.sim.planner import PlannerConfig
+from physgm.sim.run import ballistic_frames, simulate
+from physgm.sim.scenes import Scene
+
+G = 9.81
+CAMERAS = orbit_cameras(
+    [30.0], [15.0], radius=0.8, fov_deg=40.0, width=256, height=256, target=(0.0, 0.0, 0.2)
+)
+GROUND = Scene(ground=GroundPlane(0.0, friction=0.4))
+
+
+def _shell_cube(n: int = 3000, side: float = 0.1, bottom: float = 0.3, seed: int = 0) -> Gaussians:
+    g = torch.Generator().manual_seed(seed)
+    face = torch.randint(0, 6, (n,), generator=g)
+    uv = torch.rand(n, 2, generator=g) - 0.5
+    pts = torch.zeros(n, 3)
+    for a in range(3):
+        m = face // 2 == a
+        others = [b for b in range(3) if b != a]
+        pts[m, a] = 0.5 * ((face[m] % 2) * 2 - 1.0)
+        pts[m, others[0]], pts[m, others[1]] = uv[m, 0], uv[m, 1]
+    quats = torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=-1)
+    return Gaussians(
+        means=pts * side + torch.tensor([0.0, 0.0, bottom + side / 2]),
+        quats=quats,
+        scales=torch.rand(n, 3, generator=g) * 0.002 + 0.001,
+        opacities=torch.full((n,), 0.9),
+        colors=torch.rand(n, 3, generator=g),
+    )
+
+
+def test_steel_drop_runs_rigid_and_moves_gaussians_rigidly():
+    gs = _shell_cube()
+    traj = simulate(gs, {"material": "metal", "E": 2e11}, GROUND, CAMERAS, n_frames=40)
+    assert traj.plan.mode == "rigid"
+    assert len(traj) == 40
+    # Falls 0.3 m: the bottom reaches the ground, and the body never sinks below it.
+    assert traj.x[:, :, 2].min() > -1e-3
+    assert traj.x[-1, :, 2].min() == pytest.approx(0.0, abs=2e-3)
+    g10 = traj.gaussians_at(10)
+    rot = torch.from_numpy(traj.rigid.rotations[10]).float()
+    torch.testing.assert_close(g10.scales, gs.scales)
+    torch.testing.assert_close(quat_to_rotmat(g10.quats), rot @ quat_to_rotmat(gs.quats), atol=1e-5, rtol=0)
+    # Held at rest after it settles.
+    assert traj.rest_frame is not None
+    np.testing.assert_array_equal(traj.x[traj.rest_frame], traj.x[-1])
+
+
+def test_ballistic_frames_match_free_fall_time():
+    x = np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 0.6]])
+    k = ballistic_frames(x, np.zeros_like(x), GROUND, frame_dt=0.04, n_frames=50, gap=0.01)
+    t_hit = math.sqrt(2 * 0.49 / G)
+    assert (k - 1) * 0.04 <= t_hit < k * 0.04
+    # Non-uniform initial velocity (a spin) is not a free rigid translation: no shortcut.
+    spin = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+    assert ballistic_frames(x, spin, GROUND, 0.04, 50, 0.01) == 1
+
+
+def test_jelly_drop_runs_mpm_and_gaussians_follow_particles():
+    gs = _shell_cube(bottom=0.05)
+    cfg = PlannerConfig(cells_across=8, particles_per_cell=4)
+    traj = simulate(gs, {"material": "jelly", "E": 3e4}, GROUND, CAMERAS, n_frames=8, planner=cfg)
+    plan = traj.plan
+    assert plan.mode == "mpm" and plan.E_used == 3e4
+    assert traj.substeps > 0 and traj.ballistic_frames >= 1
+    # Ballistic prefix is exact free fall; after it the solver takes over.
+    for k in range(traj.ballistic_frames):
+        t = k * 0.04
+        np.testing.assert_allclose(traj.x[k], traj.x[0] + np.array([0, 0, -0.5 * G * t * t]), atol=1e-6)
+    # Everything stays above the ground (within a cell) and the object squashes on impact.
+    assert traj.x[:, :, 2].min() > -plan.dx
+    # Gaussians follow the particles: centres from the follower interpolation.
+    last = traj.gaussians_at(len(traj) - 1)
+    assert torch.isfinite(last.means).all() and torch.isfinite(last.quats).all()
+    assert (last.means[:, 2] - traj.x[-1][:, 2].min()).min() > -plan.dx
+    assert float(last.means[:, 2].mean()) < float(gs.means[:, 2].mean()) - 0.02
+
+
+def test_early_stop_holds_frames_once_still():
+    # A block pushed along the ground: friction stops it within a few frames, then it is held.
+    gs = _shell_cube(bottom=0.0)
+    cfg = PlannerConfig(cells_across=8, allow_rigid=False, allow_stiffness_cap=False, rest_frames=3)
+    physics = {"material": "rubber", "E": 1e6, "nu": 0.3}
+    traj = simulate(gs, physics, (GROUND, [0.3, 0.0, 0.0]), CAMERAS, n_frames=30, planner=cfg)
+    assert traj.plan.mode == "mpm"
+    moved_px = np.linalg.norm(np.diff(traj.x, axis=0), axis=2).max(axis=1) * traj.plan.px_per_m  # [T-1]
+    assert moved_px[0] > 1.0  # it visibly slides first
+    assert traj.rest_frame is not None and traj.rest_frame < 30
+    # The last simulated frames were still; every later frame repeats the last simulated one.
+    assert (moved_px[traj.rest_frame - 1 - cfg.rest_frames : traj.rest_frame - 1] < cfg.rest_px).all()
+    for k in range(traj.rest_frame, 30):
+        np.testing.assert_array_equal(traj.x[k], traj.x[traj.rest_frame - 1])
+    # The held frames cost nothing: fewer sub-steps than planned for the whole clip.
+    assert traj.substeps < traj.plan.substeps_per_frame * 29 * 0.8
+
+
+def test_resolve_material_reads_table_and_overrides():
+    from physgm.sim.run import resolve_material
+
+    name, params = resolve_material({"material": "rubber", "E": 2e6, "nu": 0.45, "density": 1200.0})
+    assert name == "rubber" and params.model == "neo_hookean"
+    assert (params.E, params.nu, params.density) == (2e6, 0.45, 1200.0)
+    name, params = resolve_material({"material": "metal"})  # table defaults
+    assert params.yield_stress > 0 and params.E == pytest.approx(2e11)
+    with pytest.raises(ValueError, match="material"):
+        resolve_material({"E": 1e6})
+
+
+def test_registered_drop_scene_places_object_and_gaussians():
+    gs = _shell_cube(bottom=0.0)
+    traj = simulate(gs, {"material": "ceramic"}, "drop", CAMERAS, n_frames=5, scene_overrides={"height": 0.2})
+    assert traj.plan.mode == "rigid"
+    first = traj.gaussians_at(0)
+    # Lifted so the lowest particle is 0.2 m above the ground; Gaussians moved with it.
+    assert traj.x[0, :, 2].min() == pytest.approx(0.2, abs=1e-6)
+    shift = first.means - gs.means
+    torch.testing.assert_close(shift, shift[:1].expand_as(shift), atol=1e-6, rtol=0)
+    # The bottom face Gaussians sit at z = 0, so are its voxel centroids: the lift is exactly 0.2 m.
+    assert float(shift[0, 2]) == pytest.approx(0.2, abs=1e-6)
+    with pytest.raises(ValueError, match="overrides"):
+        simulate(gs, {"material": "ceramic"}, GROUND, CAMERAS, n_frames=5, scene_overrides={"height": 0.2})

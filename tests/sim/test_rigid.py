@@ -1,0 +1,118 @@
+"""Rigid path against analytic mechanics: free fall, restitution, Coulomb sliding, torque-free spin."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from physgm.sim.rigid import ContactParams, RigidBody, RigidSimulator
+
+G = 9.81
+
+
+def _cube(half: float = 0.05, center=(0.0, 0.0, 0.05), n: int = 9) -> tuple[np.ndarray, np.ndarray]:
+    g = np.linspace(-half, half, n)
+    x = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3) + np.asarray(center)
+    mass = np.full(len(x), 7850 * (2 * half) ** 3 / len(x))  # steel
+    return x, mass
+
+
+def _sim(x, mass, v, **contact) -> RigidSimulator:
+    body = RigidBody.from_particles(x, mass)
+    return RigidSimulator(body, ContactParams(**contact), RigidSimulator.initial_state(body, x, mass, v))
+
+
+def test_inertia_of_cube_matches_formula():
+    x, mass = _cube(n=21)
+    body = RigidBody.from_particles(x, mass)
+    # Lattice linspace(-h, h, n) per axis: mean of coordinate^2 is h^2 (n + 1) / (3 (n - 1)) exactly,
+    # and I_xx = m (<y^2> + <z^2>) (the continuum limit is m a^2 / 6).
+    second_moment = 0.05**2 * 22 / (3 * 20)
+    np.testing.assert_allclose(np.diag(body.inertia), body.mass * 2 * second_moment, rtol=1e-6)
+    np.testing.assert_allclose(body.inertia - np.diag(np.diag(body.inertia)), 0, atol=1e-12)
+    assert len(body.points) == 8  # the cube's corners are its hull
+
+
+def test_free_fall_follows_gravity():
+    x, mass = _cube(center=(0, 0, 2.0))
+    sim = _sim(x, mass, np.zeros_like(x), ground_height=0.0)
+    traj = sim.run(n_frames=11, frame_dt=0.04, dt=1e-3)
+    t = np.arange(11) * 0.04
+    # Semi-implicit Euler: z = z0 - g t (t + dt) / 2, within dt of the exact -g t^2 / 2.
+    np.testing.assert_allclose(traj.coms[:, 2], 2.0 - 0.5 * G * t**2, atol=G * 0.4 * 1e-3)
+    np.testing.assert_allclose(traj.velocities[:, 2], -G * t, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("restitution", [0.3, 0.8])
+def test_bounce_rebound_ratio_is_restitution(restitution):
+    x, mass = _cube(center=(0, 0, 0.55))  # bottom face 0.5 m above the ground
+    sim = _sim(x, mass, np.zeros_like(x), restitution=restitution, friction=0.3)
+    traj = sim.run(n_frames=20, frame_dt=0.04, dt=2e-3)  # a coarse step: the time of impact is found
+    t_hit, vn_in, vn_out = traj.events[0]
+    assert vn_in == pytest.approx(-math.sqrt(2 * G * 0.5), rel=5e-3)
+    assert t_hit == pytest.approx(math.sqrt(2 * 0.5 / G), abs=2e-3)
+    assert vn_out / -vn_in == pytest.approx(restitution, rel=0.05)
+    # The rebound apex is e^2 times the drop height (within a few mm).
+    apex = traj.coms[:, 2][int(t_hit / 0.04) + 1 :].max() - 0.05
+    assert apex == pytest.approx(restitution**2 * 0.5, abs=0.01)
+
+
+@pytest.mark.parametrize("mu", [0.2, 0.5])
+def test_friction_stops_sliding_at_coulomb_distance(mu):
+    x, mass = _cube()
+    v = np.zeros_like(x)
+    v[:, 0] = 2.0
+    sim = _sim(x, mass, v, friction=mu, restitution=0.5)
+    traj = sim.run(n_frames=40, frame_dt=0.04, dt=1e-3)
+    distance = traj.coms[-1, 0] - traj.coms[0, 0]
+    assert distance == pytest.approx(2.0**2 / (2 * mu * G), rel=0.05)
+    assert np.abs(traj.omegas).max() < 1e-6  # slides flat, no tipping at these speeds
+    assert traj.coms[-1, 2] == pytest.approx(0.05, abs=1e-6)
+
+
+def test_angular_momentum_conserved_and_rotation_matches_euler_equations():
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-1, 1, (3000, 3)) * [0.1, 0.05, 0.02] + [0, 0, 1]
+    mass = np.full(len(x), 1e-3)
+    body = RigidBody.from_particles(x, mass)
+    omega0 = np.array([0.1, 5.0, 0.1])  # close to the unstable intermediate axis: tumbles
+    v = np.cross(omega0, x - body.com) + [0.5, 0.0, 3.0]
+    sim = RigidSimulator(
+        body, ContactParams(ground_height=None), RigidSimulator.initial_state(body, x, mass, v)
+    )
+    L0 = sim.state.L.copy()
+    e_rot0 = 0.5 * L0 @ sim.omega()
+    traj = sim.run(n_frames=51, frame_dt=0.04, dt=1e-3)
+    np.testing.assert_allclose(sim.state.L, L0, rtol=1e-12)
+    assert 0.5 * sim.state.L @ sim.omega() == pytest.approx(e_rot0, rel=1e-3)
+    inv_inertia = np.linalg.inv(body.inertia)
+
+    def rhs(_t, y):
+        rot = y.reshape(3, 3)
+        w = rot @ inv_inertia @ rot.T @ L0
+        skew = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+        return (skew @ rot).ravel()
+
+    ref = solve_ivp(rhs, [0, 2.0], np.eye(3).ravel(), rtol=1e-10, atol=1e-12).y[:, -1].reshape(3, 3)
+    np.testing.assert_allclose(traj.rotations[-1], ref, atol=1e-3)
+    # Centre of mass is a parabola, untouched by the spin.
+    np.testing.assert_allclose(traj.coms[-1, :2], body.com[:2] + [0.5 * 2.0, 0.0], atol=1e-9)
+
+
+def test_tilted_drop_comes_to_rest_on_a_face_and_is_held():
+    from scipy.spatial.transform import Rotation
+
+    x, mass = _cube(center=(0, 0, 0))
+    x = x @ Rotation.from_euler("xyz", [20, 35, 10], degrees=True).as_matrix().T + [0, 0, 0.4]
+    sim = _sim(x, mass, np.zeros_like(x), restitution=0.4, friction=0.5)
+    traj = sim.run(n_frames=75, frame_dt=0.04, dt=1e-3, rest_speed=0.01)
+    assert traj.rest_frame is not None and traj.rest_frame < 75
+    final = traj.transform(x, -1)
+    assert final[:, 2].min() == pytest.approx(0.0, abs=1e-4)
+    assert final[:, 2].max() == pytest.approx(0.1, abs=2e-3)  # flat on a face
+    np.testing.assert_array_equal(
+        traj.coms[traj.rest_frame :], np.broadcast_to(traj.coms[-1], traj.coms[traj.rest_frame :].shape)
+    )

@@ -1,0 +1,114 @@
+"""Particle selection from Gaussians (pruning, voxel downsampling, interior filling) and followers."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from physgm.gaussians import Gaussians, quat_to_rotmat
+from physgm.sim.sampling import build_followers, fill_interior, sample_particles, voxel_downsample
+
+
+def _gaussians(means: torch.Tensor, opacities: torch.Tensor | None = None) -> Gaussians:
+    n = means.shape[0]
+    return Gaussians(
+        means=means,
+        quats=torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(n, 1),
+        scales=torch.full((n, 3), 0.002),
+        opacities=torch.ones(n) if opacities is None else opacities,
+        colors=torch.rand(n, 3),
+    )
+
+
+def _sphere_shell(n: int, radius: float, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1) * radius
+
+
+def test_voxel_downsample_counts_occupied_voxels_and_averages():
+    pts = np.array([[0.01, 0.01, 0.01], [0.03, 0.03, 0.03], [0.15, 0.01, 0.01], [0.16, 0.02, 0.02]])
+    centroids, voxels = voxel_downsample(pts, spacing=0.1, origin=np.zeros(3))
+    assert len(centroids) == 2
+    np.testing.assert_allclose(sorted(centroids[:, 0]), [0.02, 0.155])
+    # A dense uniform cloud: one particle per voxel of the box it fills.
+    rng = np.random.default_rng(0)
+    dense = rng.uniform(0, 0.2, (50000, 3))
+    centroids, _ = voxel_downsample(dense, spacing=0.02, origin=np.zeros(3))
+    assert len(centroids) == 10**3
+
+
+def test_opacity_pruning_drops_faint_gaussians():
+    means = torch.cat([torch.rand(1000, 3) * 0.1, torch.rand(1000, 3) * 0.1 + 1.0])
+    opac = torch.cat([torch.full((1000,), 0.9), torch.full((1000,), 0.01)])
+    sample = sample_particles(_gaussians(means, opac), spacing=0.01, fill=False)
+    assert sample.x.max() < 0.11  # nothing near the faint cloud at (1, 1, 1)
+    with pytest.raises(ValueError, match="opacity"):
+        sample_particles(_gaussians(means, torch.zeros(2000)), spacing=0.01)
+
+
+def test_interior_filling_fills_a_hollow_sphere():
+    radius, spacing = 0.1, 0.01
+    shell = _gaussians(_sphere_shell(20000, radius))
+    hollow = sample_particles(shell, spacing, fill=False)
+    filled = sample_particles(shell, spacing, fill=True)
+    r = filled.x.norm(dim=-1)
+    inner = r[filled.interior]
+    # The inside is filled down to the centre, and only the inside.
+    assert inner.min() < 1.5 * spacing and inner.max() < radius
+    assert float(filled.volume.sum()) == pytest.approx(4 / 3 * math.pi * radius**3, rel=0.25)
+    # Every interior voxel centre within the sphere, one voxel away from the shell, is present.
+    g = torch.arange(-radius, radius, spacing) + spacing / 2
+    lattice = torch.stack(torch.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    deep = lattice[lattice.norm(dim=-1) < radius - 2 * spacing]
+    dist = torch.cdist(deep, filled.x).min(dim=1).values
+    assert dist.max() < 0.75 * spacing
+    assert len(hollow) == int((~filled.interior).sum())
+
+
+def test_fill_interior_ignores_open_shapes():
+    # A flat square sheet encloses nothing.
+    ij = np.stack(np.meshgrid(np.arange(1, 11), np.arange(1, 11), indexing="ij"), -1).reshape(-1, 2)
+    sheet = np.concatenate([ij, np.full((len(ij), 1), 3)], 1)
+    assert len(fill_interior(sheet)) == 0
+
+
+def test_followers_move_rigidly_with_rigid_particle_motion():
+    shell = _gaussians(_sphere_shell(5000, 0.1, seed=1))
+    sample = sample_particles(shell, 0.015)
+    followers = build_followers(shell.means, sample.x, k=8)
+    rot = quat_to_rotmat(torch.nn.functional.normalize(torch.tensor([0.3, -0.2, 0.9, 0.1]), dim=0))
+    shift = torch.tensor([0.2, -0.5, 1.0])
+    means, F = followers.apply(sample.x @ rot.T + shift, rot.expand(len(sample), 3, 3))
+    torch.testing.assert_close(means, shell.means @ rot.T + shift, atol=2e-6, rtol=0)
+    torch.testing.assert_close(F, rot.expand(len(shell), 3, 3), atol=1e-6, rtol=0)
+    torch.testing.assert_close(followers.weight.sum(1), torch.ones(len(shell)))
+
+
+def test_followers_exact_for_affine_motion_and_smooth_for_nonaffine():
+    shell = _gaussians(_sphere_shell(3000, 0.1, seed=2))
+    sample = sample_particles(shell, 0.015)
+    followers = build_followers(shell.means, sample.x, k=8)
+    A = torch.tensor([[1.2, 0.1, 0.0], [0.0, 0.9, 0.2], [0.05, 0.0, 1.1]])
+    means, _ = followers.apply(sample.x @ A.T, A.expand(len(sample), 3, 3))
+    torch.testing.assert_close(means, shell.means @ A.T, atol=2e-6, rtol=0)
+
+    # A bend x += 0.5 z^2 e_x: with the particles' F the error is second order in the spacing,
+    # and clearly below the translation-only interpolation.
+    def bend(p: torch.Tensor) -> torch.Tensor:
+        zero = torch.zeros_like(p[:, 0])
+        return p + 0.5 * torch.stack([p[:, 2] ** 2, zero, zero], -1)
+
+    grad = torch.eye(3).repeat(len(sample), 1, 1)
+    grad[:, 0, 2] = sample.x[:, 2]
+    err_f = (followers.apply(bend(sample.x), grad)[0] - bend(shell.means)).norm(dim=-1).max()
+    err_t = (followers.apply(bend(sample.x))[0] - bend(shell.means)).norm(dim=-1).max()
+    assert err_f < 0.5 * 0.015**2 and err_f < 0.5 * err_t
+
+
+def test_interior_filling_refuses_a_huge_grid_from_floaters():
+    means = torch.cat([_sphere_shell(2000, 0.1), torch.tensor([[50.0, 50.0, 50.0]])])
+    with pytest.raises(ValueError, match="floaters"):
+        sample_particles(_gaussians(means), spacing=0.01, fill=True)

@@ -1,0 +1,232 @@
+"""One MPM sub-step against the numpy twin; bounds, guard, threads, sorting, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+
+from physgm.sim import (
+    GridSpec,
+    GroundPlane,
+    MaterialParams,
+    MPMSolver,
+    Particles,
+    Scene,
+    SimulationDiverged,
+    SolverConfig,
+    VelocityBox,
+    reference_mpm,
+)
+
+
+def random_block(n: int, seed: int, lo=0.1, hi=0.2, material=None) -> Particles:
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(lo, hi, (n, 3))
+    p = Particles(x=x, volume=1e-6, material=0 if material is None else material)
+    p.v = rng.normal(0.0, 0.5, (n, 3))
+    F = np.eye(3) + 0.05 * rng.normal(size=(n, 3, 3))
+    p.F = F
+    return p
+
+
+MATS = [
+    MaterialParams("fixed_corotated", 1e5, 0.3, 1000.0),
+    MaterialParams("drucker_prager", 2e5, 0.3, 1500.0, friction_angle=30.0, cohesion=100.0),
+]
+
+
+@pytest.mark.parametrize("flip", [0.0, 0.95])
+def test_substep_matches_numpy_twin(flip):
+    rng = np.random.default_rng(3)
+    p = random_block(60, seed=1, material=rng.integers(0, 2, 60))
+    grid = GridSpec((0.0, 0.0, 0.0), 0.025, (14, 12, 13))  # not cubic on purpose
+    box = VelocityBox((0.09, 0.0, 0.0), (0.13, 0.3, 0.3), (0.0, 0.3, 0.0))
+    scene = Scene(ground=GroundPlane(height=0.11, friction=0.4), boxes=(box,))
+    solver = MPMSolver(p, MATS, grid, scene, SolverConfig(flip=flip))
+    s0 = solver.state()
+    dt = 2e-4
+    ref_in = dict(
+        x=s0.x,
+        v=s0.v,
+        C=s0.C,
+        F=s0.F,
+        plastic=s0.plastic,
+        mass=p.volume * np.array([1000.0, 1500.0])[p.material],
+        vol0=p.volume,
+        material=p.material,
+    )
+    ref_in = {k: np.asarray(val, dtype=np.float64) if k != "material" else val for k, val in ref_in.items()}
+    ref = reference_mpm.substep(ref_in, MATS, grid, scene, dt, 0.0, flip, SolverConfig().boundary_cells)
+    solver.substep(dt)
+    s1 = solver.state()
+    np.testing.assert_allclose(s1.v, ref["v"], rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(s1.x, ref["x"], rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(s1.C, ref["C"], rtol=1e-4, atol=1e-3)
+    np.testing.assert_allclose(s1.F, ref["F"], rtol=1e-5, atol=1e-5)
+    gv = solver.grid_v.numpy()[..., :3]
+    np.testing.assert_allclose(gv, ref["grid_v"], rtol=1e-4, atol=1e-5)
+
+
+def test_particles_never_leave_the_grid_and_are_counted():
+    p = random_block(300, seed=2)
+    p.v = np.tile([40.0, -30.0, 25.0], (300, 1))  # thrown hard at three walls
+    grid = GridSpec.fit((0.05, 0.05, 0.05), (0.25, 0.25, 0.25), 0.025)
+    water = MaterialParams("fluid", 1e5, 0.3, 1000.0)  # splashes against the walls instead of crushing
+    solver = MPMSolver(p, [water], grid, Scene(gravity=(0, 0, 0)), SolverConfig(frame_dt=0.02))
+    for _ in range(3):
+        solver.step_frame()
+    s = solver.state()
+    lo, hi = np.asarray(grid.origin), np.asarray(grid.upper)
+    assert np.isfinite(s.x).all() and np.isfinite(s.F).all()
+    assert np.all(s.x >= lo + grid.dx - 1e-6) and np.all(s.x <= hi - grid.dx + 1e-6)
+    assert solver.escaped == int(s.escaped.sum()) > 0
+
+
+class NaNOnce:
+    """Grid hook poisoning the velocity grid during the first ``times`` frames' first attempt."""
+
+    def __init__(self, times: int) -> None:
+        self.times = times
+        self.calls = 0
+
+    def apply(self, solver, dt):
+        if solver.time < 1e-12 and self.times > 0:
+            self.times -= 1
+            g = solver.grid_v.numpy()
+            g[..., 0] = np.nan
+            solver.grid_v.assign(g)
+
+
+def test_divergence_guard_restores_and_retries():
+    p = random_block(100, seed=4)
+    grid = GridSpec.fit((0.1, 0.1, 0.1), (0.2, 0.2, 0.2), 0.025)
+    solver = MPMSolver(p, MATS[:1], grid, Scene(), SolverConfig(frame_dt=0.01))
+    solver.hooks.append(NaNOnce(times=1))
+    stats = solver.step_frame()
+    assert stats.retries == 1 and stats.cfl == pytest.approx(0.5 * SolverConfig().cfl)
+    assert np.isfinite(solver.state().x).all()
+
+
+def test_divergence_guard_raises_instead_of_returning_nan():
+    p = random_block(100, seed=5)
+    grid = GridSpec.fit((0.1, 0.1, 0.1), (0.2, 0.2, 0.2), 0.025)
+    solver = MPMSolver(p, MATS[:1], grid, Scene(), SolverConfig(frame_dt=0.01, max_retries=2))
+    solver.hooks.append(NaNOnce(times=10))
+    with pytest.raises(SimulationDiverged, match="non-finite"):
+        solver.step_frame()
+
+
+def test_two_threads_match_one_thread():
+    p = random_block(3000, seed=6, lo=0.1, hi=0.3)
+    grid = GridSpec.fit((0.05, 0.05, 0.0), (0.35, 0.35, 0.35), 0.02)
+    scene = Scene(ground=GroundPlane(0.05))
+    states = []
+    for threads in (1, 2):
+        solver = MPMSolver(p, MATS, grid, scene, SolverConfig(threads=threads, frame_dt=0.01))
+        assert solver.threads == threads
+        solver.step_frame()
+        states.append(solver.state())
+        solver.close()
+    np.testing.assert_allclose(states[0].x, states[1].x, atol=1e-6)
+    np.testing.assert_allclose(states[0].v, states[1].v, atol=1e-4)
+
+
+def test_state_comes_back_in_the_callers_order():
+    p = random_block(500, seed=7)
+    perm = np.random.default_rng(0).permutation(500)
+    q = Particles(x=p.x[perm], volume=p.volume[perm], material=p.material[perm], v=p.v[perm], F=p.F[perm])
+    grid = GridSpec.fit((0.1, 0.1, 0.1), (0.2, 0.2, 0.2), 0.025)
+    out = []
+    for particles in (p, q):
+        solver = MPMSolver(particles, MATS[:1], grid, Scene(), SolverConfig(frame_dt=0.01))
+        solver.step_frame()
+        solver.step_frame()  # re-sorted at the frame boundary
+        out.append(solver.state().x)
+    np.testing.assert_allclose(out[0][perm], out[1], atol=1e-6)
+
+
+def test_substeps_follow_the_cfl_bound():
+    p = random_block(200, seed=8)
+    p.v = np.zeros_like(p.v)
+    p.F = None  # at rest and unstressed: |v|max stays 0
+    grid = GridSpec.fit((0.1, 0.1, 0.1), (0.2, 0.2, 0.2), 0.025)
+    mat = MaterialParams("fixed_corotated", 1e7, 0.3, 1000.0)
+    solver = MPMSolver(p, [mat], grid, Scene(gravity=(0, 0, 0)), SolverConfig(frame_dt=0.01))
+    stats = solver.step_frame()
+    c = mat.wave_speed()
+    assert stats.dt_max <= 0.4 * grid.dx / c * (1 + 1e-9)
+    assert stats.substeps == int(np.ceil(0.01 / (0.4 * grid.dx / c) - 1e-9))
+    # A fast particle shortens the step: dt <= cfl dx / (c + |v|max).
+    solver.set_velocities(np.tile([0.0, 0.0, 20.0], (len(p), 1)))
+    stats = solver.step_frame(0.001)
+    assert stats.dt_max <= 0.4 * grid.dx / (c + 20.0) * (1 + 1e-9)
+
+
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (lambda: Particles(x=np.zeros((0, 3)), volume=1.0, material=0), "no particles"),
+        (lambda: Particles(x=np.array([[0.1, 0.1, np.nan]]), volume=1.0, material=0), "not finite"),
+        (lambda: Particles(x=np.ones((2, 3)), volume=-1.0, material=0), "volumes"),
+    ],
+)
+def test_bad_particles_are_rejected(make, match):
+    with pytest.raises(ValueError, match=match):
+        make()
+
+
+def test_bad_solver_inputs_are_rejected():
+    grid = GridSpec.fit((0.1, 0.1, 0.1), (0.2, 0.2, 0.2), 0.025)
+    inside = Particles(x=np.full((4, 3), 0.15), volume=1e-6, material=[0, 0, 1, 1])
+    with pytest.raises(ValueError, match="material index 1"):
+        MPMSolver(inside, MATS[:1], grid)
+    outside = Particles(x=np.full((4, 3), 0.5), volume=1e-6, material=0)
+    with pytest.raises(ValueError, match="outside the grid interior"):
+        MPMSolver(outside, MATS[:1], grid)
+    with pytest.raises(ValueError, match="dx"):
+        GridSpec((0, 0, 0), 0.0, (10, 10, 10))
+
+
+def test_runs_on_an_explicit_device():
+    p = random_block(50, seed=9)
+    grid = GridSpec.fit((0.1, 0.1, 0.1), (0.2, 0.2, 0.2), 0.025)
+    solver = MPMSolver(p, MATS[:1], grid, Scene(), SolverConfig(frame_dt=0.005), device=wp.get_device("cpu"))
+    traj = solver.run(2)
+    assert traj.x.shape == (3, 50, 3) and traj.F.shape == (3, 50, 3, 3) and len(traj.stats) == 2
+
+
+def test_raw_substeps_follow_a_fast_object_across_the_grid():
+    p = random_block(400, seed=10, lo=0.05, hi=0.1)
+    p.F, p.v = None, np.tile([3.0, 0.0, 0.0], (400, 1))
+    grid = GridSpec.fit((0.0, 0.0, 0.0), (0.5, 0.15, 0.15), 0.025)
+    solver = MPMSolver(p, MATS[:1], grid, Scene(gravity=(0, 0, 0)))
+    dt = solver.stable_dt()
+    n = int(0.1 / dt)
+    for _ in range(n):  # no step_frame: the active grid box must follow on its own
+        solver.substep(dt)
+    s = solver.state()
+    np.testing.assert_allclose(s.x[:, 0].mean() - p.x[:, 0].mean(), 3.0 * n * dt, rtol=1e-5)
+    np.testing.assert_allclose(s.v.mean(0), [3.0, 0.0, 0.0], atol=1e-5)
+
+
+def test_default_yaml_is_the_dataclass_default():
+    assert SolverConfig.load("default") == SolverConfig()
+    with pytest.raises(ValueError, match="unknown solver settings"):
+        SolverConfig.from_dict({"cfl": 0.4, "clf": 0.3})
+    with pytest.raises(ValueError, match="cfl=1.5"):
+        SolverConfig(cfl=1.5)
+
+
+@pytest.mark.gpu
+def test_cuda_matches_cpu():
+    p = random_block(500, seed=11)
+    grid = GridSpec.fit((0.1, 0.1, 0.1), (0.2, 0.2, 0.2), 0.025)
+    out = []
+    for device in ("cpu", "cuda:0"):
+        solver = MPMSolver(
+            p, MATS, grid, Scene(ground=GroundPlane(0.1)), SolverConfig(frame_dt=0.01), device=device
+        )
+        solver.step_frame()
+        out.append(solver.state().x)
+    np.testing.assert_allclose(out[0], out[1], atol=1e-4)
