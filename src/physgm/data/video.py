@@ -1,0 +1,198 @@
+"""Reference drop videos: the asset's true physics, the project's MPM, the paper's camera.
+
+The object (asset frame: radius 0.5, +z up) is scaled to metres by ``object_scale`` and placed
+with its lowest point ``drop_height_m`` above the ground plane z = 0, then simulated by
+``physgm.sim.run.simulate`` with the "drop" scene and rendered from azimuth -45 or 135
+degrees, elevation 0, radius 1.8 m (the PhysGM evaluation camera), looking at the middle of
+the vertical range the object can occupy. 50 frames at 25 fps go to ``videos/drop.mp4``;
+``videos/drop.json`` holds everything needed to redo the simulation (camera, fps, frames,
+object-to-world transform, scene) so DPO rollouts can be compared with it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from physgm.cameras import Cameras, orbit_cameras
+from physgm.data.format import CAMERA_RADIUS, FOV_DEG
+from physgm.data.priors import TruePhysics
+from physgm.data.writer import camera_entry, to_rgba8, write_json
+from physgm.gaussians import Gaussians
+
+
+@dataclass
+class VideoConfig:
+    """Reference video settings."""
+
+    scene: str = "drop"  # registered scene (conf/sim/scene)
+    n_frames: int = 50  # frames including the rest frame 0
+    fps: float = 25.0
+    azimuths_deg: tuple[float, ...] = (-45.0, 135.0)  # one is drawn per asset
+    elevation_deg: float = 0.0
+    radius_m: float = CAMERA_RADIUS
+    fov_deg: float = FOV_DEG
+    object_scale: float = 0.6  # m per asset-frame unit: objects are at most 0.6 m across
+    drop_height_m: float = 0.25  # gap between the object's lowest point and the ground at t = 0
+    background: float = 1.0  # white
+
+
+def place_object(gaussians: Gaussians, cfg: VideoConfig) -> tuple[Gaussians, np.ndarray]:
+    """Asset-frame Gaussians scaled and lifted into the simulation world; returns (Gaussians, [4, 4] transform)."""
+    s = cfg.object_scale
+    lift = cfg.drop_height_m - s * float(gaussians.means[:, 2].min())
+    T = np.diag([s, s, s, 1.0])
+    T[2, 3] = lift
+    g = Gaussians(
+        means=gaussians.means * s + torch.tensor([0.0, 0.0, lift]),
+        quats=gaussians.quats,
+        scales=gaussians.scales * s,
+        opacities=gaussians.opacities,
+        colors=gaussians.colors,
+    )
+    return g, T
+
+
+def video_camera(cfg: VideoConfig, azimuth_deg: float, resolution: int) -> Cameras:
+    """The evaluation camera, aimed at the middle of [ground, top of the object at t = 0]."""
+    top = cfg.drop_height_m + 2 * 0.5 * cfg.object_scale
+    return orbit_cameras(
+        [azimuth_deg],
+        [cfg.elevation_deg],
+        cfg.radius_m,
+        cfg.fov_deg,
+        resolution,
+        resolution,
+        target=(0.0, 0.0, top / 2),
+    )
+
+
+def _states(trajectory) -> Iterator[Gaussians | None]:
+    """Gaussians per frame; None where the frame repeats the previous one (after the rest frame)."""
+    rest = getattr(trajectory, "rest_frame", None)
+    if rest is None or not hasattr(trajectory, "gaussians_at"):
+        yield from trajectory.frames()
+        return
+    for t in range(len(trajectory)):
+        yield None if t >= rest else trajectory.gaussians_at(t)
+
+
+def render_frames(trajectory, camera: Cameras, backend: str, background: float) -> np.ndarray:
+    """RGB uint8 frames [T, H, W, 3] of a simulated trajectory, composited over the background.
+
+    ``trajectory`` needs ``frames()`` (an iterator of Gaussians); with ``gaussians_at(t)``,
+    ``rest_frame`` and ``len`` too, the held frames after the object came to rest are reused.
+    """
+    from physgm.render import rasterize
+
+    frames = []
+    for g in _states(trajectory):
+        if g is None and frames:
+            frames.append(frames[-1])
+            continue
+        rgb, alpha, _ = rasterize(
+            g.means, g.quats, g.scales, g.opacities, g.colors, camera.viewmats, camera.Ks,
+            camera.width, camera.height, background=None, backend=backend,
+        )  # fmt: skip
+        rgba = to_rgba8(rgb, alpha)[0].astype(np.float32) / 255.0
+        comp = rgba[..., :3] * rgba[..., 3:] + background * (1 - rgba[..., 3:])
+        frames.append(np.round(comp * 255).astype(np.uint8))
+    return np.stack(frames)
+
+
+def write_mp4(path: Path, frames: np.ndarray, fps: float) -> None:
+    """H.264 mp4 with bit-exact flags (no encoder version strings), single-threaded for determinism."""
+    import imageio_ffmpeg
+
+    h, w = frames.shape[1:3]
+    writer = imageio_ffmpeg.write_frames(
+        str(path),
+        (w, h),
+        fps=fps,
+        codec="libx264",
+        pix_fmt_out="yuv420p",
+        quality=None,
+        macro_block_size=1,
+        output_params=[
+            "-crf",
+            "18",
+            "-threads",
+            "1",
+            "-fflags",
+            "+bitexact",
+            "-flags:v",
+            "+bitexact",
+            "-map_metadata",
+            "-1",
+        ],
+    )
+    writer.send(None)
+    for f in frames:
+        writer.send(np.ascontiguousarray(f))
+    writer.close()
+
+
+def write_reference_video(
+    folder: Path,
+    gaussians: Gaussians,
+    physics: TruePhysics,
+    rng: np.random.Generator,
+    resolution: int,
+    backend: str = "warp",
+    cfg: VideoConfig | None = None,
+) -> dict:
+    """Simulate, render and write ``videos/<scene>.mp4`` + ``.json`` into an asset folder."""
+    from physgm.sim.run import simulate
+    from physgm.sim.stepping import SolverConfig
+
+    cfg = cfg or VideoConfig()
+    az = float(cfg.azimuths_deg[int(rng.integers(len(cfg.azimuths_deg)))])
+    world, T = place_object(gaussians, cfg)
+    camera = video_camera(cfg, az, resolution)
+    # Translucent glass and jelly are drawn with very faint Gaussians (opacity ~0.02); the
+    # planner's default would treat them as empty space, so every Gaussian carries mass here.
+    min_opacity = min(0.05, 0.5 * float(world.opacities.min()))
+    traj = simulate(
+        world,
+        physics,
+        cfg.scene,
+        camera,
+        n_frames=cfg.n_frames,
+        planner={"min_opacity": min_opacity},
+        solver=SolverConfig(frame_dt=1.0 / cfg.fps),
+        scene_overrides={"height": cfg.drop_height_m},
+    )
+    frames = render_frames(traj, camera, backend, cfg.background)
+    vdir = folder / "videos"
+    vdir.mkdir(parents=True, exist_ok=True)
+    write_mp4(vdir / f"{cfg.scene}.mp4", frames, cfg.fps)
+    plan = getattr(traj, "plan", None)
+    meta = {
+        "scene": cfg.scene,
+        "fps": cfg.fps,
+        "frames": int(len(frames)),
+        "camera": camera_entry(camera.c2w[0], camera.Ks[0], camera.width, camera.height),
+        "azimuth_deg": az,
+        "elevation_deg": cfg.elevation_deg,
+        "radius_m": cfg.radius_m,
+        "object_to_world": T.tolist(),
+        "ground_height_m": 0.0,
+        "settings": asdict(cfg),
+        "physics": {
+            "material": physics.material,
+            "E": physics.E,
+            "nu": physics.nu,
+            "density": physics.density,
+        },
+        "simulation": {
+            "mode": str(getattr(plan, "mode", "")),
+            "E_used": float(getattr(plan, "E_used", physics.E)),
+            "substeps": int(getattr(traj, "substeps", 0)),
+        },
+    }
+    write_json(vdir / f"{cfg.scene}.json", meta)
+    return {"seconds_sim": float(getattr(traj, "seconds", 0.0)), **meta["simulation"]}
