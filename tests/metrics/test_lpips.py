@@ -6,7 +6,7 @@ from physgm.metrics.lpips import load_lpips, lpips_distance
 
 
 def test_missing_backbone_says_what_to_do(tmp_path):
-    with pytest.raises(FileNotFoundError, match=r"alexnet-owt-7be5be79.pth.*lpips_weight=0"):
+    with pytest.raises(FileNotFoundError, match=r"alexnet-owt-7be5be79.pth.*stage.loss.lpips=0"):
         load_lpips("alex", tmp_path / "nothing.pth")
 
 

@@ -40,8 +40,8 @@ def load_lpips(net: str = "alex", backbone_path: str | Path | None = None) -> nn
     if not path.is_file():
         raise FileNotFoundError(
             f"LPIPS needs the ImageNet weights of its {net} backbone and physgm never downloads them. "
-            f"Put the torchvision file {BACKBONE_FILES[net]} at {path} (or set loss.lpips.backbone_path=/path/to/file), "
-            "or switch the LPIPS term off with loss.lpips_weight=0."
+            f"Put the torchvision file {BACKBONE_FILES[net]} at {path} (or set stage.loss.lpips_backbone_path=/path/to/file), "
+            "or switch the LPIPS term off with stage.loss.lpips=0."
         )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # torchvision's 'pretrained' deprecation notice

@@ -146,6 +146,10 @@ class PhysicsPosterior:
     def detach(self) -> PhysicsPosterior:
         return PhysicsPosterior(**{f.name: getattr(self, f.name).detach() for f in fields(self)})
 
+    def __getitem__(self, index) -> PhysicsPosterior:
+        """The posteriors of the batch elements selected by ``index`` (mask, indices or slice)."""
+        return PhysicsPosterior(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
+
 
 def _gaussian_log_density(
     z: Tensor,  # [B, K]

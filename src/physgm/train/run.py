@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import importlib
 import logging
+from typing import Any
 
-from omegaconf import DictConfig
+import lightning as L
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
 
 log = logging.getLogger(__name__)
 
@@ -28,3 +31,42 @@ def run(cfg: DictConfig) -> dict:
             raise
         raise SystemExit(f"stage {name!r} is not part of this version of physgm yet ({STAGES[name]} is missing)") from None
     return module.fit(cfg)
+
+
+def plain(node: Any) -> Any:
+    """A config node as plain Python containers, resolved, without Hydra's ``_target_`` keys."""
+    if node is None:
+        return None
+    out = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
+    if isinstance(out, dict):
+        out = {k: plain(v) for k, v in out.items() if k != "_target_"}
+    return out
+
+
+def build_trainer(cfg: DictConfig, extra_callbacks: list | None = None) -> L.Trainer:
+    """The Lightning trainer with the configured loggers and callbacks."""
+    callbacks = [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
+    loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values() if c is not None]
+    return instantiate(cfg.trainer, callbacks=callbacks + list(extra_callbacks or []), logger=loggers or False)
+
+
+def ensure_data(cfg: DictConfig) -> None:
+    """Generate the synthetic data set named by ``cfg.data.root`` if the config asks for it and it is missing.
+
+    ``cfg.synth`` holds ``physgm.data.synth.SynthConfig`` fields plus ``workers``. A finished set
+    (its split lists exist) is reused; a partly generated one is resumed.
+    """
+    from pathlib import Path
+
+    synth = cfg.get("synth")
+    root = Path(cfg.data.root)
+    if synth is None or (root / "splits" / "train.txt").is_file():
+        return
+    from physgm.data.synth import SynthConfig, generate
+
+    options = plain(synth)
+    workers = int(options.pop("workers", 1))
+    log.info("generating the synthetic data set %s (%s assets); later runs reuse it", root, options.get("count"))
+    summary = generate(SynthConfig(**options), root, workers=workers, progress=True)
+    if summary["failed"]:
+        raise RuntimeError(f"data generation failed for {summary['failed']} assets: {summary['failures']}")

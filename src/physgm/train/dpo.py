@@ -1,0 +1,255 @@
+"""Stage 2: DPO of the physics head against a frozen copy of the stage-1 model (``python train.py stage=dpo``).
+
+The policy is the stage-1 PhysGM with its backbone and Gaussian head frozen (no gradients, eval
+mode); only the physics head trains. The reference is a ``copy.deepcopy`` of the policy taken
+right after loading the stage-1 weights, frozen, kept in a plain list so it is never a submodule:
+it is neither in the optimiser nor in the checkpoint (it is rebuilt from ``init_ckpt`` when a
+DPO run resumes). Pairs come from ``physgm.train.rollout.RolloutCallback``.
+
+    loss = -log sigmoid(beta * [(log pi(w) - log pi_ref(w)) - (log pi(l) - log pi_ref(l))])
+
+with log pi the exact ``PhysicsPosterior.log_prob`` of the sampled physics (material class plus
+Gaussians on normalised log10 E and nu). The KL to the reference is logged in closed form.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from physgm.model.config import PhysGMConfig
+from physgm.model.physgm import PhysGM
+from physgm.model.posterior import LOG10_E_RANGE, PhysicsPosterior
+from physgm.train.optim import OptimConfig, build_optimizer
+from physgm.train.pairs import DPOBatch
+from physgm.train.pretrain import model_from_checkpoint
+
+
+@dataclass
+class DPOLossConfig:
+    beta: float = 0.5  # inverse temperature of the implicit reward; lower lets the policy move further
+    sft_weight: float = 0.0  # optional NLL of the winner under the policy (RPO); 0 is plain DPO
+    # True: when winner and loser have different materials, only the material term enters the
+    # log-ratios (their E and nu lost or won with the material, so they say nothing about E or nu).
+    factorised: bool = False
+
+    def __post_init__(self) -> None:
+        if not self.beta > 0 or self.sft_weight < 0:
+            raise ValueError(f"DPO needs beta > 0 and sft_weight >= 0, got beta={self.beta}, sft_weight={self.sft_weight}")
+
+
+@dataclass
+class DPOTerms:
+    loss: Tensor  # [B] per-pair DPO loss
+    chosen_rewards: Tensor  # [B] beta * (log pi(w) - log pi_ref(w)), detached
+    rejected_rewards: Tensor  # [B] beta * (log pi(l) - log pi_ref(l)), detached
+
+
+def dpo_loss(
+    policy_chosen: Tensor,  # [B] log pi(w)
+    policy_rejected: Tensor,  # [B] log pi(l)
+    reference_chosen: Tensor,  # [B] log pi_ref(w)
+    reference_rejected: Tensor,  # [B] log pi_ref(l)
+    beta: float,
+) -> DPOTerms:
+    """The DPO loss of Rafailov et al. (2023) per pair, and the implicit rewards."""
+    chosen = policy_chosen - reference_chosen
+    rejected = policy_rejected - reference_rejected
+    loss = -F.logsigmoid(beta * (chosen - rejected))
+    return DPOTerms(loss, beta * chosen.detach(), beta * rejected.detach())
+
+
+def posterior_kl(p: PhysicsPosterior, q: PhysicsPosterior) -> Tensor:  # [B]
+    """Exact KL(p || q): categorical KL plus the two Gaussian KLs (the factors are independent)."""
+    log_p, log_q = F.log_softmax(p.material_logits, -1), F.log_softmax(q.material_logits, -1)
+    categorical = (log_p.exp() * (log_p - log_q)).sum(-1)
+
+    def gaussian(m1: Tensor, lv1: Tensor, m2: Tensor, lv2: Tensor) -> Tensor:
+        return 0.5 * (lv2 - lv1 + (lv1.exp() + (m1 - m2) ** 2) / lv2.exp() - 1.0)
+
+    return categorical + gaussian(p.z_E_mean, p.z_E_logvar, q.z_E_mean, q.z_E_logvar) + gaussian(
+        p.z_nu_mean, p.z_nu_logvar, q.z_nu_mean, q.z_nu_logvar)
+
+
+def freeze(module: torch.nn.Module) -> torch.nn.Module:
+    """No gradients and eval mode (dropout off, norms use their statistics)."""
+    module.requires_grad_(False)
+    return module.eval()
+
+
+class LitDPO(L.LightningModule):
+    """PhysGM policy + frozen reference + the DPO loss on preference pairs.
+
+    Args:
+        model: ``PhysGMConfig.to_dict()``; None takes it from ``init_ckpt``.
+        init_ckpt: the stage-1 checkpoint; the policy starts from it and the reference is a
+            copy of it. When the file is absent (e.g. loading a DPO checkpoint elsewhere for
+            inference) the policy is built from ``model`` and training refuses to start.
+        loss: ``DPOLossConfig`` fields.  optim: ``OptimConfig`` fields.
+        total_steps: optimiser steps of the run (length of the learning-rate schedule).
+        inputs: the input views trained on (num_views, input_resolution, background), kept for
+            evaluation (``physgm.train.evaluate_dpo``).
+    """
+
+    def __init__(self, model: dict[str, Any] | None = None, init_ckpt: str | None = None,
+                 loss: dict[str, Any] | None = None, optim: dict[str, Any] | None = None, total_steps: int = 1000,
+                 inputs: dict[str, Any] | None = None) -> None:
+        super().__init__()
+        self.save_hyperparameters()
+        stage1 = model_from_checkpoint(init_ckpt) if init_ckpt and Path(init_ckpt).is_file() else None
+        if model is None:
+            if stage1 is None:
+                raise ValueError(f"LitDPO needs a model config or an existing stage-1 checkpoint, got init_ckpt={init_ckpt!r}")
+            model = stage1.config.to_dict()
+            self.hparams["model"] = model  # stored so the DPO checkpoint rebuilds on its own
+        config = PhysGMConfig.from_dict(model)
+        self.model = PhysGM(config, load_pretrained=False)
+        self._reference: list[PhysGM] = []  # a list, so the reference is not a submodule (not saved, not optimised)
+        if stage1 is not None:
+            if stage1.config != config:
+                raise ValueError(f"the model config does not match the stage-1 checkpoint {init_ckpt}; drop the model override")
+            self.model.load_state_dict(stage1.state_dict())
+            self._reference.append(freeze(copy.deepcopy(self.model)))
+        freeze(self.model.backbone)
+        freeze(self.model.gaussian_head)
+        self.loss_cfg = DPOLossConfig(**(loss or {}))
+        self.optim_cfg = OptimConfig(**(optim or {}))
+        self.total_steps = total_steps
+
+    @property
+    def reference(self) -> PhysGM:
+        """The frozen stage-1 copy, on this module's device."""
+        if not self._reference:
+            raise RuntimeError(f"no frozen reference: the stage-1 checkpoint init_ckpt={self.hparams.init_ckpt!r} was not found "
+                               "when this module was built (DPO checkpoints never contain the reference); pass its path")
+        return self._reference[0].to(self.device)
+
+    def train(self, mode: bool = True) -> LitDPO:
+        # Lightning switches the whole module to train mode each epoch; the frozen parts stay in eval.
+        super().train(mode)
+        if hasattr(self, "model"):
+            self.model.backbone.eval()
+            self.model.gaussian_head.eval()
+        return self
+
+    def setup(self, stage: str) -> None:
+        if stage == "fit":
+            self.reference  # noqa: B018 - fail before any rollout when the reference is missing
+
+    def configure_optimizers(self):
+        opt, sched = build_optimizer(self.model.physics_head.named_parameters(), self.optim_cfg, self.total_steps)
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+
+    def train_dataloader(self):
+        from physgm.train.rollout import RolloutCallback
+
+        for cb in self.trainer.callbacks:
+            if isinstance(cb, RolloutCallback):
+                return cb.train_dataloader(self.trainer, self)
+        raise RuntimeError("LitDPO trains on pairs made by physgm.train.rollout.RolloutCallback; add one to the trainer's callbacks")
+
+    def transfer_batch_to_device(self, batch: DPOBatch, device: torch.device, dataloader_idx: int) -> DPOBatch:
+        return batch.to(device)
+
+    def posteriors(self, batch: DPOBatch) -> tuple[PhysicsPosterior, PhysicsPosterior]:
+        """(policy, reference) physics posteriors [B] of the batch's scenes."""
+        policy = self.model(batch.images, batch.masks, batch.c2w, batch.Ks).physics
+        with torch.no_grad():
+            reference = self.reference(batch.images, batch.masks, batch.c2w, batch.Ks).physics
+        return policy, reference
+
+    def log_prob(self, posterior: PhysicsPosterior, sample, batch: DPOBatch) -> Tensor:  # [B]
+        """log pi of one [B, 1] sample: the exact joint, or its factorised form (see DPOLossConfig)."""
+        if not self.loss_cfg.factorised:
+            return posterior.log_prob(sample)[:, 0]
+        material, log_E, log_nu = (t[:, 0] for t in posterior.log_prob_terms(sample))
+        same = batch.winner.material[:, 0] == batch.loser.material[:, 0]
+        return material + torch.where(same, log_E + log_nu, torch.zeros_like(log_E))
+
+    def training_step(self, batch: DPOBatch, batch_idx: int) -> Tensor:
+        policy, reference = self.posteriors(batch)
+        pw, pl = self.log_prob(policy, batch.winner, batch), self.log_prob(policy, batch.loser, batch)
+        rw, rl = self.log_prob(reference, batch.winner, batch), self.log_prob(reference, batch.loser, batch)
+        terms = dpo_loss(pw, pl, rw, rl, self.loss_cfg.beta)
+        loss = terms.loss.mean()
+        if self.loss_cfg.sft_weight > 0:
+            loss = loss + self.loss_cfg.sft_weight * (-pw).mean()
+        margins = terms.chosen_rewards - terms.rejected_rewards
+        decades = 0.5 * (LOG10_E_RANGE[1] - LOG10_E_RANGE[0])
+        logs = {
+            "train/loss": loss.detach(), "train/dpo_loss": terms.loss.detach().mean(),
+            "rewards/chosen": terms.chosen_rewards.mean(), "rewards/rejected": terms.rejected_rewards.mean(),
+            "rewards/margins": margins.mean(), "rewards/accuracies": (margins > 0).float().mean(),
+            "train/kl": posterior_kl(policy.detach(), reference).mean(),  # analytic KL(pi || pi_ref)
+            "train/logps_chosen": pw.detach().mean(), "train/logps_rejected": pl.detach().mean(),
+            "train/log10_E_shift": ((policy.z_E_mean.detach() - reference.z_E_mean) * decades).abs().mean(),
+        }
+        finite = torch.isfinite(batch.distance_loser)
+        logs["train/distance_winner"] = batch.distance_winner.mean()
+        if finite.any():
+            logs["train/distance_loser"] = batch.distance_loser[finite].mean()
+        self.log_dict(logs, batch_size=len(batch), on_step=True, on_epoch=True)
+        return loss
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        stray = [k for k in checkpoint["state_dict"] if not k.startswith("model.")]
+        if stray:
+            raise RuntimeError(f"DPO checkpoints hold only the policy (model.*); found {stray[:5]}")
+
+
+def _merge_overrides(cfg, key: str, overrides) -> None:
+    """Merge ``stage.<key>`` over the top-level group ``<key>`` (only nodes that exist there)."""
+    from omegaconf import OmegaConf, open_dict
+
+    if not overrides:
+        return
+    with open_dict(cfg):
+        for name, value in overrides.items():
+            if key == "callbacks":
+                if cfg.callbacks and name in cfg.callbacks and cfg.callbacks[name] is not None:
+                    cfg.callbacks[name] = OmegaConf.merge(cfg.callbacks[name], value)
+            else:
+                cfg[key][name] = value
+
+
+def fit(cfg) -> dict[str, float]:
+    """Train stage 2 from a Hydra config and return the last logged metrics."""
+    from physgm.data.format import read_split
+    from physgm.train.rollout import RolloutCallback
+    from physgm.train.run import build_trainer, plain
+
+    L.seed_everything(cfg.seed, workers=True)
+    stage = cfg.stage
+    init = str(stage.init_ckpt)
+    if not Path(init).is_file():
+        raise FileNotFoundError(f"stage.init_ckpt={init} is not a file; pass the stage-1 checkpoint (e.g. outputs/<run>/checkpoints/last.ckpt)")
+    rollout = plain(stage.rollout)
+    data = plain(cfg.get("data")) or {}
+    rollout["data_root"] = rollout.get("data_root") or data.get("root")
+    rollout["input_resolution"] = rollout.get("input_resolution") or data.get("input_resolution")
+    rollout["background"] = next(v for v in (rollout.get("background"), data.get("background"), 1.0) if v is not None)
+    callback = RolloutCallback(**rollout)
+    _merge_overrides(cfg, "trainer", stage.get("trainer"))
+    _merge_overrides(cfg, "callbacks", stage.get("callbacks"))
+    trainer = build_trainer(cfg, extra_callbacks=[callback])
+    if trainer.reload_dataloaders_every_n_epochs != 1:
+        raise ValueError("the DPO stage needs trainer.reload_dataloaders_every_n_epochs=1 (pairs change every round)")
+    scenes = len(read_split(callback.cfg.data_root, callback.cfg.split))
+    if callback.cfg.max_scenes:
+        scenes = min(scenes, callback.cfg.max_scenes)
+    per_epoch = math.ceil(math.ceil(scenes / trainer.world_size) / callback.cfg.batch_size)
+    total = trainer.max_steps if trainer.max_steps > 0 else max(1, trainer.max_epochs) * per_epoch
+    inputs = {k: getattr(callback.cfg, k) for k in ("num_views", "input_resolution", "background")}
+    module = LitDPO(init_ckpt=init, loss=plain(stage.loss), optim=plain(stage.optim), total_steps=int(total), inputs=inputs)
+    trainer.fit(module, ckpt_path=cfg.get("ckpt_path"))
+    return {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
+
+

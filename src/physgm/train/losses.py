@@ -1,0 +1,62 @@
+"""Stage-1 losses: photometric (MSE, LPIPS), alpha against the mask, material CE, physics NLL.
+
+Losses live here and in the LightningModules, never inside ``nn.Module.forward``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from physgm.model.posterior import PhysicsPosterior, PhysicsSample
+
+
+@dataclass
+class PretrainLossConfig:
+    mse: float = 1.0  # weight of the RGB mean squared error
+    lpips: float = 0.0  # weight of LPIPS (paper 0.5); needs the backbone file, see physgm.metrics.lpips
+    alpha: float = 1.0  # weight of the MSE between rendered alpha and the object mask
+    ce: float = 0.1  # weight of the material cross-entropy against the annotation
+    nll: float = 0.1  # weight of the Gaussian NLL of the annotated (log10 E, nu)
+    lpips_net: str = "alex"  # LPIPS backbone: alex or vgg
+    lpips_backbone_path: str | None = None  # local torchvision weights; default torchvision's cache
+
+
+def physics_nll(posterior: PhysicsPosterior, log10_E: Tensor, nu: Tensor) -> Tensor:  # [B]
+    """Negative log density of the labelled (log10 E, nu) under the predicted Gaussians (normalised units)."""
+    labels = PhysicsSample(torch.zeros_like(log10_E, dtype=torch.long)[:, None], log10_E[:, None], nu[:, None])
+    _, log_E, log_nu = posterior.log_prob_terms(labels)
+    return -(log_E + log_nu)[:, 0]
+
+
+def pretrain_losses(
+    cfg: PretrainLossConfig,
+    rgb: Tensor,  # [B, T, H, W, 3] rendered target views
+    alpha: Tensor,  # [B, T, H, W, 1]
+    target_rgb: Tensor,  # [B, T, 3, H, W]
+    target_mask: Tensor,  # [B, T, 1, H, W]
+    posterior: PhysicsPosterior,
+    material: Tensor,  # [B] annotated material index
+    log10_E: Tensor,  # [B] annotated log10 E
+    nu: Tensor,  # [B] annotated nu
+    lpips_model: nn.Module | None = None,
+) -> dict[str, Tensor]:
+    """Weighted loss terms and their sum under ``"loss"``."""
+    pred = rgb.permute(0, 1, 4, 2, 3)  # [B, T, 3, H, W]
+    terms = {
+        "mse": F.mse_loss(pred, target_rgb),
+        "alpha": F.mse_loss(alpha.permute(0, 1, 4, 2, 3), target_mask),
+        "ce": F.cross_entropy(posterior.material_logits, material),
+        "nll": physics_nll(posterior, log10_E, nu).mean(),
+    }
+    if cfg.lpips > 0:
+        if lpips_model is None:
+            raise ValueError("loss.lpips > 0 but no LPIPS model was loaded")
+        from physgm.metrics.lpips import lpips_distance
+
+        terms["lpips"] = lpips_distance(lpips_model, pred, target_rgb)
+    terms["loss"] = sum(getattr(cfg, name) * value for name, value in terms.items())
+    return terms

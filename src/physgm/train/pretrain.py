@@ -1,0 +1,169 @@
+"""Stage 1: supervised pretraining of PhysGM (``python train.py stage=pretrain``)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from typing import Any
+
+import lightning as L
+import torch
+from torch import Tensor
+
+from physgm import CHECKPOINT_FORMAT_VERSION
+from physgm.metrics.image import ImageMetrics, save_panel
+from physgm.metrics.physics import PhysicsMetrics
+from physgm.model.config import PhysGMConfig
+from physgm.model.physgm import PhysGM, PhysGMOutput
+from physgm.render import rasterize
+from physgm.train.losses import PretrainLossConfig, pretrain_losses
+from physgm.train.optim import OptimConfig, build_optimizer
+
+
+def render_targets(
+    out: PhysGMOutput,
+    target_c2w: Tensor,  # [B, T, 4, 4]
+    target_Ks: Tensor,  # [B, T, 3, 3]
+    width: int,
+    height: int,
+    renderer: dict[str, Any],
+) -> tuple[Tensor, Tensor]:  # [B, T, H, W, 3], [B, T, H, W, 1]
+    """Render each scene's predicted Gaussians from its target cameras on a white background."""
+    g = out.gaussians
+    viewmats = torch.linalg.inv(target_c2w)
+    background = torch.ones(3, dtype=g.means.dtype, device=g.means.device)
+    rgb, alpha, _ = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, viewmats, target_Ks, width, height,
+                              background=background, **renderer)
+    return rgb, alpha
+
+
+class LitPretrain(L.LightningModule):
+    """PhysGM plus its stage-1 losses, metrics and optimiser.
+
+    All constructor arguments are plain dicts, so ``LitPretrain.load_from_checkpoint(path)`` works
+    outside Hydra. The LPIPS network is held outside the module tree and never saved.
+    """
+
+    def __init__(
+        self,
+        model: dict[str, Any] | None = None,
+        loss: dict[str, Any] | None = None,
+        optim: dict[str, Any] | None = None,
+        renderer: dict[str, Any] | None = None,
+        total_steps: int = 1000,
+        format_version: int = CHECKPOINT_FORMAT_VERSION,
+    ) -> None:
+        super().__init__()
+        self.save_hyperparameters()
+        config = PhysGMConfig.from_dict(model or {})
+        self.model = PhysGM(config)
+        self.loss_cfg = PretrainLossConfig(**(loss or {}))
+        self.optim_cfg = OptimConfig(**(optim or {}))
+        self.renderer = dict(renderer or {"backend": "warp"})
+        self.total_steps = total_steps
+        m = config.physics_head.num_materials
+        self.val_physics = torch.nn.ModuleDict({f"v{v}": PhysicsMetrics(m) for v in (1, 4)})
+        self.val_images = torch.nn.ModuleDict({f"v{v}": ImageMetrics() for v in (1, 4)})
+        self._lpips: list[torch.nn.Module] = []  # a list, so the frozen LPIPS net is not a submodule
+
+    # -- setup -------------------------------------------------------------------------------
+    def setup(self, stage: str) -> None:
+        if self.loss_cfg.lpips > 0 and not self._lpips:
+            from physgm.metrics.lpips import load_lpips
+
+            self._lpips.append(load_lpips(self.loss_cfg.lpips_net, self.loss_cfg.lpips_backbone_path))
+
+    @property
+    def lpips_model(self) -> torch.nn.Module | None:
+        if not self._lpips:
+            return None
+        self._lpips[0].to(self.device)
+        return self._lpips[0]
+
+    def configure_optimizers(self):
+        opt, sched = build_optimizer(self.model.named_parameters(), self.optim_cfg, self.total_steps)
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+
+    # -- steps -------------------------------------------------------------------------------
+    def forward(self, batch) -> PhysGMOutput:
+        return self.model(batch.images, batch.masks, batch.c2w, batch.Ks)
+
+    def _losses(self, batch) -> tuple[PhysGMOutput, Tensor, Tensor, dict[str, Tensor]]:
+        out = self(batch)
+        h, w = batch.target_images.shape[-2:]
+        rgb, alpha = render_targets(out, batch.target_c2w, batch.target_Ks, w, h, self.renderer)
+        terms = pretrain_losses(
+            self.loss_cfg, rgb, alpha, batch.target_images, batch.target_masks, out.physics,
+            batch.material, batch.log10_E, batch.nu, self.lpips_model,
+        )
+        return out, rgb, alpha, terms
+
+    def training_step(self, batch, batch_idx: int) -> Tensor:
+        out, _, _, terms = self._losses(batch)
+        bsz = batch.images.shape[0]
+        self.log_dict({f"train/{k}": v.detach() for k, v in terms.items() if k != "loss"}, batch_size=bsz)
+        self.log("train/loss", terms["loss"].detach(), batch_size=bsz, prog_bar=True)
+        self.log("train/gaussians", out.gaussians.count.float().mean(), batch_size=bsz)
+        return terms["loss"]
+
+    def validation_step(self, batch, batch_idx: int, dataloader_idx: int = 0) -> None:
+        out, rgb, _, terms = self._losses(batch)
+        views = batch.images.shape[1]
+        key = f"v{views}"
+        bsz = batch.images.shape[0]
+        self.log(f"val/{key}/loss", terms["loss"], batch_size=bsz, add_dataloader_idx=False)
+        pred = rgb.permute(0, 1, 4, 2, 3).clamp(0, 1)
+        novel = slice(views, None)  # the first V targets are the inputs; score only views the model did not see
+        if key in self.val_images and pred.shape[1] > views:
+            self.val_images[key].update(pred[:, novel].flatten(0, 1), batch.target_images[:, novel].flatten(0, 1))
+        known = batch.true_known  # real assets have annotations only; score physics against the truth
+        if key in self.val_physics and known.any():
+            self.val_physics[key].update(out.physics[known], batch.true_material[known], batch.true_log10_E[known],
+                                         batch.true_nu[known])
+        if batch_idx == 0 and self.trainer.is_global_zero:
+            save_panel(self, batch.images[0], pred[0], batch.target_images[0], tag=f"val_{key}")
+
+    def on_validation_epoch_end(self) -> None:
+        for key in ("v1", "v4"):
+            if self.val_images[key].update_count:
+                for name, value in self.val_images[key].compute().items():
+                    self.log(f"val/{key}/{name}", value)
+                self.val_images[key].reset()
+            if self.val_physics[key].update_count:
+                metrics = self.val_physics[key].compute()
+                metrics.pop("confusion")
+                for name, value in metrics.items():
+                    self.log(f"val/{key}/{name}", value)
+                self.val_physics[key].reset()
+
+
+def model_from_checkpoint(path: str, map_location: str = "cpu") -> PhysGM:
+    """The PhysGM inside a stage-1 or stage-2 checkpoint, without Hydra or Lightning state."""
+    ckpt = torch.load(path, map_location=map_location, weights_only=False)
+    hparams = ckpt.get("hyper_parameters", {})
+    if "model" not in hparams:
+        raise ValueError(f"{path} is not a physgm checkpoint: no hyper_parameters.model")
+    state = {k.removeprefix("model."): v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
+    from physgm.model.physgm import load_physgm
+
+    return load_physgm(hparams["model"] or asdict(PhysGMConfig()), state)
+
+
+def fit(cfg) -> dict[str, float]:
+    """Train stage 1 from a Hydra config and return the last validation metrics."""
+    from hydra.utils import instantiate
+
+    from physgm.train.run import build_trainer, ensure_data, plain
+
+    L.seed_everything(cfg.seed, workers=True)
+    ensure_data(cfg)
+    datamodule = instantiate(cfg.data)
+    module = LitPretrain(
+        model=plain(cfg.model),
+        loss=plain(cfg.stage.loss),
+        optim=plain(cfg.stage.optim),
+        renderer=plain(cfg.renderer),
+        total_steps=int(cfg.trainer.max_steps),
+    )
+    trainer = build_trainer(cfg)
+    trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
+    return {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}

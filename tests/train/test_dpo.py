@@ -1,0 +1,154 @@
+"""LitDPO: the loss against hand-computed values, the frozen reference, what trains, checkpoints."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import lightning as L
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from physgm.cameras import orbit_cameras
+from physgm.model import BackboneConfig, EncoderConfig, GaussianHeadConfig, PhysGMConfig
+from physgm.model.posterior import PhysicsPosterior
+from physgm.train.dpo import LitDPO, dpo_loss, posterior_kl
+from physgm.train.pairs import Candidate, PairDataset, SceneInputs, SceneRecord, collate_pairs
+from physgm.train.pretrain import LitPretrain, model_from_checkpoint
+
+
+def tiny_model_config() -> dict:
+    encoder = EncoderConfig(img_size=32, patch_size=8, embed_dim=32, depth=1, num_heads=2)
+    backbone = BackboneConfig(encoder=encoder, width=32, depth=4, head_dim=16, camera_dim=8, camera_hidden=16, out_layers=(0, 1, 2, 3))
+    head = GaussianHeadConfig(features=8, layer_channels=(8, 8, 16, 16), hidden=8)
+    return PhysGMConfig(backbone=backbone, gaussian_head=head).to_dict()
+
+
+def stage1_checkpoint(path, seed: int = 0) -> str:
+    """A stage-1 checkpoint as Lightning writes it (state_dict + plain-dict hyper_parameters)."""
+    torch.manual_seed(seed)
+    lit = LitPretrain(model=tiny_model_config())
+    torch.save({"state_dict": lit.state_dict(), "hyper_parameters": dict(lit.hparams)}, path)
+    return str(path)
+
+
+def fake_pairs(n: int = 6, v: int = 2, size: int = 32) -> tuple[list[SceneRecord], dict[str, SceneInputs]]:
+    gen = torch.Generator().manual_seed(1)
+    inputs, records = {}, []
+    cams = orbit_cameras([0.0, 90.0][:v], [0.0] * v, 1.8, 34.0, size, size)
+    for i in range(n):
+        sid = f"s{i}"
+        inputs[sid] = SceneInputs(torch.rand(v, 3, size, size, generator=gen), torch.ones(v, 1, size, size), cams.c2w, cams.Ks)
+        w = Candidate(9, "rubber", 6.0 + 0.1 * i, 0.45, 0.05)
+        l = Candidate(9 if i % 2 else 13, "x", 7.5 - 0.1 * i, 0.30, 0.4)
+        records.append(SceneRecord(sid, i, 0, "h", "p", [w, l], 0, 1))
+    return records, inputs
+
+
+class PairsDPO(LitDPO):
+    """LitDPO fed fixed pairs instead of a rollout callback (this file tests the module, not rollouts)."""
+
+    pairs: tuple = ()
+
+    def train_dataloader(self):
+        records, inputs = self.pairs
+        return DataLoader(PairDataset(records, inputs), batch_size=3, shuffle=False, collate_fn=collate_pairs)
+
+
+def test_dpo_loss_matches_hand_computation():
+    pw, pl = torch.tensor([-1.0, -2.5]), torch.tensor([-3.0, -0.5])
+    rw, rl = torch.tensor([-1.5, -2.0]), torch.tensor([-2.0, -1.0])
+    terms = dpo_loss(pw, pl, rw, rl, beta=0.5)
+    # Pair 0: chosen ratio 0.5, rejected ratio -1.0 -> logit 0.5 * 1.5 = 0.75.
+    # Pair 1: chosen ratio -0.5, rejected ratio 0.5 -> logit 0.5 * -1.0 = -0.5.
+    expected = [math.log(1 + math.exp(-0.75)), math.log(1 + math.exp(0.5))]
+    assert terms.loss.tolist() == pytest.approx(expected, rel=1e-6)
+    assert terms.chosen_rewards.tolist() == pytest.approx([0.25, -0.25])
+    assert terms.rejected_rewards.tolist() == pytest.approx([-0.5, 0.25])
+
+
+def test_analytic_kl_matches_torch_distributions():
+    gen = torch.Generator().manual_seed(0)
+    p = PhysicsPosterior(*(torch.randn(3, 15, generator=gen), *torch.randn(4, 3, generator=gen)))
+    q = PhysicsPosterior(*(torch.randn(3, 15, generator=gen), *torch.randn(4, 3, generator=gen)))
+    D = torch.distributions
+    expected = (D.kl_divergence(D.Categorical(logits=p.material_logits), D.Categorical(logits=q.material_logits))
+                + D.kl_divergence(D.Normal(p.z_E_mean, (0.5 * p.z_E_logvar).exp()), D.Normal(q.z_E_mean, (0.5 * q.z_E_logvar).exp()))
+                + D.kl_divergence(D.Normal(p.z_nu_mean, (0.5 * p.z_nu_logvar).exp()), D.Normal(q.z_nu_mean, (0.5 * q.z_nu_logvar).exp())))
+    torch.testing.assert_close(posterior_kl(p, q), expected)
+    assert posterior_kl(p, p).abs().max() < 1e-6
+
+
+def test_reference_is_a_frozen_copy_outside_the_module_tree(tmp_path):
+    lit = LitDPO(init_ckpt=stage1_checkpoint(tmp_path / "s1.ckpt"))
+    ref = lit.reference
+    assert ref is not lit.model and not ref.training
+    assert all(not p.requires_grad for p in ref.parameters())
+    policy_ids = {id(p) for p in lit.model.parameters()}
+    assert not policy_ids & {id(p) for p in ref.parameters()}
+    assert all(k.startswith("model.") for k in lit.state_dict()) and len(lit.state_dict()) == len(lit.model.state_dict())
+    assert not any(m is ref for m in lit.modules())
+    # Same weights as the stage-1 model it was copied from.
+    stage1 = model_from_checkpoint(str(tmp_path / "s1.ckpt"))
+    for a, b in zip(stage1.state_dict().values(), ref.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+    # Only the physics head trains; the rest is frozen and stays in eval mode in training.
+    lit.train()
+    assert not lit.model.backbone.training and not lit.model.gaussian_head.training and lit.model.physics_head.training
+    trainable = {id(p) for p in lit.model.parameters() if p.requires_grad}
+    assert trainable == {id(p) for p in lit.model.physics_head.parameters()}
+
+
+def test_training_moves_only_the_physics_head_and_never_the_reference(tmp_path):
+    torch.set_num_threads(1)
+    PairsDPO.pairs = fake_pairs()
+    lit = PairsDPO(init_ckpt=stage1_checkpoint(tmp_path / "s1.ckpt"), loss={"beta": 0.5}, optim={"lr": 3e-3, "warmup_steps": 1})
+    ref_before = copy.deepcopy(lit.reference.state_dict())
+    policy_before = copy.deepcopy(lit.model.state_dict())
+    trainer = L.Trainer(max_steps=4, accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, default_root_dir=tmp_path)
+    trainer.fit(lit)
+    opt = trainer.optimizers[0]
+    in_opt = {id(p) for g in opt.param_groups for p in g["params"]}
+    assert in_opt == {id(p) for p in lit.model.physics_head.parameters()}
+    assert not in_opt & {id(p) for p in lit.reference.parameters()}
+    for k, v in lit.reference.state_dict().items():
+        assert torch.equal(v, ref_before[k]), f"reference weight {k} changed"
+    after = lit.model.state_dict()
+    head = [k for k in after if k.startswith("physics_head.")]
+    assert any(not torch.equal(after[k], policy_before[k]) for k in head), "physics head did not train"
+    for k in after:
+        if not k.startswith("physics_head."):
+            assert torch.equal(after[k], policy_before[k]), f"frozen weight {k} changed"
+    m = trainer.callback_metrics
+    for key in ("train/loss", "rewards/chosen", "rewards/rejected", "rewards/margins", "rewards/accuracies", "train/kl"):
+        assert key in m and torch.isfinite(m[key]), key
+    # 4 steps of DPO on consistent pairs: the winners became relatively more likely than the losers.
+    assert m["rewards/margins"] > 0 and m["train/kl"] > 0
+
+    # The checkpoint holds the policy only, reloads without Hydra, and model_from_checkpoint reads it.
+    path = tmp_path / "dpo.ckpt"
+    trainer.save_checkpoint(path)
+    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    assert set(ckpt["state_dict"]) == {f"model.{k}" for k in lit.model.state_dict()}
+    assert isinstance(ckpt["hyper_parameters"]["model"], dict)
+    policy = model_from_checkpoint(str(path))
+    for k, v in lit.model.state_dict().items():
+        assert torch.equal(policy.state_dict()[k], v)
+    back = LitDPO.load_from_checkpoint(path)
+    assert torch.equal(back.model.physics_head.young[-1].weight, lit.model.physics_head.young[-1].weight)
+    for k, v in back.reference.state_dict().items():  # rebuilt from the stage-1 file, not from the DPO weights
+        assert torch.equal(v, ref_before[k])
+
+
+def test_dpo_checkpoint_loads_without_the_stage1_file(tmp_path):
+    s1 = stage1_checkpoint(tmp_path / "s1.ckpt")
+    lit = LitDPO(init_ckpt=s1)
+    ckpt = {"state_dict": lit.state_dict(), "hyper_parameters": dict(lit.hparams), "pytorch-lightning_version": L.__version__}
+    torch.save(ckpt, tmp_path / "dpo.ckpt")
+    (tmp_path / "s1.ckpt").unlink()
+    back = LitDPO.load_from_checkpoint(tmp_path / "dpo.ckpt")
+    assert torch.equal(back.model.physics_head.material[-1].weight, lit.model.physics_head.material[-1].weight)
+    with pytest.raises(RuntimeError, match="stage-1 checkpoint"):
+        back.reference  # noqa: B018

@@ -1,0 +1,118 @@
+"""Preference pairs: selection by distance, the atomic on-disk cache, batching."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+from physgm.train.pairs import (
+    Candidate,
+    PairCache,
+    PairDataset,
+    SceneInputs,
+    SceneRecord,
+    collate_pairs,
+    gather_records,
+    policy_fingerprint,
+    select_pair,
+    settings_hash,
+)
+
+
+def cand(distance, material=9, log10_E=6.0, nu=0.4) -> Candidate:
+    return Candidate(material, "rubber", log10_E, nu, distance)
+
+
+def record(scene="a", round_=0, settings="s1", distances=(0.3, 0.1, 0.5), index=0) -> SceneRecord:
+    cands = [cand(d, log10_E=5.0 + i) for i, d in enumerate(distances)]
+    w, l, note = select_pair(cands, 0.002)
+    return SceneRecord(scene, index, round_, settings, "p1", cands, w, l, 7, note)
+
+
+@pytest.mark.parametrize("distances,expected", [
+    ((0.3, 0.1, 0.5), (1, 2)),
+    ((0.05, 0.9, 0.2, 0.4), (0, 1)),
+    ((0.2, 0.2, 0.7), (0, 2)),  # equal best: the first one wins (deterministic)
+    ((0.4, None, 0.1), (2, 1)),  # a failed rollout loses
+    ((float("nan"), 0.3, 0.1), (2, 0)),  # so does a non-finite distance
+])
+def test_lowest_distance_wins_highest_loses(distances, expected):
+    w, l, note = select_pair([cand(d) for d in distances], min_gap=0.002)
+    assert (w, l) == expected
+
+
+def test_ties_and_total_failure_give_no_pair():
+    assert select_pair([cand(0.100), cand(0.1005), cand(0.1001)], min_gap=0.002)[:2] == (None, None)
+    w, l, note = select_pair([cand(None), cand(None)], min_gap=0.0)
+    assert (w, l) == (None, None) and "failed" in note
+    # Just above the gap it is a pair.
+    assert select_pair([cand(0.1), cand(0.1025)], min_gap=0.002)[:2] == (0, 1)
+
+
+def test_cache_round_trip_and_validation(tmp_path):
+    cache = PairCache(tmp_path)
+    rec = record()
+    path = cache.write(rec)
+    assert path == tmp_path / "round_0000" / "a.json"
+    back = cache.read(0, "a", "s1", "p1")
+    assert back == rec and back.has_pair and back.candidates[back.winner].distance == 0.1
+    assert cache.read(1, "a", "s1", "p1") is None  # other round: not in the cache
+    assert cache.read(0, "a", "other-settings", "p1") is None  # made with other rollout settings: redo
+    assert cache.read(0, "a", "s1", "p2") is None  # drawn from other policy weights: redo
+    assert not list((tmp_path / "round_0000").glob(".*"))  # no temporary left behind
+
+
+def test_half_written_or_incomplete_file_is_never_complete(tmp_path):
+    cache = PairCache(tmp_path)
+    full = json.dumps(record().to_json())
+    cache.path(0, "a").parent.mkdir(parents=True)
+    cache.path(0, "a").write_text(full[: len(full) // 2])  # truncated (a non-atomic writer crashed)
+    with pytest.warns(UserWarning, match="unreadable"):
+        assert cache.read(0, "a", "s1", "p1") is None
+    data = record().to_json()
+    data["complete"] = False
+    cache.path(0, "a").write_text(json.dumps(data))
+    assert cache.read(0, "a", "s1", "p1") is None
+    # A crashed atomic write leaves only a hidden temporary: never read, and cleaned for that scene.
+    tmp = cache.path(0, "b").with_name(".b.json.tmp-123")
+    tmp.write_text(full)
+    assert cache.read(0, "b", "s1", "p1") is None
+    assert cache.clean_temporaries(0, ["b"]) == 1 and not tmp.exists()
+
+
+def test_policy_fingerprint_follows_the_weights():
+    a, b = torch.nn.Linear(3, 2), torch.nn.Linear(3, 2)
+    b.load_state_dict(a.state_dict())
+    assert policy_fingerprint(a) == policy_fingerprint(b)
+    with torch.no_grad():
+        b.bias[0] += 1e-7
+    assert policy_fingerprint(a) != policy_fingerprint(b)
+
+
+def test_settings_hash_is_stable_and_sensitive():
+    a = settings_hash({"k": 3, "sim": {"resolution": 64}})
+    assert a == settings_hash({"sim": {"resolution": 64}, "k": 3})
+    assert a != settings_hash({"k": 3, "sim": {"resolution": 32}})
+
+
+def test_gather_on_one_process_sorts_by_scene_index():
+    recs = [record("b", index=2), record("a", index=0), record("c", index=1)]
+    assert [r.scene for r in gather_records(recs)] == ["a", "c", "b"]
+
+
+def test_dataset_serves_only_pairs_with_raw_sampled_physics():
+    inputs = {s: SceneInputs(torch.full((2, 3, 8, 8), float(i)), torch.ones(2, 1, 8, 8), torch.eye(4).expand(2, 4, 4),
+                             torch.eye(3).expand(2, 3, 3)) for i, s in enumerate("abc")}
+    recs = [record("a"), record("b", distances=(0.1, 0.1, 0.1)), record("c", distances=(0.9, None, 0.2))]
+    ds = PairDataset(recs, inputs)
+    assert len(ds) == 2  # the tie of scene b gives no pair
+    batch = collate_pairs([ds[0], ds[1]])
+    assert batch.images.shape == (2, 2, 3, 8, 8) and batch.scenes == ["a", "c"]
+    assert batch.winner.log10_E.tolist() == [[6.0], [7.0]] and batch.loser.log10_E.tolist() == [[7.0], [6.0]]
+    assert batch.winner.material.shape == (2, 1) and batch.winner.material.dtype == torch.int64
+    assert batch.distance_winner.tolist() == pytest.approx([0.1, 0.2])
+    assert batch.distance_loser[0].item() == pytest.approx(0.5) and math.isinf(batch.distance_loser[1].item())
+    assert torch.equal(batch.images[1], inputs["c"].images)

@@ -1,0 +1,315 @@
+"""Rollout callback bookkeeping: resumable cache, DDP shares, pair selection, the DPO entry point.
+
+Where a test is about bookkeeping, ``evaluate_physics`` (simulate + render + score) is replaced by a
+cheap deterministic stand-in: distance = |sampled log10 E - a per-scene target|. No physics
+result is claimed from it. ``test_evaluate_physics_wiring`` checks the real render + score path
+with a stand-in for the simulator only (a static object), and the slow test runs the real MPM.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+import physgm.train.rollout as rollout
+from physgm.data.synth import SynthConfig, asset_id, generate
+from physgm.data.video import VideoConfig, place_object, render_frames, video_camera, write_mp4
+from physgm.data.writer import camera_entry, write_json
+from physgm.gaussians import Gaussians
+from physgm.model import BackboneConfig, EncoderConfig, GaussianHeadConfig, PhysGMConfig
+from physgm.model.physgm import PhysGM
+from physgm.train.pairs import PairCache
+from physgm.train.pretrain import LitPretrain
+
+CONF = Path(__file__).resolve().parents[2] / "conf"
+COUNT = 4
+
+
+def tiny_model_config() -> dict:
+    encoder = EncoderConfig(img_size=32, patch_size=8, embed_dim=32, depth=1, num_heads=2)
+    backbone = BackboneConfig(encoder=encoder, width=32, depth=4, head_dim=16, camera_dim=8, camera_hidden=16, out_layers=(0, 1, 2, 3))
+    head = GaussianHeadConfig(features=8, layer_channels=(8, 8, 16, 16), hidden=8)
+    return PhysGMConfig(backbone=backbone, gaussian_head=head).to_dict()
+
+
+def falling_square(frames: int = 10, size: int = 32) -> np.ndarray:
+    rng = np.random.default_rng(0)
+    tex = rng.integers(0, 180, (3, 3, 3)).repeat(3, 0).repeat(3, 1).astype(np.uint8)
+    out = np.full((frames, size, size, 3), 255, np.uint8)
+    for t in range(frames):
+        y = min(2 + t * t // 2, 20)
+        out[t, y : y + 9, 10:19] = tex
+    return out
+
+
+@pytest.fixture(scope="module")
+def dpo_root(tmp_path_factory) -> Path:
+    """4 tiny synthetic assets, each given a reference video (a falling square) and listed in the dpo split."""
+    root = tmp_path_factory.mktemp("dpo") / "data"
+    summary = generate(SynthConfig(count=COUNT, seed=5, resolution=32, gaussians=300, video_fraction=0.0), root, workers=1, progress=False)
+    assert summary["done"] == COUNT
+    vcfg = VideoConfig()
+    for i in range(COUNT):
+        vdir = root / asset_id(i) / "videos"
+        vdir.mkdir()
+        frames = falling_square()
+        write_mp4(vdir / "drop.mp4", frames, vcfg.fps)
+        cam = video_camera(vcfg, -45.0, 32)
+        write_json(vdir / "drop.json", {"scene": "drop", "fps": vcfg.fps, "frames": len(frames), "settings": asdict(vcfg),
+                                        "camera": camera_entry(cam.c2w[0], cam.Ks[0], 32, 32)})
+    (root / "splits" / "dpo.txt").write_text("".join(f"{asset_id(i)}\n" for i in range(COUNT)))
+    return root
+
+
+@pytest.fixture(scope="module")
+def stage1_ckpt(tmp_path_factory) -> str:
+    torch.manual_seed(0)
+    lit = LitPretrain(model=tiny_model_config())
+    path = tmp_path_factory.mktemp("ckpt") / "stage1.ckpt"
+    import lightning as L
+
+    torch.save({"state_dict": lit.state_dict(), "hyper_parameters": dict(lit.hparams), "pytorch-lightning_version": L.__version__}, path)
+    return str(path)
+
+
+class Killed(BaseException):
+    """Stands for the process being killed (not an Exception, so nothing on the way catches it)."""
+
+
+class StandIn:
+    """Deterministic stand-in for simulate + render + score; records every call."""
+
+    def __init__(self, kill_at_scene: str | None = None):
+        self.calls: list[tuple[str, dict]] = []
+        self.kill_at_scene = kill_at_scene
+
+    def __call__(self, scene, gaussians, physics, reference, settings, device="cpu"):
+        assert reference.dtype == np.uint8 and reference.shape[1:] == (32, 32, 3)  # the decoded reference video
+        assert len(gaussians) > 0 and physics["material"] and physics["E"] > 0
+        if scene.id == self.kill_at_scene:
+            raise Killed()
+        self.calls.append((scene.id, physics))
+        target = 4.0 + scene.index  # an arbitrary, scene-dependent "true" stiffness
+        return abs(math.log10(physics["E"]) - target), {"mode": "stand-in"}
+
+
+def make_callback(root: Path, **over) -> rollout.RolloutCallback:
+    cfg = dict(data_root=str(root), num_views=2, num_candidates=3, workers=1, batch_size=2, cache_dir="pairs",
+               sim={"resolution": 32, "n_frames": 8})
+    return rollout.RolloutCallback(**{**cfg, **over})
+
+
+def fake_trainer(tmp_path: Path, rank: int = 0, world: int = 1, epoch: int = 0) -> SimpleNamespace:
+    return SimpleNamespace(global_rank=rank, world_size=world, default_root_dir=str(tmp_path), global_step=0,
+                           current_epoch=epoch, is_global_zero=rank == 0, loggers=[])
+
+
+@pytest.fixture(scope="module")
+def policy() -> SimpleNamespace:
+    torch.manual_seed(0)
+    return SimpleNamespace(model=PhysGM(PhysGMConfig.from_dict(tiny_model_config())))
+
+
+def test_cache_resumes_after_a_kill_and_never_reads_half_files(dpo_root, policy, tmp_path, monkeypatch):
+    cb = make_callback(dpo_root)
+    cb.setup(None, None, "fit")
+    assert [s.id for s in cb.scenes] == [asset_id(i) for i in range(COUNT)]
+    killer = StandIn(kill_at_scene=asset_id(2))
+    monkeypatch.setattr(rollout, "evaluate_physics", killer)
+    trainer = fake_trainer(tmp_path)
+    with pytest.raises(Killed):
+        cb.refresh(trainer, policy, 0, "p0")
+    assert {s for s, _ in killer.calls} == {asset_id(0), asset_id(1)}
+    cache = PairCache(tmp_path / "pairs")
+    first = cache.read(0, asset_id(0), cb.settings, "p0")
+    assert first is not None and cache.read(0, asset_id(2), cb.settings, "p0") is None
+    # A truncated file under a final name (and a stale temporary) must be redone, not trusted.
+    cache.path(0, asset_id(1)).write_text(cache.path(0, asset_id(1)).read_text()[:40])
+    cache.path(0, asset_id(3)).with_name(f".{asset_id(3)}.json.tmp-999").write_text("{")
+
+    rerun = StandIn()
+    monkeypatch.setattr(rollout, "evaluate_physics", rerun)
+    with pytest.warns(UserWarning, match="unreadable"):
+        records = cb.refresh(trainer, policy, 0, "p0")
+    assert sorted({s for s, _ in rerun.calls}) == [asset_id(1), asset_id(2), asset_id(3)]
+    assert len(rerun.calls) == 3 * 3
+    assert [r.scene for r in records] == [asset_id(i) for i in range(COUNT)]
+    assert records[0] == first  # read back, not resimulated
+    assert not list((tmp_path / "pairs" / "round_0000").glob(".*"))
+    # Same scene and round: the same candidates whatever the interruption (seeded per scene and round).
+    redo = [p for s, p in rerun.calls if s == asset_id(1)]
+    assert [c.log10_E for c in records[1].candidates] == pytest.approx([math.log10(p["E"]) for p in redo], abs=1e-5)
+    # A third run simulates nothing.
+    again = StandIn()
+    monkeypatch.setattr(rollout, "evaluate_physics", again)
+    assert cb.refresh(trainer, policy, 0, "p0") == records and again.calls == []
+    # A new round samples again, and so does the same round drawn from other policy weights.
+    cb.refresh(trainer, policy, 1, "p0")
+    assert len(again.calls) == COUNT * 3
+    cb.refresh(trainer, policy, 0, "p1")
+    assert len(again.calls) == 2 * COUNT * 3
+
+
+def test_winner_is_lowest_distance_and_candidates_are_raw_samples(dpo_root, policy, tmp_path, monkeypatch):
+    monkeypatch.setattr(rollout, "evaluate_physics", StandIn())
+    cb = make_callback(dpo_root, workers=2, num_candidates=4, min_std_decades=1.0)
+    cb.setup(None, None, "fit")
+    records = cb.refresh(fake_trainer(tmp_path), policy, 0, "p0")
+    for r in records:
+        d = [c.distance for c in r.candidates]
+        assert len(d) == 4 and r.has_pair
+        assert r.winner == int(np.argmin(d)) and r.loser == int(np.argmax(d))
+        target = 4.0 + r.scene_index
+        assert d == pytest.approx([abs(min(max(c.log10_E, 3.0), 11.7) - target) for c in r.candidates], abs=1e-4)
+    # The exploration floor of 1 decade shows in the spread of the draws.
+    spread = np.std([c.log10_E for r in records for c in r.candidates])
+    assert spread > 0.5
+
+
+def test_ddp_ranks_simulate_disjoint_shares(dpo_root, policy, tmp_path, monkeypatch):
+    seen = {}
+    for rank in (0, 1):
+        stand_in = StandIn()
+        monkeypatch.setattr(rollout, "evaluate_physics", stand_in)
+        cb = make_callback(dpo_root)
+        cb.setup(None, None, "fit")
+        local = cb.refresh(fake_trainer(tmp_path, rank=rank, world=2), policy, 0, "p0")
+        seen[rank] = {s for s, _ in stand_in.calls}
+        assert [r.scene_index % 2 for r in local] == [rank] * (COUNT // 2)  # single process: no gather partner
+    assert seen[0] == {asset_id(0), asset_id(2)} and seen[1] == {asset_id(1), asset_id(3)}
+
+
+def test_evaluate_physics_wiring(dpo_root, monkeypatch):
+    """Placement, camera, frame rate and scene handed to the simulator; real render + score of a static object."""
+    scene = rollout.load_scenes(dpo_root, "dpo", num_views=1)[0]
+    n = 200
+    gen = torch.Generator().manual_seed(0)
+    g = Gaussians(torch.rand(n, 3, generator=gen) * 0.6 - 0.3, torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), torch.full((n, 3), 0.03),
+                  torch.full((n,), 0.9), torch.rand(n, 3, generator=gen) * 0.7)
+    placed, _ = place_object(g, scene.video)
+    seen = {}
+
+    def static_simulate(gaussians, physics, scene_name, cameras, n_frames, planner=None, solver=None, scene_overrides=None, device="cpu"):
+        seen.update(g=gaussians, scene=scene_name, cams=cameras, n=n_frames, solver=solver, over=scene_overrides, physics=physics,
+                    planner=planner)
+        return SimpleNamespace(frames=lambda: iter([gaussians] * n_frames), plan=SimpleNamespace(mode="rigid", E_used=1.0))
+
+    monkeypatch.setattr("physgm.sim.run.simulate", static_simulate)
+    settings = rollout.SimSettings(resolution=32, n_frames=6, backend="warp")
+    camera = rollout.render_camera(scene, 32)
+    reference = render_frames(SimpleNamespace(frames=lambda: iter([placed] * 6)), camera, "warp", 1.0)
+    dist, info = rollout.evaluate_physics(scene, g, {"material": "rubber", "E": 1e6, "nu": 0.45}, reference, settings)
+    torch.testing.assert_close(seen["g"].means, placed.means)
+    assert seen["g"].means[:, 2].min().item() == pytest.approx(scene.video.drop_height_m, abs=1e-6)
+    assert seen["scene"] == "drop" and seen["n"] == 6 and seen["over"] == {"height": scene.video.drop_height_m}
+    assert seen["solver"].frame_dt == pytest.approx(1 / scene.fps)
+    assert seen["planner"] == {"min_opacity": pytest.approx(0.05)}  # min(0.05, half the faintest opacity 0.9)
+    # Rendering at half the reference size: the pixel bounds halve, so the plan is the reference's.
+    from physgm.sim.planner import PlannerConfig
+
+    half = rollout.SimSettings(resolution=16, n_frames=6, backend="warp", planner={"cells_across": 7})
+    rollout.evaluate_physics(scene, g, {"material": "rubber", "E": 1e6, "nu": 0.45}, reference, half)
+    assert seen["cams"].width == 16 and seen["cams"].Ks[0, 0, 0].item() == pytest.approx(scene.camera.Ks[0, 0, 0].item() / 2)
+    d = PlannerConfig()
+    assert seen["planner"] == {"min_opacity": pytest.approx(0.05), "bound_px": pytest.approx(d.bound_px / 2),
+                               "rest_px": pytest.approx(d.rest_px / 2), "cells_across": 7}
+    torch.testing.assert_close(seen["cams"].c2w, scene.camera.c2w)
+    assert dist == pytest.approx(0.0, abs=1e-6) and info["mode"] == "rigid"
+
+
+def test_fit_trains_and_resumes_mid_round_from_the_cache(dpo_root, stage1_ckpt, tmp_path, monkeypatch):
+    from hydra import compose, initialize_config_dir
+
+    from physgm.train.run import run
+
+    torch.set_num_threads(1)
+    stand_in = StandIn()
+    monkeypatch.setattr(rollout, "evaluate_physics", stand_in)
+    overrides = [
+        "stage=dpo", f"stage.init_ckpt={stage1_ckpt}", f"++data.root={dpo_root}", "++data.input_resolution=32",
+        f"paths.output_dir={tmp_path}", "stage.rollout.refresh_every_n_epochs=2", "stage.rollout.batch_size=2",
+        "stage.rollout.num_views=2", "stage.rollout.workers=1", "stage.rollout.sim.resolution=32", "callbacks.progress_bar=null",
+    ]
+
+    def train(*extra: str) -> dict:
+        with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+            return run(compose("train", overrides=[*overrides, *extra]))
+
+    metrics = train("stage.trainer.max_epochs=1")
+    assert len(stand_in.calls) == COUNT * 3  # round 0: every scene, K = 3
+    for key in ("train/loss_epoch", "rewards/margins_epoch", "rewards/accuracies_epoch", "train/kl_epoch"):
+        assert key in metrics and math.isfinite(metrics[key]), key
+    summary = json.loads((tmp_path / "pairs" / "round_0000" / "_summary.json").read_text())
+    assert summary["rollout/scenes"] == COUNT and summary["rollout/pairs"] >= 1
+    ckpt = torch.load(tmp_path / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    assert all(k.startswith("model.") for k in ckpt["state_dict"])
+    # "Crash" after epoch 0 and resume: epoch 1 is still round 0 (read from the cache), epoch 2 starts round 1.
+    again = StandIn()
+    monkeypatch.setattr(rollout, "evaluate_physics", again)
+    train("stage.trainer.max_epochs=3", "ckpt_path=last")
+    assert len(again.calls) == COUNT * 3
+    assert (tmp_path / "pairs" / "round_0001" / "_summary.json").is_file()
+
+
+@pytest.mark.slow
+def test_real_rollout_on_a_generated_drop_scene(tmp_path):
+    """One scene generated with a real reference video; K = 2 real MPM rollouts (slow: minutes on CPU)."""
+    root = tmp_path / "data"
+    summary = generate(SynthConfig(count=1, seed=11, resolution=32, gaussians=400, video_fraction=1.0, materials=["jelly"]), root,
+                       workers=1, progress=False)
+    assert summary["done"] == 1, summary["failures"]
+    (root / "splits" / "dpo.txt").write_text(f"{asset_id(0)}\n")
+    torch.manual_seed(0)
+    model = PhysGM(PhysGMConfig.from_dict(tiny_model_config()))
+    cb = make_callback(root, num_candidates=2, sim={"resolution": 32, "n_frames": 12, "planner": {"cells_across": 10}})
+    cb.setup(None, None, "fit")
+    (record,) = cb.refresh(fake_trainer(tmp_path), SimpleNamespace(model=model), 0, "p0")
+    assert all(c.distance is not None and math.isfinite(c.distance) for c in record.candidates), record
+
+
+def test_evaluate_command_compares_two_checkpoints(dpo_root, stage1_ckpt, tmp_path, monkeypatch, capsys):
+    """Bookkeeping of ``python -m physgm.train.evaluate_dpo`` with a stand-in score (|mean log10 E - true|)."""
+    import lightning as L
+
+    from physgm.train import evaluate_dpo
+    from physgm.train.dpo import LitDPO
+
+    lit = LitDPO(init_ckpt=stage1_ckpt, inputs={"num_views": 2, "input_resolution": 32, "background": 1.0})
+    with torch.no_grad():
+        lit.model.physics_head.young[-1].bias[0] += 0.5  # shift the mean of normalised log10 E by +0.5 (2.2 decades)
+    dpo_path = tmp_path / "dpo.ckpt"
+    torch.save({"state_dict": lit.state_dict(), "hyper_parameters": dict(lit.hparams), "pytorch-lightning_version": L.__version__}, dpo_path)
+    truth = {s.id: s.log10_E for s in rollout.load_scenes(dpo_root, "dpo", num_views=2, input_resolution=32)}
+
+    def score(scene, gaussians, physics, reference, settings, device="cpu"):
+        return abs(math.log10(physics["E"]) - truth[scene.id]), {"mode": "stand-in"}
+
+    monkeypatch.setattr(evaluate_dpo, "evaluate_physics", score)
+    table = tmp_path / "eval.md"
+    assert evaluate_dpo.main(["--pretrain", stage1_ckpt, "--dpo", str(dpo_path), "--data", str(dpo_root), "--split", "dpo",
+                              "--frames", "6", "--table", str(table), "--workers", "1"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["scenes"] == COUNT and report["views"] == 2 and report["input_resolution"] == 32
+    rows = report["per_scene"]
+    for r in rows:
+        for name in ("pretrain", "dpo"):
+            assert r[name]["distance"] == pytest.approx(abs(min(max(r[name]["log10_E"], 3.0), 11.7) - r["log10_E"]), abs=1e-4)
+            assert r[name]["abs_log10_E_error"] == pytest.approx(abs(r[name]["log10_E"] - r["log10_E"]))
+        assert r["dpo"]["log10_E"] - r["pretrain"]["log10_E"] == pytest.approx(0.5 * 8.7 / 2, abs=1e-3)
+    overall = report["summary"]["overall"]
+    for name in ("pretrain", "dpo"):
+        assert overall[name]["mean_distance"] == pytest.approx(np.mean([r[name]["distance"] for r in rows]))
+        assert overall[name]["median_abs_log10_E_error"] == pytest.approx(np.median([r[name]["abs_log10_E_error"] for r in rows]))
+    gain = 1 - overall["dpo"]["mean_distance"] / overall["pretrain"]["mean_distance"]
+    assert overall["gain"]["mean_distance"] == pytest.approx(gain)
+    assert set(evaluate_dpo.KEY_MATERIALS) <= set(report["summary"]) and report["summary"]["metal"]["pretrain"]["n"] == sum(
+        r["material"] == "metal" for r in rows)
+    text = table.read_text()
+    assert text.count("\n") == len(report["summary"]) + 2 and "| overall |" in text and "| sand |" in text
