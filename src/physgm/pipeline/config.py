@@ -1,0 +1,208 @@
+"""Typed settings of one ``simulate.py`` run, read from the Hydra config (conf/simulate.yaml).
+
+Every value a user can mistype is checked here, before any work starts, so a bad setting stops
+with one line saying which key was wrong and what it accepts.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import MissingMandatoryValue
+
+from physgm.pipeline.errors import UserError
+
+DEFAULT_CKPT = "checkpoints/physgm_tiny.ckpt"
+UP_AXES = ("z", "y", "-y")
+
+
+@dataclass
+class PhysicsOverrides:
+    """Physics the user fixed; None means "use the prediction"."""
+
+    material: str | None = None
+    E: float | None = None  # Pa
+    nu: float | None = None
+    density: float | None = None  # kg/m^3
+    samples: int = 0  # K extra futures drawn from the posterior
+
+
+@dataclass
+class CameraSettings:
+    """Output camera; None angles follow the input view."""
+
+    azimuth_deg: float | None = None
+    elevation_deg: float | None = None
+    fov_deg: float = 34.0  # horizontal
+    margin: float = 1.15  # the motion region fills 1 / margin of the frame
+
+
+@dataclass
+class OutputSettings:
+    resolution: int = 256  # px, square
+    frames: int = 50  # T including frame 0
+    fps: float = 25.0
+    gif: bool = False
+    frame_plys: bool = False
+    keyframes: int = 5
+    floor: bool = True
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    progress: bool = True
+
+
+@dataclass
+class RunConfig:
+    """One run: where the input is, what to simulate, where the outputs go."""
+
+    input: Path
+    output_dir: Path
+    mask: Path | None = None
+    ckpt: Path = Path(DEFAULT_CKPT)
+    device: str = "cpu"
+    seed: int = 0
+    torch_threads: int = 1  # torch intra-op threads during the run; 0 keeps torch's default
+    scene: str = "drop"
+    scene_overrides: dict[str, Any] = field(default_factory=dict)
+    physics: PhysicsOverrides = field(default_factory=PhysicsOverrides)
+    size_m: float = 0.2  # object's largest extent
+    drop_height_m: float | None = 0.1
+    up: str = "z"
+    camera: CameraSettings = field(default_factory=CameraSettings)
+    output: OutputSettings = field(default_factory=OutputSettings)
+    renderer: dict[str, Any] = field(default_factory=lambda: {"backend": "warp"})
+    planner: dict[str, Any] = field(default_factory=dict)
+    solver: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        from physgm.physics.materials import MATERIAL_NAMES
+        from physgm.sim.scenes import SCENES
+
+        p, o, c = self.physics, self.output, self.camera
+        if self.scene not in SCENES or self.scene == "two_objects":
+            names = ", ".join(s for s in SCENES if s != "two_objects")
+            raise UserError(f"scene={self.scene!r} is not a single-object scene; choose one of: {names}")
+        if p.material is not None and p.material not in MATERIAL_NAMES:
+            raise UserError(
+                f"physics.material={p.material!r} is unknown; choose one of: {', '.join(MATERIAL_NAMES)}"
+            )
+        _check(
+            p.E is None or (math.isfinite(p.E) and p.E > 0),
+            f"physics.E={p.E!r} must be a positive number of pascals",
+        )
+        _check(p.nu is None or -1.0 < p.nu < 0.5, f"physics.nu={p.nu!r} must be in (-1, 0.5)")
+        _check(p.density is None or (math.isfinite(p.density) and p.density > 0),
+               f"physics.density={p.density!r} must be a positive number (kg/m^3)")  # fmt: skip
+        _check(0 <= p.samples <= 64, f"physics.samples={p.samples!r} must be an integer in [0, 64]")
+        _check(
+            math.isfinite(self.size_m) and 1e-3 <= self.size_m <= 10.0,
+            f"object.size={self.size_m!r} must be in [0.001, 10] m",
+        )
+        _check(self.drop_height_m is None or (math.isfinite(self.drop_height_m) and 0 <= self.drop_height_m <= 10),
+               f"object.drop_height={self.drop_height_m!r} must be in [0, 10] m")  # fmt: skip
+        _check(self.up in UP_AXES, f"object.up={self.up!r} must be one of {', '.join(UP_AXES)}")
+        _check(16 <= o.resolution <= 4096 and o.resolution % 2 == 0,
+               f"output.resolution={o.resolution!r} must be an even number of pixels in [16, 4096]")  # fmt: skip
+        _check(2 <= o.frames <= 10000, f"output.frames={o.frames!r} must be in [2, 10000]")
+        _check(math.isfinite(o.fps) and 1 <= o.fps <= 240, f"output.fps={o.fps!r} must be in [1, 240]")
+        _check(1 <= o.keyframes <= 16, f"output.keyframes={o.keyframes!r} must be in [1, 16]")
+        _check(len(o.background) == 3 and all(0 <= v <= 1 for v in o.background),
+               f"output.background={list(o.background)!r} must be three numbers in [0, 1]")  # fmt: skip
+        _check(0 < c.fov_deg < 170, f"camera.fov_deg={c.fov_deg!r} must be in (0, 170)")
+        _check(c.margin >= 1.0, f"camera.margin={c.margin!r} must be >= 1")
+        _check(
+            c.elevation_deg is None or -89 <= c.elevation_deg <= 89,
+            f"camera.elevation_deg={c.elevation_deg!r} must be in [-89, 89]",
+        )
+        _check(0 <= self.torch_threads <= 256, f"torch_threads={self.torch_threads!r} must be in [0, 256]")
+        _check(
+            self.device == "cpu" or self.device.startswith("cuda"),
+            f"device={self.device!r} must be cpu or cuda[:N]",
+        )
+
+
+def _check(ok: bool, message: str) -> None:
+    if not ok:
+        raise UserError(message)
+
+
+def _number(value: Any, key: str, kind=float) -> Any:
+    if value is None:
+        return None
+    if isinstance(value, bool):
+        raise UserError(f"{key}={value!r} must be a number")
+    try:
+        out = kind(value)
+    except (TypeError, ValueError):
+        raise UserError(f"{key}={value!r} must be a number") from None
+    if kind is int and out != float(value):
+        raise UserError(f"{key}={value!r} must be an integer")
+    return out
+
+
+def from_hydra(cfg: DictConfig) -> RunConfig:
+    """The typed run settings of a composed ``conf/simulate.yaml``."""
+    try:
+        raw = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
+    except MissingMandatoryValue as err:
+        key = getattr(err, "full_key", "input")
+        raise UserError(f"{key} is required, e.g. `python simulate.py input=photo.png`") from None
+    phys, obj, cam, out = (
+        raw.get("physics") or {},
+        raw.get("object") or {},
+        raw.get("camera") or {},
+        raw.get("output") or {},
+    )
+    renderer = {k: v for k, v in (raw.get("renderer") or {}).items() if not k.startswith("_")}
+    output_dir = (raw.get("paths") or {}).get("output_dir")
+    if raw.get("input") in (None, ""):
+        raise UserError("input is required, e.g. `python simulate.py input=photo.png`")
+    if not output_dir:
+        raise UserError("paths.output_dir is empty; give the run folder, e.g. paths.output_dir=outputs/run1")
+    return RunConfig(
+        input=Path(str(raw["input"])).expanduser(),
+        output_dir=Path(str(output_dir)).expanduser(),
+        mask=None if raw.get("mask") in (None, "") else Path(str(raw["mask"])).expanduser(),
+        ckpt=Path(str(raw.get("ckpt") or DEFAULT_CKPT)).expanduser(),
+        device=str(raw.get("device", "cpu")),
+        seed=_number(raw.get("seed", 0), "seed", int),
+        torch_threads=_number(raw.get("torch_threads", 1), "torch_threads", int),
+        scene=str(raw.get("scene", "drop")),
+        scene_overrides=dict(raw.get("scene_overrides") or {}),
+        physics=PhysicsOverrides(
+            material=None if phys.get("material") is None else str(phys["material"]),
+            E=_number(phys.get("E"), "physics.E"),
+            nu=_number(phys.get("nu"), "physics.nu"),
+            density=_number(phys.get("density"), "physics.density"),
+            samples=_number(phys.get("samples", 0), "physics.samples", int),
+        ),
+        size_m=_number(obj.get("size", 0.2), "object.size"),
+        drop_height_m=_number(obj.get("drop_height", 0.1), "object.drop_height"),
+        up=str(obj.get("up", "z")),
+        camera=CameraSettings(
+            azimuth_deg=_number(cam.get("azimuth_deg"), "camera.azimuth_deg"),
+            elevation_deg=_number(cam.get("elevation_deg"), "camera.elevation_deg"),
+            fov_deg=_number(cam.get("fov_deg", 34.0), "camera.fov_deg"),
+            margin=_number(cam.get("margin", 1.15), "camera.margin"),
+        ),
+        output=OutputSettings(
+            resolution=_number(out.get("resolution", 256), "output.resolution", int),
+            frames=_number(out.get("frames", 50), "output.frames", int),
+            fps=_number(out.get("fps", 25), "output.fps"),
+            gif=bool(out.get("gif", False)),
+            frame_plys=bool(out.get("frame_plys", False)),
+            keyframes=_number(out.get("keyframes", 5), "output.keyframes", int),
+            floor=bool(out.get("floor", True)),
+            background=tuple(_number(v, "output.background") for v in out.get("background", (1.0, 1.0, 1.0))),
+            progress=bool(out.get("progress", True)),
+        ),
+        renderer=renderer or {"backend": "warp"},
+        planner=dict(raw.get("planner") or {}),
+        solver=dict(raw.get("solver") or {}),
+    )

@@ -1,0 +1,288 @@
+"""Photo (or views, or .ply) -> physically simulated clip: the stages and the run folder.
+
+Stages, each timed in report.json: load (input + checkpoint), model (forward pass, physics
+choice, placement), plan and simulate (``physgm.sim.run.simulate``), render (deforming the
+Gaussians per frame + rasterising), write (videos, PLYs, contact sheet, JSON, rename).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import asdict, replace
+from pathlib import Path
+
+import numpy as np
+
+from physgm.pipeline.config import RunConfig, from_hydra
+from physgm.pipeline.errors import UserError
+from physgm.pipeline.outputs import (
+    RunFolder,
+    contact_sheet,
+    keyframe_indices,
+    plain_json,
+    save_png,
+    write_gif,
+    write_json,
+    write_mp4,
+)
+
+# Heavy modules (torch, timm, warp) are imported inside the stages that need them, so a bad
+# setting is reported in about a second and a .ply run never imports the model code.
+
+STAGES = ("load", "model", "plan", "simulate", "render", "write")
+
+
+def run(cfg) -> dict:
+    """Hydra entry (simulate.py): user errors print ``error: ...`` and exit with code 2."""
+    try:
+        run_cfg = from_hydra(cfg)
+        report = execute(run_cfg)
+    except UserError as err:
+        print(f"error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
+    for r in report["runs"]:
+        print(f"{run_cfg.output_dir / r['video']}: {r['material']} E={r['E']:.3g} Pa nu={r['nu']:.2f}, "
+              f"{r['mode']} ({r['predicted_error_px']:.2f} px predicted error)")  # fmt: skip
+    print(f"done in {report['seconds']['total']:.1f} s; report: {run_cfg.output_dir / 'report.json'}")
+    return report
+
+
+def scene_settings(cfg: RunConfig, view: np.ndarray | None = None) -> tuple[dict, dict]:
+    """(the scene's full settings, the overrides handed to the simulator); unknown keys are errors.
+
+    ``view`` [3] is the unit direction from the object to the output camera: a stretch or push
+    along the line of sight would be invisible, so unless the user set ``axis`` the horizontal
+    world axis most across the view is used.
+    """
+    from physgm.sim.scenes import load_scene_config
+
+    base = load_scene_config(cfg.scene)
+    overrides = dict(cfg.scene_overrides)
+    if cfg.scene == "drop" and cfg.drop_height_m is not None:
+        overrides.setdefault("height", cfg.drop_height_m)
+    if "axis" in base and "axis" not in overrides and view is not None:
+        overrides["axis"] = int(np.argmin(np.abs(view[:2])))
+    unknown = sorted(set(overrides) - set(base))
+    if unknown:
+        raise UserError(f"scene {cfg.scene!r} has no setting(s) {unknown}; its settings are {sorted(base)}")
+    return {**base, **overrides}, overrides
+
+
+def _load_model(cfg: RunConfig):
+    from physgm.pipeline.checkpoint import load_model
+
+    return load_model(cfg.ckpt, cfg.device)
+
+
+def _predict(model, inp, device: str):
+    """The model's Gaussians (valid pixels only, CPU) and physics posterior (CPU) for one scene."""
+    import torch
+
+    with torch.no_grad():
+        out = model(
+            inp.images[None].to(device),
+            inp.masks[None].to(device),
+            inp.c2w[None].to(device),
+            inp.Ks[None].to(device),
+        )
+    g = out.gaussians.to_gaussians(0).to("cpu")
+    post = out.physics.detach()
+    post = type(post)(**{k: v.cpu() for k, v in vars(post).items()})
+    if len(g) == 0:
+        raise UserError("the model placed no Gaussian inside the object mask; check the mask (mask.png)")
+    values = [g.means, g.scales, g.opacities, g.colors, post.material_logits, post.z_E_mean, post.z_nu_mean]
+    if not all(bool(torch.isfinite(v).all()) for v in values):
+        raise UserError(
+            "the model produced non-finite values for this input; the checkpoint is probably broken (NaN weights)"
+        )
+    return g, post
+
+
+def _simulate(g, choice, cfg: RunConfig, camera, overrides: dict):
+    from physgm.sim.planner import PlannerConfig
+    from physgm.sim.run import simulate
+    from physgm.sim.stepping import SolverConfig
+
+    try:
+        planner = PlannerConfig(**cfg.planner)
+        solver = replace(SolverConfig.from_dict(cfg.solver), frame_dt=1.0 / cfg.output.fps)
+    except (TypeError, ValueError) as err:
+        raise UserError(f"bad planner/solver settings: {err}") from None
+    try:
+        traj = simulate(g, choice.sim_physics(), cfg.scene, camera, n_frames=cfg.output.frames, planner=planner,
+                        solver=solver, scene_overrides=overrides or None, device=cfg.device)  # fmt: skip
+    except ValueError as err:  # the simulator validates materials and scenes with ValueError
+        raise UserError(f"cannot simulate {choice.label()} in scene {cfg.scene!r}: {err}") from None
+    plan_s = float(traj.plan_seconds)  # particle sampling + planning, inside traj.seconds
+    return traj, plan_s, max(0.0, traj.seconds - plan_s)
+
+
+def _run_summary(choice, traj, seconds: dict, finite: bool, video: str) -> dict:
+    plan = traj.plan
+    summary = plan.summary()
+    return {
+        "name": choice.name, "video": video, "material": choice.material, "E": choice.E, "nu": choice.nu,
+        "mode": plan.mode, "predicted_error_px": plan.predicted_error_px, "E_used": plan.E_used,
+        "particles": int(len(traj.particles.x)), "grid_cells": summary["grid_cells"], "dx_m": plan.dx,
+        "substeps": int(traj.substeps), "rest_frame": traj.rest_frame, "ballistic_frames": traj.ballistic_frames,
+        "reason": plan.reason, "finite": finite, "seconds": {k: round(v, 3) for k, v in seconds.items()},
+    }  # fmt: skip
+
+
+def execute(cfg: RunConfig) -> dict:
+    """Run the whole pipeline into ``cfg.output_dir`` (atomically); returns report.json's contents."""
+    import torch
+
+    threads = torch.get_num_threads()
+    if cfg.torch_threads:
+        torch.set_num_threads(cfg.torch_threads)
+    try:
+        return _execute(cfg)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _execute(cfg: RunConfig) -> dict:
+    from hydra.utils import instantiate
+
+    from physgm.pipeline.inputs import input_kind, prepare_input
+    from physgm.pipeline.physics import choose_physics, physics_json
+    from physgm.pipeline.render import render_gaussians, render_trajectory
+    from physgm.pipeline.staging import direction, floor_image, framing_camera, motion_region, place_object
+
+    start = time.perf_counter()
+    sec = dict.fromkeys(STAGES, 0.0)
+    folder = RunFolder(cfg.output_dir)  # fails early on a non-empty or unwritable output folder
+    with folder as tmp:
+        # -- load ---------------------------------------------------------------------------
+        t0 = time.perf_counter()
+        kind = input_kind(cfg.input)
+        scene_cfg, overrides = scene_settings(cfg)
+        model, ckpt_info = (None, None) if kind == "ply" else _load_model(cfg)
+        inp = prepare_input(cfg.input, None if model is None else ckpt_info["input_size"], cfg.mask, cfg.up)
+        sec["load"] = time.perf_counter() - t0
+        # -- model + physics choice + placement -------------------------------------------------
+        t0 = time.perf_counter()
+        g, post = _predict(model, inp, cfg.device) if model is not None else (inp.gaussians, None)
+        runs = choose_physics(post, cfg.physics, cfg.seed)
+        min_opacity = float(cfg.planner.get("min_opacity", 0.05))
+        ground_cfg = scene_cfg.get("ground")
+        ground = None if ground_cfg is None else float(ground_cfg.get("height", 0.0))
+        placement = place_object(g, cfg.size_m, ground or 0.0, min_opacity)
+        az = inp.azimuth_deg if cfg.camera.azimuth_deg is None else cfg.camera.azimuth_deg
+        el = inp.elevation_deg if cfg.camera.elevation_deg is None else cfg.camera.elevation_deg
+        scene_cfg, overrides = scene_settings(cfg, direction(az, el))
+        lo, hi = motion_region(placement.gaussians, cfg.scene, scene_cfg, min_opacity)
+        res = cfg.output.resolution
+        camera = framing_camera(lo, hi, az, el, cfg.camera.fov_deg, res, res, cfg.camera.margin)
+        bg = np.broadcast_to(np.asarray(cfg.output.background, np.float32), (res, res, 3)).copy()
+        if cfg.output.floor and ground is not None:
+            bg = floor_image(camera, ground, cfg.size_m / 4, np.asarray(cfg.output.background))
+        renderer = instantiate({"_target_": "physgm.render.Renderer", **cfg.renderer})
+        sec["model"] = time.perf_counter() - t0
+        # -- per future: plan, simulate, render, write the video ---------------------------------
+        results, videos, sheet_rows, rest_state = [], {}, [], None
+        for choice in runs:
+            traj, plan_s, sim_s = _simulate(placement.gaussians, choice, cfg, camera, overrides)
+            t0 = time.perf_counter()
+            ply_dir = (
+                (tmp / ("frames" if choice.name == "mean" else f"frames_{choice.name}"))
+                if cfg.output.frame_plys
+                else None
+            )
+            frames, finite = render_trajectory(traj, camera, renderer, bg, cfg.device, cfg.output.progress,
+                                               f"{choice.name} ({traj.plan.mode})", ply_dir)  # fmt: skip
+            render_s = time.perf_counter() - t0
+            if not finite:
+                raise RuntimeError(
+                    f"run {choice.label()} produced non-finite positions or pixels; nothing was written"
+                )
+            t0 = time.perf_counter()
+            video = "video.mp4" if choice.name == "mean" else f"video_{choice.name}.mp4"
+            write_mp4(tmp / video, frames, cfg.output.fps)
+            if cfg.output.gif:
+                write_gif(tmp / video.replace(".mp4", ".gif"), frames, cfg.output.fps)
+            write_s = time.perf_counter() - t0
+            if rest_state is None:
+                rest_state = traj.gaussians_at(0)
+            videos[choice.name] = video
+            sheet_rows.append((choice.name, frames, keyframe_indices(len(frames), cfg.output.keyframes)))
+            stage = {"plan": plan_s, "simulate": sim_s, "render": render_s, "write": write_s}
+            for k, v in stage.items():
+                sec[k] += v
+            results.append(_run_summary(choice, traj, stage, finite, video))
+        # -- write the rest ------------------------------------------------------------------
+        t0 = time.perf_counter()
+        from physgm.gaussians import write_ply
+
+        write_ply(rest_state, tmp / "gaussians.ply")
+        if inp.kind == "ply":  # no photo to show: the object as the first frame shows it
+            inp.preview = render_gaussians(rest_state, camera, renderer, bg, cfg.device).clip(0, 1)
+        else:
+            save_png(tmp / "mask.png", inp.mask_image)
+            save_png(tmp / "input.png", inp.preview)
+        phys = physics_json(post, cfg.physics, runs, videos)
+        write_json(tmp / "physics.json", phys)
+        lines = _sheet_lines(phys, results, cfg)
+        save_png(tmp / "contact_sheet.png", contact_sheet(inp.preview, sheet_rows, lines, cfg.output.fps))
+        write_json(tmp / "config.json", _plain_config(cfg))
+        sec["write"] += time.perf_counter() - t0
+        sec["total"] = time.perf_counter() - start
+        report = plain_json(
+            _report(cfg, inp, ckpt_info, scene_cfg, placement, camera, az, el, sec, results, len(g))
+        )
+        write_json(tmp / "report.json", report)
+        folder.commit()
+    return report
+
+
+def _sheet_lines(phys: dict, results: list[dict], cfg: RunConfig) -> list[str]:
+    lines = [f"scene: {cfg.scene}, object {cfg.size_m:g} m"]
+    post = phys["posterior"]
+    if post is not None:
+        lines.append("predicted material:")
+        lines += [f"  {name} {p:.2f}" for name, p in post["material_top3"]]
+        e = post["E_Pa"]
+        lines.append(f"predicted E: {e['mean']:.3g} Pa [{e['low_1sigma']:.2g}, {e['high_1sigma']:.2g}]")
+        lines.append(f"predicted nu: {post['nu']['mean']:.3f} +- {post['nu']['std']:.3f}")
+    else:
+        lines.append("no prediction (.ply input)")
+    lines.append("simulated:")
+    for r in results:
+        lines.append(f"  {r['name']}: {r['material']} E={r['E']:.3g} nu={r['nu']:.2f}")
+        lines.append(f"    {r['mode']}, error {r['predicted_error_px']:.2f} px, {r['substeps']} steps")
+    return lines
+
+
+def _plain_config(cfg: RunConfig) -> dict:
+    return {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items()}
+
+
+def _report(cfg, inp, ckpt_info, scene_cfg, placement, camera, az, el, sec, results, n_gaussians) -> dict:
+    mean = results[0]
+    eye = camera.c2w[0, :3, 3].double().numpy()
+    return {
+        "input": {"kind": inp.kind, **inp.info},
+        "checkpoint": ckpt_info,
+        "scene": cfg.scene,
+        "scene_settings": scene_cfg,
+        "device": cfg.device,
+        "torch_threads": cfg.torch_threads,
+        "output": {"resolution": cfg.output.resolution, "frames": cfg.output.frames, "fps": cfg.output.fps,
+                   "videos": [r["video"] for r in results]},  # fmt: skip
+        "object": {"size_m": cfg.size_m, "m_per_model_unit": placement.scale, "gaussians": n_gaussians,
+                   "object_to_world": placement.object_to_world},  # fmt: skip
+        "camera": {"azimuth_deg": az, "elevation_deg": el, "fov_deg": cfg.camera.fov_deg, "eye_m": eye},
+        "seconds": {k: round(v, 3) for k, v in sec.items()},
+        "mode": mean["mode"],
+        "predicted_error_px": mean["predicted_error_px"],
+        "particles": mean["particles"],
+        "grid_cells": mean["grid_cells"],
+        "substeps": mean["substeps"],
+        "finite": all(r["finite"] for r in results),
+        "runs": results,
+        "stage_notes": "load = input + checkpoint; model = forward pass, physics choice, placement; "
+                       "plan/simulate = physgm.sim.run.simulate; render = deforming + rasterising per frame; "
+                       "write = videos, PLYs, images, JSON",
+    }  # fmt: skip

@@ -1,0 +1,180 @@
+"""Putting the object into the world: physical size, ground contact, and an output camera that
+looks at the scene from the input view's direction and keeps the whole motion in frame.
+
+The model's Gaussians live in a normalised object frame (centre at the origin, radius ~0.5,
++z up). ``place_object`` scales them so the largest extent is the configured physical size and
+sets them on the ground; the scene (conf/sim/scene) then lifts or moves them as it requires.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from physgm.cameras import Cameras, intrinsics_from_fov, look_at
+from physgm.gaussians import Gaussians
+from physgm.pipeline.errors import UserError
+
+OUTLIER_QUANTILE = 0.001  # the extent ignores this share of stray Gaussians on each side
+
+
+@dataclass
+class Placement:
+    """The object in the world at rest on the ground, before the scene moves it."""
+
+    gaussians: Gaussians  # [N] metres, +z up, lowest point on the ground
+    object_to_world: np.ndarray  # [4, 4] model/input frame -> world (uniform scale + shift)
+    scale: float  # m per model-frame unit
+
+
+def place_object(g: Gaussians, size_m: float, ground: float, min_opacity: float) -> Placement:
+    """Scale ``g`` so its largest extent is ``size_m``, centred over the origin, lowest point at ``ground``."""
+    keep = g.opacities >= min_opacity
+    if not bool(keep.any()):
+        raise UserError(
+            f"no Gaussian is opaque enough (opacity >= {min_opacity}) to form an object; check the input"
+        )
+    pts = g.means[keep].double()
+    if len(pts) > 1:
+        lo = torch.quantile(pts, OUTLIER_QUANTILE, dim=0)
+        hi = torch.quantile(pts, 1 - OUTLIER_QUANTILE, dim=0)
+    else:
+        lo = hi = pts[0]
+    extent = float((hi - lo).max())
+    if not math.isfinite(extent) or extent <= 1e-9:
+        raise UserError(
+            f"the object has no size (extent {extent:.3g}); the input holds a single point or non-finite Gaussians"
+        )
+    s = size_m / extent
+    shift = torch.stack([-(lo[0] + hi[0]) / 2, -(lo[1] + hi[1]) / 2, -lo[2]]) * s + torch.tensor(
+        [0.0, 0.0, ground], dtype=torch.float64
+    )
+    T = np.eye(4)
+    T[:3, :3] *= s
+    T[:3, 3] = shift.numpy()
+    placed = Gaussians(
+        means=(g.means.double() * s + shift).to(g.means.dtype),
+        quats=g.quats,
+        scales=g.scales * s,
+        opacities=g.opacities,
+        colors=g.colors,
+    )
+    return Placement(placed, T, s)
+
+
+# -- the region each scene's motion can cover ------------------------------------------------
+Region = tuple[np.ndarray, np.ndarray]
+
+
+def _drop_region(lo: np.ndarray, hi: np.ndarray, cfg: dict) -> Region:
+    size = float((hi - lo).max())
+    spread = np.array([0.25 * size, 0.25 * size, 0.0])  # soft objects splat sideways on impact
+    top = hi.copy()
+    top[2] += float(cfg.get("height", 0.0))
+    return lo - spread, top + spread
+
+
+def _stretch_region(lo: np.ndarray, hi: np.ndarray, cfg: dict) -> Region:
+    a, ratio = int(cfg["axis"]), float(cfg["ratio"])
+    grow = np.zeros(3)
+    grow[a] = 0.5 * (ratio - 1.0) * (hi[a] - lo[a])
+    return lo - grow, hi + grow
+
+
+def _push_region(lo: np.ndarray, hi: np.ndarray, cfg: dict) -> Region:
+    a = int(cfg["axis"])
+    size = float((hi - lo).max())
+    lift = np.array([0.0, 0.0, float(cfg.get("lift", 0.0))])
+    lo2, hi2 = lo + lift, hi + lift
+    hi2[a] += float(cfg["wall_gap"])  # the wall stops it
+    lo2[a] -= 0.25 * size  # rebound
+    return lo2, hi2
+
+
+REGIONS: dict[str, Callable[[np.ndarray, np.ndarray, dict], Region]] = {
+    "drop": _drop_region,
+    "stretch": _stretch_region,
+    "push": _push_region,
+}
+
+
+def motion_region(g: Gaussians, scene: str, scene_cfg: dict, min_opacity: float) -> Region:
+    """Box (lo [3], hi [3], m) the object can move through in ``scene``, from its rest placement."""
+    pts = g.means[g.opacities >= min_opacity].double().numpy()
+    lo, hi = pts.min(0), pts.max(0)
+    fn = REGIONS.get(scene)
+    return fn(lo, hi, scene_cfg) if fn is not None else (lo, hi)
+
+
+def direction(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
+    """Unit vector from the target towards a camera at this azimuth/elevation (cameras.py convention)."""
+    az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
+    return np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+
+
+def framing_camera(
+    lo: np.ndarray,  # [3] m
+    hi: np.ndarray,  # [3] m
+    azimuth_deg: float,
+    elevation_deg: float,
+    fov_deg: float,
+    width: int,
+    height: int,
+    margin: float,
+) -> Cameras:
+    """The camera looking at the box centre from (azimuth, elevation), just far enough that every
+    box corner lies inside the central 1 / margin of the image."""
+    d = direction(azimuth_deg, elevation_deg)
+    target = (lo + hi) / 2
+    basis = look_at(torch.from_numpy(target + d)[None], torch.from_numpy(target)[None])[0, :3, :3].numpy()
+    right, down, forward = basis[:, 0], basis[:, 1], basis[:, 2]
+    corners = (
+        np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]) - target
+    )
+    tan_x = math.tan(math.radians(fov_deg) / 2)
+    tan_y = tan_x * height / width
+    # Corner p seen from eye = target + D d: depth p.forward + D, offsets p.right and p.down.
+    need_x = np.abs(corners @ right) * margin / tan_x - corners @ forward
+    need_y = np.abs(corners @ down) * margin / tan_y - corners @ forward
+    size = float(np.linalg.norm(hi - lo))
+    dist = max(float(need_x.max()), float(need_y.max()), 0.5 * size, 1e-3)
+    eye = torch.from_numpy(target + dist * d)[None]
+    c2w = look_at(eye, torch.from_numpy(target)[None]).float()
+    return Cameras(c2w, intrinsics_from_fov(fov_deg, width, height)[None], width, height)
+
+
+def floor_image(
+    camera: Cameras,
+    ground: float,
+    tile_m: float,
+    background: np.ndarray,  # [3]
+    supersample: int = 2,
+) -> np.ndarray:  # [H, W, 3]
+    """Background with a checkered ground plane z = ``ground``, fading into the background with distance.
+
+    Any point above the plane is nearer to the camera than the plane along a downward ray, so
+    compositing the object over this image occludes correctly without a depth test.
+    """
+    w, h, s = camera.width, camera.height, supersample
+    K = camera.Ks[0].double().numpy()
+    c2w = camera.c2w[0].double().numpy()
+    u = (np.arange(w * s) + 0.5) / s
+    v = (np.arange(h * s) + 0.5) / s
+    uu, vv = np.meshgrid(u, v)
+    rays = (
+        np.stack([(uu - K[0, 2]) / K[0, 0], (vv - K[1, 2]) / K[1, 1], np.ones_like(uu)], -1) @ c2w[:3, :3].T
+    )
+    origin = c2w[:3, 3]
+    down = rays[..., 2] < -1e-9
+    t = np.where(down, (ground - origin[2]) / np.where(down, rays[..., 2], -1.0), np.inf)
+    hit = origin + rays * np.where(np.isfinite(t), t, 0.0)[..., None]
+    checker = (np.floor(hit[..., 0] / tile_m) + np.floor(hit[..., 1] / tile_m)) % 2
+    shade = np.where(checker > 0, 0.78, 0.86)[..., None] * np.array([1.0, 1.0, 1.0])
+    dist = np.linalg.norm(hit[..., :2] - origin[:2], axis=-1)
+    fade = np.where(down, np.exp(-dist / (40.0 * tile_m)), 0.0)[..., None]
+    img = fade * shade + (1 - fade) * background
+    return img.reshape(h, s, w, s, 3).mean(axis=(1, 3)).astype(np.float32)

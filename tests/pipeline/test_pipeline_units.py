@@ -1,0 +1,255 @@
+"""The pipeline's pieces against references: framing, placement, floor, physics rules, checkpoints."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_training_fill_matches_the_synthetic_renders(tiny_dataset):
+    """The photo framing constant is the median fill of the canonical view in synthetic assets."""
+    from PIL import Image
+
+    from physgm.pipeline.inputs import TRAINING_FILL
+
+    fills = []
+    for asset in sorted(p for p in tiny_dataset.iterdir() if (p / "rgba").is_dir()):
+        alpha = np.asarray(Image.open(asset / "rgba" / "000.png").convert("RGBA"))[..., 3] > 127
+        ys, xs = np.nonzero(alpha)
+        if len(ys):  # a thin plate seen edge-on at 32 px can vanish
+            fills.append(max(np.ptp(ys) + 1, np.ptp(xs) + 1) / alpha.shape[1])
+    assert len(fills) >= 8
+    assert abs(float(np.median(fills)) - TRAINING_FILL) < 0.1
+
+
+def test_photo_input_uses_the_canonical_camera(examples):
+    from physgm.cameras import orbit_cameras
+    from physgm.data.format import CAMERA_RADIUS, FOV_DEG
+    from physgm.pipeline.inputs import TRAINING_FILL, prepare_input
+
+    inp = prepare_input(examples / "metal_can.png", 64)
+    ref = orbit_cameras([0.0], [0.0], CAMERA_RADIUS, FOV_DEG, 64, 64)
+    torch.testing.assert_close(inp.c2w, ref.c2w)
+    torch.testing.assert_close(inp.Ks, ref.Ks)
+    assert inp.images.shape == (1, 3, 64, 64) and inp.masks.shape == (1, 1, 64, 64)
+    ys, xs = np.nonzero(inp.masks[0, 0].numpy() > 0.5)
+    side = max(np.ptp(ys) + 1, np.ptp(xs) + 1)
+    assert side == pytest.approx(TRAINING_FILL * 64, abs=2)  # framed like the training renders
+    assert (ys.min() + ys.max()) / 2 == pytest.approx(31.5, abs=1.5) and (
+        xs.min() + xs.max()
+    ) / 2 == pytest.approx(31.5, abs=1.5)
+    frame = torch.ones(64, 64, dtype=torch.bool)
+    frame[3:-3, 3:-3] = False  # outside the framed object's square
+    assert float(inp.images[0][:, frame].min()) > 0.99  # white background like the training inputs
+
+
+@pytest.mark.parametrize(("az", "el", "margin"), [(0.0, 0.0, 1.15), (35.0, 20.0, 1.0), (-120.0, -10.0, 1.5)])
+def test_framing_camera_fits_the_box(az, el, margin):
+    from physgm.pipeline.staging import framing_camera
+
+    lo, hi = np.array([-0.1, -0.05, 0.0]), np.array([0.1, 0.05, 0.4])
+    cam = framing_camera(lo, hi, az, el, 34.0, 64, 48, margin)
+    corners = torch.tensor(
+        [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+    )
+    vm = cam.viewmats[0].double()
+    pc = corners @ vm[:3, :3].T + vm[:3, 3]
+    assert bool((pc[:, 2] > 0).all())
+    K = cam.Ks[0].double()
+    u = (K[0, 0] * pc[:, 0] / pc[:, 2]).abs() / (cam.width / 2)
+    v = (K[1, 1] * pc[:, 1] / pc[:, 2]).abs() / (cam.height / 2)
+    # The tightest corner sits exactly on the 1 / margin frame, none outside it.
+    assert float(torch.maximum(u, v).max()) == pytest.approx(1.0 / margin, abs=1e-5)
+    centre = cam.c2w[0, :3, 3].double().numpy() - (lo + hi) / 2
+    ref = np.array([math.cos(math.radians(el)) * math.cos(math.radians(az)),
+                    math.cos(math.radians(el)) * math.sin(math.radians(az)), math.sin(math.radians(el))])  # fmt: skip
+    np.testing.assert_allclose(centre / np.linalg.norm(centre), ref, atol=1e-5)
+
+
+def test_place_object_scales_centres_and_ignores_strays():
+    from physgm.gaussians import Gaussians
+    from physgm.pipeline.staging import place_object
+
+    gen = torch.Generator().manual_seed(0)
+    n = 2000
+    means = torch.rand(n, 3, generator=gen) * torch.tensor([1.0, 0.5, 0.25]) + torch.tensor([3.0, 1.0, -2.0])
+    means[0] = torch.tensor([50.0, 50.0, 50.0])  # one stray Gaussian far away
+    g = Gaussians(
+        means,
+        torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+        torch.full((n, 3), 0.01),
+        torch.ones(n),
+        torch.rand(n, 3, generator=gen),
+    )
+    p = place_object(g, 0.2, 0.0, 0.05)
+    body = p.gaussians.means[1:]
+    assert float((body.amax(0) - body.amin(0)).max()) == pytest.approx(0.2, rel=0.01)
+    assert float(body[:, 2].min()) == pytest.approx(0.0, abs=2e-3)
+    np.testing.assert_allclose(((body.amax(0) + body.amin(0)) / 2)[:2].numpy(), [0, 0], atol=2e-3)
+    assert float(p.gaussians.scales[0, 0]) == pytest.approx(0.01 * p.scale)
+    # object_to_world maps the input frame to the world.
+    h = (
+        torch.cat([g.means.double(), torch.ones(n, 1, dtype=torch.float64)], 1)
+        @ torch.from_numpy(p.object_to_world).T
+    )
+    torch.testing.assert_close(h[:, :3].float(), p.gaussians.means, atol=1e-5, rtol=1e-5)
+
+
+def test_floor_image_matches_the_ray_plane_intersection():
+    from physgm.cameras import orbit_cameras
+    from physgm.pipeline.staging import floor_image
+
+    cam_h, res, tile = 0.3, 64, 0.05
+    cam = orbit_cameras([0.0], [0.0], 1.0, 40.0, res, res, target=(0.0, 0.0, cam_h))
+    bg = np.array([1.0, 1.0, 1.0])
+    img = floor_image(cam, 0.0, tile, bg, supersample=1)
+    assert np.all(img[: res // 2] == 1.0)  # above the horizon: background only
+    f, c = float(cam.Ks[0, 0, 0]), res / 2
+    for row in (40, 50, 63):
+        for col in (10, 32, 60):
+            # Camera at (1, 0, h) looking along -x: image right is world +y, image down is world -z.
+            ray = np.array([-1.0, (col + 0.5 - c) / f, -(row + 0.5 - c) / f])
+            t = cam_h / -ray[2]
+            hit = np.array([1.0, 0.0, cam_h]) + t * ray
+            shade = 0.78 if (math.floor(hit[0] / tile) + math.floor(hit[1] / tile)) % 2 else 0.86
+            fade = math.exp(-math.hypot(hit[0] - 1.0, hit[1]) / (40 * tile))
+            assert img[row, col, 0] == pytest.approx(fade * shade + (1 - fade), abs=1e-4)
+
+
+def _posterior(material: str, log10_E: float, nu: float):
+    from physgm.model.posterior import PhysicsPosterior, normalise_log10_E, normalise_nu
+    from physgm.physics.materials import MATERIAL_NAMES
+
+    logits = torch.zeros(1, len(MATERIAL_NAMES))
+    logits[0, MATERIAL_NAMES.index(material)] = 3.0
+    return PhysicsPosterior(logits, normalise_log10_E(torch.tensor([log10_E])), torch.tensor([-4.0]),
+                            normalise_nu(torch.tensor([nu])), torch.tensor([-6.0]))  # fmt: skip
+
+
+def test_physics_choice_rules():
+    from physgm.model.posterior import NU_MAX
+    from physgm.physics.materials import get_material
+    from physgm.pipeline import UserError
+    from physgm.pipeline.config import PhysicsOverrides
+    from physgm.pipeline.physics import NU_MAX as PIPELINE_NU_MAX
+    from physgm.pipeline.physics import choose_physics
+
+    assert PIPELINE_NU_MAX == NU_MAX
+    post = _posterior("rubber", 6.0, 0.45)
+    (mean,) = choose_physics(post, PhysicsOverrides(), seed=0)
+    assert (mean.material, mean.E, mean.nu) == (
+        "rubber",
+        pytest.approx(1e6, rel=1e-4),
+        pytest.approx(0.45, abs=1e-5),
+    )
+    assert mean.why["material"] == "posterior mean" and mean.density is None
+    # A material override keeps a predicted E inside its range, clips one outside it.
+    metal = get_material("metal")
+    (m,) = choose_physics(post, PhysicsOverrides(material="metal"), seed=0)
+    assert m.material == "metal" and m.E == pytest.approx(metal.E_range[0]) and "clipped" in m.why["E"]
+    (e,) = choose_physics(post, PhysicsOverrides(E=3e4, nu=0.2, density=900.0), seed=0)
+    assert (e.material, e.E, e.nu, e.density) == ("rubber", 3e4, 0.2, 900.0)
+    # A .ply input: the material is required, E and nu come from the table.
+    with pytest.raises(UserError, match="physics.material"):
+        choose_physics(None, PhysicsOverrides(), seed=0)
+    with pytest.raises(UserError, match="samples"):
+        choose_physics(None, PhysicsOverrides(material="wood", samples=2), seed=0)
+    (w,) = choose_physics(None, PhysicsOverrides(material="wood"), seed=0)
+    wood = get_material("wood")
+    assert (w.E, w.nu) == (wood.E, wood.nu)
+    # Samples: K draws, reproducible with the seed, spread like the posterior (std 10^... here small).
+    a = choose_physics(post, PhysicsOverrides(samples=4), seed=3)
+    b = choose_physics(post, PhysicsOverrides(samples=4), seed=3)
+    assert [r.name for r in a] == ["mean", "sample0", "sample1", "sample2", "sample3"]
+    assert [r.E for r in a] == [r.E for r in b]
+    std = float(post.log10_E_std[0])
+    assert all(abs(math.log10(r.E) - 6.0) < 5 * std for r in a[1:])
+
+
+def test_checkpoint_layout_is_lightnings(tmp_path, tiny_config):
+    """save_checkpoint writes what LitPretrain.load_from_checkpoint reads, and load_model gives the same net."""
+    from physgm.model import PhysGM
+    from physgm.pipeline.checkpoint import load_model, save_checkpoint
+    from physgm.train.pretrain import LitPretrain, model_from_checkpoint
+
+    torch.manual_seed(1)
+    model = PhysGM(tiny_config, load_pretrained=False).eval()
+    path = tmp_path / "m.ckpt"
+    save_checkpoint(model, path)
+    lit = LitPretrain.load_from_checkpoint(path, map_location="cpu")
+    loaded, info = load_model(path)
+    other = model_from_checkpoint(str(path))
+    for net in (lit.model, loaded, other):
+        for (k, a), (_, b) in zip(model.state_dict().items(), net.state_dict().items(), strict=True):
+            torch.testing.assert_close(a, b, msg=k)
+    assert info["input_size"] == 32 and info["format_version"] == 1
+
+
+def test_run_folder_commit(tmp_path):
+    from physgm.pipeline import UserError
+    from physgm.pipeline.outputs import RunFolder
+
+    target = tmp_path / "a" / "run"
+    folder = RunFolder(target)
+    with folder as tmp:
+        (tmp / "x.txt").write_text("1")
+        assert not target.exists()
+        folder.commit()
+    assert (target / "x.txt").read_text() == "1"
+    with pytest.raises(UserError, match="not empty"):
+        RunFolder(target)
+    empty = tmp_path / "hydra_made"
+    empty.mkdir()
+    folder = RunFolder(empty)
+    with folder as tmp:
+        (tmp / "y.txt").write_text("2")
+        folder.commit()
+    assert (empty / "y.txt").read_text() == "2"
+
+
+def test_keyframes_and_ply_up_axis():
+    from physgm.gaussians import Gaussians
+    from physgm.pipeline.inputs import UP_ROTATIONS, rotate_gaussians
+    from physgm.pipeline.outputs import keyframe_indices
+
+    assert keyframe_indices(50, 5) == [0, 12, 24, 37, 49]
+    assert keyframe_indices(3, 5) == [0, 1, 2]
+    gen = torch.Generator().manual_seed(0)
+    q = torch.nn.functional.normalize(torch.randn(5, 4, generator=gen), dim=-1)
+    g = Gaussians(
+        torch.eye(3).repeat(2, 1)[:5],
+        q,
+        torch.rand(5, 3, generator=gen) + 0.1,
+        torch.ones(5),
+        torch.rand(5, 3, generator=gen),
+    )
+    for up, axis in (("y", [0.0, 1.0, 0.0]), ("-y", [0.0, -1.0, 0.0])):
+        rot = UP_ROTATIONS[up]
+        np.testing.assert_allclose(rot @ np.array(axis), [0, 0, 1], atol=1e-12)
+        r = rotate_gaussians(g, rot)
+        R = torch.from_numpy(rot).float()
+        torch.testing.assert_close(r.covariances(), R @ g.covariances() @ R.T, atol=1e-5, rtol=1e-5)
+
+
+def test_default_config():
+    from hydra import compose, initialize_config_dir
+
+    from physgm.pipeline import from_hydra
+
+    overrides = ["input=x.png", "paths.output_dir=/tmp/x"]
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        hydra_cfg = compose("simulate", overrides=overrides, return_hydra_config=True).hydra
+        cfg = compose("simulate", overrides=overrides)
+    # Hydra's run folder is the pipeline's output folder, and Hydra writes nothing into it.
+    assert hydra_cfg.run.dir == "/tmp/x" and hydra_cfg.output_subdir is None
+    assert hydra_cfg.job_logging.handlers.keys() == {"console"}
+    run = from_hydra(cfg)
+    assert (run.output.resolution, run.output.frames, run.output.fps, run.scene) == (256, 50, 25.0, "drop")
+    assert str(run.ckpt) == "checkpoints/physgm_tiny.ckpt" and run.renderer["backend"] == "warp"
+    assert run.planner["bound_px"] > 0 and run.solver["cfl"] > 0
