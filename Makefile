@@ -1,9 +1,8 @@
 # make test   set up .venv (first time: a few minutes) and run the default test tier
-# make demo   set up .venv and turn a shipped example photo into a 4D clip
 VENV := .venv
 STAMP := $(VENV)/.physgm-installed
 
-.PHONY: setup test test-slow demo bench lint
+.PHONY: setup test test-slow lint
 setup: $(STAMP)
 $(STAMP): pyproject.toml scripts/setup.sh
 	bash scripts/setup.sh
