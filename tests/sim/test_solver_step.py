@@ -230,3 +230,10 @@ def test_cuda_matches_cpu():
         solver.step_frame()
         out.append(solver.state().x)
     np.testing.assert_allclose(out[0], out[1], atol=1e-4)
+
+
+def test_an_oversized_grid_is_refused_before_allocating():
+    p = random_block(10, seed=12)
+    huge = GridSpec((-10.0, -10.0, -10.0), 0.005, (4000, 4000, 4000))
+    with pytest.raises(ValueError, match="max_grid_nodes"):
+        MPMSolver(p, MATS[:1], huge)

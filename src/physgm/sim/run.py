@@ -292,9 +292,6 @@ def _run_mpm(
     if k0 == T:
         return xs, Fs, 0, None, k0
     t0 = (k0 - 1) * frame_dt
-    if solver_cfg.threads == 0 and n >= 4000:
-        # Two particle threads pay off well below the solver's automatic threshold (20k).
-        solver_cfg = replace(solver_cfg, threads=2)
     grid = GridSpec.fit(plan.grid_lo, plan.grid_hi, plan.dx, margin_cells=solver_cfg.boundary_cells)
     particles = Particles(x=xs[k0 - 1], volume=sample.volume.cpu().numpy(), material=0, v=v0 + g * t0)
     solver = MPMSolver(particles, [material], grid, scene, solver_cfg, device)

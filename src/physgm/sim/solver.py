@@ -11,9 +11,10 @@ import warp as wp
 
 from physgm.sim import kernels as K
 from physgm.sim import particle_ops as ops
-from physgm.sim.boundary import BoxStruct, GridHook, no_ground
+from physgm.sim.boundary import BoxStruct, GridHook
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.grid import GridSpec
+from physgm.sim.launches import SubstepLaunches
 from physgm.sim.parallel import PairWorker
 from physgm.sim.particle_store import ParticleStore
 from physgm.sim.scenes import Scene
@@ -61,7 +62,7 @@ class MPMSolver:
         self._c_max = wave_speed(self.materials)
         self.particles = ParticleStore(particles, self.materials, self.device)
         self._alloc_grid()
-        self._record_launches()
+        self._launches = SubstepLaunches(self)
         self._worker = PairWorker() if self.threads == 2 else None
         self.particles.sort(grid)
         ps = self.particles
@@ -77,6 +78,12 @@ class MPMSolver:
 
     # ----------------------------------------------------------------------------- setup
     def _check_inputs(self, particles: Particles) -> None:
+        if self.grid.num_nodes > self.config.max_grid_nodes:
+            raise ValueError(
+                f"grid {self.grid.res} has {self.grid.num_nodes:,} nodes (~{self.grid.num_nodes * 96 / 1e9:.1f} GB), "
+                f"more than max_grid_nodes={self.config.max_grid_nodes:,}; fit the grid to the region the "
+                "particles can reach (GridSpec.fit) or use a larger dx"
+            )
         if not self.materials or not all(isinstance(m, MaterialParams) for m in self.materials):
             raise ValueError("materials must be a non-empty list of MaterialParams")
         top = int(particles.material.max())
@@ -109,107 +116,6 @@ class MPMSolver:
         self._backup = [wp.empty_like(a) for a in self._dynamic]
         self.active_box = (np.zeros(3, int), np.array(res) - 1)  # node index range grid_update covers
 
-    def _record_launches(self) -> None:
-        """Record every launch once; a sub-step then only replays them (low Python overhead)."""
-        g, dev, cfg, ps = self.grid, self.device, self.config, self.particles
-        origin = wp.vec3(*g.origin)
-        lo, hi = g.interior(1)
-        ground = self.scene.ground.pack() if self.scene.ground is not None else no_ground()
-        num_boxes = len(self.scene.boxes)
-        n = self.num_particles
-        shape = wp.vec3i(*g.res)
-        split = [0, n] if self.threads == 1 else [0, n // 2, n]
-        self._p2g, self._grid_update, self._g2p = [], [], []
-        for t in range(self.threads):
-            p0, count = split[t], split[t + 1] - split[t]
-            self._p2g.append(
-                wp.launch(
-                    K.p2g,
-                    count,
-                    [
-                        ps.x,
-                        ps.v,
-                        ps.C,
-                        ps.stress,
-                        ps.mass,
-                        origin,
-                        g.dx,
-                        0.0,
-                        p0,
-                        shape,
-                        self.acc[t].flatten(),
-                    ],
-                    device=dev,
-                    record_cmd=True,
-                )
-            )
-            self._grid_update.append(
-                wp.launch(
-                    K.grid_update,
-                    g.res,
-                    [
-                        self.acc[0],
-                        self.acc[1],
-                        wp.vec3i(0, 0, 0),
-                        origin,
-                        g.dx,
-                        0.0,
-                        0.0,
-                        wp.vec3(*self.scene.gravity),
-                        1.0,
-                        cfg.boundary_cells,
-                        ground,
-                        self.boxes,
-                        num_boxes,
-                        t,
-                        self.work,
-                        self.grid_v,
-                    ],
-                    device=dev,
-                    record_cmd=True,
-                )
-            )
-            self._g2p.append(
-                wp.launch(
-                    K.g2p,
-                    count,
-                    [
-                        self.grid_v.flatten(),
-                        shape,
-                        origin,
-                        g.dx,
-                        0.0,
-                        wp.vec3(*lo),
-                        wp.vec3(*hi),
-                        wp.vec3(*lo),
-                        wp.vec3(*hi),
-                        0.0,
-                        self.boxes,
-                        num_boxes,
-                        cfg.flip,
-                        ps.mat_table,
-                        ps.material,
-                        ps.vol0,
-                        ps.mass,
-                        p0,
-                        t,
-                        ps.x,
-                        ps.v,
-                        ps.C,
-                        ps.H,
-                        ps.stress,
-                        ps.plastic,
-                        ps.escaped,
-                        self.stats,
-                        self.work,
-                    ],
-                    device=dev,
-                    record_cmd=True,
-                )
-            )
-        self._dt_set = None
-        self._timed = bool(num_boxes)  # only the velocity boxes depend on time
-
     def _fit_active(self, dt: float) -> None:
         """Limit grid_update to the nodes particles can reach in the next ``cfl_check_every`` steps."""
         g, cfg = self.grid, self.config
@@ -229,24 +135,9 @@ class MPMSolver:
         # Faces on the grid boundary never need a guard: the domain clamp holds particles there.
         inner_lo = np.where(lo == 0, -np.inf, inner_lo)
         inner_hi = np.where(hi == res - 1, np.inf, inner_hi)
-        cut = [lo[0], (lo[0] + hi[0] + 1) // 2, hi[0] + 1] if self.threads == 2 else [lo[0], hi[0] + 1]
-        for t, launch in enumerate(self._grid_update):
-            launch.set_dim((max(cut[t + 1] - cut[t], 0), hi[1] - lo[1] + 1, hi[2] - lo[2] + 1))
-            launch.set_param_by_name("lo", wp.vec3i(int(cut[t]), int(lo[1]), int(lo[2])))
-        for launch in self._g2p:
-            launch.set_param_by_name("active_lo", wp.vec3(*inner_lo))
-            launch.set_param_by_name("active_hi", wp.vec3(*inner_hi))
+        self._launches.set_active_box(lo, hi, inner_lo, inner_hi)
 
     # ----------------------------------------------------------------------------- stepping
-    def _set_dt(self, dt: float) -> None:
-        if dt != self._dt_set:
-            for launch in (*self._p2g, *self._grid_update, *self._g2p):
-                launch.set_param_by_name("dt", dt)
-            if self.scene.damping > 0.0:
-                for launch in self._grid_update:
-                    launch.set_param_by_name("damping", math.exp(-self.scene.damping * dt))
-            self._dt_set = dt
-
     def substep(self, dt: float) -> None:
         """One raw MLS-MPM step of ``dt`` seconds (no divergence guard).
 
@@ -256,22 +147,15 @@ class MPMSolver:
         if self._since_fit >= self.config.cfl_check_every:
             self._fit_active(dt)
         self._since_fit += 1
-        self._set_dt(dt)
-        if self._timed:
-            for launch in (*self._grid_update, *self._g2p):
-                launch.set_param_by_name("t", self.time)
-        if self._worker is None:
-            self._p2g[0].launch()
-            self._grid_update[0].launch()
+        self._launches.set_dt(dt, self.scene.damping)
+        if self._launches.timed:
+            self._launches.set_time(self.time)
+
+        def hooks() -> None:
             for hook in self.hooks:
                 hook.apply(self, dt)
-            self._g2p[0].launch()
-        else:
-            self._worker.run(self._p2g[1].launch, self._p2g[0].launch)
-            self._worker.run(self._grid_update[1].launch, self._grid_update[0].launch)
-            for hook in self.hooks:
-                hook.apply(self, dt)
-            self._worker.run(self._g2p[1].launch, self._g2p[0].launch)
+
+        self._launches.run(self._worker, hooks)
         self.time += dt
 
     def stable_dt(self, cfl: float | None = None) -> float:

@@ -39,6 +39,7 @@ class SolverConfig:
     cfl_check_every: int = 16  # sub-steps between re-evaluations of |v|max and dt
     sort_every: int = 1  # frames between particle sorts by cell (0: only at start)
     max_substeps: int = 2_000_000  # per frame; beyond this the frame stops with an error
+    max_grid_nodes: int = 64_000_000  # ~6 GB of grid arrays (96 B per node); larger grids are refused
 
     def __post_init__(self) -> None:
         checks = {
@@ -53,6 +54,7 @@ class SolverConfig:
             "cfl_check_every": self.cfl_check_every >= 1,
             "sort_every": self.sort_every >= 0,
             "max_substeps": self.max_substeps >= 1,
+            "max_grid_nodes": self.max_grid_nodes >= 512,
         }
         for name, ok in checks.items():
             if not ok:
