@@ -100,6 +100,36 @@ def test_reference_is_a_frozen_copy_outside_the_module_tree(tmp_path):
     assert trainable == {id(p) for p in lit.model.physics_head.parameters()}
 
 
+def test_cached_tokens_give_the_full_forward_posteriors(tmp_path):
+    lit = LitDPO(init_ckpt=stage1_checkpoint(tmp_path / "s1.ckpt"), loss={"beta": 0.5})
+    records, inputs = fake_pairs(n=4)
+    with torch.no_grad():
+        lit.model.physics_head.young[-1].bias += 0.3  # policy != reference
+    batch = collate_pairs([PairDataset(records, inputs)[i] for i in (2, 0, 3)])
+    policy, reference = lit.posteriors(batch)
+    lit.posteriors(collate_pairs([PairDataset(records, inputs)[i] for i in (1, 0)]))  # partly cached
+    assert set(lit._tokens) == {"s0", "s1", "s2", "s3"}
+    with torch.no_grad():
+        full = lit.model(batch.images, batch.masks, batch.c2w, batch.Ks).physics
+        full_ref = lit.reference(batch.images, batch.masks, batch.c2w, batch.Ks).physics
+    for name in ("material_logits", "z_E_mean", "z_E_logvar", "z_nu_mean", "z_nu_logvar"):
+        torch.testing.assert_close(getattr(policy, name), getattr(full, name))
+        torch.testing.assert_close(getattr(reference, name), getattr(full_ref, name))
+    assert not torch.equal(policy.z_E_mean, reference.z_E_mean)
+
+
+def test_factorised_log_prob_drops_E_and_nu_when_materials_differ(tmp_path):
+    lit = LitDPO(init_ckpt=stage1_checkpoint(tmp_path / "s1.ckpt"), loss={"factorised": True})
+    records, inputs = fake_pairs(n=4)  # odd scenes: same material, even: different
+    batch = collate_pairs([PairDataset(records, inputs)[i] for i in range(4)])
+    policy, _ = lit.posteriors(batch)
+    m, e, n = (t[:, 0] for t in policy.log_prob_terms(batch.winner))
+    expected = torch.stack([m[0], m[1] + e[1] + n[1], m[2], m[3] + e[3] + n[3]])
+    torch.testing.assert_close(lit.log_prob(policy, batch.winner, batch), expected)
+    lit.loss_cfg.factorised = False
+    torch.testing.assert_close(lit.log_prob(policy, batch.winner, batch), m + e + n)
+
+
 def test_training_moves_only_the_physics_head_and_never_the_reference(tmp_path):
     torch.set_num_threads(1)
     PairsDPO.pairs = fake_pairs()

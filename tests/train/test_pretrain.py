@@ -33,7 +33,6 @@ def compose_train(overrides: list[str]):
 def shrink_paper(tmp_path: Path) -> list[str]:
     """The paper's code path (DINOv3 encoder from a local file, DPT, DDP config) at a CPU-test size."""
     import timm
-
     import torchvision
 
     weights = tmp_path / "dinov3_vits16.pth"

@@ -173,6 +173,16 @@ def test_winner_is_lowest_distance_and_candidates_are_raw_samples(dpo_root, poli
     assert spread > 0.5
 
 
+def test_mode_material_candidates_share_the_most_likely_material(dpo_root, policy, tmp_path, monkeypatch):
+    monkeypatch.setattr(rollout, "evaluate_physics", StandIn())
+    cb = make_callback(dpo_root, material="mode", num_candidates=4)
+    cb.setup(None, None, "fit")
+    for r, scene in zip(cb.refresh(fake_trainer(tmp_path), policy, 0, "p0"), cb.scenes, strict=True):
+        _, posterior = rollout.predict(policy.model, scene.inputs)
+        assert {c.material for c in r.candidates} == {int(posterior.material_logits.argmax())}
+        assert len({c.log10_E for c in r.candidates}) == 4
+
+
 def test_ddp_ranks_simulate_disjoint_shares(dpo_root, policy, tmp_path, monkeypatch):
     seen = {}
     for rank in (0, 1):

@@ -120,6 +120,7 @@ class LitDPO(L.LightningModule):
             self._reference.append(freeze(copy.deepcopy(self.model)))
         freeze(self.model.backbone)
         freeze(self.model.gaussian_head)
+        self._tokens: dict[str, Tensor] = {}  # scene id -> frozen global tokens [G, D] (not saved)
         self.loss_cfg = DPOLossConfig(**(loss or {}))
         self.optim_cfg = OptimConfig(**(optim or {}))
         self.total_steps = total_steps
@@ -159,11 +160,31 @@ class LitDPO(L.LightningModule):
     def transfer_batch_to_device(self, batch: DPOBatch, device: torch.device, dataloader_idx: int) -> DPOBatch:
         return batch.to(device)
 
+    def global_tokens(self, batch: DPOBatch) -> Tensor:  # [B, G, D]
+        """The frozen backbone's global tokens of the batch's scenes, computed once per scene.
+
+        Exact, not an approximation: the backbone is frozen and in eval mode, and the reference's
+        backbone is a bit-identical copy of it, so both physics heads read the same tokens.
+        """
+        missing = [i for i, s in enumerate(batch.scenes) if s not in self._tokens]
+        if missing:
+            seen: list[Tensor] = []
+            hook = self.model.physics_head.register_forward_hook(lambda mod, args, out: seen.append(args[0].detach()))
+            try:
+                with torch.no_grad():
+                    self.model(batch.images[missing], batch.masks[missing], batch.c2w[missing], batch.Ks[missing])
+            finally:
+                hook.remove()
+            for i, tokens in zip(missing, seen[0], strict=True):
+                self._tokens[batch.scenes[i]] = tokens
+        return torch.stack([self._tokens[s] for s in batch.scenes]).to(self.device)
+
     def posteriors(self, batch: DPOBatch) -> tuple[PhysicsPosterior, PhysicsPosterior]:
         """(policy, reference) physics posteriors [B] of the batch's scenes."""
-        policy = self.model(batch.images, batch.masks, batch.c2w, batch.Ks).physics
+        tokens = self.global_tokens(batch)
+        policy = self.model.physics_head(tokens)
         with torch.no_grad():
-            reference = self.reference(batch.images, batch.masks, batch.c2w, batch.Ks).physics
+            reference = self.reference.physics_head(tokens)
         return policy, reference
 
     def log_prob(self, posterior: PhysicsPosterior, sample, batch: DPOBatch) -> Tensor:  # [B]

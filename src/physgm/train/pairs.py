@@ -150,6 +150,15 @@ class PairCache:
               and record.scene == scene and record.settings == settings and record.policy == policy)
         return record if ok else None
 
+    def write_summary(self, round_: int, stats: dict) -> Path:
+        """``round_<r>/_summary.json`` (atomic, like the records)."""
+        final = self.root / f"round_{round_:04d}" / "_summary.json"
+        final.parent.mkdir(parents=True, exist_ok=True)
+        tmp = final.with_name(f"._summary.json.tmp-{os.getpid()}")
+        tmp.write_text(json.dumps(stats, indent=1, sort_keys=True))
+        os.replace(tmp, final)
+        return final
+
     def clean_temporaries(self, round_: int, scenes: list[str]) -> int:
         """Remove temporary files an interrupted write left for ``scenes``; returns how many.
 
@@ -160,6 +169,23 @@ class PairCache:
         for p in stale:
             p.unlink(missing_ok=True)
         return len(stale)
+
+
+def round_stats(records: list[SceneRecord]) -> dict[str, float]:
+    """What a round of rollouts gave: scenes, pairs, failures and mean distances."""
+    pairs = [r for r in records if r.has_pair]
+    dist = [c.distance for r in records for c in r.candidates if c.distance is not None]
+    losers = [r.candidates[r.loser].score for r in pairs if math.isfinite(r.candidates[r.loser].score)]
+
+    def mean(x: list[float]) -> float:
+        return float(sum(x) / len(x)) if x else float("nan")
+
+    return {
+        "rollout/scenes": float(len(records)), "rollout/pairs": float(len(pairs)),
+        "rollout/failed": float(sum(c.distance is None for r in records for c in r.candidates)),
+        "rollout/distance_mean": mean(dist), "rollout/distance_winner": mean([r.candidates[r.winner].score for r in pairs]),
+        "rollout/distance_loser": mean(losers),
+    }
 
 
 def gather_records(records: list[SceneRecord]) -> list[SceneRecord]:

@@ -47,6 +47,7 @@ from physgm.train.pairs import (
     collate_pairs,
     gather_records,
     policy_fingerprint,
+    round_stats,
     select_pair,
     settings_hash,
 )
@@ -385,22 +386,9 @@ class RolloutCallback(L.Callback):
             raise RuntimeError(f"{len(failed)} of {len(cands)} rollouts failed in round {round_} (cache {cache.root}): {examples}")
 
     def _log(self, trainer: L.Trainer, records: list[SceneRecord], round_: int, simulated: int, seconds: float) -> None:
-        pairs = [r for r in records if r.has_pair]
-        dist = [c.distance for r in records for c in r.candidates if c.distance is not None]
-        stats = {
-            "rollout/round": float(round_), "rollout/scenes": float(len(records)), "rollout/pairs": float(len(pairs)),
-            "rollout/simulated_scenes": float(simulated), "rollout/seconds": seconds,
-            "rollout/failed": float(sum(c.distance is None for r in records for c in r.candidates)),
-            "rollout/distance_mean": float(np.mean(dist)) if dist else float("nan"),
-            "rollout/distance_winner": float(np.mean([r.candidates[r.winner].score for r in pairs])) if pairs else float("nan"),
-        }
-        finite_losers = [r.candidates[r.loser].score for r in pairs if math.isfinite(r.candidates[r.loser].score)]
-        stats["rollout/distance_loser"] = float(np.mean(finite_losers)) if finite_losers else float("nan")
+        stats = {**round_stats(records), "rollout/round": float(round_), "rollout/simulated_scenes": float(simulated),
+                 "rollout/seconds": seconds}
         if trainer.is_global_zero:
             for logger in trainer.loggers:
                 logger.log_metrics(stats, step=trainer.global_step)
-            summary = self.cache(trainer).path(round_, "x").with_name("_summary.json")
-            summary.parent.mkdir(parents=True, exist_ok=True)
-            tmp = summary.with_name("._summary.json.tmp")
-            tmp.write_text(json.dumps(stats, indent=1, sort_keys=True))
-            tmp.replace(summary)
+            self.cache(trainer).write_summary(round_, stats)
