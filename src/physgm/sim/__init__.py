@@ -67,6 +67,21 @@ solver, runs it and returns the ``Trajectory``.
 
 ``cfl_dt(dx, materials, vmax, cfl)``, ``wave_speed(materials)`` and ``substeps_per_frame(...)``
 predict the cost of a run before building a solver (for the planner).
+
+Design notes (why the code looks the way it does)
+-------------------------------------------------
+* Three fused kernels per sub-step (kernels.py): p2g (stress + APIC), grid_update, g2p (gather,
+  F update, return mapping, stress, advection, clamp, statistics), recorded once and replayed
+  (launches.py). On the CPU, particles are split over two threads (a launch releases the GIL),
+  each p2g thread with its own accumulator grid; particles are re-sorted by cell every frame.
+* grid_update only covers the active box around the particles (re-fitted every
+  ``cfl_check_every`` steps); a particle that outruns it is flagged and the frame retried.
+* The deformation state is H = F - I and every constitutive model works in H (b - I, det F - 1,
+  log1p / expm1): stiff materials strain ~1e-5 per step, which float32 loses near 1.
+* Particle updates blend APIC with an affine FLIP increment (``flip``): pure APIC loses energy
+  per transfer; incrementing C with v keeps angular momentum exact.
+* Verification against analytic results: ``physgm.sim.verification`` (python -m physgm.bench
+  sim-verify); the stiffness sweep: python -m physgm.bench sim-stability.
 """
 
 from physgm.sim.boundary import GridHook, GroundPlane, VelocityBox
