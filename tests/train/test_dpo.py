@@ -130,6 +130,24 @@ def test_factorised_log_prob_drops_E_and_nu_when_materials_differ(tmp_path):
     torch.testing.assert_close(lit.log_prob(policy, batch.winner, batch), m + e + n)
 
 
+def test_loss_masks_tie_anchors_and_adds_the_kl(tmp_path):
+    lit = LitDPO(init_ckpt=stage1_checkpoint(tmp_path / "s1.ckpt"), loss={"beta": 0.5, "kl_weight": 0.7})
+    lit.log_dict = lambda *a, **k: None  # outside a trainer
+    records, inputs = fake_pairs(n=3)
+    records[2].winner = records[2].loser = None  # scene s2 is a tie: served as an anchor only
+    batch = collate_pairs([PairDataset(records, inputs, anchors=True)[i] for i in range(3)])
+    assert batch.has_pair.tolist() == [True, True, False]
+    with torch.no_grad():
+        lit.model.physics_head.young[-1].bias += 0.2
+        policy, reference = lit.posteriors(batch)
+        loss = lit.training_step(batch, 0)
+    lp = [policy.log_prob(s)[:2, 0] for s in (batch.winner, batch.loser)]
+    lr = [reference.log_prob(s)[:2, 0] for s in (batch.winner, batch.loser)]
+    expected = dpo_loss(lp[0], lp[1], lr[0], lr[1], 0.5).loss.mean() + 0.7 * posterior_kl(policy, reference).mean()
+    torch.testing.assert_close(loss, expected)
+    assert posterior_kl(policy, reference)[2] > 0
+
+
 def test_training_moves_only_the_physics_head_and_never_the_reference(tmp_path):
     torch.set_num_threads(1)
     PairsDPO.pairs = fake_pairs()

@@ -115,4 +115,9 @@ def test_dataset_serves_only_pairs_with_raw_sampled_physics():
     assert batch.winner.material.shape == (2, 1) and batch.winner.material.dtype == torch.int64
     assert batch.distance_winner.tolist() == pytest.approx([0.1, 0.2])
     assert batch.distance_loser[0].item() == pytest.approx(0.5) and math.isinf(batch.distance_loser[1].item())
-    assert torch.equal(batch.images[1], inputs["c"].images)
+    assert torch.equal(batch.images[1], inputs["c"].images) and batch.has_pair.tolist() == [True, True]
+    # With anchors the tie scene is served too, flagged: no preference, only the KL anchor.
+    anchored = PairDataset(recs, inputs, anchors=True)
+    assert len(anchored) == 3 and anchored.num_pairs == 2
+    batch = collate_pairs([anchored[i] for i in range(3)])
+    assert batch.scenes == ["a", "c", "b"] and batch.has_pair.tolist() == [True, True, False]

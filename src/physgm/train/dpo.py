@@ -40,10 +40,11 @@ class DPOLossConfig:
     # True: when winner and loser have different materials, only the material term enters the
     # log-ratios (their E and nu lost or won with the material, so they say nothing about E or nu).
     factorised: bool = False
+    kl_weight: float = 0.0  # + weight * KL(pi || pi_ref) on every scene of the batch (pairs and tie anchors)
 
     def __post_init__(self) -> None:
-        if not self.beta > 0 or self.sft_weight < 0:
-            raise ValueError(f"DPO needs beta > 0 and sft_weight >= 0, got beta={self.beta}, sft_weight={self.sft_weight}")
+        if not self.beta > 0 or self.sft_weight < 0 or self.kl_weight < 0:
+            raise ValueError(f"DPO needs beta > 0, sft_weight >= 0 and kl_weight >= 0, got {self.beta}, {self.sft_weight}, {self.kl_weight}")
 
 
 @dataclass
@@ -197,28 +198,38 @@ class LitDPO(L.LightningModule):
 
     def training_step(self, batch: DPOBatch, batch_idx: int) -> Tensor:
         policy, reference = self.posteriors(batch)
+        pair = batch.has_pair
         pw, pl = self.log_prob(policy, batch.winner, batch), self.log_prob(policy, batch.loser, batch)
         rw, rl = self.log_prob(reference, batch.winner, batch), self.log_prob(reference, batch.loser, batch)
-        terms = dpo_loss(pw, pl, rw, rl, self.loss_cfg.beta)
-        loss = terms.loss.mean()
+        terms = dpo_loss(pw[pair], pl[pair], rw[pair], rl[pair], self.loss_cfg.beta)
+        kl = posterior_kl(policy, reference)  # [B] analytic KL(pi || pi_ref)
+        loss = terms.loss.sum() / pair.sum().clamp_min(1)  # a batch of tie anchors only has no DPO term
         if self.loss_cfg.sft_weight > 0:
-            loss = loss + self.loss_cfg.sft_weight * (-pw).mean()
+            loss = loss + self.loss_cfg.sft_weight * -(pw[pair].sum() / pair.sum().clamp_min(1))
+        if self.loss_cfg.kl_weight > 0:
+            loss = loss + self.loss_cfg.kl_weight * kl.mean()
+        self._log_step(loss, terms, kl, pw[pair], pl[pair], policy, reference, batch)
+        return loss
+
+    def _log_step(self, loss, terms: DPOTerms, kl: Tensor, pw: Tensor, pl: Tensor, policy: PhysicsPosterior,
+                  reference: PhysicsPosterior, batch: DPOBatch) -> None:
         margins = terms.chosen_rewards - terms.rejected_rewards
         decades = 0.5 * (LOG10_E_RANGE[1] - LOG10_E_RANGE[0])
         logs = {
-            "train/loss": loss.detach(), "train/dpo_loss": terms.loss.detach().mean(),
-            "rewards/chosen": terms.chosen_rewards.mean(), "rewards/rejected": terms.rejected_rewards.mean(),
-            "rewards/margins": margins.mean(), "rewards/accuracies": (margins > 0).float().mean(),
-            "train/kl": posterior_kl(policy.detach(), reference).mean(),  # analytic KL(pi || pi_ref)
-            "train/logps_chosen": pw.detach().mean(), "train/logps_rejected": pl.detach().mean(),
+            "train/loss": loss.detach(), "train/kl": kl.detach().mean(),
             "train/log10_E_shift": ((policy.z_E_mean.detach() - reference.z_E_mean) * decades).abs().mean(),
         }
-        finite = torch.isfinite(batch.distance_loser)
-        logs["train/distance_winner"] = batch.distance_winner.mean()
-        if finite.any():
-            logs["train/distance_loser"] = batch.distance_loser[finite].mean()
+        if len(margins):
+            logs.update({
+                "train/dpo_loss": terms.loss.detach().mean(), "rewards/chosen": terms.chosen_rewards.mean(),
+                "rewards/rejected": terms.rejected_rewards.mean(), "rewards/margins": margins.mean(),
+                "rewards/accuracies": (margins > 0).float().mean(), "train/logps_chosen": pw.detach().mean(),
+                "train/logps_rejected": pl.detach().mean(), "train/distance_winner": batch.distance_winner[batch.has_pair].mean(),
+            })
+            losers = batch.distance_loser[batch.has_pair]
+            if torch.isfinite(losers).any():
+                logs["train/distance_loser"] = losers[torch.isfinite(losers)].mean()
         self.log_dict(logs, batch_size=len(batch), on_step=True, on_epoch=True)
-        return loss
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         stray = [k for k in checkpoint["state_dict"] if not k.startswith("model.")]

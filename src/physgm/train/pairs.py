@@ -222,6 +222,7 @@ class DPOBatch:
     loser: PhysicsSample  # [B, 1] worst
     distance_winner: Tensor  # [B]
     distance_loser: Tensor  # [B] (inf when the loser failed to simulate)
+    has_pair: Tensor  # [B] bool; False: a tie scene served only as a KL anchor (winner = loser = a candidate)
     scenes: list[str] = field(default_factory=list)
 
     def __len__(self) -> int:
@@ -233,14 +234,19 @@ class DPOBatch:
 
         return DPOBatch(self.images.to(device), self.masks.to(device), self.c2w.to(device), self.Ks.to(device),
                         move(self.winner), move(self.loser), self.distance_winner.to(device),
-                        self.distance_loser.to(device), self.scenes)
+                        self.distance_loser.to(device), self.has_pair.to(device), self.scenes)
 
 
 class PairDataset(Dataset):
-    """(scene inputs, winner physics, loser physics) for every record that has a pair."""
+    """(scene inputs, winner physics, loser physics) for every record that has a pair.
 
-    def __init__(self, records: list[SceneRecord], inputs: dict[str, SceneInputs]) -> None:
-        self.items = [r for r in records if r.has_pair]
+    With ``anchors`` the scenes without a pair (ties: e.g. stiff objects whose candidates all
+    move alike) are served too, flagged ``has_pair=False``: they carry no preference, but a KL
+    penalty on them keeps the shared physics head from drifting where the videos say nothing.
+    """
+
+    def __init__(self, records: list[SceneRecord], inputs: dict[str, SceneInputs], anchors: bool = False) -> None:
+        self.items = [r for r in records if r.has_pair] + [r for r in records if anchors and not r.has_pair and r.candidates]
         missing = sorted({r.scene for r in self.items} - set(inputs))
         if missing:
             raise KeyError(f"pair records name scenes without loaded inputs: {missing[:5]}")
@@ -249,12 +255,18 @@ class PairDataset(Dataset):
     def __len__(self) -> int:
         return len(self.items)
 
-    def __getitem__(self, index: int) -> tuple[SceneInputs, Candidate, Candidate, str]:
+    @property
+    def num_pairs(self) -> int:
+        return sum(r.has_pair for r in self.items)
+
+    def __getitem__(self, index: int) -> tuple[SceneInputs, Candidate, Candidate, str, bool]:
         r = self.items[index]
-        return self.inputs[r.scene], r.candidates[r.winner], r.candidates[r.loser], r.scene
+        if not r.has_pair:
+            return self.inputs[r.scene], r.candidates[0], r.candidates[0], r.scene, False
+        return self.inputs[r.scene], r.candidates[r.winner], r.candidates[r.loser], r.scene, True
 
 
-def collate_pairs(items: list[tuple[SceneInputs, Candidate, Candidate, str]]) -> DPOBatch:
+def collate_pairs(items: list[tuple[SceneInputs, Candidate, Candidate, str, bool]]) -> DPOBatch:
     """Stack pairs into a ``DPOBatch`` (every scene must have the same V, H, W)."""
 
     def sample(cands: list[Candidate]) -> PhysicsSample:
@@ -264,12 +276,12 @@ def collate_pairs(items: list[tuple[SceneInputs, Candidate, Candidate, str]]) ->
             torch.tensor([[c.nu] for c in cands], dtype=torch.float32),
         )
 
-    inputs, wins, losses, scenes = zip(*items, strict=True)
+    inputs, wins, losses, scenes, has_pair = zip(*items, strict=True)
     return DPOBatch(
         images=torch.stack([i.images for i in inputs]), masks=torch.stack([i.masks for i in inputs]),
         c2w=torch.stack([i.c2w for i in inputs]), Ks=torch.stack([i.Ks for i in inputs]),
         winner=sample(list(wins)), loser=sample(list(losses)),
         distance_winner=torch.tensor([c.score for c in wins], dtype=torch.float32),
         distance_loser=torch.tensor([c.score for c in losses], dtype=torch.float32),
-        scenes=list(scenes),
+        has_pair=torch.tensor(has_pair, dtype=torch.bool), scenes=list(scenes),
     )

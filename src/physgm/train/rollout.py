@@ -232,6 +232,7 @@ class RolloutConfig:
     min_std_decades: float = 0.3  # exploration floor: candidates' log10 E std is at least this
     min_std_nu: float = 0.03  # and nu's std at least this
     min_gap: float = 0.002  # best and worst closer than this (box units) is a tie: no pair
+    anchor_ties: bool = False  # serve tie scenes too, for the KL anchor (loss.kl_weight)
     max_failed_fraction: float = 0.5  # more failed rollouts than this in a round stops training
     workers: int = 2  # candidates simulated at once (threads; Warp releases the GIL)
     batch_size: int = 8  # pairs per training batch (per device)
@@ -346,8 +347,8 @@ class RolloutCallback(L.Callback):
             policy = restored or policy_fingerprint(pl_module.model)
             self.records = self.refresh(trainer, pl_module, round_, policy)
             self.round, self.policy = round_, policy
-        dataset = PairDataset(self.records, {s.id: s.inputs for s in self.scenes})
-        if len(dataset) == 0:
+        dataset = PairDataset(self.records, {s.id: s.inputs for s in self.scenes}, anchors=self.cfg.anchor_ties)
+        if dataset.num_pairs == 0:
             notes = sorted({r.note for r in self.records})
             raise RuntimeError(f"round {round_} gave no preference pair from {len(self.records)} scenes ({notes}); "
                                "raise stage.rollout.min_std_decades or num_candidates, or lower min_gap")
