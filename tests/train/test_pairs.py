@@ -121,3 +121,25 @@ def test_dataset_serves_only_pairs_with_raw_sampled_physics():
     assert len(anchored) == 3 and anchored.num_pairs == 2
     batch = collate_pairs([anchored[i] for i in range(3)])
     assert batch.scenes == ["a", "c", "b"] and batch.has_pair.tolist() == [True, True, False]
+
+
+def _gather_worker(rank: int, world: int, init: str, out: str) -> None:
+    torch.distributed.init_process_group("gloo", init_method=init, rank=rank, world_size=world)
+    try:
+        mine = [record(f"s{i}", index=i) for i in range(5) if i % world == rank]  # this rank's share of 5 scenes
+        gathered = gather_records(mine)
+        with open(f"{out}.{rank}", "w") as f:
+            json.dump([r.to_json() for r in gathered], f)
+    finally:
+        torch.distributed.destroy_process_group()
+
+
+def test_gather_records_across_two_processes(tmp_path):
+    import torch.multiprocessing as mp
+
+    init = f"file://{tmp_path / 'store'}"
+    mp.spawn(_gather_worker, args=(2, init, str(tmp_path / "out")), nprocs=2, join=True)
+    for rank in (0, 1):
+        got = [SceneRecord.from_json(d) for d in json.loads((tmp_path / f"out.{rank}").read_text())]
+        assert [r.scene for r in got] == [f"s{i}" for i in range(5)]  # every rank holds every scene, in order
+        assert got[3] == record("s3", index=3)
