@@ -3,7 +3,14 @@ import math
 import pytest
 import torch
 
-from physgm.cameras import Cameras, intrinsics_from_fov, opengl_to_opencv, orbit_cameras, pixel_rays, plucker_rays
+from physgm.cameras import (
+    Cameras,
+    intrinsics_from_fov,
+    opengl_to_opencv,
+    orbit_cameras,
+    pixel_rays,
+    plucker_rays,
+)
 
 
 def project(cams: Cameras, points: torch.Tensor) -> torch.Tensor:

@@ -40,7 +40,7 @@ def test_load_photo_kinds(tmp_path):
     rgba[:5, :, 3] = 0
     Image.fromarray(rgba).save(tmp_path / "rgba.png")
     Image.fromarray(rgb8[..., 0]).save(tmp_path / "grey.png")
-    Image.fromarray((rgb8[..., 0].astype(np.uint16) * 257)).save(tmp_path / "grey16.png")
+    Image.fromarray(rgb8[..., 0].astype(np.uint16) * 257).save(tmp_path / "grey16.png")
 
     p = load_photo(tmp_path / "rgb.png")
     assert p.rgb.shape == (20, 30, 3) and p.alpha is None and p.rgb.dtype == np.float32

@@ -13,15 +13,14 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import time
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from physgm.cameras import orbit_cameras
 from physgm.model.config import PhysGMConfig
 from physgm.model.physgm import PhysGM
+from physgm.model.timing import count_parameters, forward_milliseconds
 
 CONF_DIR = Path(__file__).resolve().parents[3] / "conf"
 
@@ -36,36 +35,13 @@ def load_config(name: str, conf_dir: Path = CONF_DIR) -> PhysGMConfig:
     return PhysGMConfig.from_dict(OmegaConf.to_container(cfg.model, resolve=True))
 
 
-def count_parameters(model: PhysGM) -> dict[str, int]:
-    def n(params) -> int:
-        return sum(p.numel() for p in params)
-
-    return {
-        "total": n(model.parameters()),
-        "trainable": n(p for p in model.parameters() if p.requires_grad),
-        "encoder": n(model.backbone.encoder.parameters()),
-        "joint_backbone": n(model.backbone.parameters()) - n(model.backbone.encoder.parameters()),
-        "gaussian_head": n(model.gaussian_head.parameters()),
-        "physics_head": n(model.physics_head.parameters()),
-    }
-
-
 def bench_config(name: str, views: int, max_px: int, repeats: int) -> dict[str, Any]:
     config = load_config(name)
     torch.manual_seed(0)
     model = PhysGM(config, load_pretrained=False).eval()
     patch = model.patch_size
     size = max(patch, min(config.backbone.encoder.img_size, max_px) // patch * patch)
-    cams = orbit_cameras([i * 360.0 / views for i in range(views)], [20.0] * views, 1.5, 40.0, size, size)
-    images = torch.rand(1, views, 3, size, size)
-    masks = torch.ones(1, views, 1, size, size)
-    timings = []
-    with torch.inference_mode():
-        for i in range(repeats + 1):  # the first run warms up allocators and kernels
-            start = time.perf_counter()
-            model(images, masks, cams.c2w[None], cams.Ks[None])
-            if i > 0 or repeats == 0:
-                timings.append(1000.0 * (time.perf_counter() - start))
+    timings = forward_milliseconds(model, views, size, repeats)
     return {
         "config": name,
         "encoder": config.backbone.encoder.kind,

@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from physgm import CHECKPOINT_FORMAT_VERSION
 from physgm.model.config import PhysGMConfig
 from physgm.model.physgm import PhysGM
 from physgm.model.posterior import LOG10_E_RANGE, PhysicsPosterior
@@ -98,11 +99,12 @@ class LitDPO(L.LightningModule):
         total_steps: optimiser steps of the run (length of the learning-rate schedule).
         inputs: the input views trained on (num_views, input_resolution, background), kept for
             evaluation (``physgm.train.evaluate_dpo``).
+        format_version: checkpoint layout version (``physgm.CHECKPOINT_FORMAT_VERSION``), checked on load.
     """
 
     def __init__(self, model: dict[str, Any] | None = None, init_ckpt: str | None = None,
                  loss: dict[str, Any] | None = None, optim: dict[str, Any] | None = None, total_steps: int = 1000,
-                 inputs: dict[str, Any] | None = None) -> None:
+                 inputs: dict[str, Any] | None = None, format_version: int = CHECKPOINT_FORMAT_VERSION) -> None:
         super().__init__()
         self.save_hyperparameters()
         stage1 = model_from_checkpoint(init_ckpt) if init_ckpt and Path(init_ckpt).is_file() else None
@@ -279,6 +281,11 @@ def fit(cfg) -> dict[str, float]:
         scenes = min(scenes, callback.cfg.max_scenes)
     per_epoch = math.ceil(math.ceil(scenes / trainer.world_size) / callback.cfg.batch_size)
     total = trainer.max_steps if trainer.max_steps > 0 else max(1, trainer.max_epochs) * per_epoch
+    warmup = int(stage.optim.get("warmup_steps", 0))
+    if warmup >= total:
+        raise ValueError(f"stage.optim.warmup_steps={warmup} is not below the {total} optimiser steps of this DPO run, so the "
+                         "learning rate would never reach its peak (a stage-1 experiment's optimiser settings?); "
+                         "lower stage.optim.warmup_steps or use experiment=tiny_cpu_dpo")
     inputs = {k: getattr(callback.cfg, k) for k in ("num_views", "input_resolution", "background")}
     module = LitDPO(init_ckpt=init, loss=plain(stage.loss), optim=plain(stage.optim), total_steps=int(total), inputs=inputs)
     trainer.fit(module, ckpt_path=cfg.get("ckpt_path"))

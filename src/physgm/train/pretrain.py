@@ -166,4 +166,19 @@ def fit(cfg) -> dict[str, float]:
     )
     trainer = build_trainer(cfg)
     trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
-    return {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
+    metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
+    if trainer.is_global_zero:
+        from physgm.train.sweep import write_run_summary
+
+        write_run_summary(cfg.paths.output_dir, module.model, metrics, trainer.global_step, _overrides())
+    return metrics
+
+
+def _overrides() -> list[str]:
+    """The command-line overrides of this Hydra run (none outside Hydra)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    try:
+        return list(HydraConfig.get().overrides.task)
+    except ValueError:  # not launched by Hydra (tests, notebooks)
+        return []

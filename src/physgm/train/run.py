@@ -7,6 +7,7 @@ import logging
 from typing import Any
 
 import lightning as L
+import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
@@ -24,6 +25,11 @@ def run(cfg: DictConfig) -> dict:
     name = cfg.stage.name
     if name not in STAGES:
         raise ValueError(f"unknown stage {name!r}; choose one of {sorted(STAGES)} (e.g. stage=pretrain)")
+    threads = int(cfg.get("torch_threads") or 0)
+    if threads < 0:
+        raise ValueError(f"torch_threads must be >= 0 (0: torch's default), got {threads}")
+    if threads:
+        torch.set_num_threads(threads)
     try:
         module = importlib.import_module(STAGES[name])
     except ModuleNotFoundError as err:
