@@ -243,7 +243,7 @@ def test_fit_trains_and_resumes_mid_round_from_the_cache(dpo_root, stage1_ckpt, 
     stand_in = StandIn()
     monkeypatch.setattr(rollout, "evaluate_physics", stand_in)
     overrides = [
-        "stage=dpo", f"stage.init_ckpt={stage1_ckpt}", f"++data.root={dpo_root}", "++data.input_resolution=32",
+        "stage=dpo", "experiment=tiny_cpu_dpo", f"stage.init_ckpt={stage1_ckpt}", f"++data.root={dpo_root}", "++data.input_resolution=32",
         f"paths.output_dir={tmp_path}", "stage.rollout.refresh_every_n_epochs=2", "stage.rollout.batch_size=2",
         "stage.rollout.num_views=2", "stage.rollout.workers=1", "stage.rollout.sim.resolution=32", "callbacks.progress_bar=null", "stage.optim.warmup_steps=1",
     ]
