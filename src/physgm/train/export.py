@@ -1,0 +1,91 @@
+"""Slim a training checkpoint down to what inference needs, e.g. the shipped ``checkpoints/physgm_tiny.ckpt``.
+
+    python -m physgm.train.export outputs/<run>/checkpoints/last.ckpt checkpoints/physgm_tiny.ckpt \
+        [--recipe "python train.py experiment=tiny_cpu ..."] [--metrics test_metrics.json]
+
+Keeps the model weights, the hyper-parameters that rebuild the model (and the renderer and input
+settings evaluation reads), the step count and a ``physgm`` record of where the file came from;
+drops optimiser, scheduler, loop and callback states (for AdamW two thirds of the file). The
+result loads with ``physgm.pipeline.checkpoint.load_model`` and ``model_from_checkpoint``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import torch
+
+import physgm
+
+KEEP_HPARAMS = ("model", "renderer", "inputs", "format_version")
+
+
+def git_revision(cwd: Path) -> str | None:
+    """The commit of the working tree the export runs in (None outside git)."""
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=cwd, capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return out.stdout.strip() or None if out.returncode == 0 else None
+
+
+def slim(ckpt: dict, source: str, recipe: str | None = None, metrics: dict | None = None) -> dict:
+    """The inference part of a Lightning checkpoint dict of ``LitPretrain`` or ``LitDPO``."""
+    hparams = ckpt.get("hyper_parameters")
+    if not isinstance(hparams, dict) or "model" not in hparams:
+        raise ValueError(f"{source} is not a physgm training checkpoint (no hyper_parameters.model)")
+    state = {k: v.detach().clone() for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
+    if not state:
+        raise ValueError(f"{source} has no model weights (no state_dict keys starting with 'model.')")
+    kept = {k: hparams[k] for k in KEEP_HPARAMS if k in hparams}
+    kept.setdefault("format_version", physgm.CHECKPOINT_FORMAT_VERSION)
+    return {
+        "hyper_parameters": kept,
+        "state_dict": state,
+        "global_step": ckpt.get("global_step"),
+        "epoch": ckpt.get("epoch"),
+        "pytorch-lightning_version": ckpt.get("pytorch-lightning_version"),
+        "physgm": {
+            "version": physgm.__version__,
+            "source": source,
+            "git_revision": git_revision(Path(__file__).parent),
+            "exported_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+            "recipe": recipe,
+            "metrics": metrics,
+        },
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m physgm.train.export", description=__doc__.split("\n")[0])
+    p.add_argument("ckpt", type=Path, help="Lightning checkpoint written by train.py")
+    p.add_argument("out", type=Path, help="slim checkpoint to write")
+    p.add_argument("--recipe", default=None, help="the command(s) that trained it, stored in the file")
+    p.add_argument("--metrics", type=Path, default=None, help="JSON of measured metrics to store (e.g. evaluate's)")
+    a = p.parse_args(argv)
+    if not a.ckpt.is_file():
+        raise SystemExit(f"checkpoint {a.ckpt} not found")
+    metrics = json.loads(a.metrics.read_text()) if a.metrics else None
+    ckpt = torch.load(a.ckpt, map_location="cpu", weights_only=False)
+    try:
+        out = slim(ckpt, str(a.ckpt), a.recipe, metrics)
+    except ValueError as err:
+        raise SystemExit(str(err)) from None
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = a.out.with_name(a.out.name + ".tmp")
+    torch.save(out, tmp)
+    tmp.replace(a.out)  # atomic: never a half-written checkpoint under the final name
+    size = a.out.stat().st_size / 2**20
+    print(json.dumps({"out": str(a.out), "megabytes": round(size, 2), "weights": len(out["state_dict"]),
+                      "parameters": sum(v.numel() for v in out["state_dict"].values()),
+                      "global_step": out["global_step"]}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
