@@ -20,7 +20,8 @@ def run(model, batch):
 
 @pytest.mark.parametrize("views", [1, 4])
 def test_shapes_finite_and_mask_count(small_config, make_batch, views):
-    model = PhysGM(small_config()).eval()
+    config = small_config()
+    model = PhysGM(config).eval()
     batch = make_batch(2, views, 32, 48)
     with torch.no_grad():
         out = run(model, batch)
@@ -34,8 +35,8 @@ def test_shapes_finite_and_mask_count(small_config, make_batch, views):
     torch.testing.assert_close(g.quats.norm(dim=-1), torch.ones(2, n))
     assert (g.scales >= 0.0005 - 1e-9).all() and (g.scales <= 0.1 + 1e-9).all()
     assert (g.colors >= 0).all() and (g.colors <= 1).all()
-    # Gaussians exist exactly where the mask is above 0.5, and nowhere else is visible.
-    expected_valid = batch["masks"].reshape(2, -1) > 0.5
+    # Gaussians exist exactly where the mask is above the threshold, and nowhere else is visible.
+    expected_valid = batch["masks"].reshape(2, -1) > config.gaussian_head.mask_threshold
     assert torch.equal(g.valid, expected_valid)
     assert torch.equal(g.count, expected_valid.sum(dim=1))
     assert 0 < g.count.min() < n

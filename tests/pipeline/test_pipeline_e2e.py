@@ -185,3 +185,25 @@ def test_default_settings_full_clip(make_cfg):
         25.0,
     )
     assert video_frames(cfg.output_dir / "video.mp4") == 50 and report["finite"] is True
+
+
+def test_shipped_checkpoint_runs_every_shipped_photo(make_cfg):
+    """The checkpoint in the repository loads, fits the size budget, records its recipe, and simulates."""
+    import torch
+
+    from physgm import CHECKPOINT_FORMAT_VERSION
+    from physgm.pipeline.checkpoint import REPO_ROOT, load_model
+
+    path = REPO_ROOT / "checkpoints" / "physgm_tiny.ckpt"
+    assert path.stat().st_size <= 25 * 2**20
+    raw = torch.load(path, map_location="cpu", weights_only=False)
+    assert raw["hyper_parameters"]["format_version"] == CHECKPOINT_FORMAT_VERSION
+    assert "experiment=tiny_cpu" in raw["physgm"]["recipe"]
+    _, info = load_model(path)
+    assert info["input_size"] == 64
+    for photo in ("jelly_cube.png", "metal_can.png", "rubber_blob_plain.jpg", "wood_toy_cluttered.jpg"):
+        cfg = make_cfg(EXAMPLES / photo, ckpt=path)
+        cfg.output_dir = cfg.output_dir.with_name(f"run_{Path(photo).stem}")
+        report = execute(cfg)
+        check_run_folder(cfg.output_dir, report)
+        assert report["checkpoint"]["input_size"] == 64

@@ -44,7 +44,8 @@ def run(cfg) -> dict:
     for r in report["runs"]:
         print(f"{run_cfg.output_dir / r['video']}: {r['material']} E={r['E']:.3g} Pa nu={r['nu']:.2f}, "
               f"{r['mode']} ({r['predicted_error_px']:.2f} px predicted error)")  # fmt: skip
-    print(f"done in {report['seconds']['total']:.1f} s; report: {run_cfg.output_dir / 'report.json'}")
+    print(f"done in {report['seconds']['total']:.1f} s; contact sheet: {run_cfg.output_dir / 'contact_sheet.png'}, "
+          f"report: {run_cfg.output_dir / 'report.json'}")
     return report
 
 

@@ -23,6 +23,7 @@ from physgm.render import warp_kernels as K
 from physgm.render import warp_raster_kernels as R
 from physgm.render.projection import radii_px
 from physgm.render.settings import RasterSettings, single_threaded_torch
+from physgm.warp_runtime import ensure_loaded
 
 _POOLS: dict[tuple[int, int], ThreadPoolExecutor] = {}
 _POOL_LOCK = threading.Lock()
@@ -47,6 +48,7 @@ def _launch(kernel, dim: int, inputs: list, device: torch.device, **kwargs) -> N
     if dim == 0:
         return
     stream = wp.stream_from_torch(device) if device.type == "cuda" else None
+    ensure_loaded(kernel, wp.device_from_torch(device))
     wp.launch(kernel, dim=dim, inputs=inputs, device=wp.device_from_torch(device), stream=stream,
               **kwargs)  # fmt: skip
 

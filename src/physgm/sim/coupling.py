@@ -23,6 +23,7 @@ from torch import Tensor
 from physgm.gaussians import Gaussians, quat_to_rotmat, rotmat_to_quat
 from physgm.sim.linalg import sym_eig3
 from physgm.sim.sampling import Followers
+from physgm.warp_runtime import ensure_loaded
 
 # The 6 permutations of three axes, [6, 3]: row k maps rest axis i to eigenvector PERMS[k, i].
 _PERMS = torch.tensor(list(itertools.permutations(range(3))))
@@ -255,5 +256,6 @@ def follow_and_deform(
         wp.from_torch(quats, dtype=wp.vec4),
         wp.from_torch(scales, dtype=wp.vec3),
     ]
+    ensure_loaded(_follow_and_deform, device)
     wp.launch(_follow_and_deform, n, arrays + outs, device=device)
     return Gaussians(means, quats, scales, gaussians.opacities, gaussians.colors, gaussians.sh_rest)

@@ -13,6 +13,7 @@ import warp as wp
 
 from physgm.sim import kernels as K
 from physgm.sim.boundary import no_ground
+from physgm.warp_runtime import ensure_loaded
 
 
 class SubstepLaunches:
@@ -35,6 +36,7 @@ class SubstepLaunches:
         shape = wp.vec3i(*g.res)
         split = [0, n] if s.threads == 1 else [0, n // 2, n]
         self.p2g, self.grid_update, self.g2p = [], [], []
+        ensure_loaded(K.p2g, dev)  # all three kernels live in one module
         for t in range(s.threads):
             p0, count = split[t], split[t + 1] - split[t]
             self.p2g.append(

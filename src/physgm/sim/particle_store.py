@@ -11,6 +11,7 @@ from physgm.sim import particle_ops as ops
 from physgm.sim.constitutive import MaterialParams, MaterialStruct
 from physgm.sim.grid import GridSpec
 from physgm.sim.state import Particles, ParticleState
+from physgm.warp_runtime import ensure_loaded
 
 _GATHERS = {
     wp.vec3: ops.gather_vec3,
@@ -26,6 +27,7 @@ class ParticleStore:
     def __init__(self, particles: Particles, materials: Sequence[MaterialParams], device) -> None:
         n = len(particles)
         self.n, self.device = n, device
+        ensure_loaded(ops.cell_keys, device)  # the particle kernels (sort, gathers, stress, energy) share a module
         density = np.array([m.density for m in materials], np.float32)
         F0 = particles.F if particles.F is not None else np.tile(np.eye(3, dtype=np.float32), (n, 1, 1))
         v0 = particles.v if particles.v is not None else np.zeros((n, 3), np.float32)

@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--pretrain", required=True, help="stage-1 checkpoint")
     p.add_argument("--dpo", required=True, help="stage-2 (DPO) checkpoint")
     p.add_argument("--data", required=True, help="PhysAssets root with splits/ and reference videos")
-    p.add_argument("--split", default="test")
+    p.add_argument("--split", default="test", help="split(s) to evaluate, comma-separated (e.g. test,dpo of a held-out set)")
     p.add_argument("--video", default="drop", help="reference video name (videos/<name>.mp4)")
     p.add_argument("--max-scenes", type=int, default=None)
     p.add_argument("--views", type=int, default=None, help="input views (default: as in DPO training, else 4)")
@@ -139,7 +139,9 @@ def main(argv: list[str] | None = None) -> int:
     inputs = input_settings(a.dpo, models["dpo"])
     views = a.views or int(inputs["num_views"])
     res = a.input_resolution or inputs["input_resolution"]
-    scenes = load_scenes(a.data, a.split, a.video, views, res, float(inputs["background"]), a.seed, a.max_scenes)
+    scenes = [s for split in a.split.split(",") for s in
+              load_scenes(a.data, split.strip(), a.video, views, res, float(inputs["background"]), a.seed)]
+    scenes = scenes[: a.max_scenes]
     settings = SimSettings(resolution=a.resolution, n_frames=a.frames, backend=a.backend,
                            planner={"cells_across": a.cells_across} if a.cells_across else {}, device="cpu")
     start = time.perf_counter()
