@@ -38,9 +38,11 @@ def panel_image(inputs: Tensor, pred: Tensor, target: Tensor) -> np.ndarray:
     """One uint8 picture: input views on the first row, predictions on the second, targets on the third.
 
     Args:
-        inputs: [V, 3, H, W]; pred, target: [T, 3, H, W], all in [0, 1].
+        inputs: [V, 3, Hi, Wi] (resized to H x W); pred, target: [T, 3, H, W], all in [0, 1].
     """
     t, _, h, w = target.shape
+    if inputs.shape[-2:] != (h, w):  # inputs may be smaller than the targets (e.g. 32 px in, 64 px out)
+        inputs = torch.nn.functional.interpolate(inputs.detach().float(), size=(h, w), mode="nearest")
     rows = torch.ones(3, 3, h, w * t)
     for row, images in enumerate([inputs, pred, target]):
         for i, img in enumerate(images[:t]):
