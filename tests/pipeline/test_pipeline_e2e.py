@@ -55,7 +55,11 @@ def check_run_folder(run, report, n_videos: int = 1) -> None:
     opaque = g.means[g.opacities >= 0.05]
     extent = float((opaque.amax(0) - opaque.amin(0)).max())
     assert extent == pytest.approx(report["object"]["size_m"], rel=0.15)
-    assert float(opaque[:, 2].min()) >= -1e-3
+    # On the ground up to the placement's outlier quantile and 1 % of the object's size: the t = 0
+    # Gaussians are the ones that follow the simulation's particles, not the placed input exactly.
+    from physgm.pipeline.staging import OUTLIER_QUANTILE
+
+    assert float(opaque[:, 2].quantile(OUTLIER_QUANTILE)) >= -0.01 * report["object"]["size_m"]
     assert json.loads((run / "report.json").read_text()) == json.loads(json.dumps(report))
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -68,3 +69,20 @@ def test_renderer_rejects_unknown_backend():
 def test_gsplat_backend_on_cpu_says_how_to_switch(good):
     with pytest.raises(ValueError, match=r"gsplat.*CUDA.*backend='warp'"):
         rasterize(**good, backend="gsplat")
+
+
+def test_warp_views_check_their_element_type_and_keep_the_memory():
+    import warp as wp
+
+    from physgm.render.warp_backend import _arr
+
+    wp.init()
+    base = torch.arange(24, dtype=torch.float32).reshape(4, 6)
+    view = _arr(base[:, ::2], wp.vec3)  # a non-contiguous slice becomes a contiguous copy that the view holds
+    del base
+    np.testing.assert_array_equal(view.numpy(), np.arange(24, dtype=np.float32).reshape(4, 6)[:, ::2])
+    assert _arr(torch.zeros(5, 4, 4), wp.mat44).shape == (5,)
+    for bad, dtype in ((torch.zeros(5, 3, dtype=torch.float64), wp.vec3), (torch.zeros(5, 4), wp.vec3),
+                       (torch.zeros(5), wp.vec2), (torch.zeros(5, dtype=torch.int64), wp.int32)):
+        with pytest.raises(ValueError, match="does not hold"):
+            _arr(bad, dtype)

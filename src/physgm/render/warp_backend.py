@@ -40,8 +40,32 @@ def _pool(num_threads: int) -> ThreadPoolExecutor:
 
 
 def _arr(t: Tensor, dtype) -> wp.array:
-    """Zero-copy Warp view of a contiguous torch tensor (never tracks Warp gradients)."""
-    return wp.from_torch(t.contiguous(), dtype=dtype, requires_grad=False)
+    """Zero-copy Warp view of a contiguous torch tensor (never tracks Warp gradients).
+
+    Built from the data pointer: ``wp.from_torch`` costs about 24 us a call here against 3 us,
+    and a forward plus backward makes ~70 of them. Raises ValueError unless the tensor holds
+    ``dtype`` elements (float32, int32 or int64 scalars, trailing dimensions = its shape).
+    """
+    t = t.contiguous()
+    inner = 2 if wp.types.type_is_matrix(dtype) else 1 if wp.types.type_is_vector(dtype) else 0
+    shape = tuple(t.shape[: t.dim() - inner])
+    scalar = getattr(dtype, "_wp_scalar_type_", dtype)
+    element_shape = tuple(t.shape[t.dim() - inner :]) if t.dim() >= inner else None
+    if t.dtype != _TORCH_SCALARS[scalar] or element_shape != tuple(getattr(dtype, "_shape_", ())):
+        raise ValueError(f"a {t.dtype} tensor of shape {tuple(t.shape)} does not hold {dtype.__name__} elements")
+    a = wp.array(ptr=t.data_ptr(), dtype=dtype, shape=shape, device=_DEVICES.get(t.device) or _device(t.device),
+                 copy=False)  # fmt: skip
+    a._tensor = t  # keeps the memory alive as long as the view
+    return a
+
+
+_TORCH_SCALARS = {wp.float32: torch.float32, wp.int32: torch.int32, wp.int64: torch.int64}
+_DEVICES: dict[torch.device, object] = {}  # torch device -> Warp device
+
+
+def _device(device: torch.device):
+    _DEVICES[device] = wp.device_from_torch(device)
+    return _DEVICES[device]
 
 
 def _launch(kernel, dim: int, inputs: list, device: torch.device, **kwargs) -> None:
