@@ -25,11 +25,11 @@ import numpy as np
 import trimesh
 
 from physgm.data.appearance import AMBIENT, LIGHT_DIR
-from physgm.data.format import CAMERA_RADIUS, FOV_DEG, SPLITS, SPLITS_DIR
+from physgm.data.format import SPLITS, SPLITS_DIR
 from physgm.data.priors import constitutive_model, material_names
 from physgm.data.raycast import cast_rays
 from physgm.data.synth import view_cameras
-from physgm.data.writer import atomic_asset_dir, cameras_json, write_json, write_views
+from physgm.data.writer import atomic_asset_dir, write_views_cameras_physics
 from physgm.physics.materials import get_material
 
 MESH_SUFFIXES = (".obj", ".glb", ".gltf", ".ply", ".stl", ".off")
@@ -198,13 +198,7 @@ def import_mesh(
         "physics_source": "user" if {"E", "nu"} <= set(given) else "material default",
     }
     with atomic_asset_dir(out, aid) as tmp:
-        write_views(tmp, rgba)
-        write_json(
-            tmp / "cameras.json",
-            cameras_json(cams, az, el, {"radius_m": CAMERA_RADIUS, "fov_deg": FOV_DEG}),
-            compact=True,
-        )
-        write_json(tmp / "physical.json", physical)
+        write_views_cameras_physics(tmp, rgba, cams, az, el, physical)
     return aid
 
 

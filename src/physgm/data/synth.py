@@ -30,7 +30,7 @@ from physgm.data.format import CAMERA_RADIUS, FOV_DEG, SPLITS, SPLITS_DIR, view_
 from physgm.data.priors import constitutive_model, material_names, sample_physics
 from physgm.data.procedural import make_object
 from physgm.data.shapes import FAMILIES
-from physgm.data.writer import TMP_PREFIX, atomic_asset_dir, cameras_json, to_rgba8, write_json, write_views
+from physgm.data.writer import TMP_PREFIX, atomic_asset_dir, to_rgba8, write_json, write_views_cameras_physics
 from physgm.gaussians import Gaussians, write_ply
 
 GENERATOR_VERSION = 1
@@ -167,13 +167,7 @@ def generate_asset(cfg: SynthConfig, index: int, out: Path) -> str:
         "generator": {"seed": cfg.seed, "index": index, "version": GENERATOR_VERSION},
     }
     with atomic_asset_dir(out, aid) as tmp:
-        write_views(tmp, rgba)
-        write_json(
-            tmp / "cameras.json",
-            cameras_json(cameras, az, el, {"radius_m": CAMERA_RADIUS, "fov_deg": FOV_DEG}),
-            compact=True,
-        )
-        write_json(tmp / "physical.json", physical)
+        write_views_cameras_physics(tmp, rgba, cameras, az, el, physical)
         write_ply(obj.gaussians, tmp / "gaussians.ply")
         if plan.video:
             from physgm.data.video import write_reference_video

@@ -21,7 +21,7 @@ from PIL import Image
 from torch import Tensor
 
 from physgm.cameras import Cameras
-from physgm.data.format import FORMAT_VERSION
+from physgm.data.format import CAMERA_RADIUS, FORMAT_VERSION, FOV_DEG
 
 TMP_PREFIX = ".tmp-"
 
@@ -98,6 +98,21 @@ def write_views(folder: Path, rgba: np.ndarray) -> None:
     (folder / "rgba").mkdir(parents=True, exist_ok=True)
     for i, img in enumerate(rgba):
         write_png(folder / "rgba" / f"{i:03d}.png", img)
+
+
+def write_views_cameras_physics(
+    folder: Path,
+    rgba: np.ndarray,  # [C, H, W, 4] uint8
+    cameras: Cameras,
+    azimuths: Sequence[float],
+    elevations: Sequence[float],
+    physical: dict,
+) -> None:
+    """The files every asset has: its orbit views, ``cameras.json`` and ``physical.json``."""
+    write_views(folder, rgba)
+    orbit = {"radius_m": CAMERA_RADIUS, "fov_deg": FOV_DEG}
+    write_json(folder / "cameras.json", cameras_json(cameras, azimuths, elevations, orbit), compact=True)
+    write_json(folder / "physical.json", physical)
 
 
 @contextlib.contextmanager

@@ -60,37 +60,6 @@ def _orthogonal_complement(w: wp.vec3) -> wp.mat33:
 
 
 @wp.func
-def sym_eigvals(b: wp.mat33) -> wp.vec3:
-    """Eigenvalues of symmetric ``b`` in ascending order (trigonometric solution)."""
-    q = (b[0, 0] + b[1, 1] + b[2, 2]) / 3.0
-    c00 = b[0, 0] - q
-    c11 = b[1, 1] - q
-    c22 = b[2, 2] - q
-    off = b[0, 1] * b[0, 1] + b[0, 2] * b[0, 2] + b[1, 2] * b[1, 2]
-    p2 = (c00 * c00 + c11 * c11 + c22 * c22 + 2.0 * off) / 6.0
-    if p2 <= 1.0e-30 * wp.max(q * q, 1.0e-30):
-        return wp.vec3(q, q, q)
-    p = wp.sqrt(p2)
-    ip = 1.0 / p
-    # det of (b - qI)/p, halved: cos(3 phi) of the trigonometric solution.
-    n00 = c00 * ip
-    n11 = c11 * ip
-    n22 = c22 * ip
-    n01 = b[0, 1] * ip
-    n02 = b[0, 2] * ip
-    n12 = b[1, 2] * ip
-    half_det = 0.5 * (
-        n00 * (n11 * n22 - n12 * n12) - n01 * (n01 * n22 - n12 * n02) + n02 * (n01 * n12 - n11 * n02)
-    )
-    half_det = wp.clamp(half_det, -1.0, 1.0)
-    phi = wp.acos(half_det) / 3.0
-    beta2 = q + 2.0 * p * wp.cos(phi)
-    beta0 = q + 2.0 * p * wp.cos(phi + _TWO_PI_3)
-    beta1 = 3.0 * q - beta0 - beta2
-    return wp.vec3(beta0, beta1, beta2)
-
-
-@wp.func
 def sym_eig3(b: wp.mat33):
     """Eigen-decomposition b = Q diag(beta) Q^T of a symmetric 3x3 matrix.
 
