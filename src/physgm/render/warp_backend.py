@@ -72,8 +72,9 @@ def _launch(kernel, dim: int, inputs: list, device: torch.device, **kwargs) -> N
     if dim == 0:
         return
     stream = wp.stream_from_torch(device) if device.type == "cuda" else None
-    ensure_loaded(kernel, wp.device_from_torch(device))
-    wp.launch(kernel, dim=dim, inputs=inputs, device=wp.device_from_torch(device), stream=stream,
+    wp_device = _DEVICES.get(device) or _device(device)
+    ensure_loaded(kernel, wp_device)
+    wp.launch(kernel, dim=dim, inputs=inputs, device=wp_device, stream=stream,
               **kwargs)  # fmt: skip
 
 
