@@ -1,19 +1,25 @@
 """MLS-MPM transfer kernels (APIC, quadratic B-splines), one code path for CPU and CUDA.
 
-Per sub-step the solver launches three kernels:
+A sub-step is two launches once the first scatter is done (G2P2G, Fei et al. 2021):
 
-    p2g          particles -> grid momentum, mass and stress impulse (stress and APIC fused)
-    grid_update  momentum -> velocity, gravity, boundary conditions; clears the accumulators
+    grid_update  accumulators -> velocity: momentum + dt x stress force, gravity, boundary
+                 conditions; clears the accumulators
     g2p          grid -> particle velocity and affine matrix C (APIC blended with affine FLIP),
-                 F update, return mapping, Kirchhoff stress for the next p2g, advection,
-                 domain clamp, statistics
+                 F update, return mapping, Kirchhoff stress, advection, domain clamp, statistics,
+                 and the particle's scatter for the next sub-step
 
-Grid nodes are ``vec8``. Accumulators: (momentum xyz, mass, stress impulse xyz, 0). Velocity grid
-``grid_v``: (velocity xyz, mass, velocity change of this step xyz, 0); a hook that overrides a
-node velocity adds the same change to components 4-6 (``set_node_velocity``).
+The scatter (``scatter_particle``) does not depend on dt: the accumulators hold APIC momentum,
+mass and the stress force separately, and grid_update applies dt. So g2p can scatter before the
+next step's dt is known, particles are read once per sub-step, and a CPU sub-step needs one
+thread hand-off instead of two. ``p2g`` is the same scatter as a kernel of its own, for the
+first sub-step and whenever the particle state was replaced (frame retry, new velocities).
+
+Grid nodes are ``vec8``. Accumulators: (APIC momentum xyz, mass, stress force xyz, 0). Velocity
+grid ``grid_v``: (velocity xyz, mass, velocity change of this step xyz, 0); a hook that overrides
+a node velocity adds the same change to components 4-6 (``set_node_velocity``).
 
 Particle kernels take an ``offset`` so the CPU solver can split the particles over threads,
-each p2g thread scattering into its own accumulator; grid_update sums them over the active box
+each thread scattering into its own accumulator; grid_update sums them over the active box
 (``lo`` + launch dims), the only nodes particles can touch before the next re-fit.
 Particle stencils are clamped inside the grid, so no index can leave an array whatever the state.
 The numpy twin of one sub-step is ``physgm.sim.reference_mpm`` (tests only).
@@ -39,6 +45,10 @@ STAT_BAD = wp.constant(3)  # particles with a non-finite state
 STAT_ESCAPED = wp.constant(4)  # particles newly stopped by the domain clamp
 STAT_OVERRUN = wp.constant(5)  # particles that left the active grid box (CFL estimate exceeded)
 NUM_STATS = 6
+# Per-thread rows are padded to one 64-byte cache line: with both threads updating the same line
+# every particle (false sharing), two threads ran barely faster than one.
+STATS_ROW = 16  # floats
+WORK_ROW = 8  # float64
 
 
 @wp.func
@@ -92,32 +102,31 @@ def scatter_column(
         f = f + fz
 
 
-@wp.kernel
-def p2g(
-    x: wp.array(dtype=wp.vec3),  # [P] m
-    v: wp.array(dtype=wp.vec3),  # [P] m/s
-    C: wp.array(dtype=wp.mat33),  # [P] 1/s, APIC affine velocity
-    stress: wp.array(dtype=wp.mat33),  # [P] rest volume x Kirchhoff stress, N m
-    mass: wp.array(dtype=float),  # [P] kg
+@wp.func
+def scatter_particle(
+    grid: wp.array(dtype=vec8),  # [G] flat accumulator of this thread
+    xp: wp.vec3,
+    vp: wp.vec3,
+    cp: wp.mat33,
+    stress_p: wp.mat33,  # rest volume x Kirchhoff stress, N m
+    m: float,
     origin: wp.vec3,
     dx: float,
-    dt: float,
-    offset: int,
-    shape: wp.vec3i,  # grid node counts
-    grid: wp.array(dtype=vec8),  # [G] flat (i ny + j) nz + k: momentum, mass, stress impulse
+    shape: wp.vec3i,
 ):
-    p = wp.tid() + offset
+    """Add one particle's APIC momentum, mass and stress force to its 27 stencil nodes.
+
+    MLS-MPM (Hu et al. 2018): node i receives w (m v + m C (x_i - x_p)) and the force
+    w (-(4 / dx^2) V0 tau (x_i - x_p)), both built incrementally along i, j, k (adds only).
+    """
     inv_dx = 1.0 / dx
-    base, fx, w = stencil((x[p] - origin) * inv_dx, shape)
-    m = mass[p]
-    # MLS-MPM (Hu et al. 2018): node term w (m v + (m C + impulse)(x_i - x_p)) with the stress
-    # impulse -dt (4 / dx^2) V0 tau, built incrementally along i, j, k (adds only, no 0 * x).
-    impulse = -(dt * 4.0 * inv_dx * inv_dx) * stress[p]
-    affine = m * C[p] + impulse
-    q = m * v[p] - affine * (fx * dx)
-    f = -(impulse * (fx * dx))
+    base, fx, w = stencil((xp - origin) * inv_dx, shape)
+    force = -(4.0 * inv_dx * inv_dx) * stress_p
+    affine = m * cp
+    q = m * vp - affine * (fx * dx)
+    f = -(force * (fx * dx))
     a = affine * dx
-    s = impulse * dx
+    s = force * dx
     ax = wp.vec3(a[0, 0], a[1, 0], a[2, 0])
     ay = wp.vec3(a[0, 1], a[1, 1], a[2, 1])
     az = wp.vec3(a[0, 2], a[1, 2], a[2, 2])
@@ -139,6 +148,23 @@ def p2g(
 
 
 @wp.kernel
+def p2g(
+    x: wp.array(dtype=wp.vec3),  # [P] m
+    v: wp.array(dtype=wp.vec3),  # [P] m/s
+    C: wp.array(dtype=wp.mat33),  # [P] 1/s, APIC affine velocity
+    stress: wp.array(dtype=wp.mat33),  # [P] rest volume x Kirchhoff stress, N m
+    mass: wp.array(dtype=float),  # [P] kg
+    origin: wp.vec3,
+    dx: float,
+    offset: int,
+    shape: wp.vec3i,  # grid node counts
+    grid: wp.array(dtype=vec8),  # [G] flat (i ny + j) nz + k: momentum, mass, stress force
+):
+    p = wp.tid() + offset
+    scatter_particle(grid, x[p], v[p], C[p], stress[p], mass[p], origin, dx, shape)
+
+
+@wp.kernel
 def grid_update(
     acc0: wp.array3d(dtype=vec8),  # [nx, ny, nz] first thread's accumulator, cleared here
     acc1: wp.array3d(dtype=vec8),  # [nx, ny, nz] second thread's accumulator (zeros if unused)
@@ -154,7 +180,7 @@ def grid_update(
     boxes: wp.array(dtype=BoxStruct),
     num_boxes: int,
     slot: int,
-    work: wp.array(dtype=wp.float64),  # [threads] energy put in by the velocity boxes, J
+    work: wp.array2d(dtype=wp.float64),  # [threads, WORK_ROW] energy put in by the velocity boxes (column 0), J
     grid_v: wp.array3d(dtype=vec8),  # [nx, ny, nz] out: velocity, mass, velocity change
 ):
     i, j, k = wp.tid()
@@ -169,16 +195,15 @@ def grid_update(
     # Only nodes that received mass were written by p2g, so only they need clearing.
     acc0[i, j, k] = vec8(0.0)
     acc1[i, j, k] = vec8(0.0)
-    momentum = wp.vec3(g[0], g[1], g[2])
-    v_transfer = (momentum - wp.vec3(g[4], g[5], g[6])) / m
-    vel = damping * (momentum / m + dt * gravity)
+    v_transfer = wp.vec3(g[0], g[1], g[2]) / m  # APIC transfer alone, for the FLIP increment
+    vel = damping * (v_transfer + (dt / m) * wp.vec3(g[4], g[5], g[6]) + dt * gravity)
     pos = origin + wp.vec3(float(i), float(j), float(k)) * dx
     if num_boxes > 0:
         v_free = vel
         for b in range(num_boxes):
             vel = box_velocity(boxes[b], pos, t, vel)
         # Mechanical work of the imposed impulse m (v_box - v_free) moving at v_box.
-        wp.atomic_add(work, slot, wp.float64(m * wp.dot(vel - v_free, vel)))
+        wp.atomic_add(work, slot, 0, wp.float64(m * wp.dot(vel - v_free, vel)))
     vel = ground_velocity(ground, pos, vel)
     # Separating walls in the margin keep particles off the grid edge.
     if (i < bound and vel[0] < 0.0) or (i >= grid_v.shape[0] - bound and vel[0] > 0.0):
@@ -193,32 +218,28 @@ def grid_update(
 
 @wp.func
 def gather_column(grid_v: wp.array(dtype=vec8), row: int, wz: wp.vec3):
-    """Over k = 0, 1, 2 of one column: sum w v, sum k w v, sum w dv, sum k w dv."""
-    g0 = grid_v[row]
-    g1 = grid_v[row + 1]
-    g2 = grid_v[row + 2]
-    a0 = wz[0] * wp.vec3(g0[0], g0[1], g0[2])
-    a1 = wz[1] * wp.vec3(g1[0], g1[1], g1[2])
-    a2 = wz[2] * wp.vec3(g2[0], g2[1], g2[2])
-    d0 = wz[0] * wp.vec3(g0[4], g0[5], g0[6])
-    d1 = wz[1] * wp.vec3(g1[4], g1[5], g1[6])
-    d2 = wz[2] * wp.vec3(g2[4], g2[5], g2[6])
-    return a0 + a1 + a2, a1 + a2 + a2, d0 + d1 + d2, d1 + d2 + d2
+    """Over k = 0, 1, 2 of one column: sum w g and sum k w g (whole nodes: v and dv together)."""
+    a1 = wz[1] * grid_v[row + 1]
+    a2 = wz[2] * grid_v[row + 2]
+    return wz[0] * grid_v[row] + a1 + a2, a1 + a2 + a2
 
 
 @wp.func
 def gather_plane(grid_v: wp.array(dtype=vec8), row: int, nz: int, wy: wp.vec3, wz: wp.vec3):
-    """Over j, k of one plane: sum w v, sum j w v, sum k w v and the same for dv."""
-    s0, z0, d0, e0 = gather_column(grid_v, row, wz)
-    s1, z1, d1, e1 = gather_column(grid_v, row + nz, wz)
-    s2, z2, d2, e2 = gather_column(grid_v, row + 2 * nz, wz)
-    return (
-        wy[0] * s0 + wy[1] * s1 + wy[2] * s2,
-        wy[1] * s1 + (2.0 * wy[2]) * s2,
-        wy[0] * z0 + wy[1] * z1 + wy[2] * z2,
-        wy[0] * d0 + wy[1] * d1 + wy[2] * d2,
-        wy[1] * d1 + (2.0 * wy[2]) * d2,
-        wy[0] * e0 + wy[1] * e1 + wy[2] * e2,
+    """Over j, k of one plane: sum w g, sum j w g and sum k w g."""
+    s0, z0 = gather_column(grid_v, row, wz)
+    s1, z1 = gather_column(grid_v, row + nz, wz)
+    s2, z2 = gather_column(grid_v, row + 2 * nz, wz)
+    a1 = wy[1] * s1
+    a2 = wy[2] * s2
+    return wy[0] * s0 + a1 + a2, a1 + a2 + a2, wy[0] * z0 + wy[1] * z1 + wy[2] * z2
+
+
+@wp.func
+def moment_matrix(bi: vec8, bj: vec8, bk: vec8, c: int) -> wp.mat33:
+    """Columns (bi, bj, bk) of node components c, c+1, c+2."""
+    return wp.mat33(
+        bi[c], bj[c], bk[c], bi[c + 1], bj[c + 1], bk[c + 1], bi[c + 2], bj[c + 2], bk[c + 2]
     )
 
 
@@ -250,39 +271,38 @@ def g2p(
     stress: wp.array(dtype=wp.mat33),  # [P] out, rest volume x Kirchhoff stress
     plastic: wp.array(dtype=float),  # [P] in/out, plastic history scalar
     escaped: wp.array(dtype=int),  # [P] in/out, 1 once the clamp stopped the particle
-    stats: wp.array2d(dtype=float),  # [threads, NUM_STATS] running reductions
-    work: wp.array(dtype=wp.float64),  # [threads] energy put in by the velocity boxes, J
+    stats: wp.array2d(dtype=float),  # [threads, STATS_ROW] running reductions in the first NUM_STATS columns
+    work: wp.array2d(dtype=wp.float64),  # [threads, WORK_ROW] energy put in by the velocity boxes (column 0), J
+    acc: wp.array(dtype=vec8),  # [G] flat, out: this thread's scatter for the next sub-step
 ):
     p = wp.tid() + offset
     inv_dx = 1.0 / dx
     xp = x[p]
     base, fx, w = stencil((xp - origin) * inv_dx, shape)
-    # Factored gather (``gather_plane``): velocity and velocity-change sums with their first
-    # moments along each axis, so B = sum w v (node - fx)^T needs no per-node outer product.
+    # Factored gather (``gather_plane``): sums of whole nodes with their first moments along
+    # each axis, so B = sum w v (node - fx)^T needs no per-node outer product; vec8 arithmetic
+    # does velocity and velocity change in one pass (the CPU compiler vectorises it).
     nyz = shape[1] * shape[2]
     b0 = (base[0] * shape[1] + base[1]) * shape[2] + base[2]
     wy = wp.vec3(w[0, 1], w[1, 1], w[2, 1])
     wz = wp.vec3(w[0, 2], w[1, 2], w[2, 2])
-    s0, sj0, sk0, t0, tj0, tk0 = gather_plane(grid_v, b0, shape[2], wy, wz)
-    s1, sj1, sk1, t1, tj1, tk1 = gather_plane(grid_v, b0 + nyz, shape[2], wy, wz)
-    s2, sj2, sk2, t2, tj2, tk2 = gather_plane(grid_v, b0 + 2 * nyz, shape[2], wy, wz)
-    wx0 = w[0, 0]
-    wx1 = w[1, 0]
-    wx2 = w[2, 0]
-    vel = wx0 * s0 + wx1 * s1 + wx2 * s2
-    bi = wx1 * s1 + (2.0 * wx2) * s2
-    bj = wx0 * sj0 + wx1 * sj1 + wx2 * sj2
-    bk = wx0 * sk0 + wx1 * sk1 + wx2 * sk2
-    dvel = wx0 * t0 + wx1 * t1 + wx2 * t2
-    di = wx1 * t1 + (2.0 * wx2) * t2
-    dj = wx0 * tj0 + wx1 * tj1 + wx2 * tj2
-    dk = wx0 * tk0 + wx1 * tk1 + wx2 * tk2
-    c_grid = (4.0 * inv_dx) * (wp.matrix_from_cols(bi, bj, bk) - wp.outer(vel, fx))
+    s0, sj0, sk0 = gather_plane(grid_v, b0, shape[2], wy, wz)
+    s1, sj1, sk1 = gather_plane(grid_v, b0 + nyz, shape[2], wy, wz)
+    s2, sj2, sk2 = gather_plane(grid_v, b0 + 2 * nyz, shape[2], wy, wz)
+    a1 = w[1, 0] * s1
+    a2 = w[2, 0] * s2
+    total = w[0, 0] * s0 + a1 + a2
+    bi = a1 + a2 + a2
+    bj = w[0, 0] * sj0 + w[1, 0] * sj1 + w[2, 0] * sj2
+    bk = w[0, 0] * sk0 + w[1, 0] * sk1 + w[2, 0] * sk2
+    vel = wp.vec3(total[0], total[1], total[2])
+    dvel = wp.vec3(total[4], total[5], total[6])
+    c_grid = (4.0 * inv_dx) * (moment_matrix(bi, bj, bk, 0) - wp.outer(vel, fx))
     # Affine FLIP: the particle keeps its own (v, C) plus the grid's change of them this step,
     # blended with the APIC (PIC) values. Pure APIC damps every mode the grid cannot hold on
     # each transfer, so stiff materials (many sub-steps) lose energy quickly; incrementing C
     # along with v keeps angular momentum exact.
-    dc = (4.0 * inv_dx) * (wp.matrix_from_cols(di, dj, dk) - wp.outer(dvel, fx))
+    dc = (4.0 * inv_dx) * (moment_matrix(bi, bj, bk, 4) - wp.outer(dvel, fx))
     v_new = vel + flip * (v[p] + dvel - vel)
     c_new = c_grid + flip * (C[p] + dc - c_grid)
     # Particles inside a velocity box move with it: grid conditions alone let the particles at
@@ -291,7 +311,7 @@ def g2p(
         v_free = v_new
         for b in range(num_boxes):
             v_new = box_velocity(boxes[b], xp, t, v_new)
-        wp.atomic_add(work, slot, wp.float64(mass[p] * wp.dot(v_new - v_free, v_new)))
+        wp.atomic_add(work, slot, 0, wp.float64(mass[p] * wp.dot(v_new - v_free, v_new)))
     # The state is H = F - I: stiff materials take steps with strain increments below float32's
     # resolution of numbers near 1, and accumulating F itself would round them away (creep).
     H_trial = H[p] + dt * c_grid * (EYE + H[p])
@@ -312,7 +332,7 @@ def g2p(
     # One finiteness test: a NaN or inf anywhere in the new state propagates into this sum.
     check = wp.dot(x_new + v_new, wp.vec3(1.0)) + J + wp.ddot(tau, wp.mat33(1.0))
     if not wp.isfinite(check):
-        # Keep the state usable for indexing; the solver rejects the frame.
+        # Keep the state usable for indexing; the solver rejects the frame (and re-scatters).
         wp.atomic_add(stats, slot, STAT_BAD, 1.0)
         x_new = xp
         v_new = wp.vec3(0.0)
@@ -320,6 +340,7 @@ def g2p(
         wp.atomic_max(stats, slot, STAT_VMAX, wp.dot(v_new, v_new))  # squared; the solver takes the root
         wp.atomic_min(stats, slot, STAT_JMIN, J)
         wp.atomic_max(stats, slot, STAT_JMAX, J)
+        scatter_particle(acc, x_new, v_new, c_new, vol0[p] * tau, mass[p], origin, dx, shape)
     x[p] = x_new
     v[p] = v_new
     C[p] = c_new

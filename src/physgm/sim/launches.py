@@ -1,5 +1,8 @@
 """The recorded kernel launches of one MPM sub-step, per worker thread.
 
+In steady state a sub-step is grid_update then g2p, which also scatters the particles for the
+next sub-step (``kernels``); p2g runs only when the accumulators were invalidated.
+
 Recording once (``wp.launch(..., record_cmd=True)``) and replaying keeps the Python cost of a
 sub-step to a few microseconds; only dt, time, the active grid box and damping are re-set.
 """
@@ -17,12 +20,13 @@ from physgm.warp_runtime import ensure_loaded
 
 
 class SubstepLaunches:
-    """p2g, grid_update and g2p launches for ``threads`` particle slices of ``solver``."""
+    """p2g and g2p launches for ``threads`` particle slices of ``solver``, and one grid_update."""
 
     def __init__(self, solver) -> None:
         self.solver = solver
         self._record()
         self._dt = None
+        self.scattered = False  # the accumulators hold the current particles' scatter
         self.timed = bool(len(solver.scene.boxes))  # only the velocity boxes depend on time
 
     def _record(self) -> None:
@@ -35,7 +39,7 @@ class SubstepLaunches:
         n = s.num_particles
         shape = wp.vec3i(*g.res)
         split = [0, n] if s.threads == 1 else [0, n // 2, n]
-        self.p2g, self.grid_update, self.g2p = [], [], []
+        self.p2g, self.g2p = [], []
         ensure_loaded(K.p2g, dev)  # all three kernels live in one module
         for t in range(s.threads):
             p0, count = split[t], split[t + 1] - split[t]
@@ -51,36 +55,9 @@ class SubstepLaunches:
                         ps.mass,
                         origin,
                         g.dx,
-                        0.0,
                         p0,
                         shape,
                         s.acc[t].flatten(),
-                    ],
-                    device=dev,
-                    record_cmd=True,
-                )
-            )
-            self.grid_update.append(
-                wp.launch(
-                    K.grid_update,
-                    g.res,
-                    [
-                        s.acc[0],
-                        s.acc[1],
-                        wp.vec3i(0, 0, 0),
-                        origin,
-                        g.dx,
-                        0.0,
-                        0.0,
-                        wp.vec3(*s.scene.gravity),
-                        1.0,
-                        cfg.boundary_cells,
-                        ground,
-                        s.boxes,
-                        num_boxes,
-                        t,
-                        s.work,
-                        s.grid_v,
                     ],
                     device=dev,
                     record_cmd=True,
@@ -119,52 +96,81 @@ class SubstepLaunches:
                         ps.escaped,
                         s.stats,
                         s.work,
+                        s.acc[t].flatten(),
                     ],
                     device=dev,
                     record_cmd=True,
                 )
             )
 
-    @property
-    def all(self) -> tuple:
-        return (*self.p2g, *self.grid_update, *self.g2p)
+        # grid_update is a few percent of a sub-step: one launch on the calling thread costs less
+        # than another thread hand-off.
+        self.grid_update = wp.launch(
+            K.grid_update,
+            g.res,
+            [
+                s.acc[0],
+                s.acc[1],
+                wp.vec3i(0, 0, 0),
+                origin,
+                g.dx,
+                0.0,
+                0.0,
+                wp.vec3(*s.scene.gravity),
+                1.0,
+                cfg.boundary_cells,
+                ground,
+                s.boxes,
+                num_boxes,
+                0,
+                s.work,
+                s.grid_v,
+            ],
+            device=dev,
+            record_cmd=True,
+        )
+
+    def invalidate(self) -> None:
+        """The particle state was replaced: clear the accumulators, scatter afresh next sub-step."""
+        for acc in self.solver.acc:
+            acc.zero_()
+        self.scattered = False
 
     def set_dt(self, dt: float, damping: float) -> None:
         if dt != self._dt:
-            for launch in self.all:
+            for launch in (self.grid_update, *self.g2p):
                 launch.set_param_by_name("dt", dt)
             if damping > 0.0:
-                for launch in self.grid_update:
-                    launch.set_param_by_name("damping", math.exp(-damping * dt))
+                self.grid_update.set_param_by_name("damping", math.exp(-damping * dt))
             self._dt = dt
 
     def set_time(self, t: float) -> None:
-        for launch in (*self.grid_update, *self.g2p):
+        for launch in (self.grid_update, *self.g2p):
             launch.set_param_by_name("t", t)
 
     def set_active_box(
         self, lo: np.ndarray, hi: np.ndarray, inner_lo: np.ndarray, inner_hi: np.ndarray
     ) -> None:
-        """grid_update covers nodes lo..hi (split along x over the threads); g2p flags particles
-        that leave [inner_lo, inner_hi] (m) before the next re-fit."""
-        threads = len(self.grid_update)
-        cut = [lo[0], (lo[0] + hi[0] + 1) // 2, hi[0] + 1] if threads == 2 else [lo[0], hi[0] + 1]
-        for t, launch in enumerate(self.grid_update):
-            launch.set_dim((max(cut[t + 1] - cut[t], 0), hi[1] - lo[1] + 1, hi[2] - lo[2] + 1))
-            launch.set_param_by_name("lo", wp.vec3i(int(cut[t]), int(lo[1]), int(lo[2])))
+        """grid_update covers nodes lo..hi; g2p flags particles that leave [inner_lo, inner_hi] (m)
+        before the next re-fit."""
+        self.grid_update.set_dim(tuple(int(h - l + 1) for l, h in zip(lo, hi, strict=True)))
+        self.grid_update.set_param_by_name("lo", wp.vec3i(*(int(v) for v in lo)))
         for launch in self.g2p:
             launch.set_param_by_name("active_lo", wp.vec3(*inner_lo))
             launch.set_param_by_name("active_hi", wp.vec3(*inner_hi))
 
     def run(self, worker, between) -> None:
-        """One sub-step: p2g, grid_update, ``between()`` (grid hooks), g2p."""
+        """One sub-step: [p2g,] grid_update, ``between()`` (grid hooks), g2p (which scatters)."""
         if worker is None:
-            self.p2g[0].launch()
-            self.grid_update[0].launch()
+            if not self.scattered:
+                self.p2g[0].launch()
+            self.grid_update.launch()
             between()
             self.g2p[0].launch()
         else:
-            worker.run(self.p2g[1].launch, self.p2g[0].launch)
-            worker.run(self.grid_update[1].launch, self.grid_update[0].launch)
+            if not self.scattered:
+                worker.run(self.p2g[1].launch, self.p2g[0].launch)
+            self.grid_update.launch()
             between()
             worker.run(self.g2p[1].launch, self.g2p[0].launch)
+        self.scattered = True

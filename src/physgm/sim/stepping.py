@@ -35,7 +35,7 @@ class SolverConfig:
     j_min: float = -0.5  # smallest det F accepted
     j_max: float = 1.0e4  # largest det F accepted
     boundary_cells: int = 3  # separating-wall margin at the grid faces, cells
-    threads: int = 0  # CPU worker threads for the particle kernels; 0 = auto (2 from 8k particles)
+    threads: int = 0  # CPU worker threads for the particle kernels; 0 = auto (2 from 2k particles)
     cfl_check_every: int = 16  # sub-steps between re-evaluations of |v|max and dt
     sort_every: int = 1  # frames between particle sorts by cell (0: only at start)
     max_substeps: int = 2_000_000  # per frame; beyond this the frame stops with an error
