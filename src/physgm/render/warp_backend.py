@@ -78,15 +78,18 @@ def _launch(kernel, dim: int, inputs: list, device: torch.device, **kwargs) -> N
               **kwargs)  # fmt: skip
 
 
-def _tile_ranges(tile_start: Tensor, tile_end: Tensor, parts: int) -> list[tuple[int, int]]:
-    """Splits the global tile list into `parts` contiguous ranges of about equal work."""
-    num_tiles = tile_start.numel()
+def _tile_ranges(work: Tensor, parts: int) -> list[tuple[int, int]]:
+    """Splits the global tile list into `parts` contiguous ranges of about equal work.
+
+    Args:
+        work: [tiles] positive cost estimate of each tile.
+    """
+    num_tiles = work.numel()
     if parts <= 1 or num_tiles < 2:
         return [(0, num_tiles)]
-    # a tile's cost grows with its entry count; +1 keeps empty tiles from being free
-    work = torch.cumsum((tile_end - tile_start).to(torch.float64) + 1.0, dim=0)
-    targets = work[-1] * torch.arange(1, parts, dtype=torch.float64) / parts
-    cuts = torch.searchsorted(work, targets).tolist()
+    total = torch.cumsum(work.to(torch.float64), dim=0)
+    targets = total[-1] * torch.arange(1, parts, dtype=torch.float64) / parts
+    cuts = torch.searchsorted(total, targets).tolist()
     bounds = sorted({0, num_tiles, *[min(max(c, 1), num_tiles - 1) for c in cuts]})
     return [(a, b - a) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
@@ -109,7 +112,11 @@ def _launch_tiles(kernels, ranges, settings: RasterSettings, args: list, device:
         _launch(kernel, r[1] * per_tile, [r[0], *head, *args], device)
 
     if device.type == "cpu" and len(ranges) > 1:
-        list(_pool(len(ranges)).map(run, ranges))  # list() re-raises worker exceptions
+        # the calling thread takes the last range itself: one thread hand-off fewer
+        futures = [_pool(len(ranges) - 1).submit(run, r) for r in ranges[:-1]]
+        run(ranges[-1])
+        for f in futures:
+            f.result()  # re-raises worker exceptions
     else:
         for r in ranges:
             run(r)
@@ -198,15 +205,18 @@ class _RasterizeWarp(torch.autograd.Function):
         trans = means.new_ones(num_pix)
         end = torch.zeros(num_pix, dtype=torch.int32, device=device)
         done = torch.zeros(num_pix, dtype=torch.int32, device=device)
-        ranges = _tile_ranges(tile_start, tile_end, s.num_threads if device.type == "cpu" else 1)
+        threads = s.num_threads if device.type == "cpu" else 1
+        # forward split by entry count (+1: empty tiles are not free); the backward split uses
+        # the pixel tests the forward counted, since its cost follows the composited pairs
+        tile_work = tile_counts.to(torch.int32) + 1
         if num_entries:
-            _launch_tiles(_FORWARD, ranges, s,
+            _launch_tiles(_FORWARD, _tile_ranges(tile_work, threads), s,
                           [_arr(tile_start, wp.int32), _arr(tile_end, wp.int32), *entry_arrs,
                            _arr(rgb, wp.vec3), _arr(trans, wp.float32), _arr(end, wp.int32),
-                           _arr(done, wp.int32)],
+                           _arr(done, wp.int32), _arr(tile_work, wp.int32)],
                           device)  # fmt: skip
 
-        ctx.settings, ctx.num_c, ctx.ranges = s, num_c, ranges
+        ctx.settings, ctx.num_c, ctx.ranges = s, num_c, _tile_ranges(tile_work, threads)
         ctx.save_for_backward(means, quats, scales, opacities, viewmats, Ks, means2d, conics,
                               depths, cov_diag, tile_start, tile_end, e_pair, e_gauss, *entries, trans,
                               end)  # fmt: skip

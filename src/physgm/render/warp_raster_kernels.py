@@ -83,6 +83,7 @@ def raster_forward_pixel_kernel(
     out_trans: wp.array(dtype=float),  # [I*H*W] final transmittance, out
     out_end: wp.array(dtype=wp.int32),  # [I*H*W] one past the last entry composited, out
     done: wp.array(dtype=wp.int32),  # [I*H*W] scratch (tile layout only)
+    tile_work: wp.array(dtype=wp.int32),  # [I*tiles] pixel tests per tile, out (tile layout only)
 ):
     """One thread per pixel, front to back; stops before T would drop below T_MIN."""
     tile, img, u, v = pixel_of(wp.tid(), tile_offset, tile_size, tiles_x, tiles_per_image)
@@ -134,6 +135,7 @@ def raster_forward_tile_kernel(
     out_trans: wp.array(dtype=float),
     out_end: wp.array(dtype=wp.int32),
     done: wp.array(dtype=wp.int32),  # [I*H*W] 1 once a pixel hit the early stop
+    tile_work: wp.array(dtype=wp.int32),  # [I*tiles] pixel tests of this tile: the backward's cost
 ):
     """One thread per tile; same per-pixel sequence as the pixel layout (args as there)."""
     tile = tile_offset + wp.tid()
@@ -148,6 +150,7 @@ def raster_forward_tile_kernel(
             out_end[pix] = start
             done[pix] = 0
     alive = (u1 - u0 + 1) * (v1 - v0 + 1)
+    work = wp.int32(1)  # an empty tile is not free
     for e in range(start, tile_end[tile]):
         if alive == 0:
             break
@@ -155,6 +158,7 @@ def raster_forward_tile_kernel(
         ext = e_extents[e]
         su = span(m[0], ext[0], u0, u1)
         sv = span(m[1], ext[1], v0, v1)
+        work += wp.max(su[1] - su[0] + 1, 0) * wp.max(sv[1] - sv[0] + 1, 0)
         con = e_conics[e]
         qmax = e_qmax[e]
         opacity = e_opacities[e]
@@ -180,6 +184,7 @@ def raster_forward_tile_kernel(
                 out_rgb[pix] = out_rgb[pix] + (alpha * trans) * col
                 out_trans[pix] = next_trans
                 out_end[pix] = e + 1
+    tile_work[tile] = work
 
 
 @wp.func
