@@ -111,3 +111,18 @@ def test_torch_twin_matches_finite_differences(kit):
     _, alpha, _ = rasterize_torch(*inputs, viewmats[None], Ks[None], settings)
     assert alpha.max() > 0.3
     assert torch.autograd.gradcheck(render, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def test_tile_ranges_cover_every_tile_once_and_balance_the_work():
+    from physgm.render.warp_backend import _tile_ranges
+
+    work = torch.tensor([1, 1, 50, 1, 1, 1, 30, 1, 1, 13], dtype=torch.int32)
+    ranges = _tile_ranges(work, 2)
+    assert [r[0] for r in ranges] == [0, ranges[0][1]] and sum(r[1] for r in ranges) == 10
+    halves = [int(work[a : a + n].sum()) for a, n in ranges]
+    assert halves == [52, 48]  # the best cut; before the 50-tile it would be 2 vs 98
+    assert _tile_ranges(work, 1) == [(0, 10)]
+    skewed = torch.tensor([100] + [1] * 9, dtype=torch.int32)
+    assert _tile_ranges(skewed, 2) == [(0, 1), (1, 9)]  # never an empty range
+    three = _tile_ranges(torch.ones(9, dtype=torch.int32), 3)
+    assert three == [(0, 3), (3, 3), (6, 3)]

@@ -89,7 +89,12 @@ def _tile_ranges(work: Tensor, parts: int) -> list[tuple[int, int]]:
         return [(0, num_tiles)]
     total = torch.cumsum(work.to(torch.float64), dim=0)
     targets = total[-1] * torch.arange(1, parts, dtype=torch.float64) / parts
-    cuts = torch.searchsorted(total, targets).tolist()
+    # tile i is the first whose running total reaches the target: cut before or after it,
+    # whichever leaves the first part closer to the target
+    first = torch.searchsorted(total, targets)
+    before = torch.where(first > 0, total[(first - 1).clamp(min=0)], torch.zeros_like(targets))
+    after = total[first.clamp(max=num_tiles - 1)]
+    cuts = torch.where(after - targets < targets - before, first + 1, first).tolist()
     bounds = sorted({0, num_tiles, *[min(max(c, 1), num_tiles - 1) for c in cuts]})
     return [(a, b - a) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
