@@ -83,6 +83,17 @@ def test_resume_continues_step_count_and_checkpoint_predicts_the_same(tiny_datas
     torch.testing.assert_close(a.physics.material_logits, b.physics.material_logits, rtol=0, atol=0)
 
 
+def test_last_checkpoint_is_written_when_training_stops_between_saves(tiny_dataset, tmp_path):
+    """max_steps (or max_time) between two intervals: last.ckpt still holds the final step."""
+    out = tmp_path / "run"
+    run(compose_train([*tiny_overrides(tiny_dataset, out), "callbacks.model_checkpoint.every_n_train_steps=2",
+                       "callbacks.snapshots.every_n_train_steps=2", "trainer.max_steps=3",
+                       "trainer.limit_val_batches=0"]))  # fmt: skip
+    ckpts = out / "checkpoints"
+    assert torch.load(ckpts / "last.ckpt", weights_only=False)["global_step"] == 3
+    assert sorted(p.name for p in ckpts.glob("step*.ckpt")) == ["step0000002.ckpt"]
+
+
 def test_overfits_one_batch(tiny_dataset):
     """Rendered MSE + alpha + material CE on one batch fall at least 10x."""
     torch.manual_seed(0)
