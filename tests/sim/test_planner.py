@@ -207,3 +207,22 @@ def test_yaml_config_matches_dataclass_defaults():
     assert PlannerConfig(**values) == PlannerConfig()
     with pytest.raises(ValueError, match="bound_px"):
         PlannerConfig(bound_px=0.0)
+
+
+def test_stiff_object_thrown_at_a_still_wall_is_rigid_and_a_soft_one_is_not():
+    x, vol = _cube(bottom=0.0)
+    wall = VelocityBox(lo=(0.1, -1.0, -1.0), hi=(0.15, 1.0, 1.0))  # 5 cm ahead along +x
+    scene = Scene(ground=GroundPlane(0.0, friction=0.3), boxes=(wall,))
+    v0 = torch.zeros_like(x)
+    v0[:, 0] = 2.0
+    config = PlannerConfig()
+    dx, spacing = choose_spacing(0.1, config)
+
+    def plan(material, name):
+        return plan_simulation(x, vol, v0, name, material, scene, CAMERAS, 50, 0.04, dx, spacing, config)
+
+    steel = plan(STEEL, "metal")
+    assert steel.mode == "rigid"
+    jelly = plan(JELLY, "jelly")
+    # The throw is the load: a jelly hitting the wall at 2 m/s squashes visibly, and is not capped.
+    assert jelly.mode == "mpm" and jelly.E_used == JELLY.E and jelly.error_terms["impact_px"] > 0.5

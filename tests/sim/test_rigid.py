@@ -116,3 +116,33 @@ def test_tilted_drop_comes_to_rest_on_a_face_and_is_held():
     np.testing.assert_array_equal(
         traj.coms[traj.rest_frame :], np.broadcast_to(traj.coms[-1], traj.coms[traj.rest_frame :].shape)
     )
+
+
+@pytest.mark.parametrize("restitution", [0.0, 0.6])
+def test_throw_at_a_wall_rebounds_with_restitution(restitution):
+    # No gravity, no ground: a cube thrown at 2 m/s along x into the plane x = 0.3 (normal -x).
+    x, mass = _cube(center=(0.0, 0.0, 0.0))
+    v = np.tile([2.0, 0.0, 0.0], (len(x), 1))
+    sim = _sim(x, mass, v, ground_height=None, walls=(((-1.0, 0.0, 0.0), -0.3),), gravity=(0.0, 0.0, 0.0),
+               restitution=restitution)  # fmt: skip
+    traj = sim.run(n_frames=16, frame_dt=0.04, dt=1e-3)
+    assert np.all(traj.coms[:, 0] + 0.05 <= 0.3 + 1e-6)  # the front face never passes the wall
+    np.testing.assert_allclose(traj.velocities[-1], [-2.0 * restitution, 0.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(traj.omegas[-1], 0.0, atol=1e-6)  # a face-on hit does not spin it
+    # Contact at t = 0.125 s (0.25 m to go): the first frames are free flight.
+    np.testing.assert_allclose(traj.coms[:4, 0], 2.0 * np.arange(4) * 0.04, atol=1e-9)
+
+
+def test_static_walls_from_scene_boxes():
+    from physgm.sim.boundary import VelocityBox
+    from physgm.sim.rigid import static_walls
+
+    lo, hi = np.array([0.0, 0.0, 0.0]), np.array([0.1, 0.1, 0.1])
+    wall = VelocityBox((0.15, -1.0, -1.0), (0.2, 1.0, 1.0))
+    assert static_walls((wall,), lo, hi) == [((-1.0, 0.0, 0.0), -0.15)]
+    behind = VelocityBox((-0.2, -1.0, -1.0), (-0.05, 1.0, 1.0))
+    assert static_walls((behind,), lo, hi) == [((1.0, 0.0, 0.0), -0.05)]
+    clamp = VelocityBox((-0.1, -0.1, 0.05), (0.2, 0.2, 0.2))  # overlaps the object
+    grip = VelocityBox((0.15, -1.0, -1.0), (0.2, 1.0, 1.0), velocity=(0.1, 0.0, 0.0))
+    assert static_walls((clamp,), lo, hi) is None and static_walls((wall, grip), lo, hi) is None
+    assert static_walls((), lo, hi) == []

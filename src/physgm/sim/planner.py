@@ -6,8 +6,8 @@ converts physical deformation estimates to pixels with the cameras' focal length
 chooses, in order of cost:
 
 1. **rigid**: if the elastic + plastic deformation the scene can cause stays under the bound
-   (a steel or ceramic object dropped on the floor); granular and fluid materials never go rigid,
-   nor do scenes that prescribe motion (grips, pushers).
+   (a steel or ceramic object dropped on the floor or thrown at a still wall); granular and fluid
+   materials never go rigid, nor do scenes that prescribe motion (grips, clamps).
 2. **MPM with a stiffness cap**: the explicit step scales as dx / c_p with the P-wave speed
    c_p ~ sqrt(E / rho), so a stiff object costs many sub-steps. The cap is the smallest E' whose
    *extra* deformation over the true E stays under (a share of) the bound; E' = min(E, cap) is
@@ -33,6 +33,7 @@ from torch import Tensor
 
 from physgm.cameras import Cameras
 from physgm.sim.constitutive import MODELS, MaterialParams
+from physgm.sim.rigid import static_walls
 from physgm.sim.scenes import Scene
 from physgm.sim.stepping import substeps_per_frame
 
@@ -328,8 +329,10 @@ def plan_simulation(
     duration = (n_frames - 1) * frame_dt  # frame 0 is the rest state
     box_speed = max((float(np.linalg.norm(b.velocity)) for b in scene.boxes), default=0.0)
     v_impact = impact_speed(float(lo[2]), ground, float(vel[:, 2].min(initial=0.0)), g)
-    # The loading speed: an impact, or grips pulling (the elastic lag is the same v L / c).
-    v_load = max(v_impact, box_speed)
+    v_throw = float(np.linalg.norm(vel, axis=1).max(initial=0.0))
+    # The loading speed: an impact on the ground or a wall, or grips pulling (the elastic lag is
+    # the same v L / c).
+    v_load = max(v_impact, box_speed, v_throw)
     v_max = max(v_load, float(np.linalg.norm(vel, axis=1).max(initial=0.0)))
 
     # Pixel scale: the object where it starts and where it lands, seen by the closest camera.
@@ -360,14 +363,15 @@ def plan_simulation(
                   rest_px=cfg.rest_px, rest_frames=cfg.rest_frames, restitution=cfg.restitution,
                   alternatives=cost)  # fmt: skip
     rigid_px = deform.total * px_per_m
-    if cfg.allow_rigid and not scene.boxes and rigid_px <= cfg.bound_px:
+    walls = static_walls(scene.boxes, lo, hi)  # still walls are contact planes of the rigid path
+    if cfg.allow_rigid and walls is not None and rigid_px <= cfg.bound_px:
         parts = ", ".join(f"{k[:-3]} {v:.2g}" for k, v in terms.items())
         reason = f"{name} (E={material.E:.3g} Pa) deforms ~{rigid_px:.3g} px <= {cfg.bound_px} px ({parts}): rigid body"
         return Plan("rigid", E_used=material.E, predicted_error_px=rigid_px, error_terms=terms,
                     substeps_per_frame=steps["rigid"], predicted_cost=cost["rigid"], reason=reason, **common)  # fmt: skip
     if flows:
         why = "it flows (granular / fluid)"
-    elif scene.boxes:
+    elif walls is None:
         why = "the scene prescribes motion"
     elif not cfg.allow_rigid:
         why = "rigid mode is disabled"
@@ -383,8 +387,7 @@ def plan_simulation(
     # (grips) and impacts that end in a plastic dent (the rebound is small) are.
     # (A body resting on the ground, its lowest particles half a spacing up, does not impact.)
     falls = ground is not None and float(lo[2]) - ground > particle_spacing
-    thrown = float(np.linalg.norm(vel, axis=1).max(initial=0.0)) > 0.0
-    elastic_impact = (falls or thrown) and deform.plastic * px_per_m <= cfg.bound_px
+    elastic_impact = (falls or v_throw > 0.0) and deform.plastic * px_per_m <= cfg.bound_px
     E_used, n_steps, note, cap_px = material.E, steps["mpm"], "", 0.0
     if cfg.allow_stiffness_cap and elastic_impact and not cfg.cap_elastic_impacts:
         note = "; E not capped (an elastic impact: the rebound depends on E; planner.cap_elastic_impacts)"

@@ -1,10 +1,11 @@
-"""Rigid-body path: an object too stiff to deform visibly, dropped on the ground plane.
+"""Rigid-body path: an object too stiff to deform visibly, dropped on the ground or thrown at a wall.
 
 The body is the particle set (mass and inertia tensor from the particles); its contact points are
-the vertices of their convex hull. Each step: gravity, contact impulses on the touching points
-(projected Gauss-Seidel on the normal impulse with restitution and on a Coulomb-clamped friction
-impulse), then free motion. A step that would carry the body through the ground is cut at the time
-of impact, so the bounce happens at the right height and speed whatever the step size. Angular
+the vertices of their convex hull. Obstacles are planes: the ground and the static walls of a
+scene. Each step: gravity, contact impulses on the touching points (projected Gauss-Seidel on the
+normal impulse with restitution and on a Coulomb-clamped friction impulse), then free motion. A
+step that would carry the body through a plane is cut at the time of impact, so the bounce
+happens at the right place and speed whatever the step size. Angular
 momentum (world frame) is the rotational state, which keeps it exactly constant in free flight
 and gets the torque-free tumbling of an asymmetric body right.
 
@@ -81,7 +82,9 @@ class ContactParams:
     Attributes:
         restitution: ratio of rebound to impact normal speed.
         friction: Coulomb friction coefficient mu.
-        ground_height: z of the ground plane, m (None: no ground, free flight).
+        ground_height: z of the ground plane, m (None: no ground).
+        walls: further planes ((nx, ny, nz), d): points p with n . p >= d are free, n a unit
+            normal pointing to the free side (static walls of a scene, see ``static_walls``).
         gravity: [3] m/s^2.
         min_bounce_speed: impacts slower than this (m/s) do not bounce, so a body comes to rest
             instead of chattering in ever smaller bounces.
@@ -92,6 +95,7 @@ class ContactParams:
     restitution: float = 0.5
     friction: float = 0.3
     ground_height: float | None = 0.0
+    walls: tuple[tuple[tuple[float, float, float], float], ...] = ()
     gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
     min_bounce_speed: float = 0.05
     iterations: int = 30
@@ -165,8 +169,47 @@ def _rotate_quat(q: np.ndarray, omega: np.ndarray, dt: float) -> np.ndarray:
     return out / np.linalg.norm(out)
 
 
+def static_walls(
+    boxes,  # VelocityBox sequence of the scene
+    lo: np.ndarray,  # [3] object's lower corner at rest, m
+    hi: np.ndarray,  # [3] upper corner, m
+) -> list[tuple[tuple[float, float, float], float]] | None:
+    """The scene's boxes as contact planes for the rigid path, or None if it cannot take them.
+
+    A box that never moves (zero velocity, active from t = 0 on) and lies beside the object acts
+    on it as the plane of its face towards the object (the push scene's wall). A moving box (a
+    grip) or a still one overlapping the object (a clamp) prescribes motion: None.
+    """
+    planes = []
+    for box in boxes:
+        if any(c != 0.0 for c in box.velocity) or box.start > 0.0:
+            return None
+        b_lo, b_hi = np.asarray(box.lo, np.float64), np.asarray(box.hi, np.float64)
+        gaps = np.concatenate([b_lo - hi, lo - b_hi])  # [6]: box above the object / below, per axis
+        side = int(np.argmax(gaps))
+        if gaps[side] <= 0.0:
+            return None  # overlaps the object on every axis
+        axis = side % 3
+        normal = [0.0, 0.0, 0.0]
+        if side < 3:  # the box is on the + side: the object stays below its lower face
+            normal[axis] = -1.0
+            planes.append((tuple(normal), -float(b_lo[axis])))
+        else:
+            normal[axis] = 1.0
+            planes.append((tuple(normal), float(b_hi[axis])))
+    return planes
+
+
+def _tangents(n: np.ndarray) -> np.ndarray:
+    """Rows (n, t1, t2): a right-handed frame around the unit normal n ((x, y) for the ground)."""
+    helper = np.array([0.0, 1.0, 0.0]) if abs(n[2]) > 0.9 else np.array([0.0, 0.0, 1.0])
+    t1 = np.cross(helper, n)
+    t1 /= np.linalg.norm(t1)
+    return np.stack([n, t1, np.cross(n, t1)])
+
+
 class RigidSimulator:
-    """Integrates one rigid body over the ground plane; see the module docstring."""
+    """Integrates one rigid body among contact planes; see the module docstring."""
 
     def __init__(self, body: RigidBody, contact: ContactParams, state: RigidState):
         if not 0.0 <= contact.restitution <= 1.0:
@@ -180,8 +223,16 @@ class RigidSimulator:
         self.time = 0.0
         self.steps = 0
         self.events: list[tuple[float, float, float]] = []
-        self._warm: dict[int, np.ndarray] = {}  # hull index -> last (jn, jtx, jty), warm start
-        # Points closer to the ground than this count as touching (1e-4 of the body size: invisible).
+        # Contact planes (n, d): the ground first, then the walls.
+        planes = [] if contact.ground_height is None else [((0.0, 0.0, 1.0), contact.ground_height)]
+        planes += list(contact.walls)
+        self.normals = np.array([n for n, _ in planes], dtype=np.float64).reshape(-1, 3)  # [K, 3]
+        if len(self.normals) and not np.allclose(np.linalg.norm(self.normals, axis=1), 1.0):
+            raise ValueError(f"contact plane normals must be unit vectors, got {self.normals.tolist()}")
+        self.offsets = np.array([d for _, d in planes], dtype=np.float64)  # [K]
+        self.frames = [_tangents(n) for n in self.normals]  # per plane: rows (n, t1, t2)
+        self._warm: dict[tuple[int, int], np.ndarray] = {}  # (plane, hull index) -> last impulses
+        # Points closer to a plane than this count as touching (1e-4 of the body size: invisible).
         self.slop = 1e-4 * float(np.abs(body.points).max()) + 1e-9
 
     @staticmethod
@@ -197,9 +248,15 @@ class RigidSimulator:
         rot = quat_to_matrix(self.state.q if q is None else q)
         return rot @ (self.inv_inertia_body @ (rot.T @ (self.state.L if L is None else L)))
 
-    def _heights(self, x: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _distances(self, x: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Signed distances [K, H] of the hull points to the planes, and their arms [H, 3]."""
         arms = self.body.points @ quat_to_matrix(q).T  # [H, 3] world offsets from the com
-        return x[2] + arms[:, 2] - self.contact.ground_height, arms
+        return ((x + arms) @ self.normals.T - self.offsets).T, arms
+
+    def _gap(self, x: np.ndarray, q: np.ndarray) -> float:
+        """Smallest signed distance of any hull point to any plane (inf without planes), m."""
+        dist = self._distances(x, q)[0]
+        return float(dist.min()) if dist.size else math.inf
 
     def _drift(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """Free motion over dt with the current velocities (midpoint rule for the rotation)."""
@@ -212,76 +269,81 @@ class RigidSimulator:
         s = self.state
         s.v = s.v + self.gravity * dt
         remaining = dt
+        planes = len(self.offsets) > 0
         for attempt in range(4):  # at most a few impacts inside one step
-            if self.contact.ground_height is not None:
+            if planes:
                 self._solve_contacts()
             x1, q1 = self._drift(remaining)
-            if self.contact.ground_height is None:
+            if not planes:
                 s.x, s.q = x1, q1
                 break
-            h0 = self._heights(s.x, s.q)[0].min()
-            h1 = self._heights(x1, q1)[0].min()
+            h0 = self._gap(s.x, s.q)
+            h1 = self._gap(x1, q1)
             if h1 >= -self.slop or h0 <= self.slop or attempt == 3:
                 s.x, s.q = x1, q1
                 break
-            # The body would cross the ground during this step: move it to the contact and let
+            # The body would cross a plane during this step: move it to the contact and let
             # the next pass resolve the impact with the pre-impact velocity.
             frac = max(0.0, min(1.0, h0 / (h0 - h1)))
             s.x, s.q = self._drift(frac * remaining)
             remaining *= 1.0 - frac
-        if self.contact.ground_height is not None:
+        if planes:
             # Remove residual penetration by moving the body, never by adding velocity.
-            depth = -self._heights(s.x, s.q)[0].min()
-            if depth > 0:
-                s.x = s.x + np.array([0.0, 0.0, depth])
+            depth = -self._distances(s.x, s.q)[0].min(axis=1)  # [K]
+            for k in np.flatnonzero(depth > 0):
+                s.x = s.x + self.normals[k] * depth[k]
         self.time += dt
         self.steps += 1
 
-    def _contact_set(self) -> tuple[np.ndarray, np.ndarray]:
+    def _contact_set(self) -> tuple[list[tuple[int, int]], np.ndarray, np.ndarray]:
+        """Touching (plane, hull point) pairs, their arms [C, 3] and contact frames [C, 3, 3]."""
         s = self.state
-        heights, arms = self._heights(s.x, s.q)
-        idx = np.flatnonzero(heights <= self.slop)
-        if len(idx) > self.contact.max_contacts:
-            # Keep the extreme points of the contact patch (they carry the torque) plus the deepest.
-            angles = np.linspace(0, 2 * np.pi, self.contact.max_contacts - 1, endpoint=False)
-            dirs = np.stack([np.cos(angles), np.sin(angles)], 1)  # [D, 2]
-            keep = {int(np.argmin(heights[idx]))} | {
-                int(i) for i in np.argmax(arms[idx, :2] @ dirs.T, axis=0)
-            }
-            idx = idx[sorted(keep)]
-        return idx, arms[idx]
+        dist, arms = self._distances(s.x, s.q)
+        keys, frames = [], []
+        for k, frame in enumerate(self.frames):
+            idx = np.flatnonzero(dist[k] <= self.slop)
+            if len(idx) > self.contact.max_contacts:
+                # Keep the extreme points of the patch (they carry the torque) plus the deepest.
+                angles = np.linspace(0, 2 * np.pi, self.contact.max_contacts - 1, endpoint=False)
+                dirs = np.stack([np.cos(angles), np.sin(angles)], 1)  # [D, 2]
+                in_plane = arms[idx] @ frame[1:].T  # [n, 2] tangential coordinates
+                keep = {int(np.argmin(dist[k, idx]))} | {int(i) for i in np.argmax(in_plane @ dirs.T, axis=0)}
+                idx = idx[sorted(keep)]
+            keys += [(k, int(h)) for h in idx]
+            frames += [frame] * len(idx)
+        hull = [h for _, h in keys]
+        return keys, arms[hull], np.array(frames).reshape(-1, 3, 3)
 
     def _solve_contacts(self) -> None:
-        idx, arms = self._contact_set()
-        if len(idx) == 0:
+        keys, arms, axes = self._contact_set()
+        if not keys:
             self._warm = {}
             return
         s, c = self.state, self.contact
         m_inv = self.inv_mass
         rot = quat_to_matrix(s.q)
         i_inv = rot @ self.inv_inertia_body @ rot.T  # world inverse inertia
-        n_c = len(idx)
-        # Jacobians: rows (normal, tangent x, tangent y) per contact act on (v, omega).
-        axes = np.eye(3)[[2, 0, 1]]  # n = +z, t1 = +x, t2 = +y
-        ang = np.cross(arms[:, None, :], axes[None, :, :])  # [C, 3, 3]: r x axis
+        n_c = len(keys)
+        # Jacobians: rows (normal, tangent 1, tangent 2) per contact act on (v, omega).
+        ang = np.cross(arms[:, None, :], axes)  # [C, 3, 3]: r x axis
         jac_ang = ang.reshape(3 * n_c, 3)
-        jac_lin = np.tile(axes, (n_c, 1))
+        jac_lin = axes.reshape(3 * n_c, 3)
         delassus = m_inv * jac_lin @ jac_lin.T + jac_ang @ i_inv @ jac_ang.T  # [3C, 3C]
         omega = i_inv @ s.L
         vel = jac_lin @ s.v + jac_ang @ omega  # [3C]
         vn_in = vel[0::3].copy()
         target = np.where(vn_in < -c.min_bounce_speed, -c.restitution * vn_in, 0.0)
         lam = np.zeros(3 * n_c)
-        for k, h in enumerate(idx):  # warm start from the last step's impulses on the same points
-            if int(h) in self._warm and target[k] == 0.0:
-                lam[3 * k : 3 * k + 3] = self._warm[int(h)]
+        for j, key in enumerate(keys):  # warm start from the last step's impulses on the same points
+            if key in self._warm and target[j] == 0.0:
+                lam[3 * j : 3 * j + 3] = self._warm[key]
         vel = vel + delassus @ lam
         diag = np.diag(delassus).copy()
         for _ in range(c.iterations):
             change = 0.0
-            for k in range(n_c):
-                i = 3 * k
-                new_n = max(0.0, lam[i] + (target[k] - vel[i]) / diag[i])
+            for j in range(n_c):
+                i = 3 * j
+                new_n = max(0.0, lam[i] + (target[j] - vel[i]) / diag[i])
                 d = new_n - lam[i]
                 if d != 0.0:
                     vel += delassus[:, i] * d
@@ -301,9 +363,10 @@ class RigidSimulator:
                     change = max(change, abs(d_t[0]), abs(d_t[1]))
             if change < 1e-12 * (1.0 + np.abs(lam).max()):
                 break
-        s.v = s.v + m_inv * jac_lin.T @ lam
-        s.L = s.L + np.cross(arms, (lam.reshape(n_c, 3)[:, [1, 2, 0]])).sum(0)
-        self._warm = {int(h): lam[3 * k : 3 * k + 3].copy() for k, h in enumerate(idx)}
+        impulses = np.einsum("cj,cjk->ck", lam.reshape(n_c, 3), axes)  # [C, 3] world
+        s.v = s.v + m_inv * impulses.sum(0)
+        s.L = s.L + np.cross(arms, impulses).sum(0)
+        self._warm = {key: lam[3 * j : 3 * j + 3].copy() for j, key in enumerate(keys)}
         if (target > 0).any():
             self.events.append((self.time, float(vn_in.min()), float(vel[0::3][np.argmin(vn_in)])))
 
@@ -323,7 +386,7 @@ class RigidSimulator:
         """Simulate n_frames frames (frame 0 = initial pose) with steps of about dt.
 
         Frames are held once the visible speed stayed below ``rest_speed`` (m/s) for
-        ``rest_frames`` consecutive frames while touching the ground.
+        ``rest_frames`` consecutive frames while touching a plane.
         """
         n_sub = max(1, math.ceil(frame_dt / dt - 1e-9))
         rots, coms, vels, omegas = [], [], [], []
@@ -340,10 +403,7 @@ class RigidSimulator:
             if rest_frame is None:
                 for _ in range(n_sub):
                     self.step(frame_dt / n_sub)
-                touching = (
-                    self.contact.ground_height is not None
-                    and self._heights(self.state.x, self.state.q)[0].min() <= self.slop
-                )
+                touching = self._gap(self.state.x, self.state.q) <= self.slop
                 quiet = quiet + 1 if (touching and self.max_point_speed() < rest_speed) else 0
                 if quiet >= rest_frames:
                     rest_frame = frame
