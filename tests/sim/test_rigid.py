@@ -146,3 +146,17 @@ def test_static_walls_from_scene_boxes():
     grip = VelocityBox((0.15, -1.0, -1.0), (0.2, 1.0, 1.0), velocity=(0.1, 0.0, 0.0))
     assert static_walls((clamp,), lo, hi) is None and static_walls((wall, grip), lo, hi) is None
     assert static_walls((), lo, hi) == []
+
+
+def test_sliding_on_the_ground_into_a_wall_bounces_at_the_wall():
+    # Resting on the ground (touching it) while sliding at 2 m/s into the wall x = 0.3: the step
+    # is still cut at the wall, so the rebound starts at the wall, not a step's travel inside it.
+    # No gravity, so the cube keeps touching the ground instead of hopping.
+    x, mass = _cube(center=(0.0, 0.0, 0.05))
+    v = np.tile([2.0, 0.0, 0.0], (len(x), 1))
+    sim = _sim(x, mass, v, ground_height=0.0, friction=0.0, restitution=1.0, gravity=(0.0, 0.0, 0.0),
+               walls=(((-1.0, 0.0, 0.0), -0.3),))  # fmt: skip
+    traj = sim.run(n_frames=6, frame_dt=0.04, dt=7e-3)  # coarse steps: 14 mm of travel each
+    assert np.all(traj.coms[:, 0] + 0.05 <= 0.3 + 1e-6)
+    # Elastic and frictionless: at t = 0.2 s it went 0.25 m out and 0.15 m back.
+    assert traj.coms[5, 0] == pytest.approx(0.1, abs=1e-6)

@@ -277,14 +277,16 @@ class RigidSimulator:
             if not planes:
                 s.x, s.q = x1, q1
                 break
-            h0 = self._gap(s.x, s.q)
-            h1 = self._gap(x1, q1)
-            if h1 >= -self.slop or h0 <= self.slop or attempt == 3:
+            # Per plane: a body resting on the ground may still be about to hit a wall.
+            h0 = self._distances(s.x, s.q)[0].min(axis=1)  # [K]
+            h1 = self._distances(x1, q1)[0].min(axis=1)
+            crossing = (h1 < -self.slop) & (h0 > self.slop)
+            if not crossing.any() or attempt == 3:
                 s.x, s.q = x1, q1
                 break
-            # The body would cross a plane during this step: move it to the contact and let
+            # The body would cross a plane during this step: move it to the first contact and let
             # the next pass resolve the impact with the pre-impact velocity.
-            frac = max(0.0, min(1.0, h0 / (h0 - h1)))
+            frac = max(0.0, min(1.0, float((h0[crossing] / (h0[crossing] - h1[crossing])).min())))
             s.x, s.q = self._drift(frac * remaining)
             remaining *= 1.0 - frac
         if planes:
