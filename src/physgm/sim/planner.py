@@ -111,6 +111,7 @@ class Plan:
         rest_px, rest_frames: early stop once no particle moved more than rest_px pixels per
             frame for rest_frames frames.
         reason: one human-readable sentence.
+        walls: contact planes ((n, d), ...) of the scene's still walls, for the rigid path.
     """
 
     mode: str
@@ -134,6 +135,7 @@ class Plan:
     restitution: float
     reason: str
     alternatives: dict[str, float] = field(default_factory=dict)  # mode -> predicted cost
+    walls: list = field(default_factory=list)
 
     def summary(self) -> dict:
         """JSON-friendly view (grid as cell counts)."""
@@ -368,7 +370,8 @@ def plan_simulation(
         parts = ", ".join(f"{k[:-3]} {v:.2g}" for k, v in terms.items())
         reason = f"{name} (E={material.E:.3g} Pa) deforms ~{rigid_px:.3g} px <= {cfg.bound_px} px ({parts}): rigid body"
         return Plan("rigid", E_used=material.E, predicted_error_px=rigid_px, error_terms=terms,
-                    substeps_per_frame=steps["rigid"], predicted_cost=cost["rigid"], reason=reason, **common)  # fmt: skip
+                    substeps_per_frame=steps["rigid"], predicted_cost=cost["rigid"], reason=reason, walls=walls,
+                    **common)  # fmt: skip
     if flows:
         why = "it flows (granular / fluid)"
     elif walls is None:

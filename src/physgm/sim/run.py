@@ -25,7 +25,7 @@ from physgm.sim.constitutive import MaterialParams
 from physgm.sim.coupling import follow_and_deform, rigid_transform_gaussians
 from physgm.sim.grid import GridSpec
 from physgm.sim.planner import Plan, PlannerConfig, choose_spacing, plan_simulation
-from physgm.sim.rigid import ContactParams, RigidBody, RigidSimulator, RigidTrajectory, static_walls
+from physgm.sim.rigid import ContactParams, RigidBody, RigidSimulator, RigidTrajectory
 from physgm.sim.sampling import Followers, ParticleSample, build_followers, sample_particles
 from physgm.sim.scenes import Scene, SceneSetup, build_scene
 from physgm.sim.solver import MPMSolver
@@ -255,14 +255,11 @@ def _run_rigid(plan: Plan, scene: Scene, x0: np.ndarray, v0: np.ndarray, sample:
     """Rigid path: mass and inertia from the particles, contacts on the visible Gaussians' hull."""
     mass = sample.volume.double().cpu().numpy() * density
     ground = scene.ground
-    walls = static_walls(scene.boxes, x0.min(0), x0.max(0))
-    if walls is None:
-        raise ValueError("the rigid path takes the ground and still walls only; this scene moves boxes")
     contact = ContactParams(
         restitution=plan.restitution,
         friction=ground.friction if ground is not None else 0.0,
         ground_height=None if ground is None else ground.height,
-        walls=tuple(walls),
+        walls=tuple(plan.walls),  # the scene's still walls, found by the planner
         gravity=tuple(scene.gravity),
     )
     surface = gaussians.means[gaussians.opacities >= cfg.min_opacity].detach().double().cpu().numpy()
