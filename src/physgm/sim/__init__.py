@@ -59,8 +59,9 @@ cohesion=0, viscosity=0)``                          (constitutive/__init__.py)
     ``.hooks``: list of ``GridHook``; ``hook.apply(solver, dt)`` runs after each grid update.
     ``solver.grid_v`` is a wp.array3d [nx, ny, nz] of ``kernels.vec8`` = (vx, vy, vz, mass,
     dvx, dvy, dvz, 0); a hook that changes a node velocity must add the same change to
-    components 4-6 (``kernels.set_node_velocity`` does both). Only nodes inside
-    ``solver.active_box`` (node index lo, hi) are current.
+    components 4-6 (``kernels.set_node_velocity`` does both). Only nodes of the 4^3-node
+    blocks a particle stencil reached this sub-step are current (``kernels.grid_update``);
+    particles read no others.
 
 ``simulate(particles, materials, grid, scene, n_frames, config=None, device="cpu")`` builds a
 solver, runs it and returns the ``Trajectory``.

@@ -113,9 +113,10 @@ def no_ground() -> GroundStruct:
 class GridHook(Protocol):
     """Extension point called after the grid update of every sub-step.
 
-    ``solver.grid_v`` (wp.array3d of vec4, [nx, ny, nz]: xyz node velocity in m/s, w node mass
-    in kg) may be modified in place with Warp kernels on ``solver.device``; e.g. a rigid
-    collider sets the velocity of the nodes it covers and reads the momentum change.
+    ``solver.grid_v`` (wp.array3d of ``kernels.vec8``, [nx, ny, nz]: node velocity in m/s, mass
+    in kg, velocity change of this step; see ``physgm.sim``) may be modified in place with Warp
+    kernels on ``solver.device``; e.g. a rigid collider sets the velocity of the nodes it covers
+    and reads the momentum change.
     """
 
     def apply(self, solver: MPMSolver, dt: float) -> None: ...

@@ -19,8 +19,12 @@ grid ``grid_v``: (velocity xyz, mass, velocity change of this step xyz, 0); a ho
 a node velocity adds the same change to components 4-6 (``set_node_velocity``).
 
 Particle kernels take an ``offset`` so the CPU solver can split the particles over threads,
-each thread scattering into its own accumulator; grid_update sums them over the active box
-(``lo`` + launch dims), the only nodes particles can touch before the next re-fit.
+each thread scattering into its own accumulator. The scatter also stamps the 4^3-node block of
+the particle's base node with the number of the sub-step it feeds (``touched``); grid_update runs
+one thread per block of the active box (``lo`` + launch dims, the only region particles can reach
+before the next re-fit) and skips blocks no stencil reached, so empty space costs a few reads per
+64 nodes instead of 64 node updates. The 8k-particle jelly drop's active box has 23-32k nodes of
+which ~4k hold mass: grid_update 0.78 -> 0.31 ms per sub-step, the drop 20.5 -> 15.9 s (measured).
 Particle stencils are clamped inside the grid, so no index can leave an array whatever the state.
 The numpy twin of one sub-step is ``physgm.sim.reference_mpm`` (tests only).
 """
@@ -49,6 +53,13 @@ NUM_STATS = 6
 # their row for every particle, never write the same line.
 STATS_ROW = 16  # floats
 WORK_ROW = 8  # float64
+# Grid_update skips 4^3-node blocks that no particle stencil reached this sub-step.
+BLOCK = wp.constant(4)
+
+
+def block_res(res: tuple[int, int, int]) -> tuple[int, int, int]:
+    """Blocks per axis covering ``res`` nodes."""
+    return tuple(-(-int(n) // BLOCK) for n in res)
 
 
 @wp.func
@@ -113,14 +124,20 @@ def scatter_particle(
     origin: wp.vec3,
     dx: float,
     shape: wp.vec3i,
+    touched: wp.array3d(dtype=wp.int32),  # [bx, by, bz] sub-step number that last reached each block
+    stamp: wp.int32,  # number of the sub-step whose grid_update consumes this scatter
 ):
     """Add one particle's APIC momentum, mass and stress force to its 27 stencil nodes.
+
+    The stencil (base .. base + 2 per axis) lies in the base node's block and the next one along
+    each axis, so stamping the base block tells grid_update about all of them.
 
     MLS-MPM (Hu et al. 2018): node i receives w (m v + m C (x_i - x_p)) and the force
     w (-(4 / dx^2) V0 tau (x_i - x_p)), both built incrementally along i, j, k (adds only).
     """
     inv_dx = 1.0 / dx
     base, fx, w = stencil((xp - origin) * inv_dx, shape)
+    touched[base[0] // BLOCK, base[1] // BLOCK, base[2] // BLOCK] = stamp
     force = -(4.0 * inv_dx * inv_dx) * stress_p
     affine = m * cp
     q = m * vp - affine * (fx * dx)
@@ -158,41 +175,42 @@ def p2g(
     dx: float,
     offset: int,
     shape: wp.vec3i,  # grid node counts
+    touched: wp.array3d(dtype=wp.int32),  # [bx, by, bz] out: blocks reached (``scatter_particle``)
+    stamp: wp.int32,
     grid: wp.array(dtype=vec8),  # [G] flat (i ny + j) nz + k: momentum, mass, stress force
 ):
     p = wp.tid() + offset
-    scatter_particle(grid, x[p], v[p], C[p], stress[p], mass[p], origin, dx, shape)
+    scatter_particle(grid, x[p], v[p], C[p], stress[p], mass[p], origin, dx, shape, touched, stamp)
 
 
-@wp.kernel
-def grid_update(
-    acc0: wp.array3d(dtype=vec8),  # [nx, ny, nz] first thread's accumulator, cleared here
-    acc1: wp.array3d(dtype=vec8),  # [nx, ny, nz] second thread's accumulator (zeros if unused)
-    lo: wp.vec3i,  # first node of the launched (active) box
+@wp.func
+def update_node(
+    acc0: wp.array3d(dtype=vec8),
+    acc1: wp.array3d(dtype=vec8),
+    i: int,
+    j: int,
+    k: int,
     origin: wp.vec3,
     dx: float,
     dt: float,
     t: float,
     gravity: wp.vec3,
-    damping: float,  # velocity kept per step, exp(-k dt) of a drag rate k (1/s); 1 = none
+    damping: float,
     bound: int,
     ground: GroundStruct,
     boxes: wp.array(dtype=BoxStruct),
     num_boxes: int,
     slot: int,
-    work: wp.array2d(dtype=wp.float64),  # [threads, WORK_ROW] energy put in by the velocity boxes (column 0), J
-    grid_v: wp.array3d(dtype=vec8),  # [nx, ny, nz] out: velocity, mass, velocity change
+    work: wp.array2d(dtype=wp.float64),
+    grid_v: wp.array3d(dtype=vec8),
 ):
-    i, j, k = wp.tid()
-    i += lo[0]
-    j += lo[1]
-    k += lo[2]
+    """Accumulators of node (i, j, k) -> its velocity in ``grid_v``; clears the accumulators."""
     g = acc0[i, j, k] + acc1[i, j, k]
     m = g[3]
     if m <= 0.0:
         grid_v[i, j, k] = vec8(0.0)
         return
-    # Only nodes that received mass were written by p2g, so only they need clearing.
+    # Only nodes that received mass were written by the scatter, so only they need clearing.
     acc0[i, j, k] = vec8(0.0)
     acc1[i, j, k] = vec8(0.0)
     v_transfer = wp.vec3(g[0], g[1], g[2]) / m  # APIC transfer alone, for the FLIP increment
@@ -214,6 +232,59 @@ def grid_update(
         vel[2] = 0.0
     dv = vel - v_transfer
     grid_v[i, j, k] = vec8(vel[0], vel[1], vel[2], m, dv[0], dv[1], dv[2], 0.0)
+
+
+@wp.func
+def block_reached(touched: wp.array3d(dtype=wp.int32), bi: int, bj: int, bk: int, stamp: wp.int32) -> bool:
+    """Did a stencil reach block (bi, bj, bk)? Stencils start in the block or the one before it."""
+    for a in range(2):
+        for b in range(2):
+            for c in range(2):
+                i = bi - a
+                j = bj - b
+                k = bk - c
+                if i >= 0 and j >= 0 and k >= 0:
+                    if touched[i, j, k] == stamp:
+                        return True
+    return False
+
+
+@wp.kernel
+def grid_update(
+    acc0: wp.array3d(dtype=vec8),  # [nx, ny, nz] first thread's accumulator, cleared here
+    acc1: wp.array3d(dtype=vec8),  # [nx, ny, nz] second thread's accumulator (zeros if unused)
+    touched: wp.array3d(dtype=wp.int32),  # [bx, by, bz] blocks reached by this sub-step's scatter
+    stamp: wp.int32,  # this sub-step's number
+    lo: wp.vec3i,  # first block of the launched (active) box
+    origin: wp.vec3,
+    dx: float,
+    dt: float,
+    t: float,
+    gravity: wp.vec3,
+    damping: float,  # velocity kept per step, exp(-k dt) of a drag rate k (1/s); 1 = none
+    bound: int,
+    ground: GroundStruct,
+    boxes: wp.array(dtype=BoxStruct),
+    num_boxes: int,
+    slot: int,
+    work: wp.array2d(dtype=wp.float64),  # [threads, WORK_ROW] energy put in by the velocity boxes (column 0), J
+    grid_v: wp.array3d(dtype=vec8),  # [nx, ny, nz] out: velocity, mass, velocity change
+):
+    """One thread per 4^3-node block; blocks no stencil reached are left as they are (no particle
+    reads them this sub-step)."""
+    bi, bj, bk = wp.tid()
+    bi += lo[0]
+    bj += lo[1]
+    bk += lo[2]
+    if not block_reached(touched, bi, bj, bk, stamp):
+        return
+    for i in range(bi * BLOCK, wp.min((bi + 1) * BLOCK, grid_v.shape[0])):
+        for j in range(bj * BLOCK, wp.min((bj + 1) * BLOCK, grid_v.shape[1])):
+            for k in range(bk * BLOCK, wp.min((bk + 1) * BLOCK, grid_v.shape[2])):
+                update_node(
+                    acc0, acc1, i, j, k, origin, dx, dt, t, gravity, damping, bound, ground, boxes,
+                    num_boxes, slot, work, grid_v,
+                )
 
 
 @wp.func
@@ -273,6 +344,8 @@ def g2p(
     escaped: wp.array(dtype=int),  # [P] in/out, 1 once the clamp stopped the particle
     stats: wp.array2d(dtype=float),  # [threads, STATS_ROW] running reductions in the first NUM_STATS columns
     work: wp.array2d(dtype=wp.float64),  # [threads, WORK_ROW] energy put in by the velocity boxes (column 0), J
+    touched: wp.array3d(dtype=wp.int32),  # [bx, by, bz] out: blocks reached by the next scatter
+    stamp: wp.int32,  # number of the next sub-step
     acc: wp.array(dtype=vec8),  # [G] flat, out: this thread's scatter for the next sub-step
 ):
     p = wp.tid() + offset
@@ -340,7 +413,9 @@ def g2p(
         wp.atomic_max(stats, slot, STAT_VMAX, wp.dot(v_new, v_new))  # squared; the solver takes the root
         wp.atomic_min(stats, slot, STAT_JMIN, J)
         wp.atomic_max(stats, slot, STAT_JMAX, J)
-        scatter_particle(acc, x_new, v_new, c_new, vol0[p] * tau, mass[p], origin, dx, shape)
+        scatter_particle(
+            acc, x_new, v_new, c_new, vol0[p] * tau, mass[p], origin, dx, shape, touched, stamp
+        )
     x[p] = x_new
     v[p] = v_new
     C[p] = c_new

@@ -27,6 +27,9 @@ class SubstepLaunches:
         self._record()
         self._dt = None
         self.scattered = False  # the accumulators hold the current particles' scatter
+        # Number of the last sub-step run; the scatter stamps the blocks it reaches with the number
+        # of the sub-step that consumes it, so stale stamps never match and nothing needs clearing.
+        self.stamp = 0
         self.timed = bool(len(solver.scene.boxes))  # only the velocity boxes depend on time
 
     def _record(self) -> None:
@@ -57,6 +60,8 @@ class SubstepLaunches:
                         g.dx,
                         p0,
                         shape,
+                        s.touched,
+                        0,
                         s.acc[t].flatten(),
                     ],
                     device=dev,
@@ -96,6 +101,8 @@ class SubstepLaunches:
                         ps.escaped,
                         s.stats,
                         s.work,
+                        s.touched,
+                        0,
                         s.acc[t].flatten(),
                     ],
                     device=dev,
@@ -103,14 +110,16 @@ class SubstepLaunches:
                 )
             )
 
-        # grid_update is a few percent of a sub-step: one launch on the calling thread costs less
-        # than another thread hand-off.
+        # With the empty blocks skipped, grid_update is a few percent of a sub-step: one launch on
+        # the calling thread costs less than another thread hand-off.
         self.grid_update = wp.launch(
             K.grid_update,
-            g.res,
+            K.block_res(g.res),
             [
                 s.acc[0],
                 s.acc[1],
+                s.touched,
+                0,
                 wp.vec3i(0, 0, 0),
                 origin,
                 g.dx,
@@ -151,16 +160,28 @@ class SubstepLaunches:
     def set_active_box(
         self, lo: np.ndarray, hi: np.ndarray, inner_lo: np.ndarray, inner_hi: np.ndarray
     ) -> None:
-        """grid_update covers nodes lo..hi; g2p flags particles that leave [inner_lo, inner_hi] (m)
-        before the next re-fit."""
-        self.grid_update.set_dim(tuple(int(h - l + 1) for l, h in zip(lo, hi, strict=True)))
-        self.grid_update.set_param_by_name("lo", wp.vec3i(*(int(v) for v in lo)))
+        """grid_update covers the blocks of nodes lo..hi; g2p flags particles that leave
+        [inner_lo, inner_hi] (m) before the next re-fit."""
+        blo = [int(v) // K.BLOCK for v in lo]
+        bhi = [int(v) // K.BLOCK for v in hi]
+        self.grid_update.set_dim(tuple(h - l + 1 for l, h in zip(blo, bhi, strict=True)))
+        self.grid_update.set_param_by_name("lo", wp.vec3i(*blo))
         for launch in self.g2p:
             launch.set_param_by_name("active_lo", wp.vec3(*inner_lo))
             launch.set_param_by_name("active_hi", wp.vec3(*inner_hi))
 
+    def _set_stamp(self) -> None:
+        self.stamp += 1
+        if not self.scattered:
+            for launch in self.p2g:
+                launch.set_param_by_name("stamp", self.stamp)
+        self.grid_update.set_param_by_name("stamp", self.stamp)
+        for launch in self.g2p:
+            launch.set_param_by_name("stamp", self.stamp + 1)
+
     def run(self, worker, between) -> None:
         """One sub-step: [p2g,] grid_update, ``between()`` (grid hooks), g2p (which scatters)."""
+        self._set_stamp()
         if worker is None:
             if not self.scattered:
                 self.p2g[0].launch()

@@ -108,6 +108,7 @@ class MPMSolver:
         dev, res = self.device, self.grid.res
         self.acc = [wp.zeros(res, dtype=K.vec8, device=dev) for _ in range(2)]  # per-thread accumulators
         self.grid_v = wp.zeros(res, dtype=K.vec8, device=dev)  # velocity, mass, velocity change
+        self.touched = wp.zeros(K.block_res(res), dtype=wp.int32, device=dev)  # see kernels.scatter_particle
         self.stats = wp.zeros((2, K.STATS_ROW), dtype=float, device=dev)
         self.boxes = wp.array(
             [b.pack() for b in self.scene.boxes] or [BoxStruct()], dtype=BoxStruct, device=dev
