@@ -3,40 +3,25 @@
 Pipeline (kernels in `warp_kernels.py` and `warp_raster_kernels.py`, torch ops in between):
 project (I*N pairs) -> count tiles per pair -> prefix sum -> emit (tile, pair) entries ->
 sort by (image, tile, depth) -> gather entry data contiguously -> raster forward.
-Backward: raster backward into per-entry slots -> index_add to pairs / Gaussians -> Warp's
-generated adjoint of the projection kernel. The same code runs on CPU and CUDA (tile layout
-on CPU, pixel layout on CUDA); on CPU the raster launches are split over Python threads,
-which run in parallel because a Warp launch releases the GIL.
+Backward: raster backward into per-entry slots -> index_add to pairs / Gaussians -> the
+projection's hand-written vector-Jacobian product (tested against Warp's generated adjoint).
+The same code runs on CPU and CUDA (tile layout on CPU, pixel layout on CUDA); on CPU the
+raster launches are split over Python threads (``physgm.parallel``), which run in parallel
+because a Warp launch releases the GIL.
 """
 
 from __future__ import annotations
-
-import os
-import threading
-from concurrent.futures import ThreadPoolExecutor
 
 import torch
 import warp as wp
 from torch import Tensor
 
+from physgm.parallel import helpers_for_this_thread, run_split
 from physgm.render import warp_kernels as K
 from physgm.render import warp_raster_kernels as R
 from physgm.render.projection import radii_px
 from physgm.render.settings import RasterSettings, single_threaded_torch
 from physgm.warp_runtime import ensure_loaded
-
-_POOLS: dict[tuple[int, int], ThreadPoolExecutor] = {}
-_POOL_LOCK = threading.Lock()
-
-
-def _pool(num_threads: int) -> ThreadPoolExecutor:
-    # keyed by process id: a forked child (e.g. a DataLoader worker) inherits the pool object
-    # but not its threads, and would wait forever on it
-    key = (os.getpid(), num_threads)
-    with _POOL_LOCK:
-        if key not in _POOLS:
-            _POOLS[key] = ThreadPoolExecutor(num_threads, thread_name_prefix="physgm-raster")
-        return _POOLS[key]
 
 
 def _arr(t: Tensor, dtype) -> wp.array:
@@ -118,10 +103,8 @@ def _launch_tiles(kernels, ranges, settings: RasterSettings, args: list, device:
 
     if device.type == "cpu" and len(ranges) > 1:
         # the calling thread takes the last range itself: one thread hand-off fewer
-        futures = [_pool(len(ranges) - 1).submit(run, r) for r in ranges[:-1]]
-        run(ranges[-1])
-        for f in futures:
-            f.result()  # re-raises worker exceptions
+        tasks = [lambda r=r: run(r) for r in ranges]
+        run_split(tasks, helpers_for_this_thread(len(ranges) - 1))  # re-raises helper exceptions
     else:
         for r in ranges:
             run(r)
@@ -269,15 +252,11 @@ class _RasterizeWarp(torch.autograd.Function):
         v_means2d = means.new_zeros(num_pairs, 2).index_add_(0, e_pair, v_e_means2d)
         v_conics = means.new_zeros(num_pairs, 3).index_add_(0, e_pair, v_e_conics)
 
-        # Warp's generated adjoint of the projection kernel: sums over cameras into each Gaussian.
-        # It replays the forward, so it gets fresh output arrays to leave the meta tensors alone.
-        fwd = _projection_args(means, quats, scales, opacities, viewmats, Ks, num_n, num_c, s)
-        outs = _projection_outputs(*(torch.empty_like(x) for x in (means2d, conics, depths, cov_diag)))
-        zeros = [torch.zeros_like(x) for x in (opacities, viewmats, Ks, depths, cov_diag)]
-        adj = _projection_args(v_means, v_quats, v_scales, *zeros[:3], num_n, num_c, s)
-        adj_outs = _projection_outputs(v_means2d, v_conics, *zeros[3:])
-        _launch(K.project_kernel, num_pairs, fwd, device, outputs=outs, adj_inputs=adj,
-                adj_outputs=adj_outs, adjoint=True)  # fmt: skip
+        # The projection's vector-Jacobian product sums over cameras into each Gaussian.
+        _launch(K.project_vjp_kernel, num_pairs,
+                [*_projection_args(means, quats, scales, opacities, viewmats, Ks, num_n, num_c, s),
+                 _arr(v_means2d, wp.vec2), _arr(v_conics, wp.vec3), _arr(v_means, wp.vec3),
+                 _arr(v_quats, wp.vec4), _arr(v_scales, wp.vec3)], device)  # fmt: skip
         return v_means, v_quats, v_scales, v_opac, v_colors, None, None, None, None
 
 

@@ -9,13 +9,13 @@ from collections.abc import Sequence
 import numpy as np
 import warp as wp
 
+from physgm.parallel import PairWorker
 from physgm.sim import kernels as K
 from physgm.sim import particle_ops as ops
 from physgm.sim.boundary import BoxStruct, GridHook
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.grid import GridSpec
 from physgm.sim.launches import SubstepLaunches
-from physgm.sim.parallel import PairWorker
 from physgm.sim.particle_store import ParticleStore
 from physgm.sim.scenes import Scene
 from physgm.sim.state import Energy, FrameStats, Particles, ParticleState, Trajectory
