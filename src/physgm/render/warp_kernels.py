@@ -107,6 +107,132 @@ def project_kernel(
     cov_diag[pid] = cd
 
 
+@wp.func
+def quat_to_rotmat_vjp(q: wp.vec4, v_r: wp.mat33) -> wp.vec4:
+    """Gradient of sum(v_r * R(q)) w.r.t. the (unnormalised use of) quaternion q = (w, x, y, z)."""
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    return 2.0 * wp.vec4(
+        -z * v_r[0, 1] + y * v_r[0, 2] + z * v_r[1, 0] - x * v_r[1, 2] - y * v_r[2, 0] + x * v_r[2, 1],
+        y * v_r[0, 1] + z * v_r[0, 2] + y * v_r[1, 0] - 2.0 * x * v_r[1, 1] - w * v_r[1, 2] + z * v_r[2, 0]
+        + w * v_r[2, 1] - 2.0 * x * v_r[2, 2],
+        -2.0 * y * v_r[0, 0] + x * v_r[0, 1] + w * v_r[0, 2] + x * v_r[1, 0] + z * v_r[1, 2] - w * v_r[2, 0]
+        + z * v_r[2, 1] - 2.0 * y * v_r[2, 2],
+        -2.0 * z * v_r[0, 0] - w * v_r[0, 1] + x * v_r[0, 2] + w * v_r[1, 0] - 2.0 * z * v_r[1, 1]
+        + y * v_r[1, 2] + x * v_r[2, 0] + y * v_r[2, 1],
+    )  # fmt: skip
+
+
+@wp.kernel(enable_backward=False)
+def project_vjp_kernel(
+    means: wp.array(dtype=wp.vec3),  # [B*N] as in project_kernel
+    quats: wp.array(dtype=wp.vec4),  # [B*N]
+    scales: wp.array(dtype=wp.vec3),  # [B*N]
+    opacities: wp.array(dtype=float),  # [B*N]
+    viewmats: wp.array(dtype=wp.mat44),  # [I]
+    Ks: wp.array(dtype=wp.mat33),  # [I]
+    num_gaussians: int,
+    num_cameras: int,
+    width: int,
+    height: int,
+    near_plane: float,
+    far_plane: float,
+    eps2d: float,
+    v_means2d: wp.array(dtype=wp.vec2),  # [I*N] gradient of the loss w.r.t. means2d
+    v_conics: wp.array(dtype=wp.vec3),  # [I*N] and w.r.t. conics
+    v_means: wp.array(dtype=wp.vec3),  # [B*N] accumulated (summed over cameras), out
+    v_quats: wp.array(dtype=wp.vec4),  # [B*N] accumulated, out
+    v_scales: wp.array(dtype=wp.vec3),  # [B*N] accumulated, out
+):
+    """Hand-written vector-Jacobian product of ``project_kernel`` for means, quats and scales.
+
+    Recomputes the pair's forward intermediates and applies the chain rule backwards (conic =
+    inverse 2D covariance, covariance = rows a0, a1 of J W R S, J from the clamped ray, mean2d).
+    Warp's generated adjoint of ``project_kernel`` is the reference in the tests; this one skips
+    the gradients nobody asks for (cameras, opacities) and the replay's bookkeeping.
+    """
+    pid = wp.tid()
+    img = pid // num_gaussians
+    g = (img // num_cameras) * num_gaussians + (pid - img * num_gaussians)
+    view = viewmats[img]
+    rot_w = wp.mat33(
+        view[0, 0], view[0, 1], view[0, 2],
+        view[1, 0], view[1, 1], view[1, 2],
+        view[2, 0], view[2, 1], view[2, 2],
+    )  # fmt: skip
+    p = rot_w * means[g] + wp.vec3(view[0, 3], view[1, 3], view[2, 3])
+    z = p[2]
+    if z < near_plane or z > far_plane or opacities[g] < _ALPHA_MIN:
+        return
+    K = Ks[img]
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    lim_x = _FOV_CLAMP * 0.5 * float(width) / fx
+    lim_y = _FOV_CLAMP * 0.5 * float(height) / fy
+    rx = p[0] / z
+    ry = p[1] / z
+    cl_x = wp.min(wp.max(rx, -cx / fx - lim_x), (float(width) - cx) / fx + lim_x)
+    cl_y = wp.min(wp.max(ry, -cy / fy - lim_y), (float(height) - cy) / fy + lim_y)
+    tx = z * cl_x
+    ty = z * cl_y
+    iz = 1.0 / z
+    iz2 = iz * iz
+    j0 = wp.vec3(fx * iz, 0.0, -fx * tx * iz2)
+    j1 = wp.vec3(0.0, fy * iz, -fy * ty * iz2)
+    q = quats[g]
+    qn = wp.length(q)
+    qhat = q / qn
+    rot_t = wp.transpose(rot_w * quat_to_rotmat(qhat))
+    s = scales[g]
+    u0 = rot_t * j0
+    u1 = rot_t * j1
+    a0 = wp.cw_mul(u0, s)
+    a1 = wp.cw_mul(u1, s)
+    cov_a0 = wp.dot(a0, a0)
+    cov_b = wp.dot(a0, a1)
+    cov_c0 = wp.dot(a1, a1)
+    m01 = a0[0] * a1[1] - a0[1] * a1[0]
+    m02 = a0[0] * a1[2] - a0[2] * a1[0]
+    m12 = a0[1] * a1[2] - a0[2] * a1[1]
+    det = m01 * m01 + m02 * m02 + m12 * m12 + eps2d * (cov_a0 + cov_c0) + eps2d * eps2d
+    if det <= 0.0:
+        return
+    # conic Q = Sigma^-1: dL/dSigma = -Q G Q with G the symmetric gradient of Q's entries
+    inv = wp.mat22(cov_c0 + eps2d, -cov_b, -cov_b, cov_a0 + eps2d) / det
+    vc = v_conics[pid]
+    v_sigma = -(inv * wp.mat22(vc[0], 0.5 * vc[1], 0.5 * vc[1], vc[2]) * inv)
+    v_a0 = 2.0 * v_sigma[0, 0] * a0 + 2.0 * v_sigma[0, 1] * a1
+    v_a1 = 2.0 * v_sigma[1, 1] * a1 + 2.0 * v_sigma[0, 1] * a0
+    v_s = wp.cw_mul(v_a0, u0) + wp.cw_mul(v_a1, u1)
+    v_u0 = wp.cw_mul(v_a0, s)
+    v_u1 = wp.cw_mul(v_a1, s)
+    v_j0 = wp.transpose(rot_t) * v_u0
+    v_j1 = wp.transpose(rot_t) * v_u1
+    # rot_t = (W R)^T, so dL/dR = W^T (dL/drot_t)^T
+    v_rot = wp.transpose(rot_w) * wp.transpose(wp.outer(v_u0, j0) + wp.outer(v_u1, j1))
+    v_qhat = quat_to_rotmat_vjp(qhat, v_rot)
+    v_q = (v_qhat - wp.dot(qhat, v_qhat) * qhat) / qn
+    # J(tx, ty, z); tx = z clamp(x / z): the gradient reaches x when unclamped, z when clamped
+    v_z = -(v_j0[0] * fx + v_j1[1] * fy) * iz2 + 2.0 * (v_j0[2] * fx * tx + v_j1[2] * fy * ty) * iz2 * iz
+    v_tx = -v_j0[2] * fx * iz2
+    v_ty = -v_j1[2] * fy * iz2
+    v_px = wp.float32(0.0)
+    v_py = wp.float32(0.0)
+    if cl_x == rx:
+        v_px = v_tx
+    else:
+        v_z += v_tx * cl_x
+    if cl_y == ry:
+        v_py = v_ty
+    else:
+        v_z += v_ty * cl_y
+    vm = v_means2d[pid]
+    v_px += vm[0] * fx * iz
+    v_py += vm[1] * fy * iz
+    v_z -= (vm[0] * fx * p[0] + vm[1] * fy * p[1]) * iz2
+    wp.atomic_add(v_means, g, wp.transpose(rot_w) * wp.vec3(v_px, v_py, v_z))
+    wp.atomic_add(v_quats, g, v_q)
+    wp.atomic_add(v_scales, g, v_s)
+
+
 @wp.kernel(enable_backward=False)
 def pair_bounds_kernel(
     means2d: wp.array(dtype=wp.vec2),  # [I*N]
