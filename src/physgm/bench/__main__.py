@@ -13,6 +13,7 @@ SUITES = {
     "sim-stability": "physgm.bench.sim_stability",
     "e2e": "physgm.bench.e2e",
     "model": "physgm.bench.model",
+    "dpo-landscape": "physgm.bench.dpo_landscape",
 }
 
 

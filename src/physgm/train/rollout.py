@@ -32,7 +32,7 @@ from torch.utils.data import DataLoader
 from physgm.cameras import Cameras
 from physgm.data.datamodule import FolderRecord, example_rng
 from physgm.data.format import load_asset, read_split
-from physgm.data.video import VideoConfig, place_object, render_frames
+from physgm.data.video import VideoConfig, codec_round_trip, place_object, read_mp4, render_frames
 from physgm.data.views import ViewConfig, build_example
 from physgm.gaussians import Gaussians
 from physgm.metrics.trajectory import score_videos
@@ -63,6 +63,9 @@ class SimSettings:
     planner: dict = field(default_factory=dict)  # PlannerConfig overrides; {} plans like the reference video
     solver: dict = field(default_factory=dict)  # SolverConfig overrides; frame_dt always = 1 / video fps
     device: str = "auto"  # Warp device of the MPM: "auto" follows the model (cpu / cuda:N)
+    # Candidates go through the reference videos' H.264 encoding before scoring, so codec
+    # artefacts cancel instead of moving tracks and landing frames (data.video.codec_round_trip).
+    codec_round_trip: bool = True
 
 
 @dataclass
@@ -119,18 +122,7 @@ def load_scenes(root: str | Path, split: str, video_name: str = "drop", num_view
 
 def reference_frames(scene: RolloutScene, n_frames: int | None = None) -> np.ndarray:
     """The reference video as uint8 [T, H, W, 3], cut to ``n_frames``."""
-    import imageio_ffmpeg
-
-    reader = imageio_ffmpeg.read_frames(str(scene.video_path))
-    meta = next(reader)
-    w, h = meta["size"]
-    frames = []
-    for buf in reader:
-        frames.append(np.frombuffer(buf, np.uint8).reshape(h, w, 3))
-        if n_frames is not None and len(frames) >= n_frames:
-            break
-    reader.close()
-    return np.stack(frames)
+    return read_mp4(scene.video_path, n_frames)
 
 
 def render_camera(scene: RolloutScene, resolution: int | None) -> Cameras:
@@ -167,13 +159,13 @@ def physics_dict(sample: PhysicsSample, k: int = 0) -> dict:
             "nu": float(sample.poisson_ratio()[0, k])}
 
 
-def evaluate_physics(scene: RolloutScene, gaussians: Gaussians, physics: dict, reference: np.ndarray,
-                     settings: SimSettings, device: str = "cpu") -> tuple[float, dict]:
-    """Simulate ``physics`` on ``gaussians`` (asset frame) like the reference video; returns (distance, info).
+def simulate_clip(scene: RolloutScene, gaussians: Gaussians, physics: dict, settings: SimSettings, n_frames: int,
+                  device: str = "cpu") -> tuple[np.ndarray, dict]:
+    """Simulate ``physics`` on ``gaussians`` (asset frame) like the reference video; returns (frames, info).
 
     The object is placed with the video's own settings (``place_object``), dropped in the
-    video's scene at the video's frame rate, rendered from the video's camera over the same
-    background and scored against ``reference`` [T, H, W, 3] uint8.
+    video's scene at the video's frame rate and rendered from the video's camera over the same
+    background: frames [n_frames, H, W, 3] uint8, info {mode, E_used} of the plan.
     """
     from physgm.sim.planner import PlannerConfig
     from physgm.sim.run import simulate
@@ -181,7 +173,6 @@ def evaluate_physics(scene: RolloutScene, gaussians: Gaussians, physics: dict, r
 
     world, _ = place_object(gaussians, scene.video)
     camera = render_camera(scene, settings.resolution)
-    n_frames = settings.n_frames or len(reference)
     solver = SolverConfig(**{**settings.solver, "frame_dt": 1.0 / scene.fps})
     # As write_reference_video does: every Gaussian carries mass (faint glass / jelly Gaussians too).
     planner = {"min_opacity": min(0.05, 0.5 * float(world.opacities.min()))}
@@ -195,8 +186,19 @@ def evaluate_physics(scene: RolloutScene, gaussians: Gaussians, physics: dict, r
     traj = simulate(world, physics, scene.video.scene, camera, n_frames=n_frames, planner=planner,
                     solver=solver, scene_overrides={"height": scene.video.drop_height_m}, device=device)
     frames = render_frames(traj, camera, settings.backend, scene.video.background)
+    return frames, {"mode": str(traj.plan.mode), "E_used": float(traj.plan.E_used)}
+
+
+def evaluate_physics(scene: RolloutScene, gaussians: Gaussians, physics: dict, reference: np.ndarray,
+                     settings: SimSettings, device: str = "cpu") -> tuple[float, dict]:
+    """Simulate ``physics`` on ``gaussians`` like the reference video (``simulate_clip``) and score the
+    clip against ``reference`` [T, H, W, 3] uint8; returns (distance, info)."""
+    n_frames = settings.n_frames or len(reference)
+    frames, info = simulate_clip(scene, gaussians, physics, settings, n_frames, device)
+    if settings.codec_round_trip:
+        frames = codec_round_trip(frames, scene.fps)
     score = score_videos(reference[:n_frames], frames)
-    return score.distance, {"mode": str(traj.plan.mode), "E_used": float(traj.plan.E_used)}
+    return score.distance, info
 
 
 def widen(posterior: PhysicsPosterior, min_std_decades: float, min_std_nu: float) -> PhysicsPosterior:
