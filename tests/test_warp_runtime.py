@@ -60,3 +60,21 @@ def test_concurrent_first_use_loads_the_module_one_thread_at_a_time():
     assert peak[0] == 1  # never two cold loads at once
     for i, a in enumerate(arrays):
         np.testing.assert_array_equal(a.numpy(), np.full(16, 2.0 * i, np.float32))
+
+
+def test_preload_covers_every_kernel_module_of_the_package():
+    """A new file with Warp kernels must join KERNEL_MODULES, or preload misses it."""
+    from pathlib import Path
+
+    import physgm
+    from physgm.warp_runtime import KERNEL_MODULES, _READY, preload
+
+    root = Path(physgm.__file__).parent
+    found = {
+        "physgm." + ".".join(p.relative_to(root).with_suffix("").parts)
+        for p in root.rglob("*.py")
+        if "@wp.kernel" in p.read_text()
+    }
+    assert found == set(KERNEL_MODULES)
+    preload("cpu")
+    assert len({key[0] for key in _READY}) >= len(KERNEL_MODULES)

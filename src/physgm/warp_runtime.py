@@ -6,10 +6,16 @@ inside Warp (seen as ``KeyError: 1`` from ``Module.load``). physgm launches kern
 several Python threads (rollout and evaluation workers, the CPU raster split), so every launch
 site calls ``ensure_loaded`` first: the first use of a module on a device loads it under a
 process-wide lock; later calls cost one set lookup.
+
+The lock alone is not enough: a module's load (its first compile can take 10 s) also hashes the
+modules it references, and a launch from one of those on another thread at that moment failed the
+same way (a DPO run whose renderer module had just changed). Code that starts threads which
+launch kernels calls ``preload`` first, so no module loads while the threads run.
 """
 
 from __future__ import annotations
 
+import importlib
 import threading
 
 import warp as wp
@@ -29,3 +35,23 @@ def ensure_loaded(kernel, device) -> None:
         if key not in _READY:
             kernel.module.load(device, block_dim)
             _READY.add(key)
+
+
+# Every Python module of physgm that defines Warp kernels (each is one Warp module).
+KERNEL_MODULES = (
+    "physgm.render.warp_kernels",
+    "physgm.render.warp_raster_kernels",
+    "physgm.sim.kernels",
+    "physgm.sim.particle_ops",
+    "physgm.sim.coupling",
+)
+
+
+def preload(device="cpu") -> None:
+    """Load (compiling on first use) every physgm Warp module on ``device``, from this thread."""
+    for name in KERNEL_MODULES:
+        module = importlib.import_module(name)
+        kernel = next((v for v in vars(module).values() if isinstance(v, wp.Kernel)), None)
+        if kernel is None:
+            raise RuntimeError(f"{name} is listed in KERNEL_MODULES but defines no Warp kernel")
+        ensure_loaded(kernel, device)

@@ -33,6 +33,7 @@ from physgm.train.rollout import (
     predict,
     reference_frames,
 )
+from physgm.warp_runtime import preload
 
 KEY_MATERIALS = ("metal", "jelly", "plasticine", "snow", "sand")  # always reported, as in the paper
 
@@ -67,6 +68,7 @@ def evaluate_scene(models: dict, scene, settings: SimSettings, workers: int) -> 
         out["abs_log10_E_error"] = abs(out["log10_E"] - scene.log10_E) if scene.true_known else None
         return name, out
 
+    preload("cpu")  # no Warp module may load while the workers launch kernels
     with ThreadPoolExecutor(max(1, workers)) as pool:
         row.update(dict(pool.map(run, list(models))))
     return row

@@ -51,6 +51,7 @@ from physgm.train.pairs import (
     select_pair,
     settings_hash,
 )
+from physgm.warp_runtime import preload
 
 
 @dataclass
@@ -280,6 +281,7 @@ def rollout_scene(model: torch.nn.Module, scene: RolloutScene, cfg: RolloutConfi
         return cand
 
     if cfg.workers > 1:
+        preload(device)  # no Warp module may load while the workers launch kernels
         with ThreadPoolExecutor(cfg.workers, thread_name_prefix="physgm-rollout") as pool:
             candidates = list(pool.map(run, range(cfg.num_candidates)))
     else:
