@@ -12,6 +12,7 @@ because a Warp launch releases the GIL.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import warp as wp
 from torch import Tensor
@@ -72,14 +73,15 @@ def _tile_ranges(work: Tensor, parts: int) -> list[tuple[int, int]]:
     num_tiles = work.numel()
     if parts <= 1 or num_tiles < 2:
         return [(0, num_tiles)]
-    total = torch.cumsum(work.to(torch.float64), dim=0)
-    targets = total[-1] * torch.arange(1, parts, dtype=torch.float64) / parts
+    # numpy: a few hundred tiles at most on the CPU path, where each torch op costs ~5 us
+    total = np.cumsum(work.cpu().numpy(), dtype=np.float64)
+    targets = total[-1] * np.arange(1, parts, dtype=np.float64) / parts
     # tile i is the first whose running total reaches the target: cut before or after it,
     # whichever leaves the first part closer to the target
-    first = torch.searchsorted(total, targets)
-    before = torch.where(first > 0, total[(first - 1).clamp(min=0)], torch.zeros_like(targets))
-    after = total[first.clamp(max=num_tiles - 1)]
-    cuts = torch.where(after - targets < targets - before, first + 1, first).tolist()
+    first = np.searchsorted(total, targets)
+    before = np.where(first > 0, total[np.maximum(first - 1, 0)], 0.0)
+    after = total[np.minimum(first, num_tiles - 1)]
+    cuts = np.where(after - targets < targets - before, first + 1, first).tolist()
     bounds = sorted({0, num_tiles, *[min(max(c, 1), num_tiles - 1) for c in cuts]})
     return [(a, b - a) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
@@ -197,14 +199,17 @@ class _RasterizeWarp(torch.autograd.Function):
         # forward split by entry count (+1: empty tiles are not free); the backward split uses
         # the pixel tests the forward counted, since its cost follows the composited pairs
         tile_work = tile_counts.to(torch.int32) + 1
+        tiles = [_arr(tile_start, wp.int32), _arr(tile_end, wp.int32), *entry_arrs]
+        composite = [_arr(trans, wp.float32), _arr(end, wp.int32)]
         if num_entries:
             _launch_tiles(_FORWARD, _tile_ranges(tile_work, threads), s,
-                          [_arr(tile_start, wp.int32), _arr(tile_end, wp.int32), *entry_arrs,
-                           _arr(rgb, wp.vec3), _arr(trans, wp.float32), _arr(end, wp.int32),
-                           _arr(done, wp.int32), _arr(tile_work, wp.int32)],
-                          device)  # fmt: skip
+                          [*tiles, _arr(rgb, wp.vec3), *composite, _arr(done, wp.int32),
+                           _arr(tile_work, wp.int32)], device)  # fmt: skip
 
-        ctx.settings, ctx.num_c, ctx.ranges = s, num_c, _tile_ranges(tile_work, threads)
+        ctx.settings, ctx.ranges = s, _tile_ranges(tile_work, threads)
+        # The Warp views are kept for the backward (~5 us each to rebuild); save_for_backward
+        # still holds the tensors, so an in-place change between the passes is reported.
+        ctx.warp_views = (proj_in, tiles, composite)
         ctx.save_for_backward(means, quats, scales, opacities, viewmats, Ks, means2d, conics,
                               depths, cov_diag, tile_start, tile_end, e_pair, e_gauss, *entries, trans,
                               end)  # fmt: skip
@@ -221,10 +226,9 @@ class _RasterizeWarp(torch.autograd.Function):
     def _backward(ctx, v_rgb, v_alpha):
         (means, quats, scales, opacities, viewmats, Ks, means2d, conics, depths, cov_diag,
          tile_start, tile_end, e_pair, e_gauss, *entries, trans, end) = ctx.saved_tensors  # fmt: skip
-        s, num_c, device = ctx.settings, ctx.num_c, means.device
+        s, device = ctx.settings, means.device
         num_bn, num_e = means.shape[0], e_pair.numel()
         num_pairs = means2d.shape[0]
-        num_n = num_bn * num_c // viewmats.shape[0]
         v_means, v_quats = torch.zeros_like(means), torch.zeros_like(quats)
         v_scales, v_opac = torch.zeros_like(scales), torch.zeros_like(opacities)
         v_colors = torch.zeros(num_bn, 3, dtype=means.dtype, device=device)
@@ -235,12 +239,11 @@ class _RasterizeWarp(torch.autograd.Function):
         v_e_conics = means.new_zeros(num_e, 3)
         v_e_opac = means.new_zeros(num_e)
         v_e_colors = means.new_zeros(num_e, 3)
-        entry_arrs = _entry_arrays(entries)
+        proj_in, tiles, composite = ctx.warp_views
         scratch_trans = torch.empty_like(trans)
         scratch_behind = means.new_empty(trans.shape[0], 3)
         _launch_tiles(_BACKWARD, ctx.ranges, s,
-                      [_arr(tile_start, wp.int32), _arr(tile_end, wp.int32), *entry_arrs,
-                       _arr(trans, wp.float32), _arr(end, wp.int32),
+                      [*tiles, *composite,
                        _arr(v_rgb.reshape(-1, 3), wp.vec3), _arr(v_alpha.reshape(-1), wp.float32),
                        _arr(scratch_trans, wp.float32), _arr(scratch_behind, wp.vec3),
                        _arr(v_e_means2d, wp.vec2),
@@ -254,8 +257,7 @@ class _RasterizeWarp(torch.autograd.Function):
 
         # The projection's vector-Jacobian product sums over cameras into each Gaussian.
         _launch(K.project_vjp_kernel, num_pairs,
-                [*_projection_args(means, quats, scales, opacities, viewmats, Ks, num_n, num_c, s),
-                 _arr(v_means2d, wp.vec2), _arr(v_conics, wp.vec3), _arr(v_means, wp.vec3),
+                [*proj_in, _arr(v_means2d, wp.vec2), _arr(v_conics, wp.vec3), _arr(v_means, wp.vec3),
                  _arr(v_quats, wp.vec4), _arr(v_scales, wp.vec3)], device)  # fmt: skip
         return v_means, v_quats, v_scales, v_opac, v_colors, None, None, None, None
 
