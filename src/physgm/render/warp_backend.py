@@ -3,7 +3,7 @@
 Pipeline (kernels in `warp_kernels.py` and `warp_raster_kernels.py`, torch ops in between):
 project (I*N pairs) -> count tiles per pair -> prefix sum -> emit (tile, pair) entries ->
 sort by (image, tile, depth) -> gather entry data contiguously -> raster forward.
-Backward: raster backward into per-entry slots -> index_add to pairs / Gaussians -> the
+Backward: raster backward into per-entry slots -> summed into pairs / Gaussians -> the
 projection's hand-written vector-Jacobian product (tested against Warp's generated adjoint).
 The same code runs on CPU and CUDA (tile layout on CPU, pixel layout on CUDA); on CPU the
 raster launches are split over Python threads (``physgm.parallel``), which run in parallel
@@ -240,20 +240,19 @@ class _RasterizeWarp(torch.autograd.Function):
         v_e_opac = means.new_zeros(num_e)
         v_e_colors = means.new_zeros(num_e, 3)
         proj_in, tiles, composite = ctx.warp_views
+        v_entry = [_arr(v_e_means2d, wp.vec2), _arr(v_e_conics, wp.vec3), _arr(v_e_opac, wp.float32),
+                   _arr(v_e_colors, wp.vec3)]  # fmt: skip
         scratch_trans = torch.empty_like(trans)
         scratch_behind = means.new_empty(trans.shape[0], 3)
         _launch_tiles(_BACKWARD, ctx.ranges, s,
                       [*tiles, *composite,
                        _arr(v_rgb.reshape(-1, 3), wp.vec3), _arr(v_alpha.reshape(-1), wp.float32),
-                       _arr(scratch_trans, wp.float32), _arr(scratch_behind, wp.vec3),
-                       _arr(v_e_means2d, wp.vec2),
-                       _arr(v_e_conics, wp.vec3), _arr(v_e_opac, wp.float32),
-                       _arr(v_e_colors, wp.vec3)],
+                       _arr(scratch_trans, wp.float32), _arr(scratch_behind, wp.vec3), *v_entry],
                       device)  # fmt: skip
-        v_opac.index_add_(0, e_gauss, v_e_opac)
-        v_colors.index_add_(0, e_gauss, v_e_colors)
-        v_means2d = means.new_zeros(num_pairs, 2).index_add_(0, e_pair, v_e_means2d)
-        v_conics = means.new_zeros(num_pairs, 3).index_add_(0, e_pair, v_e_conics)
+        v_means2d, v_conics = means.new_zeros(num_pairs, 2), means.new_zeros(num_pairs, 3)
+        _launch(K.scatter_entry_grads_kernel, num_e,
+                [_arr(e_pair, wp.int64), _arr(e_gauss, wp.int64), *v_entry, _arr(v_means2d, wp.vec2),
+                 _arr(v_conics, wp.vec3), _arr(v_opac, wp.float32), _arr(v_colors, wp.vec3)], device)  # fmt: skip
 
         # The projection's vector-Jacobian product sums over cameras into each Gaussian.
         _launch(K.project_vjp_kernel, num_pairs,

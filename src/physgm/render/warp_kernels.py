@@ -346,3 +346,27 @@ def gather_entries_kernel(
     e_qmax[e] = qmax[pid]
     e_colors[e] = colors[g]
     e_extents[e] = extents[pid]
+
+
+@wp.kernel(enable_backward=False)
+def scatter_entry_grads_kernel(
+    e_pair: wp.array(dtype=wp.int64),  # [M] pair of each sorted entry
+    e_gauss: wp.array(dtype=wp.int64),  # [M] Gaussian of each sorted entry
+    v_e_means2d: wp.array(dtype=wp.vec2),  # [M] per-entry gradients from the raster backward
+    v_e_conics: wp.array(dtype=wp.vec3),
+    v_e_opacities: wp.array(dtype=float),
+    v_e_colors: wp.array(dtype=wp.vec3),
+    v_means2d: wp.array(dtype=wp.vec2),  # [I*N] accumulated per pair, out (zeroed by the caller)
+    v_conics: wp.array(dtype=wp.vec3),  # [I*N]
+    v_opacities: wp.array(dtype=float),  # [B*N] accumulated per Gaussian, out
+    v_colors: wp.array(dtype=wp.vec3),  # [B*N]
+):
+    """Sums the raster backward's per-entry gradients into pairs and Gaussians (four
+    ``index_add_`` in one launch; serial on the CPU, so the sums are deterministic there)."""
+    e = wp.tid()
+    pid = int(e_pair[e])
+    g = int(e_gauss[e])
+    wp.atomic_add(v_means2d, pid, v_e_means2d[e])
+    wp.atomic_add(v_conics, pid, v_e_conics[e])
+    wp.atomic_add(v_opacities, g, v_e_opacities[e])
+    wp.atomic_add(v_colors, g, v_e_colors[e])
