@@ -213,8 +213,9 @@ def update_node(
     # Only nodes that received mass were written by the scatter, so only they need clearing.
     acc0[i, j, k] = vec8(0.0)
     acc1[i, j, k] = vec8(0.0)
-    v_transfer = wp.vec3(g[0], g[1], g[2]) / m  # APIC transfer alone, for the FLIP increment
-    vel = damping * (v_transfer + (dt / m) * wp.vec3(g[4], g[5], g[6]) + dt * gravity)
+    inv_m = 1.0 / m  # one division instead of four
+    v_transfer = inv_m * wp.vec3(g[0], g[1], g[2])  # APIC transfer alone, for the FLIP increment
+    vel = damping * (v_transfer + (dt * inv_m) * wp.vec3(g[4], g[5], g[6]) + dt * gravity)
     pos = origin + wp.vec3(float(i), float(j), float(k)) * dx
     if num_boxes > 0:
         v_free = vel
