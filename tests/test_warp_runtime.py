@@ -67,7 +67,7 @@ def test_preload_covers_every_kernel_module_of_the_package():
     from pathlib import Path
 
     import physgm
-    from physgm.warp_runtime import KERNEL_MODULES, _READY, preload
+    from physgm.warp_runtime import _READY, KERNEL_MODULES, preload
 
     root = Path(physgm.__file__).parent
     found = {

@@ -260,7 +260,25 @@ def test_fit_trains_and_resumes_mid_round_from_the_cache(dpo_root, stage1_ckpt, 
     assert summary["rollout/scenes"] == COUNT and summary["rollout/pairs"] >= 1
     ckpt = torch.load(tmp_path / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
     assert all(k.startswith("model.") for k in ckpt["state_dict"])
-    # "Crash" after epoch 0 and resume: epoch 1 is still round 0 (read from the cache), epoch 2 starts round 1.
+
+    # A real crash in epoch 1 of a fresh run: last.ckpt must be the end of epoch 0 (Lightning saves
+    # nothing at an epoch end unless told to, the trainer config having check_val_every_n_epoch null).
+    from physgm.train.dpo import LitDPO
+
+    (tmp_path / "checkpoints" / "last.ckpt").unlink()
+    step = LitDPO.training_step
+
+    def crash_in_epoch_1(self, *args, **kwargs):
+        if self.current_epoch == 1:
+            raise RuntimeError("simulated crash")
+        return step(self, *args, **kwargs)
+
+    monkeypatch.setattr(LitDPO, "training_step", crash_in_epoch_1)
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        train("stage.trainer.max_epochs=3")
+    monkeypatch.setattr(LitDPO, "training_step", step)
+    assert torch.load(tmp_path / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)["epoch"] == 0
+    # Resume: epoch 1 is still round 0 (read from the cache), epoch 2 starts round 1.
     again = StandIn()
     monkeypatch.setattr(rollout, "evaluate_physics", again)
     train("stage.trainer.max_epochs=3", "ckpt_path=last")
