@@ -38,6 +38,50 @@ def quat_to_rotmat(q: wp.vec4) -> wp.mat33:
     )  # fmt: skip
 
 
+@wp.func
+def pair_gaussian(pid: int, num_gaussians: int, num_cameras: int):
+    """Image and Gaussian index of (image, Gaussian) pair ``pid``."""
+    img = pid // num_gaussians
+    return img, (img // num_cameras) * num_gaussians + (pid - img * num_gaussians)
+
+
+@wp.func
+def to_camera(view: wp.mat44, x: wp.vec3):
+    """World-to-camera rotation W of ``view`` and the camera-frame point W x + t."""
+    rot_w = wp.mat33(
+        view[0, 0], view[0, 1], view[0, 2],
+        view[1, 0], view[1, 1], view[1, 2],
+        view[2, 0], view[2, 1], view[2, 2],
+    )  # fmt: skip
+    return rot_w, rot_w * x + wp.vec3(view[0, 3], view[1, 3], view[2, 3])
+
+
+@wp.func
+def clamped_ray(p: wp.vec3, K: wp.mat33, width: int, height: int) -> wp.vec2:
+    """(x / z, y / z) clamped to FOV_CLAMP x the half field of view beyond the image border."""
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    lim_x = _FOV_CLAMP * 0.5 * float(width) / fx
+    lim_y = _FOV_CLAMP * 0.5 * float(height) / fy
+    return wp.vec2(
+        wp.min(wp.max(p[0] / p[2], -cx / fx - lim_x), (float(width) - cx) / fx + lim_x),
+        wp.min(wp.max(p[1] / p[2], -cy / fy - lim_y), (float(height) - cy) / fy + lim_y),
+    )
+
+
+@wp.func
+def cov2d(a0: wp.vec3, a1: wp.vec3, eps2d: float):
+    """Entries a0.a0, a0.a1, a1.a1 of the undilated 2D covariance (rows a0, a1 of J W R S) and the
+    determinant after adding eps2d to the diagonal (written with |a0 x a1|^2, exact in float32)."""
+    cov_a0 = wp.dot(a0, a0)
+    cov_b = wp.dot(a0, a1)
+    cov_c0 = wp.dot(a1, a1)
+    m01 = a0[0] * a1[1] - a0[1] * a1[0]
+    m02 = a0[0] * a1[2] - a0[2] * a1[0]
+    m12 = a0[1] * a1[2] - a0[2] * a1[1]
+    det = m01 * m01 + m02 * m02 + m12 * m12 + eps2d * (cov_a0 + cov_c0) + eps2d * eps2d
+    return cov_a0, cov_b, cov_c0, det
+
+
 @wp.kernel
 def project_kernel(
     means: wp.array(dtype=wp.vec3),  # [B*N] world (m)
@@ -60,15 +104,8 @@ def project_kernel(
 ):
     """EWA projection of one (image, Gaussian) pair; differentiated by Warp's adjoint."""
     pid = wp.tid()
-    img = pid // num_gaussians
-    g = (img // num_cameras) * num_gaussians + (pid - img * num_gaussians)
-    view = viewmats[img]
-    rot_w = wp.mat33(
-        view[0, 0], view[0, 1], view[0, 2],
-        view[1, 0], view[1, 1], view[1, 2],
-        view[2, 0], view[2, 1], view[2, 2],
-    )  # fmt: skip
-    p = rot_w * means[g] + wp.vec3(view[0, 3], view[1, 3], view[2, 3])
+    img, g = pair_gaussian(pid, num_gaussians, num_cameras)
+    rot_w, p = to_camera(viewmats[img], means[g])
     z = p[2]
     m2 = wp.vec2(0.0, 0.0)
     con = wp.vec3(0.0, 0.0, 0.0)
@@ -77,23 +114,16 @@ def project_kernel(
     if z >= near_plane and z <= far_plane and opacities[g] >= _ALPHA_MIN:
         K = Ks[img]
         fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-        lim_x = _FOV_CLAMP * 0.5 * float(width) / fx
-        lim_y = _FOV_CLAMP * 0.5 * float(height) / fy
-        tx = z * wp.min(wp.max(p[0] / z, -cx / fx - lim_x), (float(width) - cx) / fx + lim_x)
-        ty = z * wp.min(wp.max(p[1] / z, -cy / fy - lim_y), (float(height) - cy) / fy + lim_y)
+        ray = clamped_ray(p, K, width, height)
+        tx = z * ray[0]
+        ty = z * ray[1]
         j0 = wp.vec3(fx / z, 0.0, -fx * tx / (z * z))
         j1 = wp.vec3(0.0, fy / z, -fy * ty / (z * z))
         rot_t = wp.transpose(rot_w * quat_to_rotmat(wp.normalize(quats[g])))
         s = scales[g]
         a0 = wp.cw_mul(rot_t * j0, s)  # rows of A = J W R S
         a1 = wp.cw_mul(rot_t * j1, s)
-        cov_a0 = wp.dot(a0, a0)
-        cov_b = wp.dot(a0, a1)
-        cov_c0 = wp.dot(a1, a1)
-        m01 = a0[0] * a1[1] - a0[1] * a1[0]
-        m02 = a0[0] * a1[2] - a0[2] * a1[0]
-        m12 = a0[1] * a1[2] - a0[2] * a1[1]
-        det = m01 * m01 + m02 * m02 + m12 * m12 + eps2d * (cov_a0 + cov_c0) + eps2d * eps2d
+        cov_a0, cov_b, cov_c0, det = cov2d(a0, a1, eps2d)
         if det > 0.0:
             cov_a = cov_a0 + eps2d
             cov_c = cov_c0 + eps2d
@@ -151,26 +181,18 @@ def project_vjp_kernel(
     the gradients nobody asks for (cameras, opacities) and the replay's bookkeeping.
     """
     pid = wp.tid()
-    img = pid // num_gaussians
-    g = (img // num_cameras) * num_gaussians + (pid - img * num_gaussians)
-    view = viewmats[img]
-    rot_w = wp.mat33(
-        view[0, 0], view[0, 1], view[0, 2],
-        view[1, 0], view[1, 1], view[1, 2],
-        view[2, 0], view[2, 1], view[2, 2],
-    )  # fmt: skip
-    p = rot_w * means[g] + wp.vec3(view[0, 3], view[1, 3], view[2, 3])
+    img, g = pair_gaussian(pid, num_gaussians, num_cameras)
+    rot_w, p = to_camera(viewmats[img], means[g])
     z = p[2]
     if z < near_plane or z > far_plane or opacities[g] < _ALPHA_MIN:
         return
     K = Ks[img]
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    lim_x = _FOV_CLAMP * 0.5 * float(width) / fx
-    lim_y = _FOV_CLAMP * 0.5 * float(height) / fy
+    fx, fy = K[0, 0], K[1, 1]
     rx = p[0] / z
     ry = p[1] / z
-    cl_x = wp.min(wp.max(rx, -cx / fx - lim_x), (float(width) - cx) / fx + lim_x)
-    cl_y = wp.min(wp.max(ry, -cy / fy - lim_y), (float(height) - cy) / fy + lim_y)
+    ray = clamped_ray(p, K, width, height)
+    cl_x = ray[0]
+    cl_y = ray[1]
     tx = z * cl_x
     ty = z * cl_y
     iz = 1.0 / z
@@ -186,13 +208,7 @@ def project_vjp_kernel(
     u1 = rot_t * j1
     a0 = wp.cw_mul(u0, s)
     a1 = wp.cw_mul(u1, s)
-    cov_a0 = wp.dot(a0, a0)
-    cov_b = wp.dot(a0, a1)
-    cov_c0 = wp.dot(a1, a1)
-    m01 = a0[0] * a1[1] - a0[1] * a1[0]
-    m02 = a0[0] * a1[2] - a0[2] * a1[0]
-    m12 = a0[1] * a1[2] - a0[2] * a1[1]
-    det = m01 * m01 + m02 * m02 + m12 * m12 + eps2d * (cov_a0 + cov_c0) + eps2d * eps2d
+    cov_a0, cov_b, cov_c0, det = cov2d(a0, a1, eps2d)
     if det <= 0.0:
         return
     # conic Q = Sigma^-1: dL/dSigma = -Q G Q with G the symmetric gradient of Q's entries
@@ -249,8 +265,7 @@ def pair_bounds_kernel(
 ):
     """Mirrors `projection.extents_from_cov` and `projection.tile_rects`."""
     pid = wp.tid()
-    img = pid // num_gaussians
-    g = (img // num_cameras) * num_gaussians + (pid - img * num_gaussians)
+    img, g = pair_gaussian(pid, num_gaussians, num_cameras)
     cd = cov_diag[pid]
     k2 = 2.0 * wp.log(wp.max(opacities[g] / _ALPHA_MIN, 1.0))
     ext = wp.vec2(0.0, 0.0)
@@ -336,8 +351,7 @@ def gather_entries_kernel(
     """Copies what the raster kernels read into arrays laid out in (image, tile, depth) order."""
     e = wp.tid()
     pid = entry_pair[int(order[e])]
-    img = pid // num_gaussians
-    g = (img // num_cameras) * num_gaussians + (pid - img * num_gaussians)
+    img, g = pair_gaussian(pid, num_gaussians, num_cameras)
     e_pair[e] = wp.int64(pid)
     e_gauss[e] = wp.int64(g)
     e_means2d[e] = means2d[pid]
