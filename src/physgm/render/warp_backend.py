@@ -210,9 +210,9 @@ class _RasterizeWarp(torch.autograd.Function):
         # The Warp views are kept for the backward (~5 us each to rebuild); save_for_backward
         # still holds the tensors, so an in-place change between the passes is reported.
         ctx.warp_views = (proj_in, tiles, composite)
-        ctx.save_for_backward(means, quats, scales, opacities, viewmats, Ks, means2d, conics,
-                              depths, cov_diag, tile_start, tile_end, e_pair, e_gauss, *entries, trans,
-                              end)  # fmt: skip
+        ctx.num_pairs = num_pairs
+        ctx.save_for_backward(means, quats, scales, opacities, viewmats, Ks, tile_start, tile_end,
+                              e_pair, e_gauss, *entries, trans, end)  # fmt: skip
         alpha = 1.0 - trans
         ctx.mark_non_differentiable(means2d, depths, extents, counts)
         return rgb, alpha, means2d, depths, extents, counts
@@ -224,11 +224,11 @@ class _RasterizeWarp(torch.autograd.Function):
 
     @staticmethod
     def _backward(ctx, v_rgb, v_alpha):
-        (means, quats, scales, opacities, viewmats, Ks, means2d, conics, depths, cov_diag,
-         tile_start, tile_end, e_pair, e_gauss, *entries, trans, end) = ctx.saved_tensors  # fmt: skip
+        (means, quats, scales, opacities, viewmats, Ks, tile_start, tile_end, e_pair, e_gauss, *entries,
+         trans, end) = ctx.saved_tensors  # fmt: skip
         s, device = ctx.settings, means.device
         num_bn, num_e = means.shape[0], e_pair.numel()
-        num_pairs = means2d.shape[0]
+        num_pairs = ctx.num_pairs
         v_means, v_quats = torch.zeros_like(means), torch.zeros_like(quats)
         v_scales, v_opac = torch.zeros_like(scales), torch.zeros_like(opacities)
         v_colors = torch.zeros(num_bn, 3, dtype=means.dtype, device=device)
