@@ -73,6 +73,41 @@ def test_means_on_pixel_rays_within_near_far(small_config, make_batch):
     assert (cam_pts[..., 2] > 0).all()  # in front of the camera
 
 
+def test_centre_depth_prior_starts_at_the_object_centre_and_reaches_scene_radius():
+    """depth_prior="centre": raw 0 puts a mean on the ray's closest point to the origin, raw -> +-inf
+    moves it scene_radius towards or away from the camera, and [near, far] still bounds it."""
+    from dataclasses import replace
+
+    from physgm.model import GaussianHeadConfig
+    from physgm.model.gaussian_head import RAW_CHANNELS, GaussianActivations
+
+    gen = torch.Generator().manual_seed(0)
+    n = 64
+    origins = torch.nn.functional.normalize(torch.randn(n, 3, generator=gen), dim=-1) * 1.8
+    # rays from the camera towards points within 0.3 of the origin
+    directions = torch.nn.functional.normalize(0.3 * torch.randn(n, 3, generator=gen) - origins, dim=-1)
+    rgb = torch.rand(n, 3, generator=gen)
+    cfg = replace(GaussianHeadConfig(), depth_prior="centre", scene_radius=0.4, max_offset=0.0, near=0.001, far=2.0)
+    act = GaussianActivations(cfg)
+
+    def depths(value: float) -> torch.Tensor:
+        raw = {k: torch.zeros(n, c) for k, c in RAW_CHANNELS.items()}
+        raw["depth"] = torch.full((n, 1), value)
+        out = act(raw, rgb, origins, directions)
+        torch.testing.assert_close(out["means"], origins + out["depths"][:, None] * directions)
+        return out["depths"]
+
+    closest = -(origins * directions).sum(-1)  # distance to the foot of the perpendicular from 0
+    torch.testing.assert_close(depths(0.0), closest)
+    torch.testing.assert_close(depths(-30.0), closest - 0.4)
+    torch.testing.assert_close(depths(30.0), (closest + 0.4).clamp(max=2.0))
+    assert (depths(30.0) == 2.0).any()  # some rays reach far and are clamped
+    with pytest.raises(ValueError, match="depth_prior"):
+        GaussianActivations(replace(cfg, depth_prior="centered"))
+    with pytest.raises(ValueError, match="scene_radius"):
+        GaussianActivations(replace(cfg, scene_radius=0.0))
+
+
 def test_view_permutation_and_batch_independence(small_config, make_batch):
     model = PhysGM(small_config()).eval()
     batch = make_batch(2, 3, 16, 16, seed=1)

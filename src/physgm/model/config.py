@@ -52,6 +52,11 @@ class GaussianHeadConfig:
     hidden: int = 32  # channels of the full-resolution output conv
     near: float = 0.001  # closest depth along a pixel ray, normalised object-frame units
     far: float = 2.0  # farthest depth along a pixel ray
+    # How the raw depth channel maps into [near, far]: "range" (the paper's: near + (far - near) *
+    # sigmoid) or "centre" (the ray's closest approach to the scene origin + scene_radius * tanh,
+    # clamped to [near, far]; every Gaussian starts on the plane through the object's centre).
+    depth_prior: str = "range"
+    scene_radius: float = 0.5  # with depth_prior="centre": reach in front of / behind the centre
     max_offset: float = 0.05  # bound of the free 3D offset added to the ray point (0 disables it)
     scale_min: float = 0.0005  # smallest Gaussian std
     scale_max: float = 0.1  # largest Gaussian std

@@ -81,6 +81,10 @@ class GaussianActivations(nn.Module):
             raise ValueError(f"gaussian_head needs 0 < near < far, got near={cfg.near}, far={cfg.far}")
         if not 0 < cfg.scale_min < cfg.scale_max:
             raise ValueError(f"gaussian_head needs 0 < scale_min < scale_max, got {cfg.scale_min}, {cfg.scale_max}")
+        if cfg.depth_prior not in ("range", "centre"):
+            raise ValueError(f"gaussian_head.depth_prior must be 'range' or 'centre', got {cfg.depth_prior!r}")
+        if cfg.depth_prior == "centre" and not cfg.scene_radius > 0:
+            raise ValueError(f"gaussian_head.scene_radius must be > 0 with depth_prior='centre', got {cfg.scene_radius}")
         self.cfg = cfg
         self.register_buffer("quat_bias", torch.tensor([1.0, 0.0, 0.0, 0.0]), persistent=False)
 
@@ -92,7 +96,12 @@ class GaussianActivations(nn.Module):
         directions: Tensor,  # [..., 3] unit ray directions
     ) -> dict[str, Tensor]:
         c = self.cfg
-        depth = c.near + (c.far - c.near) * torch.sigmoid(raw["depth"])  # [..., 1], inside [near, far]
+        if c.depth_prior == "centre":
+            # distance along the unit ray to the point closest to the scene origin (object centre)
+            centre = -(origins * directions).sum(dim=-1, keepdim=True)
+            depth = (centre + c.scene_radius * torch.tanh(raw["depth"])).clamp(c.near, c.far)  # [..., 1]
+        else:
+            depth = c.near + (c.far - c.near) * torch.sigmoid(raw["depth"])  # [..., 1], inside [near, far]
         offset = c.max_offset * torch.tanh(raw["offset"])  # bounded so Gaussians stay near their ray
         log_lo, log_hi = math.log(c.scale_min), math.log(c.scale_max)
         scale = torch.exp(log_lo + (log_hi - log_lo) * torch.sigmoid(raw["scale"]))  # log-uniform range
