@@ -46,16 +46,21 @@ def test_evaluate_reports_both_view_counts_and_matches_a_hand_computation(tiny_d
     model = model_from_checkpoint(str(ckpt)).eval()
     dm = PhysAssetsDataModule(str(tiny_dataset), batch_size=3, eval_p_single=0.0, num_targets=5,
                               input_resolution=32, target_resolution=32, test_split="train")
-    psnrs = []
+    psnrs, psnrs_inputs, opacities = [], [], []
     with torch.no_grad():
         for batch in dm.test_dataloader():
             assert batch.images.shape[1] == 4
             out_ = model(batch.images, batch.masks, batch.c2w, batch.Ks)
             rgb, _ = render_targets(out_, batch.target_c2w, batch.target_Ks, 32, 32, {"backend": "torch"})
-            pred = rgb.permute(0, 1, 4, 2, 3).clamp(0, 1)[:, 4:]
-            mse = ((pred - batch.target_images[:, 4:]) ** 2).flatten(2).mean(-1)  # [B, 1]
-            psnrs.append(-10 * torch.log10(mse).flatten())
-    assert abs(float(torch.cat(psnrs).mean()) - report["views4"]["psnr"]) < 1e-3  # different batching and renderer
+            rendered = rgb.permute(0, 1, 4, 2, 3).clamp(0, 1)
+            mse = ((rendered - batch.target_images) ** 2).flatten(2).mean(-1)  # [B, 5]
+            psnrs.append(-10 * torch.log10(mse[:, 4:]).flatten())
+            psnrs_inputs.append(-10 * torch.log10(mse[:, :4]).flatten())
+            opacities.append(out_.gaussians.opacities[out_.gaussians.valid])
+    # different batching and renderer
+    assert abs(float(torch.cat(psnrs).mean()) - report["views4"]["psnr"]) < 1e-3
+    assert abs(float(torch.cat(psnrs_inputs).mean()) - report["views4"]["psnr_inputs"]) < 1e-3
+    assert abs(float(torch.cat(opacities).median()) - report["views4"]["opacity_median"]) < 1e-5
 
 
 def test_evaluate_single_view_batches_have_one_input(tiny_dataset, tmp_path):

@@ -42,16 +42,21 @@ def evaluate_views(
 ) -> dict:
     """Metrics of ``model`` over the datamodule's test split, whose eval_p_single fixes the view count."""
     images = ImageMetrics()
+    seen = ImageMetrics()  # the input views rendered back: tells geometry errors from colour errors
     physics = PhysicsMetrics(len(MATERIAL_NAMES))
     lpips_sum, lpips_count, assets, gaussians = 0.0, 0, 0, 0.0
+    opacities = []
     for batch in datamodule.test_dataloader():
         views = batch.images.shape[1]
         out = model(batch.images, batch.masks, batch.c2w, batch.Ks)
         h, w = batch.target_images.shape[-2:]
         rgb, _ = render_targets(out, batch.target_c2w, batch.target_Ks, w, h, renderer)
-        pred = rgb.permute(0, 1, 4, 2, 3).clamp(0, 1)[:, views:].flatten(0, 1)  # novel views only
+        rendered = rgb.permute(0, 1, 4, 2, 3).clamp(0, 1)
+        pred = rendered[:, views:].flatten(0, 1)  # novel views only
         target = batch.target_images[:, views:].flatten(0, 1)
         images.update(pred, target)
+        seen.update(rendered[:, :views].flatten(0, 1), batch.target_images[:, :views].flatten(0, 1))
+        opacities.append(out.gaussians.opacities[out.gaussians.valid])
         if lpips_model is not None:  # lpips takes images in [-1, 1]
             lpips_sum += float(lpips_model(pred * 2 - 1, target * 2 - 1).sum())
             lpips_count += pred.shape[0]
@@ -64,6 +69,8 @@ def evaluate_views(
         raise ValueError(f"split {datamodule.hparams.test_split!r} of {datamodule.hparams.root} has no assets")
     result = {"assets": assets, "gaussians_mean": gaussians / assets}
     result.update({k: float(v) for k, v in images.compute().items()})
+    result["psnr_inputs"] = float(seen.compute()["psnr"])
+    result["opacity_median"] = float(torch.cat(opacities).median())
     if lpips_count:
         result["lpips"] = lpips_sum / lpips_count
     if physics.update_count:
