@@ -5,9 +5,11 @@
 For every asset of the split the model sees the fixed evaluation inputs (view 1 is the
 canonical camera; with 4 views the other three follow around the object, as in training)
 and renders the target views it did not see. Reported per input-view count: PSNR, SSIM
-(and LPIPS when its backbone file is given) on those novel views; material accuracy and
-confusion matrix, |log10 E - true|, |nu - true|, NLL and 90 % interval coverage against the
-*true* physics of each asset. One JSON object goes to stdout.
+(and LPIPS when its backbone file is given) on those novel views; ``psnr_inputs``, the PSNR of
+the input views rendered back (low when the Gaussians' depths are wrong, since the other
+views' Gaussians then cover them), and the median opacity of the predicted Gaussians;
+material accuracy and confusion matrix, |log10 E - true|, |nu - true|, NLL and 90 % interval
+coverage against the *true* physics of each asset. One JSON object goes to stdout.
 """
 
 from __future__ import annotations
