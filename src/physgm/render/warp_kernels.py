@@ -102,7 +102,8 @@ def project_kernel(
     depths: wp.array(dtype=float),  # [I*N] camera z (m), 0 when culled, out
     cov_diag: wp.array(dtype=wp.vec2),  # [I*N] diagonal of the 2D covariance, 0 when culled, out
 ):
-    """EWA projection of one (image, Gaussian) pair; differentiated by Warp's adjoint."""
+    """EWA projection of one (image, Gaussian) pair. Its gradient is `project_vjp_kernel`; Warp's
+    generated adjoint (kept enabled here) is the reference that kernel is tested against."""
     pid = wp.tid()
     img, g = pair_gaussian(pid, num_gaussians, num_cameras)
     rot_w, p = to_camera(viewmats[img], means[g])
