@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+import warp as wp
 
 from physgm.render import Renderer, rasterize
 
@@ -76,17 +77,25 @@ def test_gsplat_backend_on_cpu_says_how_to_switch(good):
         rasterize(**good, backend="gsplat")
 
 
-def test_warp_views_check_their_element_type_and_keep_the_memory():
-    import warp as wp
+@wp.kernel
+def _copy_vec3(src: wp.array(dtype=wp.vec3), dst: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    dst[i] = src[i]
 
+
+def test_warp_views_check_their_element_type_and_keep_the_memory():
     from physgm.render.warp_backend import _arr
 
     wp.init()
     base = torch.arange(24, dtype=torch.float32).reshape(4, 6)
     view = _arr(base[:, ::2], wp.vec3)  # a non-contiguous slice becomes a contiguous copy that the view holds
     del base
-    np.testing.assert_array_equal(view.numpy(), np.arange(24, dtype=np.float32).reshape(4, 6)[:, ::2])
-    assert _arr(torch.zeros(5, 4, 4), wp.mat44).shape == (5,)
+    assert (view.ndim, view.shape[0], view.strides[0]) == (1, 4, 12)
+    out = wp.zeros(4, dtype=wp.vec3)
+    wp.launch(_copy_vec3, 4, [view, out])  # a kernel reads the tensor's memory through the view
+    np.testing.assert_array_equal(out.numpy(), np.arange(24, dtype=np.float32).reshape(4, 6)[:, ::2])
+    mats = _arr(torch.zeros(5, 2, 4, 4), wp.mat44)
+    assert (mats.ndim, mats.shape[0], mats.shape[1], mats.strides[0], mats.strides[1]) == (2, 5, 2, 128, 64)
     for bad, dtype in ((torch.zeros(5, 3, dtype=torch.float64), wp.vec3), (torch.zeros(5, 4), wp.vec3),
                        (torch.zeros(5), wp.vec2), (torch.zeros(5, dtype=torch.int64), wp.int32)):
         with pytest.raises(ValueError, match="does not hold"):
