@@ -44,12 +44,13 @@ def assert_grads_close(grads_test: dict, grads_ref: dict, rel: float = 1e-3) -> 
         )
 
 
+@pytest.mark.parametrize("binning", ["counting", "sort"])
 @pytest.mark.parametrize("layout", LAYOUTS)
 @pytest.mark.parametrize("seed", [0, 1])
-def test_warp_forward_and_grads_match_torch(scene, kit, layout, seed):
+def test_warp_forward_and_grads_match_torch(scene, kit, layout, seed, binning):
     scene = {**scene, **kit.random_gaussians(300, seed=seed)}
     rgb_t, alpha_t, meta_t, grads_t = run(scene, kit, "torch")
-    rgb_w, alpha_w, meta_w, grads_w = run(scene, kit, f"warp:{layout}")
+    rgb_w, alpha_w, meta_w, grads_w = run(scene, kit, f"warp:{layout}", warp_binning=binning)
     assert alpha_t.max() > 0.5  # the scene really covers pixels
     assert (rgb_w - rgb_t).abs().max() <= 1e-4
     assert (alpha_w - alpha_t).abs().max() <= 1e-4
@@ -126,3 +127,21 @@ def test_tile_ranges_cover_every_tile_once_and_balance_the_work():
     assert _tile_ranges(skewed, 2) == [(0, 1), (1, 9)]  # never an empty range
     three = _tile_ranges(torch.ones(9, dtype=torch.int32), 3)
     assert three == [(0, 3), (3, 3), (6, 3)]
+
+
+def test_counting_and_sort_binning_agree_exactly_with_depth_ties(scene, kit):
+    """Both binnings order a tile's entries by depth and, at equal depth, by Gaussian index."""
+    g = kit.random_gaussians(200, seed=4)
+    # Gaussians 100.. sit exactly where 0..99 are (equal depth in every camera), other colours
+    g["means"][100:] = g["means"][:100]
+    g["opacities"][:] = 0.9
+    scene = {**scene, **g}
+    rgb_c, alpha_c, _, grads_c = run(scene, kit, "warp:tile", warp_binning="counting")
+    rgb_s, alpha_s, _, grads_s = run(scene, kit, "warp:tile", warp_binning="sort")
+    rgb_t, _, _, _ = run(scene, kit, "torch")
+    assert torch.equal(rgb_c, rgb_s) and torch.equal(alpha_c, alpha_s)
+    for name in grads_c:
+        assert torch.equal(grads_c[name], grads_s[name]), name
+    assert (rgb_c - rgb_t).abs().max() <= 1e-4
+    with pytest.raises(ValueError, match="warp_binning"):
+        RasterSettings(16, 16, warp_binning="radix")

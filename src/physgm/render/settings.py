@@ -37,6 +37,9 @@ class RasterSettings:
         num_threads: Python threads that launch CPU raster kernels in parallel (warp backend).
         warp_layout: Warp raster kernels: "tile" (a thread per tile, fast on CPU), "pixel" (a
             thread per pixel, for CUDA) or "auto" (tile on CPU, pixel on CUDA).
+        warp_binning: How entries reach (image, tile, depth) order: "counting" (pairs sorted by
+            depth, then appended to their tiles in one serial launch; CPU only), "sort" (a
+            global sort of (tile, depth) keys; any device) or "auto" (counting on CPU).
     """
 
     width: int
@@ -47,8 +50,11 @@ class RasterSettings:
     tile_size: int = 16
     num_threads: int = 2
     warp_layout: str = "auto"
+    warp_binning: str = "auto"
 
     def __post_init__(self) -> None:
+        if self.warp_binning not in ("auto", "counting", "sort"):
+            raise ValueError(f"warp_binning must be 'auto', 'counting' or 'sort', got {self.warp_binning!r}")
         if self.warp_layout not in ("auto", "tile", "pixel"):
             raise ValueError(f"warp_layout must be 'auto', 'tile' or 'pixel', got {self.warp_layout!r}")
 

@@ -95,6 +95,16 @@ def _tile_ranges(work: Tensor, parts: int) -> list[tuple[int, int]]:
     return [(a, b - a) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
+def _binning(settings: RasterSettings, device: torch.device) -> str:
+    """"counting" (serial counting sort, CPU only) or "sort" (a global key sort, any device)."""
+    if settings.warp_binning == "auto":
+        return "counting" if device.type == "cpu" else "sort"
+    if settings.warp_binning == "counting" and device.type != "cpu":
+        raise ValueError("warp_binning='counting' relies on serial launches and runs on the CPU only; "
+                         "use 'sort' or 'auto' on CUDA")  # fmt: skip
+    return settings.warp_binning
+
+
 def _launch_tiles(kernels, ranges, settings: RasterSettings, args: list, device: torch.device):
     """Launches a raster kernel over tile ranges, in parallel Python threads on CPU.
 
@@ -167,42 +177,47 @@ class _RasterizeWarp(torch.autograd.Function):
         proj_out = _projection_outputs(means2d, conics, depths, cov_diag)
         _launch(K.project_kernel, num_pairs, proj_in + proj_out, device)
 
-        # --- binning: box per pair, prefix sum, emit (tile, pair), sort by (image, tile, depth) ---
+        # --- binning: box per pair and entries per tile, then entries in (image, tile, depth) order ---
+        tiles_per_image = s.tiles_x * s.tiles_y
         extents = means.new_empty(num_pairs, 2)
         qmax = means.new_empty(num_pairs)
         counts = torch.empty(num_pairs, dtype=torch.int32, device=device)
+        tile_counts = torch.zeros(num_i * tiles_per_image, dtype=torch.int32, device=device)
         bounds = [_arr(extents, wp.vec2), _arr(qmax, wp.float32), _arr(counts, wp.int32)]
         _launch(K.pair_bounds_kernel, num_pairs,
-                [proj_out[0], proj_out[3], proj_in[3], *ints, s.tile_size, *bounds], device)  # fmt: skip
-        csum = torch.cumsum(counts, dim=0, dtype=torch.int64)
-        num_entries = int(csum[-1]) if num_pairs else 0
-        offsets = (csum - counts).to(torch.int32)
-        entry_tile = torch.empty(num_entries, dtype=torch.int32, device=device)
-        entry_pair = torch.empty(num_entries, dtype=torch.int32, device=device)
-        tiles_per_image = s.tiles_x * s.tiles_y
-        _launch(K.emit_entries_kernel, num_pairs,
-                [proj_out[0], bounds[0], _arr(offsets, wp.int32), num_n, s.width, s.height,
-                 s.tile_size, s.tiles_x, tiles_per_image, _arr(entry_tile, wp.int32),
-                 _arr(entry_pair, wp.int32)], device)  # fmt: skip
-        # depths are > 0 for every emitted pair, so their float bits sort like the floats
-        depth_bits = depths.view(torch.int32).to(torch.int64)
-        keys = (entry_tile.to(torch.int64) << 32) | depth_bits[entry_pair.to(torch.int64)]
-        keys, order = torch.sort(keys, stable=True)  # stable: equal depths keep Gaussian order
-        tile_counts = torch.bincount(keys >> 32, minlength=num_i * tiles_per_image)
-        tile_end = torch.cumsum(tile_counts, dim=0).to(torch.int32)
-        tile_start = tile_end - tile_counts.to(torch.int32)
-
-        # --- gather each entry's data into contiguous arrays, in sorted order ---
+                [proj_out[0], proj_out[3], proj_in[3], *ints, s.tile_size, s.tiles_x, tiles_per_image,
+                 *bounds, _arr(tile_counts, wp.int32)], device)  # fmt: skip
+        tile_end = torch.cumsum(tile_counts, dim=0, dtype=torch.int32)
+        tile_start = tile_end - tile_counts
+        num_entries = int(tile_end[-1])
         e_pair = torch.empty(num_entries, dtype=torch.int64, device=device)
         e_gauss = torch.empty_like(e_pair)
         entries = [means.new_empty(num_entries, k) for k in (2, 3)]
         entries += [means.new_empty(num_entries), means.new_empty(num_entries)]
         entries += [means.new_empty(num_entries, 3), means.new_empty(num_entries, 2)]
         entry_arrs = _entry_arrays(entries)
-        _launch(K.gather_entries_kernel, num_entries,
-                [_arr(order, wp.int64), _arr(entry_pair, wp.int32), num_n, num_c, proj_out[0],
-                 proj_out[1], bounds[1], bounds[0], proj_in[3], _arr(colors, wp.vec3),
-                 _arr(e_pair, wp.int64), _arr(e_gauss, wp.int64), *entry_arrs], device)  # fmt: skip
+        pair_data = [num_n, num_c, proj_out[0], proj_out[1], bounds[1], bounds[0], proj_in[3],
+                     _arr(colors, wp.vec3), _arr(e_pair, wp.int64), _arr(e_gauss, wp.int64), *entry_arrs]  # fmt: skip
+        if num_entries and _binning(s, device) == "counting":
+            # stable: pairs at equal depth keep Gaussian order, as in the sort below
+            by_depth = torch.argsort(depths, stable=True)
+            _launch(K.bin_entries_kernel, num_pairs,
+                    [_arr(by_depth, wp.int64), s.width, s.height, s.tile_size, s.tiles_x, tiles_per_image,
+                     _arr(tile_start.clone(), wp.int32), *pair_data], device)  # fmt: skip
+        elif num_entries:
+            csum = torch.cumsum(counts, dim=0, dtype=torch.int32)
+            entry_tile = torch.empty(num_entries, dtype=torch.int32, device=device)
+            entry_pair = torch.empty(num_entries, dtype=torch.int32, device=device)
+            _launch(K.emit_entries_kernel, num_pairs,
+                    [proj_out[0], bounds[0], _arr(csum - counts, wp.int32), num_n, s.width, s.height,
+                     s.tile_size, s.tiles_x, tiles_per_image, _arr(entry_tile, wp.int32),
+                     _arr(entry_pair, wp.int32)], device)  # fmt: skip
+            # depths are > 0 for every emitted pair, so their float bits sort like the floats
+            depth_bits = depths.view(torch.int32).to(torch.int64)
+            keys = (entry_tile.to(torch.int64) << 32) | depth_bits[entry_pair.to(torch.int64)]
+            order = torch.sort(keys, stable=True)[1]  # stable: equal depths keep Gaussian order
+            _launch(K.gather_entries_kernel, num_entries,
+                    [_arr(order, wp.int64), _arr(entry_pair, wp.int32), *pair_data], device)  # fmt: skip
 
         num_pix = num_i * s.height * s.width
         rgb = means.new_zeros(num_pix, 3)
@@ -212,7 +227,7 @@ class _RasterizeWarp(torch.autograd.Function):
         threads = s.num_threads if device.type == "cpu" else 1
         # forward split by entry count (+1: empty tiles are not free); the backward split uses
         # the pixel tests the forward counted, since its cost follows the composited pairs
-        tile_work = tile_counts.to(torch.int32) + 1
+        tile_work = tile_counts + 1
         tiles = [_arr(tile_start, wp.int32), _arr(tile_end, wp.int32), *entry_arrs]
         composite = [_arr(trans, wp.float32), _arr(end, wp.int32)]
         if num_entries:

@@ -260,11 +260,15 @@ def pair_bounds_kernel(
     width: int,
     height: int,
     tile_size: int,
+    tiles_x: int,
+    tiles_per_image: int,
     extents: wp.array(dtype=wp.vec2),  # [I*N] half-size (px) of the alpha >= 1/255 box, out
     qmax: wp.array(dtype=float),  # [I*N] largest q with alpha >= 1/255, plus a margin, out
     counts: wp.array(dtype=wp.int32),  # [I*N] tiles touched, out
+    tile_counts: wp.array(dtype=wp.int32),  # [I*tiles] pairs touching each tile, zeroed by the caller
 ):
-    """Mirrors `projection.extents_from_cov` and `projection.tile_rects`."""
+    """Mirrors `projection.extents_from_cov` and `projection.tile_rects`; also counts the
+    entries of every tile (atomic, so the counts are the same in any thread order)."""
     pid = wp.tid()
     img, g = pair_gaussian(pid, num_gaussians, num_cameras)
     cd = cov_diag[pid]
@@ -279,6 +283,9 @@ def pair_bounds_kernel(
     qmax[pid] = k2 + _QMAX_MARGIN
     r = tile_rect(means2d[pid], ext, width, height, tile_size)
     counts[pid] = wp.max(r[1] - r[0] + 1, 0) * wp.max(r[3] - r[2] + 1, 0)
+    for ty in range(r[2], r[3] + 1):
+        for tx in range(r[0], r[1] + 1):
+            wp.atomic_add(tile_counts, img * tiles_per_image + ty * tiles_x + tx, 1)
 
 
 @wp.func
@@ -328,6 +335,39 @@ def emit_entries_kernel(
             k += 1
 
 
+@wp.func
+def write_entry(
+    e: int,
+    pid: int,
+    num_gaussians: int,
+    num_cameras: int,
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    qmax: wp.array(dtype=float),
+    extents: wp.array(dtype=wp.vec2),
+    opacities: wp.array(dtype=float),
+    colors: wp.array(dtype=wp.vec3),
+    e_pair: wp.array(dtype=wp.int64),
+    e_gauss: wp.array(dtype=wp.int64),
+    e_means2d: wp.array(dtype=wp.vec2),
+    e_conics: wp.array(dtype=wp.vec3),
+    e_opacities: wp.array(dtype=float),
+    e_qmax: wp.array(dtype=float),
+    e_colors: wp.array(dtype=wp.vec3),
+    e_extents: wp.array(dtype=wp.vec2),
+):
+    """Entry e is pair pid: copy what the raster kernels read about it."""
+    img, g = pair_gaussian(pid, num_gaussians, num_cameras)
+    e_pair[e] = wp.int64(pid)
+    e_gauss[e] = wp.int64(g)
+    e_means2d[e] = means2d[pid]
+    e_conics[e] = conics[pid]
+    e_opacities[e] = opacities[g]
+    e_qmax[e] = qmax[pid]
+    e_colors[e] = colors[g]
+    e_extents[e] = extents[pid]
+
+
 @wp.kernel(enable_backward=False)
 def gather_entries_kernel(
     order: wp.array(dtype=wp.int64),  # [M] sorting permutation of the emitted entries
@@ -352,15 +392,50 @@ def gather_entries_kernel(
     """Copies what the raster kernels read into arrays laid out in (image, tile, depth) order."""
     e = wp.tid()
     pid = entry_pair[int(order[e])]
-    img, g = pair_gaussian(pid, num_gaussians, num_cameras)
-    e_pair[e] = wp.int64(pid)
-    e_gauss[e] = wp.int64(g)
-    e_means2d[e] = means2d[pid]
-    e_conics[e] = conics[pid]
-    e_opacities[e] = opacities[g]
-    e_qmax[e] = qmax[pid]
-    e_colors[e] = colors[g]
-    e_extents[e] = extents[pid]
+    write_entry(e, pid, num_gaussians, num_cameras, means2d, conics, qmax, extents, opacities, colors,
+                e_pair, e_gauss, e_means2d, e_conics, e_opacities, e_qmax, e_colors, e_extents)  # fmt: skip
+
+
+@wp.kernel(enable_backward=False)
+def bin_entries_kernel(
+    order: wp.array(dtype=wp.int64),  # [I*N] pairs sorted by depth (stable)
+    width: int,
+    height: int,
+    tile_size: int,
+    tiles_x: int,
+    tiles_per_image: int,
+    cursor: wp.array(dtype=wp.int32),  # [I*tiles] next free entry of each tile; starts at tile_start
+    num_gaussians: int,
+    num_cameras: int,
+    means2d: wp.array(dtype=wp.vec2),  # [I*N] per pair
+    conics: wp.array(dtype=wp.vec3),  # [I*N]
+    qmax: wp.array(dtype=float),  # [I*N]
+    extents: wp.array(dtype=wp.vec2),  # [I*N]
+    opacities: wp.array(dtype=float),  # [B*N] per Gaussian
+    colors: wp.array(dtype=wp.vec3),  # [B*N]
+    e_pair: wp.array(dtype=wp.int64),  # [M] outputs as in gather_entries_kernel
+    e_gauss: wp.array(dtype=wp.int64),
+    e_means2d: wp.array(dtype=wp.vec2),
+    e_conics: wp.array(dtype=wp.vec3),
+    e_opacities: wp.array(dtype=float),
+    e_qmax: wp.array(dtype=float),
+    e_colors: wp.array(dtype=wp.vec3),
+    e_extents: wp.array(dtype=wp.vec2),
+):
+    """Counting sort: each pair, in depth order, appends itself to every tile it touches.
+
+    Emitting, sorting and gathering in one pass; the order inside a tile is the launch order, so
+    this is only correct where a launch runs its threads in sequence (Warp on the CPU).
+    """
+    pid = int(order[wp.tid()])
+    r = tile_rect(means2d[pid], extents[pid], width, height, tile_size)
+    img = pid // num_gaussians
+    for ty in range(r[2], r[3] + 1):
+        for tx in range(r[0], r[1] + 1):
+            e = wp.atomic_add(cursor, img * tiles_per_image + ty * tiles_x + tx, 1)  # the old value
+            write_entry(e, pid, num_gaussians, num_cameras, means2d, conics, qmax, extents, opacities,
+                        colors, e_pair, e_gauss, e_means2d, e_conics, e_opacities, e_qmax, e_colors,
+                        e_extents)  # fmt: skip
 
 
 @wp.kernel(enable_backward=False)
