@@ -131,7 +131,7 @@ class _Timer:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(prog="python -m physgm.bench render")
-    parser.add_argument("--repeats", type=int, default=5, help="timed runs per case (median)")
+    parser.add_argument("--repeats", type=int, default=11, help="timed runs per case (median)")
     parser.add_argument("--threads", type=int, default=2, help="raster threads of the warp backend")
     args = parser.parse_args(argv)
     # Warp prints a banner when physgm.render is first imported, which would break the

@@ -81,7 +81,7 @@ def pixel_error(cameras: Cameras, a: GaussianTrajectory, b: GaussianTrajectory) 
     return {"error_px": float(per_frame.mean()), "error_px_worst_frame": float(per_frame.max())}
 
 
-def throughput(sizes: list[int], substeps: int, device: str, repeats: int = 5) -> list[dict]:
+def throughput(sizes: list[int], substeps: int, device: str, repeats: int = 15) -> list[dict]:
     """Raw solver speed: a jelly block resting on the ground, 8 particles per cell, 1 and 2 threads.
 
     Each size runs ``repeats`` blocks of ``substeps`` sub-steps; the row gives the median block and
@@ -250,7 +250,7 @@ def main(argv: list[str] | None = None) -> dict:
     if "throughput" in parts:
         sizes = [10_000, 50_000] if args.quick else [10_000, 50_000, 200_000]
         result["throughput"] = throughput(
-            sizes, substeps=10 if args.quick else 20, device=args.device, repeats=3 if args.quick else 5
+            sizes, substeps=10 if args.quick else 20, device=args.device, repeats=3 if args.quick else 15
         )
     if "scenes" in parts:
         frames = 10 if args.quick else args.frames
