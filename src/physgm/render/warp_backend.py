@@ -29,11 +29,12 @@ def _arr(t: Tensor, dtype) -> ArrayView:
     """Zero-copy Warp kernel argument for a contiguous torch tensor (no Warp gradients).
 
     Returns the array descriptor a launch packs (data pointer, shape, byte strides) rather than a
-    ``wp.array``: ``wp.launch`` passes descriptors through verbatim, and building one costs
-    about 2 us against 8 us for a ``wp.array`` (which ``wp.from_torch`` wraps in another ~20 us);
-    a forward plus backward makes ~50 of them. The descriptor holds the tensor, so the memory
-    lives as long as the argument. Raises ValueError unless the tensor holds ``dtype`` elements
-    (float32, int32 or int64 scalars, trailing dimensions = its shape).
+    ``wp.array``: both take ~3 us to build, but ``wp.launch`` checks a ``wp.array`` against the
+    kernel signature and then builds this descriptor from it, while a descriptor is passed
+    through verbatim. Over the ~50 arguments of a forward plus backward that saved 0.3-0.4 ms
+    (4096 Gaussians at 64 px, interleaved medians of 25: 7.44 -> 7.01 ms). The descriptor holds
+    the tensor, so the memory lives as long as the argument. Raises ValueError unless the tensor
+    holds ``dtype`` elements (float32, int32 or int64 scalars, trailing dimensions = its shape).
     """
     t = t.contiguous()
     inner = 2 if wp.types.type_is_matrix(dtype) else 1 if wp.types.type_is_vector(dtype) else 0
