@@ -14,6 +14,7 @@ SUITES = {
     "e2e": "physgm.bench.e2e",
     "model": "physgm.bench.model",
     "dpo-landscape": "physgm.bench.dpo_landscape",
+    "material-probe": "physgm.bench.material_probe",
 }
 
 

@@ -15,6 +15,7 @@ import argparse
 import dataclasses
 import json
 import multiprocessing as mp
+import os
 import sys
 import time
 import traceback
@@ -220,10 +221,11 @@ def _work(args: tuple[SynthConfig, int, Path]) -> tuple[int, str, str]:
         return index, "failed", traceback.format_exc()
 
 
-def generate(cfg: SynthConfig, out: Path, workers: int = 1, progress: bool = True) -> dict:
+def generate(cfg: SynthConfig, out: str | os.PathLike, workers: int = 1, progress: bool = True) -> dict:
     """Generate (or finish) a data set; returns the run summary printed by the CLI."""
     from tqdm import tqdm
 
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     _check_config(cfg, out)
     jobs = [(cfg, i, out) for i in range(cfg.count)]
