@@ -13,7 +13,7 @@ from physgm.data.synth import SynthConfig, asset_id, generate
 
 @pytest.fixture(scope="module")
 def two_materials(tmp_path_factory) -> Path:
-    """Glass (faint, translucent) and stone (opaque, grey), 32 px, 6 train + 2 test assets each."""
+    """Glass (faint, translucent) and stone (opaque, grey) at 32 px: 2 test assets of each, the rest train."""
     root = tmp_path_factory.mktemp("probe") / "data"
     cfg = SynthConfig(count=16, seed=0, resolution=32, gaussians=300, video_fraction=0.0, materials=["glass", "stone"])
     summary = generate(cfg, root, workers=1, progress=False)

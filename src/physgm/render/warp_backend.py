@@ -1,8 +1,10 @@
 """Tiled Warp rasteriser with an explicit backward pass, wrapped as a torch autograd Function.
 
 Pipeline (kernels in `warp_kernels.py` and `warp_raster_kernels.py`, torch ops in between):
-project (I*N pairs) -> count tiles per pair -> prefix sum -> emit (tile, pair) entries ->
-sort by (image, tile, depth) -> gather entry data contiguously -> raster forward.
+project (I*N pairs) -> box and tiles per pair, entries per tile -> prefix sum -> entries in
+(image, tile, depth) order with their data gathered contiguously -> raster forward. The ordering
+step is a counting sort on the CPU (pairs sorted by depth append themselves to their tiles in one
+serial launch) and a global key sort on CUDA (``RasterSettings.warp_binning``).
 Backward: raster backward into per-entry slots -> summed into pairs / Gaussians -> the
 projection's hand-written vector-Jacobian product (tested against Warp's generated adjoint).
 The same code runs on CPU and CUDA (tile layout on CPU, pixel layout on CUDA); on CPU the
