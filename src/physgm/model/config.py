@@ -53,10 +53,13 @@ class GaussianHeadConfig:
     near: float = 0.001  # closest depth along a pixel ray, normalised object-frame units
     far: float = 2.0  # farthest depth along a pixel ray
     # How the raw depth channel maps into [near, far]: "range" (the paper's: near + (far - near) *
-    # sigmoid) or "centre" (the ray's closest approach to the scene origin + scene_radius * tanh,
-    # clamped to [near, far]; every Gaussian starts on the plane through the object's centre).
+    # sigmoid), "centre" (the ray's closest approach to the scene origin + scene_radius * tanh,
+    # clamped to [near, far]; every Gaussian starts on the plane through the object's centre) or
+    # "hull" (the paper's sigmoid on the ray's segment inside the visual hull of the input masks,
+    # which the output conv also sees; physgm.model.hull).
     depth_prior: str = "range"
     scene_radius: float = 0.5  # with depth_prior="centre": reach in front of / behind the centre
+    hull_samples: int = 32  # with depth_prior="hull": points tested along each ray
     max_offset: float = 0.05  # bound of the free 3D offset added to the ray point (0 disables it)
     scale_min: float = 0.0005  # smallest Gaussian std
     scale_max: float = 0.1  # largest Gaussian std

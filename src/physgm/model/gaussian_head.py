@@ -2,10 +2,11 @@
 
 The four token maps are reassembled at 4x, 2x, 1x and 1/2x the patch grid, fused coarse to fine
 (DPT, Ranftl et al. 2021), upsampled to the input resolution and, concatenated with the input
-image, decoded by a small conv into raw per-pixel channels. ``GaussianActivations`` turns those
-into Gaussians: each one sits on its pixel's camera ray at a predicted depth, plus a small free
-offset. Pixels outside the object mask are kept in the batched tensors (so every sample has
-N = V * H * W rows) but flagged invalid and given zero opacity.
+image (and, with ``depth_prior="hull"``, the ray's visual-hull segment), decoded by a small conv
+into raw per-pixel channels. ``GaussianActivations`` turns those into Gaussians: each one sits on
+its pixel's camera ray at a predicted depth, plus a small free offset. Pixels outside the object
+mask are kept in the batched tensors (so every sample has N = V * H * W rows) but flagged invalid
+and given zero opacity.
 """
 
 from __future__ import annotations
@@ -19,9 +20,13 @@ from torch import Tensor, nn
 
 from physgm.gaussians import Gaussians
 from physgm.model.config import GaussianHeadConfig
+from physgm.model.hull import hull_depth_range
 
 # Raw output channels of the head, in order; activations live in GaussianActivations.forward.
 RAW_CHANNELS = {"depth": 1, "offset": 3, "scale": 3, "quat": 4, "opacity": 1, "color": 3}
+# "range": the paper's near + (far - near) * sigmoid; "centre": around the ray point nearest the
+# scene origin; "hull": the sigmoid on the ray's segment inside the input masks' visual hull.
+DEPTH_PRIORS = ("range", "centre", "hull")
 
 
 @dataclass
@@ -81,8 +86,8 @@ class GaussianActivations(nn.Module):
             raise ValueError(f"gaussian_head needs 0 < near < far, got near={cfg.near}, far={cfg.far}")
         if not 0 < cfg.scale_min < cfg.scale_max:
             raise ValueError(f"gaussian_head needs 0 < scale_min < scale_max, got {cfg.scale_min}, {cfg.scale_max}")
-        if cfg.depth_prior not in ("range", "centre"):
-            raise ValueError(f"gaussian_head.depth_prior must be 'range' or 'centre', got {cfg.depth_prior!r}")
+        if cfg.depth_prior not in DEPTH_PRIORS:
+            raise ValueError(f"gaussian_head.depth_prior must be one of {DEPTH_PRIORS}, got {cfg.depth_prior!r}")
         if cfg.depth_prior == "centre" and not cfg.scene_radius > 0:
             raise ValueError(f"gaussian_head.scene_radius must be > 0 with depth_prior='centre', got {cfg.scene_radius}")
         self.cfg = cfg
@@ -94,9 +99,15 @@ class GaussianActivations(nn.Module):
         rgb: Tensor,  # [..., 3] input pixel colour in [0, 1]
         origins: Tensor,  # [..., 3] ray origins
         directions: Tensor,  # [..., 3] unit ray directions
+        depth_range: tuple[Tensor, Tensor] | None = None,  # ([..., 1], [..., 1]) with depth_prior="hull"
     ) -> dict[str, Tensor]:
         c = self.cfg
-        if c.depth_prior == "centre":
+        if c.depth_prior == "hull":
+            if depth_range is None:
+                raise ValueError("depth_prior='hull' needs the per-ray depth_range from physgm.model.hull")
+            lo, hi = depth_range
+            depth = lo + (hi - lo) * torch.sigmoid(raw["depth"])  # [..., 1], the paper's sigmoid on the hull segment
+        elif c.depth_prior == "centre":
             # distance along the unit ray to the point closest to the scene origin (object centre)
             centre = -(origins * directions).sum(dim=-1, keepdim=True)
             depth = (centre + c.scene_radius * torch.tanh(raw["depth"])).clamp(c.near, c.far)  # [..., 1]
@@ -162,8 +173,10 @@ class DPTHead(nn.Module):
         self.fusions = nn.ModuleList(_Fusion(cfg.features, has_skip=i < 3) for i in range(4))
         self.pre_upsample = nn.Conv2d(cfg.features, cfg.features // 2, 3, padding=1)
         out_channels = sum(RAW_CHANNELS.values())
+        # + input RGB for sharp detail; + the hull segment (start, length) with depth_prior="hull"
+        self.guide_channels = 3 + (2 if cfg.depth_prior == "hull" else 0)
         self.output = nn.Sequential(
-            nn.Conv2d(cfg.features // 2 + 3, cfg.hidden, 3, padding=1),  # + input RGB for sharp detail
+            nn.Conv2d(cfg.features // 2 + self.guide_channels, cfg.hidden, 3, padding=1),
             nn.ReLU(),
             nn.Conv2d(cfg.hidden, out_channels, 1),
         )
@@ -175,6 +188,7 @@ class DPTHead(nn.Module):
         self,
         tokens: list[Tensor],  # 4 x [B', h * w, D], fine to coarse backbone layers
         images: Tensor,  # [B', 3, H, W] in [0, 1]
+        guide: Tensor | None = None,  # [B', 2, H, W] hull segment start and length (depth_prior="hull")
     ) -> dict[str, Tensor]:  # name -> [B', H, W, RAW_CHANNELS[name]]
         height, width = images.shape[-2:]
         h, w = height // self.patch_size, width // self.patch_size
@@ -187,7 +201,10 @@ class DPTHead(nn.Module):
         x = self.fusions[1](x, maps[1], maps[0].shape[-2:])
         x = self.fusions[0](x, maps[0], maps[0].shape[-2:])
         x = F.interpolate(self.pre_upsample(x), size=(height, width), mode="bilinear", align_corners=False)
-        raw = self.output(torch.cat([x, images * 2.0 - 1.0], dim=1)).permute(0, 2, 3, 1)  # [B', H, W, C]
+        if (guide is not None) != (self.guide_channels > 3):
+            raise ValueError("the DPT head takes the hull guide exactly when depth_prior='hull'")
+        extra = [images * 2.0 - 1.0] + ([guide] if guide is not None else [])
+        raw = self.output(torch.cat([x, *extra], dim=1)).permute(0, 2, 3, 1)  # [B', H, W, C]
         return dict(zip(RAW_CHANNELS, raw.split(list(RAW_CHANNELS.values()), dim=-1), strict=True))
 
 
@@ -205,16 +222,24 @@ class GaussianHead(nn.Module):
         tokens: list[Tensor],  # 4 x [B * V, h * w, D]
         images: Tensor,  # [B, V, 3, H, W] in [0, 1]
         masks: Tensor,  # [B, V, 1, H, W] in [0, 1]
-        origins: Tensor,  # [B, V, 3] camera centres
+        c2w: Tensor,  # [B, V, 4, 4] OpenCV camera-to-world
+        Ks: Tensor,  # [B, V, 3, 3]
         directions: Tensor,  # [B, V, H, W, 3] unit pixel-ray directions
     ) -> GaussianPrediction:
         b, v, _, height, width = images.shape
-        raw = self.dpt(tokens, images.flatten(0, 1))
+        c = self.cfg
+        guide, depth_range = None, None
+        if c.depth_prior == "hull":
+            lo, hi = hull_depth_range(masks, c2w, Ks, directions, c.near, c.far, c.hull_samples, c.mask_threshold)
+            span = c.far - c.near
+            guide = torch.stack([(lo - c.near) / span, (hi - lo) / span], dim=2).flatten(0, 1)  # [B*V, 2, H, W]
+            depth_range = (lo.reshape(b, -1, 1), hi.reshape(b, -1, 1))
+        raw = self.dpt(tokens, images.flatten(0, 1), guide)
         raw = {k: r.reshape(b, v * height * width, -1) for k, r in raw.items()}  # [B, N, c]
         rgb = images.permute(0, 1, 3, 4, 2).reshape(b, -1, 3)
         dirs = directions.reshape(b, -1, 3)
-        origins = origins[:, :, None, :].expand(b, v, height * width, 3).reshape(b, -1, 3)
-        out = self.activations(raw, rgb, origins, dirs)
+        origins = c2w[:, :, None, :3, 3].to(dirs).expand(b, v, height * width, 3).reshape(b, -1, 3)
+        out = self.activations(raw, rgb, origins, dirs, depth_range)
         valid = masks.reshape(b, -1) > self.cfg.mask_threshold  # [B, N]
         # Zero opacity outside the mask keeps batched rendering exact without ragged tensors.
         out["opacities"] = out["opacities"] * valid

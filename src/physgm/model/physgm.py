@@ -62,7 +62,7 @@ class PhysGM(nn.Module):
         plucker = plucker_rays(cameras).reshape(b, v, 6, height, width)  # (direction, moment)
         global_tokens, patch_tokens = self.backbone(images, plucker)
         directions = plucker[:, :, :3].permute(0, 1, 3, 4, 2)  # [B, V, H, W, 3] unit
-        gaussians = self.gaussian_head(patch_tokens, images, masks, cameras.centers.reshape(b, v, 3), directions)
+        gaussians = self.gaussian_head(patch_tokens, images, masks, c2w.to(images.dtype), Ks.to(images.dtype), directions)
         return PhysGMOutput(gaussians=gaussians, physics=self.physics_head(global_tokens))
 
     def physics_parameters(self) -> Iterator[nn.Parameter]:
