@@ -81,3 +81,14 @@ def test_hull_prior_puts_every_gaussian_inside_its_range():
     assert (g.depths >= lo - 1e-5).all() and (g.depths <= hi + 1e-5).all()
     # the last layer starts near zero: depths start near the middle of the segment
     torch.testing.assert_close(g.depths[g.valid], (0.5 * (lo + hi))[g.valid], atol=0.02 * 2.0, rtol=0)
+
+
+def test_ray_chunks_do_not_change_the_result(monkeypatch):
+    import physgm.model.hull as hull
+
+    cams, dirs, masks, *_ = sphere_views([0.0, 90.0, 180.0])
+    args = (masks[None], cams.c2w[None], cams.Ks[None], dirs[None], 0.001, 3.0)
+    whole = hull_depth_range(*args)
+    monkeypatch.setattr(hull, "RAY_CHUNK", 97)  # many chunks, the last one partial
+    chunked = hull_depth_range(*args)
+    torch.testing.assert_close(chunked, whole, rtol=0, atol=0)

@@ -20,6 +20,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+# Rays per chunk: bounds the temporaries to ~RAY_CHUNK * samples * V points (64 MB of float32
+# coordinates at 32 samples and 4 views), whatever the image size.
+RAY_CHUNK = 1 << 14
+
 
 @torch.no_grad()
 def hull_depth_range(
@@ -50,30 +54,49 @@ def hull_depth_range(
     w2c = torch.linalg.inv(c2w.to(dtype))  # [B, V, 4, 4]
     # P = K [R | t]: pixel (u, v) of a world point X is (P0 X / P2 X, P1 X / P2 X).
     proj = Ks.to(dtype) @ w2c[:, :, :3, :]  # [B, V, 3, 4]
-    fraction = torch.linspace(0.0, 1.0, samples, dtype=dtype, device=device)  # [K]
     for i in range(b):  # one scene at a time: its in-mask rays are gathered without padding
         sel = inside_mask[i]  # [V, H, W]
-        if not sel.any():
-            continue
         origin = c2w[i, :, None, None, :3, 3].to(dtype).expand(v, height, width, 3)[sel]  # [R, 3]
         direction = directions[i][sel]  # [R, 3]
-        t0, t1 = _clip_to_mask_frusta(origin, direction, proj[i], _mask_boxes(sel), near, far)
-        t = t0[:, None] + (t1 - t0)[:, None] * fraction  # [R, K]
-        points = origin[:, None] + t[..., None] * direction[:, None]  # [R, K, 3]
-        homo = points.reshape(-1, 3) @ proj[i, :, :, :3].transpose(1, 2) + proj[i, :, None, :, 3]  # [V, R * K, 3]
-        depth = homo[..., 2]
-        col = (homo[..., 0] / depth.clamp_min(1e-9)).floor()
-        row = (homo[..., 1] / depth.clamp_min(1e-9)).floor()
-        in_frame = (depth > 0) & (col >= 0) & (col < width) & (row >= 0) & (row < height)
-        pixel = (row.clamp(0, height - 1) * width + col.clamp(0, width - 1)).long()  # [V, R * K]
-        inside = (sel.reshape(v, -1).gather(1, pixel) & in_frame).all(dim=0).reshape(-1, samples)  # [R, K]
-        found = inside.any(dim=-1) & (t1 > t0)
-        first = inside.int().argmax(dim=-1)  # first True (0 when none)
-        last = samples - 1 - inside.flip(-1).int().argmax(dim=-1)
-        spacing = (t1 - t0) / (samples - 1)
-        rows = torch.arange(t.shape[0], device=device)
-        lo[i][sel] = torch.where(found, t[rows, first] - spacing, near).clamp(near, far)
-        hi[i][sel] = torch.where(found, t[rows, last] + spacing, far).clamp(near, far)
+        boxes = _mask_boxes(sel)
+        parts = [_hull_segment(origin[k : k + RAY_CHUNK], direction[k : k + RAY_CHUNK], proj[i], boxes, sel,
+                               samples, near, far) for k in range(0, origin.shape[0], RAY_CHUNK)]  # fmt: skip
+        if parts:
+            lo[i][sel] = torch.cat([part[0] for part in parts])
+            hi[i][sel] = torch.cat([part[1] for part in parts])
+    return lo, hi
+
+
+def _hull_segment(
+    origin: Tensor,  # [R, 3]
+    direction: Tensor,  # [R, 3] unit
+    proj: Tensor,  # [V, 3, 4] K [R | t] of the scene's views
+    boxes: Tensor,  # [V, 4] mask boxes (``_mask_boxes``)
+    masks: Tensor,  # [V, H, W] bool
+    samples: int,
+    near: float,
+    far: float,
+) -> tuple[Tensor, Tensor]:  # lo, hi: [R]
+    """Pass 2 of the module docstring for a chunk of rays."""
+    v, height, width = masks.shape
+    t0, t1 = _clip_to_mask_frusta(origin, direction, proj, boxes, near, far)
+    fraction = torch.linspace(0.0, 1.0, samples, dtype=origin.dtype, device=origin.device)  # [K]
+    t = t0[:, None] + (t1 - t0)[:, None] * fraction  # [R, K]
+    points = origin[:, None] + t[..., None] * direction[:, None]  # [R, K, 3]
+    homo = points.reshape(-1, 3) @ proj[:, :, :3].transpose(1, 2) + proj[:, None, :, 3]  # [V, R * K, 3]
+    depth = homo[..., 2]
+    col = (homo[..., 0] / depth.clamp_min(1e-9)).floor()
+    row = (homo[..., 1] / depth.clamp_min(1e-9)).floor()
+    in_frame = (depth > 0) & (col >= 0) & (col < width) & (row >= 0) & (row < height)
+    pixel = (row.clamp(0, height - 1) * width + col.clamp(0, width - 1)).long()  # [V, R * K]
+    inside = (masks.reshape(v, -1).gather(1, pixel) & in_frame).all(dim=0).reshape(-1, samples)  # [R, K]
+    found = inside.any(dim=-1) & (t1 > t0)
+    first = inside.int().argmax(dim=-1)  # first True (0 when none)
+    last = samples - 1 - inside.flip(-1).int().argmax(dim=-1)
+    spacing = (t1 - t0) / (samples - 1)
+    rows = torch.arange(t.shape[0], device=t.device)
+    lo = torch.where(found, t[rows, first] - spacing, near).clamp(near, far)
+    hi = torch.where(found, t[rows, last] + spacing, far).clamp(near, far)
     return lo, hi
 
 
