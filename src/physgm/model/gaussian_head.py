@@ -174,9 +174,9 @@ class DPTHead(nn.Module):
         self.pre_upsample = nn.Conv2d(cfg.features, cfg.features // 2, 3, padding=1)
         out_channels = sum(RAW_CHANNELS.values())
         # + input RGB for sharp detail; + the hull segment (start, length) with depth_prior="hull"
-        self.guide_channels = 3 + (2 if cfg.depth_prior == "hull" else 0)
+        self.takes_hull = cfg.depth_prior == "hull"
         self.output = nn.Sequential(
-            nn.Conv2d(cfg.features // 2 + self.guide_channels, cfg.hidden, 3, padding=1),
+            nn.Conv2d(cfg.features // 2 + 3 + 2 * self.takes_hull, cfg.hidden, 3, padding=1),
             nn.ReLU(),
             nn.Conv2d(cfg.hidden, out_channels, 1),
         )
@@ -201,7 +201,7 @@ class DPTHead(nn.Module):
         x = self.fusions[1](x, maps[1], maps[0].shape[-2:])
         x = self.fusions[0](x, maps[0], maps[0].shape[-2:])
         x = F.interpolate(self.pre_upsample(x), size=(height, width), mode="bilinear", align_corners=False)
-        if (guide is not None) != (self.guide_channels > 3):
+        if (guide is not None) != self.takes_hull:
             raise ValueError("the DPT head takes the hull guide exactly when depth_prior='hull'")
         extra = [images * 2.0 - 1.0] + ([guide] if guide is not None else [])
         raw = self.output(torch.cat([x, *extra], dim=1)).permute(0, 2, 3, 1)  # [B', H, W, C]

@@ -20,6 +20,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from physgm.cameras import invert_rigid
+
 # Rays per chunk: the temporaries hold RAY_CHUNK * samples * V projected points (peak 120 MB at
 # 32 samples and 4 views, measured), whatever the image size.
 RAY_CHUNK = 1 << 14
@@ -51,7 +53,7 @@ def hull_depth_range(
     if v == 1:
         return lo, hi
     inside_mask = masks[:, :, 0] > threshold  # [B, V, H, W]
-    w2c = torch.linalg.inv(c2w.to(dtype))  # [B, V, 4, 4]
+    w2c = invert_rigid(c2w.to(dtype))  # [B, V, 4, 4]
     # P = K [R | t]: pixel (u, v) of a world point X is (P0 X / P2 X, P1 X / P2 X).
     proj = Ks.to(dtype) @ w2c[:, :, :3, :]  # [B, V, 3, 4]
     for i in range(b):  # one scene at a time: its in-mask rays are gathered without padding
