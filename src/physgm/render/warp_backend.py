@@ -14,7 +14,9 @@ because a Warp launch releases the GIL.
 
 from __future__ import annotations
 
-import numpy as np
+import bisect
+import itertools
+
 import torch
 import warp as wp
 from torch import Tensor
@@ -85,15 +87,19 @@ def _tile_ranges(work: Tensor, parts: int) -> list[tuple[int, int]]:
     num_tiles = work.numel()
     if parts <= 1 or num_tiles < 2:
         return [(0, num_tiles)]
-    # numpy: a few hundred tiles at most on the CPU path, where each torch op costs ~5 us
-    total = np.cumsum(work.cpu().numpy(), dtype=np.float64)
-    targets = total[-1] * np.arange(1, parts, dtype=np.float64) / parts
-    # tile i is the first whose running total reaches the target: cut before or after it,
-    # whichever leaves the first part closer to the target
-    first = np.searchsorted(total, targets)
-    before = np.where(first > 0, total[np.maximum(first - 1, 0)], 0.0)
-    after = total[np.minimum(first, num_tiles - 1)]
-    cuts = np.where(after - targets < targets - before, first + 1, first).tolist()
+    # Plain Python lists: a few hundred tiles at most on the CPU path. Inside a render of 4096
+    # Gaussians at 64 px (16 tiles) the numpy version of this took 0.10-0.17 ms per call, this
+    # one 0.02-0.04 ms (forward + backward, interleaved medians of 30: 8.68 -> 8.50 ms).
+    total = list(itertools.accumulate(work.tolist()))
+    cuts = []
+    for k in range(1, parts):
+        target = total[-1] * k / parts
+        # tile `first` is the first whose running total reaches the target: cut before or
+        # after it, whichever leaves the first part closer to the target
+        first = bisect.bisect_left(total, target)
+        before = total[first - 1] if first > 0 else 0
+        after = total[min(first, num_tiles - 1)]
+        cuts.append(first + 1 if after - target < target - before else first)
     bounds = sorted({0, num_tiles, *[min(max(c, 1), num_tiles - 1) for c in cuts]})
     return [(a, b - a) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
