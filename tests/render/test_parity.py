@@ -74,6 +74,24 @@ def test_dense_opaque_scene_with_early_stop(scene, kit, layout):
     assert_grads_close(grads_w, grads_t)
 
 
+@pytest.mark.parametrize("output", ["rgb", "alpha"])
+def test_a_loss_on_one_output_gets_the_twins_gradients(scene, kit, output):
+    # the other output's gradient reaches the backward as None (no zeros are built for it)
+    grads = {}
+    for backend in ("torch", "warp"):
+        s = kit.to(scene, torch.float32, requires_grad=True)
+        args = [s[k] for k in kit.GRAD_KEYS] + [s["viewmats"], s["Ks"], s["width"], s["height"]]
+        rgb, alpha, _ = rasterize(*args, backend=backend)
+        out = rgb if output == "rgb" else alpha
+        weights = torch.randn(out.shape, generator=torch.Generator().manual_seed(3))
+        (out * weights).sum().backward()
+        # alpha does not depend on the colours: the twin leaves their gradient None
+        grads[backend] = {k: torch.zeros_like(s[k]) if s[k].grad is None else s[k].grad
+                          for k in kit.GRAD_KEYS}  # fmt: skip
+    assert grads["torch"]["means"].abs().sum() > 0
+    assert_grads_close(grads["warp"], grads["torch"])
+
+
 def test_tile_size_and_threads_do_not_change_the_result(scene, kit):
     rgb_a, alpha_a, _, grads_a = run(scene, kit, "warp:tile", tile_size=16, num_threads=2)
     rgb_b, alpha_b, _, grads_b = run(scene, kit, "warp:tile", tile_size=8, num_threads=1)
