@@ -1,10 +1,12 @@
-"""Stage-1 losses: photometric (MSE, LPIPS), alpha against the mask, material CE, physics NLL.
+"""Stage-1 losses: photometric (MSE, LPIPS), alpha against the mask, material CE, physics NLL,
+and an optional anisotropy penalty on the Gaussians.
 
 Losses live here and in the LightningModules, never inside ``nn.Module.forward``.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -21,6 +23,8 @@ class PretrainLossConfig:
     alpha: float = 1.0  # weight of the MSE between rendered alpha and the object mask
     ce: float = 0.1  # weight of the material cross-entropy against the annotation
     nll: float = 0.1  # weight of the Gaussian NLL of the annotated (log10 E, nu)
+    aniso: float = 0.0  # weight of the anisotropy penalty (not in the paper; see ``anisotropy_penalty``)
+    aniso_ratio: float = 4.0  # largest max/min scale ratio of a Gaussian that costs nothing
     lpips_net: str = "alex"  # LPIPS backbone: alex or vgg
     lpips_backbone_path: str | None = None  # local torchvision weights; default torchvision's cache
 
@@ -30,6 +34,26 @@ def physics_nll(posterior: PhysicsPosterior, log10_E: Tensor, nu: Tensor) -> Ten
     labels = PhysicsSample(torch.zeros_like(log10_E, dtype=torch.long)[:, None], log10_E[:, None], nu[:, None])
     _, log_E, log_nu = posterior.log_prob_terms(labels)
     return -(log_E + log_nu)[:, 0]
+
+
+def anisotropy_penalty(
+    scales: Tensor,  # [B, N, 3] linear standard deviations
+    valid: Tensor,  # [B, N] bool, Gaussians that exist (inside the input mask)
+    max_ratio: float,
+) -> Tensor:
+    """Mean over valid Gaussians of relu(log(max scale / min scale) - log(max_ratio)).
+
+    After the anisotropy regulariser of PhysGaussian (Xie et al. 2024; there on the plain ratio):
+    needle- and sliver-like Gaussians fit the input views but show as hair from other directions
+    and once the simulation rotates or stretches them. The log keeps the gradient bounded for the
+    ratios of ~200 an unregularised head reaches (``scale_max / scale_min``).
+    """
+    if max_ratio < 1.0:
+        raise ValueError(f"loss.aniso_ratio must be >= 1 (a sphere has ratio 1), got {max_ratio}")
+    log_ratio = torch.log(scales.amax(-1) / scales.amin(-1).clamp_min(1e-12))
+    excess = F.relu(log_ratio - math.log(max_ratio))
+    weights = valid.to(excess.dtype)
+    return (excess * weights).sum() / weights.sum().clamp_min(1.0)
 
 
 def pretrain_losses(
@@ -43,6 +67,8 @@ def pretrain_losses(
     log10_E: Tensor,  # [B] annotated log10 E
     nu: Tensor,  # [B] annotated nu
     lpips_model: nn.Module | None = None,
+    scales: Tensor | None = None,  # [B, N, 3] predicted Gaussian scales, for loss.aniso
+    valid: Tensor | None = None,  # [B, N] bool
 ) -> dict[str, Tensor]:
     """Weighted loss terms and their sum under ``"loss"``."""
     pred = rgb.permute(0, 1, 4, 2, 3)  # [B, T, 3, H, W]
@@ -58,5 +84,9 @@ def pretrain_losses(
         from physgm.metrics.lpips import lpips_distance
 
         terms["lpips"] = lpips_distance(lpips_model, pred, target_rgb)
+    if cfg.aniso > 0:
+        if scales is None or valid is None:
+            raise ValueError("loss.aniso > 0 needs the predicted scales and valid flags")
+        terms["aniso"] = anisotropy_penalty(scales, valid, cfg.aniso_ratio)
     terms["loss"] = sum(getattr(cfg, name) * value for name, value in terms.items())
     return terms

@@ -94,6 +94,7 @@ class LitPretrain(L.LightningModule):
         terms = pretrain_losses(
             self.loss_cfg, rgb, alpha, batch.target_images, batch.target_masks, out.physics,
             batch.material, batch.log10_E, batch.nu, self.lpips_model,
+            scales=out.gaussians.scales, valid=out.gaussians.valid,
         )
         return out, rgb, alpha, terms
 

@@ -1,0 +1,49 @@
+"""Stage-1 loss terms against hand-computed values."""
+
+import math
+
+import pytest
+import torch
+
+from physgm.model.posterior import PhysicsPosterior
+from physgm.train.losses import PretrainLossConfig, anisotropy_penalty, pretrain_losses
+
+
+def test_anisotropy_penalty_is_the_mean_log_excess_over_valid_gaussians():
+    scales = torch.tensor([[[1.0, 1.0, 1.0], [0.5, 1.0, 8.0], [1.0, 2.0, 400.0]]])
+    valid = torch.tensor([[True, True, False]])  # the needle is outside the mask: free
+    # sphere: ratio 1 -> 0; second: ratio 16 -> log 16 - log 4 = log 4; mean over 2 valid
+    assert anisotropy_penalty(scales, valid, 4.0).item() == pytest.approx(math.log(4.0) / 2, rel=1e-6)
+    assert anisotropy_penalty(scales, torch.zeros_like(valid), 4.0).item() == 0.0
+
+
+def test_anisotropy_penalty_gradient_shrinks_the_ratio():
+    scales = torch.tensor([[[0.01, 0.5, 1.0]]], requires_grad=True)
+    anisotropy_penalty(scales, torch.ones(1, 1, dtype=torch.bool), 4.0).backward()
+    grad = scales.grad[0, 0]
+    assert grad[0] < 0 and grad[2] > 0 and grad[1] == 0  # grow the thin axis, shrink the long one
+
+
+def test_anisotropy_ratio_below_one_is_refused():
+    with pytest.raises(ValueError, match="aniso_ratio"):
+        anisotropy_penalty(torch.ones(1, 1, 3), torch.ones(1, 1, dtype=torch.bool), 0.5)
+
+
+def test_pretrain_losses_add_the_weighted_anisotropy_term():
+    b, t, h, w, n = 2, 3, 4, 4, 5
+    gen = torch.Generator().manual_seed(0)
+    rgb, alpha = torch.rand(b, t, h, w, 3, generator=gen), torch.rand(b, t, h, w, 1, generator=gen)
+    target, mask = torch.rand(b, t, 3, h, w, generator=gen), torch.rand(b, t, 1, h, w, generator=gen)
+    posterior = PhysicsPosterior(torch.randn(b, 15, generator=gen), torch.zeros(b), torch.zeros(b),
+                                 torch.zeros(b), torch.zeros(b))  # fmt: skip
+    labels = (torch.tensor([0, 3]), torch.tensor([5.0, 6.0]), torch.tensor([0.3, 0.4]))
+    scales = 0.01 + torch.rand(b, n, 3, generator=gen)
+    valid = torch.ones(b, n, dtype=torch.bool)
+    off = pretrain_losses(PretrainLossConfig(), rgb, alpha, target, mask, posterior, *labels)
+    on = pretrain_losses(PretrainLossConfig(aniso=0.5), rgb, alpha, target, mask, posterior, *labels,
+                         scales=scales, valid=valid)  # fmt: skip
+    assert "aniso" not in off
+    expected = off["loss"] + 0.5 * anisotropy_penalty(scales, valid, 4.0)
+    assert on["loss"].item() == pytest.approx(expected.item(), rel=1e-6)
+    with pytest.raises(ValueError, match="scales"):
+        pretrain_losses(PretrainLossConfig(aniso=0.5), rgb, alpha, target, mask, posterior, *labels)
