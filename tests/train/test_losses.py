@@ -24,9 +24,13 @@ def test_anisotropy_penalty_gradient_shrinks_the_ratio():
     assert grad[0] < 0 and grad[2] > 0 and grad[1] == 0  # grow the thin axis, shrink the long one
 
 
-def test_anisotropy_ratio_below_one_is_refused():
+def test_bad_anisotropy_settings_are_refused_when_the_config_is_built():
     with pytest.raises(ValueError, match="aniso_ratio"):
         anisotropy_penalty(torch.ones(1, 1, 3), torch.ones(1, 1, dtype=torch.bool), 0.5)
+    with pytest.raises(ValueError, match="aniso_ratio"):
+        PretrainLossConfig(aniso=0.01, aniso_ratio=0.5)
+    with pytest.raises(ValueError, match="loss.aniso is a weight"):
+        PretrainLossConfig(aniso=-1.0)
 
 
 def test_pretrain_losses_add_the_weighted_anisotropy_term():

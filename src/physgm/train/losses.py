@@ -28,6 +28,12 @@ class PretrainLossConfig:
     lpips_net: str = "alex"  # LPIPS backbone: alex or vgg
     lpips_backbone_path: str | None = None  # local torchvision weights; default torchvision's cache
 
+    def __post_init__(self) -> None:
+        if self.aniso < 0:
+            raise ValueError(f"loss.aniso is a weight and must be >= 0, got {self.aniso}")
+        if self.aniso_ratio < 1.0:
+            raise ValueError(f"loss.aniso_ratio must be >= 1 (a sphere has ratio 1), got {self.aniso_ratio}")
+
 
 def physics_nll(posterior: PhysicsPosterior, log10_E: Tensor, nu: Tensor) -> Tensor:  # [B]
     """Negative log density of the labelled (log10 E, nu) under the predicted Gaussians (normalised units)."""
