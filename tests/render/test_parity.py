@@ -76,7 +76,7 @@ def test_dense_opaque_scene_with_early_stop(scene, kit, layout):
 
 @pytest.mark.parametrize("output", ["rgb", "alpha"])
 def test_a_loss_on_one_output_gets_the_twins_gradients(scene, kit, output):
-    # the other output's gradient reaches the backward as None (no zeros are built for it)
+    # only one output feeds the loss: the backward gets zeros for the other
     grads = {}
     for backend in ("torch", "warp"):
         s = kit.to(scene, torch.float32, requires_grad=True)
