@@ -163,3 +163,5 @@ def test_counting_and_sort_binning_agree_exactly_with_depth_ties(scene, kit):
     assert (rgb_c - rgb_t).abs().max() <= 1e-4
     with pytest.raises(ValueError, match="warp_binning"):
         RasterSettings(16, 16, warp_binning="radix")
+    with pytest.raises(ValueError, match="near_plane"):
+        RasterSettings(16, 16, near_plane=0.0)  # both binnings sort by the bits of positive depths

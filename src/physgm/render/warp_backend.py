@@ -208,9 +208,12 @@ class _RasterizeWarp(torch.autograd.Function):
         pair_data = [num_n, num_c, proj_out[0], proj_out[1], bounds[1], bounds[0], proj_in[3],
                      _arr(colors, wp.vec3), _arr(e_pair, wp.int64), _arr(e_gauss, wp.int64), *entry_arrs]  # fmt: skip
         if num_entries and _binning(s, device) == "counting":
-            # stable: pairs at equal depth keep Gaussian order, as in the sort below
-            by_depth = torch.argsort(depths, stable=True)
-            _launch(K.bin_entries_kernel, num_pairs,
+            # Only pairs that touch a tile are ordered. Their depths are > near_plane > 0, so the
+            # float bits sort like the floats, and torch sorts integers by radix: 524k pairs (a
+            # 4-view training batch) 55 -> 5 ms, measured. Stable: equal depths keep pair order.
+            emitted = torch.nonzero(counts, as_tuple=True)[0]
+            by_depth = emitted[torch.sort(depths[emitted].view(torch.int32), stable=True)[1]]
+            _launch(K.bin_entries_kernel, by_depth.numel(),
                     [_arr(by_depth, wp.int64), s.width, s.height, s.tile_size, s.tiles_x, tiles_per_image,
                      _arr(tile_start.clone(), wp.int32), *pair_data], device)  # fmt: skip
         elif num_entries:
