@@ -53,7 +53,7 @@ def test_vjp_matches_warps_generated_adjoint(kit, focal):
               adj_outputs=adj_outs, adjoint=True, device="cpu")  # fmt: skip
 
     got = [wp.zeros(num_n, dtype=t) for t in (wp.vec3, wp.vec4, wp.vec3)]
-    wp.launch(K.project_vjp_kernel, pairs, inputs + scalars + adj_outs[:2] + got, device="cpu")
+    wp.launch(K.project_vjp_kernel, pairs, [0] + inputs + scalars + adj_outs[:2] + got, device="cpu")
     for name, a, b in zip(("means", "quats", "scales"), got, ref[:3], strict=False):
         a, b = torch.from_numpy(a.numpy()), torch.from_numpy(b.numpy())
         assert b.abs().max() > 0, name

@@ -3,13 +3,15 @@
 Pipeline (kernels in `warp_kernels.py` and `warp_raster_kernels.py`, torch ops in between):
 project (I*N pairs) -> box and tiles per pair, entries per tile -> prefix sum -> entries in
 (image, tile, depth) order with their data gathered contiguously -> raster forward. The ordering
-step is a counting sort on the CPU (pairs sorted by depth append themselves to their tiles in one
-serial launch) and a global key sort on CUDA (``RasterSettings.warp_binning``).
+step is a counting sort on the CPU (pairs sorted by depth append themselves to their tiles in
+serial launches, one per group of images) and a global key sort on CUDA
+(``RasterSettings.warp_binning``).
 Backward: raster backward into per-entry slots -> summed into pairs / Gaussians -> the
 projection's hand-written vector-Jacobian product (tested against Warp's generated adjoint).
-The same code runs on CPU and CUDA (tile layout on CPU, pixel layout on CUDA); on CPU the
-raster launches are split over Python threads (``physgm.parallel``), which run in parallel
-because a Warp launch releases the GIL.
+The same code runs on CPU and CUDA (tile layout on CPU, pixel layout on CUDA). On the CPU the
+launches are split over Python threads (``physgm.parallel``), which run in parallel because a
+Warp launch releases the GIL: the raster launches by tiles, the per-pair and per-entry launches
+of large batches by images or scenes (``_cuts``), so no two threads write the same memory.
 """
 
 from __future__ import annotations
@@ -132,18 +134,56 @@ def _launch_tiles(kernels, ranges, settings: RasterSettings, args: list, device:
         _launch(kernel, r[1] * per_tile, [r[0], *head, *args], device)
 
     if device.type == "cpu" and len(ranges) > 1:
-        # All launches are packed here, so a helper needs the GIL only for a few microseconds
-        # (packing on the helpers made them wait for this thread's Python work); the calling
-        # thread takes the last range itself: one thread hand-off fewer.
-        wp_device = _DEVICES.get(device) or _device(device)
-        ensure_loaded(kernel, wp_device)
-        launches = [wp.launch(kernel, r[1] * per_tile, [r[0], *head, *args], device=wp_device, record_cmd=True)
-                    for r in ranges]  # fmt: skip
-        run_split([launch.launch for launch in launches], helpers_for_this_thread(len(ranges) - 1))
+        _run_parallel(kernel, [(r[1] * per_tile, [r[0], *head, *args]) for r in ranges], device)
     else:
         for r in ranges:
             run(r)
 
+
+def _run_parallel(kernel, launches: list[tuple[int, list]], device: torch.device) -> None:
+    """Runs CPU launches (dim, args) of ``kernel`` at once, one per thread.
+
+    All launches are packed here, so a helper needs the GIL only for a few microseconds
+    (packing on the helpers made them wait for this thread's Python work); the calling thread
+    takes the last launch itself: one thread hand-off fewer.
+    """
+    wp_device = _DEVICES.get(device) or _device(device)
+    ensure_loaded(kernel, wp_device)
+    recorded = [wp.launch(kernel, dim, args, device=wp_device, record_cmd=True) for dim, args in launches]
+    run_split([launch.launch for launch in recorded], helpers_for_this_thread(len(recorded) - 1))
+
+
+def _cuts(total: int, unit: int, parts: int) -> list[int]:
+    """0 = c_0 <= c_1 <= ... <= c_parts = total: about equal ranges cut at multiples of ``unit``.
+
+    Kernels that accumulate per image (tile counts) cut at images, unit = N; kernels that
+    accumulate per Gaussian (gradients summed over a scene's cameras) cut at scenes, unit = C N.
+    Ranges cut that way write disjoint memory, so they run at once without atomics between them.
+    """
+    if parts <= 1 or unit <= 0 or total < 2 * unit:
+        return [0, total]
+    units = total // unit
+    return [0, *[(units * k // parts) * unit for k in range(1, parts)], total]
+
+
+def _launch_split(kernel, cuts: list[int], args: list, device: torch.device, min_part: int | None = None) -> None:
+    """Launches ``kernel(offset, *args)`` over the index ranges between ``cuts``, one thread each
+    on the CPU when every range has at least ``min_part`` (default ``_MIN_SPLIT``) indices."""
+    ranges = [(a, b - a) for a, b in itertools.pairwise(cuts) if b > a]
+    min_part = _MIN_SPLIT if min_part is None else min_part
+    if device.type != "cpu" or len(ranges) < 2 or min(n for _, n in ranges) < min_part:
+        _launch(kernel, cuts[-1] - cuts[0], [cuts[0], *args], device)
+    else:
+        _run_parallel(kernel, [(n, [a, *args]) for a, n in ranges], device)
+
+
+# Fewer indices per thread than this and a helper-thread hand-off (50-75 us, physgm.parallel)
+# costs about what it saves: a CPU handles a few thousand pairs or entries in that time.
+_MIN_SPLIT = 8192
+# The bounds of 65k pairs per thread (a 1-view training batch) took longer split than not,
+# 5.3 against 4.4 ms; of 262k (4 views) 7.8 against 13.7 ms (interleaved medians of 20). The
+# projection was no faster split at either size (4.3 / 3.1 ms, 11.0 / 10.5 ms), so it stays serial.
+_MIN_SPLIT_BOUNDS = 1 << 17
 
 _FORWARD = (R.raster_forward_tile_kernel, R.raster_forward_pixel_kernel)
 _BACKWARD = (R.raster_backward_tile_kernel, R.raster_backward_pixel_kernel)
@@ -184,7 +224,7 @@ class _RasterizeWarp(torch.autograd.Function):
         depths = means.new_empty(num_pairs)
         cov_diag = means.new_empty(num_pairs, 2)
         proj_out = _projection_outputs(means2d, conics, depths, cov_diag)
-        _launch(K.project_kernel, num_pairs, proj_in + proj_out, device)
+        _launch(K.project_kernel, num_pairs, proj_in + proj_out, device)  # split: no faster (measured)
 
         # --- binning: box per pair and entries per tile, then entries in (image, tile, depth) order ---
         tiles_per_image = s.tiles_x * s.tiles_y
@@ -193,9 +233,11 @@ class _RasterizeWarp(torch.autograd.Function):
         counts = torch.empty(num_pairs, dtype=torch.int32, device=device)
         tile_counts = torch.zeros(num_i * tiles_per_image, dtype=torch.int32, device=device)
         bounds = [_arr(extents, wp.vec2), _arr(qmax, wp.float32), _arr(counts, wp.int32)]
-        _launch(K.pair_bounds_kernel, num_pairs,
-                [proj_out[0], proj_out[3], proj_in[3], *ints, s.tile_size, s.tiles_x, tiles_per_image,
-                 *bounds, _arr(tile_counts, wp.int32)], device)  # fmt: skip
+        parts = s.num_threads if device.type == "cpu" else 1
+        image_cuts = _cuts(num_pairs, num_n, parts)  # tile counts are per image
+        _launch_split(K.pair_bounds_kernel, image_cuts,
+                      [proj_out[0], proj_out[3], proj_in[3], *ints, s.tile_size, s.tiles_x, tiles_per_image,
+                       *bounds, _arr(tile_counts, wp.int32)], device, min_part=_MIN_SPLIT_BOUNDS)  # fmt: skip
         tile_end = torch.cumsum(tile_counts, dim=0, dtype=torch.int32)
         tile_start = tile_end - tile_counts
         num_entries = int(tile_end[-1])
@@ -213,9 +255,16 @@ class _RasterizeWarp(torch.autograd.Function):
             # 4-view training batch) 55 -> 5 ms, measured. Stable: equal depths keep pair order.
             emitted = torch.nonzero(counts, as_tuple=True)[0]
             by_depth = emitted[torch.sort(depths[emitted].view(torch.int32), stable=True)[1]]
-            _launch(K.bin_entries_kernel, by_depth.numel(),
-                    [_arr(by_depth, wp.int64), s.width, s.height, s.tile_size, s.tiles_x, tiles_per_image,
-                     _arr(tile_start.clone(), wp.int32), *pair_data], device)  # fmt: skip
+            rest = [s.width, s.height, s.tile_size, s.tiles_x, tiles_per_image, _arr(tile_start.clone(), wp.int32),
+                    *pair_data]  # fmt: skip
+            if len(image_cuts) > 2 and by_depth.numel() >= 2 * _MIN_SPLIT:
+                # Each thread appends the pairs of its own images (so to its own tiles), in depth order.
+                part = torch.bucketize(by_depth, torch.tensor(image_cuts[1:-1]), right=True)
+                orders = [by_depth[part == k] for k in range(len(image_cuts) - 1)]
+                _run_parallel(K.bin_entries_kernel,
+                              [(o.numel(), [_arr(o, wp.int64), *rest]) for o in orders if o.numel()], device)
+            else:
+                _launch(K.bin_entries_kernel, by_depth.numel(), [_arr(by_depth, wp.int64), *rest], device)
         elif num_entries:
             csum = torch.cumsum(counts, dim=0, dtype=torch.int32)
             entry_tile = torch.empty(num_entries, dtype=torch.int32, device=device)
@@ -251,7 +300,7 @@ class _RasterizeWarp(torch.autograd.Function):
         # The Warp views are kept for the backward (~5 us each to rebuild); save_for_backward
         # still holds the tensors, so an in-place change between the passes is reported.
         ctx.warp_views = (proj_in, tiles, composite)
-        ctx.num_pairs = num_pairs
+        ctx.num_pairs, ctx.num_c, ctx.num_n = num_pairs, num_c, num_n
         ctx.save_for_backward(means, quats, scales, opacities, viewmats, Ks, tile_start, tile_end,
                               e_pair, e_gauss, *entries, trans, end)  # fmt: skip
         alpha = 1.0 - trans
@@ -290,15 +339,19 @@ class _RasterizeWarp(torch.autograd.Function):
                        _arr(v_rgb.reshape(-1, 3), wp.vec3), _arr(v_alpha.reshape(-1), wp.float32),
                        _arr(scratch_trans, wp.float32), _arr(scratch_behind, wp.vec3), *v_entry],
                       device)  # fmt: skip
+        # Both launches below sum into Gaussians over all cameras of a scene: threads take whole scenes.
+        num_n = ctx.num_n
+        parts = s.num_threads if device.type == "cpu" else 1
+        scene_cuts = _cuts(num_pairs, ctx.num_c * num_n, parts)
+        tiles_per_image = s.tiles_x * s.tiles_y
+        entry_cuts = [0, *[int(tile_start[c // num_n * tiles_per_image]) for c in scene_cuts[1:-1]], num_e]
         v_means2d, v_conics = means.new_zeros(num_pairs, 2), means.new_zeros(num_pairs, 3)
-        _launch(K.scatter_entry_grads_kernel, num_e,
-                [_arr(e_pair, wp.int64), _arr(e_gauss, wp.int64), *v_entry, _arr(v_means2d, wp.vec2),
-                 _arr(v_conics, wp.vec3), _arr(v_opac, wp.float32), _arr(v_colors, wp.vec3)], device)  # fmt: skip
-
-        # The projection's vector-Jacobian product sums over cameras into each Gaussian.
-        _launch(K.project_vjp_kernel, num_pairs,
-                [*proj_in, _arr(v_means2d, wp.vec2), _arr(v_conics, wp.vec3), _arr(v_means, wp.vec3),
-                 _arr(v_quats, wp.vec4), _arr(v_scales, wp.vec3)], device)  # fmt: skip
+        _launch_split(K.scatter_entry_grads_kernel, entry_cuts,
+                      [_arr(e_pair, wp.int64), _arr(e_gauss, wp.int64), *v_entry, _arr(v_means2d, wp.vec2),
+                       _arr(v_conics, wp.vec3), _arr(v_opac, wp.float32), _arr(v_colors, wp.vec3)], device)  # fmt: skip
+        _launch_split(K.project_vjp_kernel, scene_cuts,
+                      [*proj_in, _arr(v_means2d, wp.vec2), _arr(v_conics, wp.vec3), _arr(v_means, wp.vec3),
+                       _arr(v_quats, wp.vec4), _arr(v_scales, wp.vec3)], device)  # fmt: skip
         return v_means, v_quats, v_scales, v_opac, v_colors, None, None, None, None
 
 

@@ -155,6 +155,7 @@ def quat_to_rotmat_vjp(q: wp.vec4, v_r: wp.mat33) -> wp.vec4:
 
 @wp.kernel(enable_backward=False)
 def project_vjp_kernel(
+    offset: int,  # first pair of this launch (the CPU splits a launch over threads)
     means: wp.array(dtype=wp.vec3),  # [B*N] as in project_kernel
     quats: wp.array(dtype=wp.vec4),  # [B*N]
     scales: wp.array(dtype=wp.vec3),  # [B*N]
@@ -181,7 +182,7 @@ def project_vjp_kernel(
     Warp's generated adjoint of ``project_kernel`` is the reference in the tests; this one skips
     the gradients nobody asks for (cameras, opacities) and the replay's bookkeeping.
     """
-    pid = wp.tid()
+    pid = wp.tid() + offset
     img, g = pair_gaussian(pid, num_gaussians, num_cameras)
     rot_w, p = to_camera(viewmats[img], means[g])
     z = p[2]
@@ -252,6 +253,7 @@ def project_vjp_kernel(
 
 @wp.kernel(enable_backward=False)
 def pair_bounds_kernel(
+    offset: int,  # first pair of this launch (the CPU splits a launch over threads)
     means2d: wp.array(dtype=wp.vec2),  # [I*N]
     cov_diag: wp.array(dtype=wp.vec2),  # [I*N] 0 when culled
     opacities: wp.array(dtype=float),  # [B*N]
@@ -269,7 +271,7 @@ def pair_bounds_kernel(
 ):
     """Mirrors `projection.extents_from_cov` and `projection.tile_rects`; also counts the
     entries of every tile (atomic, so the counts are the same in any thread order)."""
-    pid = wp.tid()
+    pid = wp.tid() + offset
     img, g = pair_gaussian(pid, num_gaussians, num_cameras)
     cd = cov_diag[pid]
     k2 = 2.0 * wp.log(wp.max(opacities[g] / _ALPHA_MIN, 1.0))
@@ -440,6 +442,7 @@ def bin_entries_kernel(
 
 @wp.kernel(enable_backward=False)
 def scatter_entry_grads_kernel(
+    offset: int,  # first entry of this launch (the CPU splits a launch over threads)
     e_pair: wp.array(dtype=wp.int64),  # [M] pair of each sorted entry
     e_gauss: wp.array(dtype=wp.int64),  # [M] Gaussian of each sorted entry
     v_e_means2d: wp.array(dtype=wp.vec2),  # [M] per-entry gradients from the raster backward
@@ -453,7 +456,7 @@ def scatter_entry_grads_kernel(
 ):
     """Sums the raster backward's per-entry gradients into pairs and Gaussians (four
     ``index_add_`` in one launch; serial on the CPU, so the sums are deterministic there)."""
-    e = wp.tid()
+    e = wp.tid() + offset
     pid = int(e_pair[e])
     g = int(e_gauss[e])
     wp.atomic_add(v_means2d, pid, v_e_means2d[e])
