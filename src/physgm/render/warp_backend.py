@@ -224,7 +224,7 @@ class _RasterizeWarp(torch.autograd.Function):
         depths = means.new_empty(num_pairs)
         cov_diag = means.new_empty(num_pairs, 2)
         proj_out = _projection_outputs(means2d, conics, depths, cov_diag)
-        _launch(K.project_kernel, num_pairs, proj_in + proj_out, device)  # split: no faster (measured)
+        _launch(K.project_kernel, num_pairs, proj_in + proj_out, device)  # no faster split (_MIN_SPLIT_BOUNDS)
 
         # --- binning: box per pair and entries per tile, then entries in (image, tile, depth) order ---
         tiles_per_image = s.tiles_x * s.tiles_y

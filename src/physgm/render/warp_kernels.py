@@ -455,7 +455,8 @@ def scatter_entry_grads_kernel(
     v_colors: wp.array(dtype=wp.vec3),  # [B*N]
 ):
     """Sums the raster backward's per-entry gradients into pairs and Gaussians (four
-    ``index_add_`` in one launch; serial on the CPU, so the sums are deterministic there)."""
+    ``index_add_`` in one launch). On the CPU a scene's entries run in order on one thread, so
+    the sums are deterministic there."""
     e = wp.tid() + offset
     pid = int(e_pair[e])
     g = int(e_gauss[e])
