@@ -233,8 +233,8 @@ class _RasterizeWarp(torch.autograd.Function):
         counts = torch.empty(num_pairs, dtype=torch.int32, device=device)
         tile_counts = torch.zeros(num_i * tiles_per_image, dtype=torch.int32, device=device)
         bounds = [_arr(extents, wp.vec2), _arr(qmax, wp.float32), _arr(counts, wp.int32)]
-        parts = s.num_threads if device.type == "cpu" else 1
-        image_cuts = _cuts(num_pairs, num_n, parts)  # tile counts are per image
+        threads = s.num_threads if device.type == "cpu" else 1
+        image_cuts = _cuts(num_pairs, num_n, threads)  # tile counts are per image
         _launch_split(K.pair_bounds_kernel, image_cuts,
                       [proj_out[0], proj_out[3], proj_in[3], *ints, s.tile_size, s.tiles_x, tiles_per_image,
                        *bounds, _arr(tile_counts, wp.int32)], device, min_part=_MIN_SPLIT_BOUNDS)  # fmt: skip
@@ -285,7 +285,6 @@ class _RasterizeWarp(torch.autograd.Function):
         trans = means.new_ones(num_pix)
         end = torch.zeros(num_pix, dtype=torch.int32, device=device)
         done = torch.zeros(num_pix, dtype=torch.int32, device=device)
-        threads = s.num_threads if device.type == "cpu" else 1
         # forward split by entry count (+1: empty tiles are not free); the backward split uses
         # the pixel tests the forward counted, since its cost follows the composited pairs
         tile_work = tile_counts + 1
@@ -341,8 +340,8 @@ class _RasterizeWarp(torch.autograd.Function):
                       device)  # fmt: skip
         # Both launches below sum into Gaussians over all cameras of a scene: threads take whole scenes.
         num_n = ctx.num_n
-        parts = s.num_threads if device.type == "cpu" else 1
-        scene_cuts = _cuts(num_pairs, ctx.num_c * num_n, parts)
+        threads = s.num_threads if device.type == "cpu" else 1
+        scene_cuts = _cuts(num_pairs, ctx.num_c * num_n, threads)
         tiles_per_image = s.tiles_x * s.tiles_y
         entry_cuts = [0, *[int(tile_start[c // num_n * tiles_per_image]) for c in scene_cuts[1:-1]], num_e]
         v_means2d, v_conics = means.new_zeros(num_pairs, 2), means.new_zeros(num_pairs, 3)
