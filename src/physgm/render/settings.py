@@ -35,8 +35,9 @@ class RasterSettings:
         eps2d: Screen-space dilation (px^2) added to the diagonal of every 2D covariance.
         tile_size: Side of the square screen tiles used for binning (px).
         num_threads: Python threads that launch CPU raster kernels in parallel (warp backend).
-        warp_layout: Warp raster kernels: "tile" (a thread per tile, fast on CPU), "pixel" (a
-            thread per pixel, for CUDA) or "auto" (tile on CPU, pixel on CUDA).
+        warp_layout: Warp raster kernels: "tile" (a thread per tile, 16-pixel SIMD rows, fast
+            on CPU; tiles of at most 16 px), "pixel" (a thread per pixel, for CUDA) or "auto"
+            (tile on CPU when tile_size <= 16, else pixel).
         warp_binning: How entries reach (image, tile, depth) order: "counting" (pairs sorted by
             depth, then appended to their tiles in one serial launch; CPU only), "sort" (a
             global sort of (tile, depth) keys; any device) or "auto" (counting on CPU).

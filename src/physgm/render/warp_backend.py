@@ -1,6 +1,7 @@
 """Tiled Warp rasteriser with an explicit backward pass, wrapped as a torch autograd Function.
 
-Pipeline (kernels in `warp_kernels.py` and `warp_raster_kernels.py`, torch ops in between):
+Pipeline (kernels in `warp_kernels.py`, `warp_raster_kernels.py` and `warp_tile_kernels.py`, torch
+ops in between):
 project (I*N pairs) -> box and tiles per pair, entries per tile -> prefix sum -> entries in
 (image, tile, depth) order with their data gathered contiguously -> raster forward. The ordering
 step is a counting sort on the CPU (pairs sorted by depth append themselves to their tiles in
@@ -8,7 +9,8 @@ serial launches, one per group of images) and a global key sort on CUDA
 (``RasterSettings.warp_binning``).
 Backward: raster backward into per-entry slots -> summed into pairs / Gaussians -> the
 projection's hand-written vector-Jacobian product (tested against Warp's generated adjoint).
-The same code runs on CPU and CUDA (tile layout on CPU, pixel layout on CUDA). On the CPU the
+The same code runs on CPU and CUDA (tile layout with 16-pixel SIMD rows on CPU, pixel layout on
+CUDA). On the CPU the
 launches are split over Python threads (``physgm.parallel``), which run in parallel because a
 Warp launch releases the GIL: the raster launches by tiles, the per-pair and per-entry launches
 of large batches by images or scenes (``_cuts``), so no two threads write the same memory.
@@ -26,6 +28,7 @@ from torch import Tensor
 from physgm.parallel import helpers_for_this_thread, run_split
 from physgm.render import warp_kernels as K
 from physgm.render import warp_raster_kernels as R
+from physgm.render import warp_tile_kernels as T
 from physgm.render.projection import radii_px
 from physgm.render.settings import RasterSettings, single_threaded_torch
 from physgm.warp_runtime import ensure_loaded
@@ -116,15 +119,35 @@ def _binning(settings: RasterSettings, device: torch.device) -> str:
     return settings.warp_binning
 
 
+def _layout(settings: RasterSettings, device: torch.device) -> str:
+    """"tile" (CPU, tiles of at most 16 px: one SIMD row each) or "pixel" (CUDA, or larger tiles)."""
+    if settings.warp_layout == "pixel":
+        return "pixel"
+    if settings.tile_size > T.LANES:
+        if settings.warp_layout == "tile":
+            raise ValueError(f"warp_layout='tile' handles tiles of at most {T.LANES} px (one SIMD row), "
+                             f"got tile_size={settings.tile_size}; use a smaller tile_size or 'auto'")  # fmt: skip
+        return "pixel"
+    if settings.warp_layout == "tile":
+        return "tile"
+    return "tile" if device.type == "cpu" else "pixel"
+
+
+def _row_buffers(settings: RasterSettings, device: torch.device, num_tiles: int, num_rows: int) -> list:
+    """Scratch rows of the tile layout (``warp_tile_kernels``); empty for the pixel layout."""
+    n = num_tiles * T.LANES if _layout(settings, device) == "tile" else 0
+    rows = torch.empty(num_rows, n, T.LANES, dtype=torch.float32, device=device)
+    ends = torch.empty(n, T.LANES, dtype=torch.int32, device=device)
+    return [_arr(rows, T.vec16), _arr(ends, T.vec16i)]
+
+
 def _launch_tiles(kernels, ranges, settings: RasterSettings, args: list, device: torch.device):
     """Launches a raster kernel over tile ranges, in parallel Python threads on CPU.
 
     Args:
         kernels: (tile-layout kernel, pixel-layout kernel); the layout follows settings/device.
     """
-    layout = settings.warp_layout
-    if layout == "auto":
-        layout = "tile" if device.type == "cpu" else "pixel"
+    layout = _layout(settings, device)
     kernel = kernels[0] if layout == "tile" else kernels[1]
     per_tile = 1 if layout == "tile" else settings.tile_size * settings.tile_size
     head = [settings.tile_size, settings.tiles_x, settings.tiles_x * settings.tiles_y,
@@ -185,8 +208,8 @@ _MIN_SPLIT = 8192
 # projection was no faster split at either size (4.3 / 3.1 ms, 11.0 / 10.5 ms), so it stays serial.
 _MIN_SPLIT_BOUNDS = 1 << 17
 
-_FORWARD = (R.raster_forward_tile_kernel, R.raster_forward_pixel_kernel)
-_BACKWARD = (R.raster_backward_tile_kernel, R.raster_backward_pixel_kernel)
+_FORWARD = (T.raster_forward_tile_kernel, R.raster_forward_pixel_kernel)
+_BACKWARD = (T.raster_backward_tile_kernel, R.raster_backward_pixel_kernel)
 
 
 def _projection_args(means, quats, scales, opacities, viewmats, Ks, num_n, num_c, s) -> list:
@@ -284,7 +307,6 @@ class _RasterizeWarp(torch.autograd.Function):
         rgb = means.new_zeros(num_pix, 3)
         trans = means.new_ones(num_pix)
         end = torch.zeros(num_pix, dtype=torch.int32, device=device)
-        done = torch.zeros(num_pix, dtype=torch.int32, device=device)
         # forward split by entry count (+1: empty tiles are not free); the backward split uses
         # the pixel tests the forward counted, since its cost follows the composited pairs
         tile_work = tile_counts + 1
@@ -292,7 +314,8 @@ class _RasterizeWarp(torch.autograd.Function):
         composite = [_arr(trans, wp.float32), _arr(end, wp.int32)]
         if num_entries:
             _launch_tiles(_FORWARD, _tile_ranges(tile_work, threads), s,
-                          [*tiles, _arr(rgb, wp.vec3), *composite, _arr(done, wp.int32),
+                          [*tiles, _arr(rgb, wp.vec3), *composite,
+                           *_row_buffers(s, device, tile_counts.numel(), T.FWD_ROWS),
                            _arr(tile_work, wp.int32)], device)  # fmt: skip
 
         ctx.settings, ctx.ranges = s, _tile_ranges(tile_work, threads)
@@ -331,12 +354,10 @@ class _RasterizeWarp(torch.autograd.Function):
         proj_in, tiles, composite = ctx.warp_views
         v_entry = [_arr(v_e_means2d, wp.vec2), _arr(v_e_conics, wp.vec3), _arr(v_e_opac, wp.float32),
                    _arr(v_e_colors, wp.vec3)]  # fmt: skip
-        scratch_trans = torch.empty_like(trans)
-        scratch_behind = means.new_empty(trans.shape[0], 3)
         _launch_tiles(_BACKWARD, ctx.ranges, s,
                       [*tiles, *composite,
                        _arr(v_rgb.reshape(-1, 3), wp.vec3), _arr(v_alpha.reshape(-1), wp.float32),
-                       _arr(scratch_trans, wp.float32), _arr(scratch_behind, wp.vec3), *v_entry],
+                       *_row_buffers(s, device, tile_start.numel(), T.BWD_ROWS), *v_entry],
                       device)  # fmt: skip
         # Both launches below sum into Gaussians over all cameras of a scene: threads take whole scenes.
         num_n = ctx.num_n

@@ -1,14 +1,13 @@
-"""Warp kernels of the tiled rasteriser, part 2: forward and backward compositing.
+"""Warp kernels of the tiled rasteriser, part 2: forward and backward compositing, pixel layout.
 
-Two layouts with identical math and identical argument lists (see `warp_backend.py`):
+The rasteriser has two layouts with identical math and identical argument lists (see
+`warp_backend.py`):
 
-* pixel layout, one thread per pixel looping over its tile's depth-sorted entries. Good for
-  CUDA; gradients go to per-entry slots with `atomic_add`.
-* tile layout, one thread per tile looping over entries and, for each, only over the pixels
-  of the entry's alpha >= 1/255 box. Good for CPU (about 5x fewer pair tests than the pixel
-  layout for few-pixel Gaussians); per-pixel state lives in per-pixel arrays that only this
-  thread touches, and each entry's gradient is summed in registers and stored once, without
-  atomics.
+* pixel layout (here), one thread per pixel looping over its tile's depth-sorted entries. Good
+  for CUDA; gradients go to per-entry slots with `atomic_add`.
+* tile layout (`warp_tile_kernels`), one thread per tile looping over entries and, for each,
+  over the rows of the entry's alpha >= 1/255 box, 16 pixels per SIMD row. Good for CPU; each
+  entry's gradient is summed in registers and stored once, without atomics.
 
 Entry e of tile t lies in tile_start[t] .. tile_end[t] - 1, sorted front to back.
 """
@@ -22,6 +21,10 @@ from physgm.render.settings import ALPHA_MAX, ALPHA_MIN, T_MIN
 _ALPHA_MIN = wp.constant(ALPHA_MIN)
 _ALPHA_MAX = wp.constant(ALPHA_MAX)
 _T_MIN = wp.constant(T_MIN)
+# A row of pixels of the tile layout; declared here because both layouts take the row buffers.
+LANES = 16
+vec16 = wp.types.vector(length=LANES, dtype=wp.float32)
+vec16i = wp.types.vector(length=LANES, dtype=wp.int32)
 
 
 @wp.func
@@ -82,7 +85,8 @@ def raster_forward_pixel_kernel(
     out_rgb: wp.array(dtype=wp.vec3),  # [I*H*W] colour without background, out
     out_trans: wp.array(dtype=float),  # [I*H*W] final transmittance, out
     out_end: wp.array(dtype=wp.int32),  # [I*H*W] one past the last entry composited, out
-    done: wp.array(dtype=wp.int32),  # [I*H*W] scratch (tile layout only)
+    rows: wp.array2d(dtype=vec16),  # scratch of the tile layout (warp_tile_kernels), unused here
+    row_end: wp.array(dtype=vec16i),  # scratch of the tile layout, unused here
     tile_work: wp.array(dtype=wp.int32),  # [I*tiles] pixel tests per tile, out (tile layout only)
 ):
     """One thread per pixel, front to back; stops before T would drop below T_MIN."""
@@ -113,78 +117,6 @@ def raster_forward_pixel_kernel(
     out_rgb[pix] = rgb
     out_trans[pix] = trans
     out_end[pix] = end
-
-
-@wp.kernel(enable_backward=False)
-def raster_forward_tile_kernel(
-    tile_offset: int,
-    tile_size: int,
-    tiles_x: int,
-    tiles_per_image: int,
-    width: int,
-    height: int,
-    tile_start: wp.array(dtype=wp.int32),
-    tile_end: wp.array(dtype=wp.int32),
-    e_means2d: wp.array(dtype=wp.vec2),
-    e_conics: wp.array(dtype=wp.vec3),
-    e_opacities: wp.array(dtype=float),
-    e_qmax: wp.array(dtype=float),
-    e_colors: wp.array(dtype=wp.vec3),
-    e_extents: wp.array(dtype=wp.vec2),
-    out_rgb: wp.array(dtype=wp.vec3),
-    out_trans: wp.array(dtype=float),
-    out_end: wp.array(dtype=wp.int32),
-    done: wp.array(dtype=wp.int32),  # [I*H*W] 1 once a pixel hit the early stop
-    tile_work: wp.array(dtype=wp.int32),  # [I*tiles] pixel tests of this tile: the backward's cost
-):
-    """One thread per tile; same per-pixel sequence as the pixel layout (args as there)."""
-    tile = tile_offset + wp.tid()
-    img, u0, u1, v0, v1 = tile_box(tile, tile_size, tiles_x, tiles_per_image, width, height)
-    base = img * height * width
-    start = tile_start[tile]
-    for v in range(v0, v1 + 1):
-        for u in range(u0, u1 + 1):
-            pix = base + v * width + u
-            out_rgb[pix] = wp.vec3(0.0, 0.0, 0.0)
-            out_trans[pix] = 1.0
-            out_end[pix] = start
-            done[pix] = 0
-    alive = (u1 - u0 + 1) * (v1 - v0 + 1)
-    work = wp.int32(1)  # an empty tile is not free
-    for e in range(start, tile_end[tile]):
-        if alive == 0:
-            break
-        m = e_means2d[e]
-        ext = e_extents[e]
-        su = span(m[0], ext[0], u0, u1)
-        sv = span(m[1], ext[1], v0, v1)
-        work += wp.max(su[1] - su[0] + 1, 0) * wp.max(sv[1] - sv[0] + 1, 0)
-        con = e_conics[e]
-        qmax = e_qmax[e]
-        opacity = e_opacities[e]
-        col = e_colors[e]
-        for v in range(sv[0], sv[1] + 1):
-            dy = float(v) + 0.5 - m[1]
-            for u in range(su[0], su[1] + 1):
-                pix = base + v * width + u
-                if done[pix] != 0:
-                    continue
-                q = conic_form(con, float(u) + 0.5 - m[0], dy)
-                if q > qmax:
-                    continue
-                alpha = wp.min(_ALPHA_MAX, opacity * wp.exp(-0.5 * q))
-                if alpha < _ALPHA_MIN:
-                    continue
-                trans = out_trans[pix]
-                next_trans = trans * (1.0 - alpha)
-                if next_trans < _T_MIN:
-                    done[pix] = 1
-                    alive -= 1
-                    continue
-                out_rgb[pix] = out_rgb[pix] + (alpha * trans) * col
-                out_trans[pix] = next_trans
-                out_end[pix] = e + 1
-    tile_work[tile] = work
 
 
 @wp.func
@@ -232,8 +164,8 @@ def raster_backward_pixel_kernel(
     out_end: wp.array(dtype=wp.int32),  # [I*H*W] from the forward
     v_rgb: wp.array(dtype=wp.vec3),  # [I*H*W] dL/d rgb (foreground part)
     v_alpha: wp.array(dtype=float),  # [I*H*W] dL/d alpha
-    scratch_trans: wp.array(dtype=float),  # [I*H*W] (tile layout only)
-    scratch_behind: wp.array(dtype=wp.vec3),  # [I*H*W] (tile layout only)
+    rows: wp.array2d(dtype=vec16),  # scratch of the tile layout (warp_tile_kernels), unused here
+    row_end: wp.array(dtype=vec16i),  # scratch of the tile layout, unused here
     v_means2d: wp.array(dtype=wp.vec2),  # [M] per-entry gradients, zero-initialised
     v_conics: wp.array(dtype=wp.vec3),  # [M]
     v_opacities: wp.array(dtype=float),  # [M]
@@ -279,87 +211,3 @@ def raster_backward_pixel_kernel(
         wp.atomic_add(v_opacities, e, v_o)
         wp.atomic_add(v_conics, e, v_con)
         wp.atomic_add(v_means2d, e, v_m)
-
-
-@wp.kernel(enable_backward=False)
-def raster_backward_tile_kernel(
-    tile_offset: int,
-    tile_size: int,
-    tiles_x: int,
-    tiles_per_image: int,
-    width: int,
-    height: int,
-    tile_start: wp.array(dtype=wp.int32),
-    tile_end: wp.array(dtype=wp.int32),
-    e_means2d: wp.array(dtype=wp.vec2),
-    e_conics: wp.array(dtype=wp.vec3),
-    e_opacities: wp.array(dtype=float),
-    e_qmax: wp.array(dtype=float),
-    e_colors: wp.array(dtype=wp.vec3),
-    e_extents: wp.array(dtype=wp.vec2),
-    out_trans: wp.array(dtype=float),
-    out_end: wp.array(dtype=wp.int32),
-    v_rgb: wp.array(dtype=wp.vec3),
-    v_alpha: wp.array(dtype=float),
-    scratch_trans: wp.array(dtype=float),  # [I*H*W] running transmittance per pixel
-    scratch_behind: wp.array(dtype=wp.vec3),  # [I*H*W] colour composited behind, per pixel
-    v_means2d: wp.array(dtype=wp.vec2),
-    v_conics: wp.array(dtype=wp.vec3),
-    v_opacities: wp.array(dtype=float),
-    v_colors: wp.array(dtype=wp.vec3),
-):
-    """One thread per tile, entries back to front; each entry's gradient is stored once."""
-    tile = tile_offset + wp.tid()
-    img, u0, u1, v0, v1 = tile_box(tile, tile_size, tiles_x, tiles_per_image, width, height)
-    base = img * height * width
-    start = tile_start[tile]
-    last = start  # entries at or after every pixel's end were never composited
-    for v in range(v0, v1 + 1):
-        for u in range(u0, u1 + 1):
-            pix = base + v * width + u
-            scratch_trans[pix] = out_trans[pix]
-            scratch_behind[pix] = wp.vec3(0.0, 0.0, 0.0)
-            last = wp.max(last, out_end[pix])
-    for k in range(last - start):
-        e = last - 1 - k
-        m = e_means2d[e]
-        ext = e_extents[e]
-        su = span(m[0], ext[0], u0, u1)
-        sv = span(m[1], ext[1], v0, v1)
-        con = e_conics[e]
-        qmax = e_qmax[e]
-        opacity = e_opacities[e]
-        col = e_colors[e]
-        sum_m = wp.vec2(0.0, 0.0)
-        sum_con = wp.vec3(0.0, 0.0, 0.0)
-        sum_o = wp.float32(0.0)
-        sum_col = wp.vec3(0.0, 0.0, 0.0)
-        for v in range(sv[0], sv[1] + 1):
-            dy = float(v) + 0.5 - m[1]
-            for u in range(su[0], su[1] + 1):
-                pix = base + v * width + u
-                if e >= out_end[pix]:
-                    continue
-                dx = float(u) + 0.5 - m[0]
-                q = conic_form(con, dx, dy)
-                if q > qmax:
-                    continue
-                gauss = wp.exp(-0.5 * q)
-                raw = opacity * gauss
-                alpha = wp.min(_ALPHA_MAX, raw)
-                if alpha < _ALPHA_MIN:
-                    continue
-                trans, behind, v_col, v_o, v_con, v_m = pair_grads(
-                    v_rgb[pix], v_alpha[pix], out_trans[pix], scratch_trans[pix],
-                    scratch_behind[pix], alpha, raw, gauss, col, con, dx, dy,
-                )  # fmt: skip
-                scratch_trans[pix] = trans
-                scratch_behind[pix] = behind
-                sum_col += v_col
-                sum_o += v_o
-                sum_con += v_con
-                sum_m += v_m
-        v_means2d[e] = sum_m
-        v_conics[e] = sum_con
-        v_opacities[e] = sum_o
-        v_colors[e] = sum_col
