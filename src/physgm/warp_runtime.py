@@ -44,12 +44,18 @@ KERNEL_MODULES = (
     "physgm.sim.kernels",
     "physgm.sim.particle_ops",
     "physgm.sim.coupling",
+    "physgm.render.warp_tile_kernels",
 )
+# Modules whose kernels only ever run on the CPU (C++ snippets written for the host compiler).
+CPU_ONLY_MODULES = ("physgm.render.warp_tile_kernels",)
 
 
 def preload(device="cpu") -> None:
     """Load (compiling on first use) every physgm Warp module on ``device``, from this thread."""
+    is_cpu = wp.get_device(device).is_cpu
     for name in KERNEL_MODULES:
+        if name in CPU_ONLY_MODULES and not is_cpu:
+            continue
         module = importlib.import_module(name)
         kernel = next((v for v in vars(module).values() if isinstance(v, wp.Kernel)), None)
         if kernel is None:
