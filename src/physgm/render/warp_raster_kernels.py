@@ -1,6 +1,6 @@
 """Warp kernels of the tiled rasteriser, part 2: forward and backward compositing, pixel layout.
 
-The rasteriser has two layouts with identical math and identical argument lists (see
+The rasteriser has two layouts with the same per-pixel steps and identical argument lists (see
 `warp_backend.py`):
 
 * pixel layout (here), one thread per pixel looping over its tile's depth-sorted entries. Good
