@@ -10,10 +10,10 @@ serial launches, one per group of images) and a global key sort on CUDA
 Backward: raster backward into per-entry slots -> summed into pairs / Gaussians -> the
 projection's hand-written vector-Jacobian product (tested against Warp's generated adjoint).
 The same code runs on CPU and CUDA (tile layout with 16-pixel SIMD rows on CPU, pixel layout on
-CUDA). On the CPU the
-launches are split over Python threads (``physgm.parallel``), which run in parallel because a
-Warp launch releases the GIL: the raster launches by tiles, the per-pair and per-entry launches
-of large batches by images or scenes (``_cuts``), so no two threads write the same memory.
+CUDA). On the CPU the launches are split over Python threads (``physgm.parallel``), which run in
+parallel because a Warp launch releases the GIL: the raster launches by tiles, the per-pair and
+per-entry launches of large batches by images or scenes (``_cuts``), so no two threads write the
+same memory.
 """
 
 from __future__ import annotations

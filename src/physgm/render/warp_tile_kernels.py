@@ -242,10 +242,10 @@ def raster_forward_tile_kernel(
         rows[3, row0 + r] = vec16(0.0)
         rows[4, row0 + r] = live
         row_end[row0 + r] = vec16i(start)
-    alive = float(num_u * (v1 - v0 + 1))
+    alive = wp.int32(num_u * (v1 - v0 + 1))
     work = wp.int32(1)  # an empty tile is not free
     for e in range(start, tile_end[tile]):
-        if alive == 0.0:
+        if alive == 0:
             break
         m = e_means2d[e]
         ext = e_extents[e]
@@ -254,8 +254,8 @@ def raster_forward_tile_kernel(
         work += wp.max(su[1] - su[0] + 1, 0) * wp.max(sv[1] - sv[0] + 1, 0)
         if su[1] < su[0] or sv[1] < sv[0]:
             continue
-        alive -= float(composite_entry(rows, row_end, row0 + sv[0] - v0, sv[1] - sv[0] + 1, sv[0], u0,
-                                       m[0], m[1], e_conics[e], e_qmax[e], e_opacities[e], e_colors[e], e))  # fmt: skip
+        alive -= composite_entry(rows, row_end, row0 + sv[0] - v0, sv[1] - sv[0] + 1, sv[0], u0,
+                                 m[0], m[1], e_conics[e], e_qmax[e], e_opacities[e], e_colors[e], e)  # fmt: skip
     base = img * height * width
     for r in range(v1 - v0 + 1):
         trans = rows[0, row0 + r]
