@@ -3,6 +3,9 @@
 import hydra
 from omegaconf import DictConfig
 
+# before anything loads torch: physgm sets GOMP_SPINCOUNT, which torch's OpenMP reads only then
+import physgm  # noqa: F401
+
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="train")
 def main(cfg: DictConfig) -> None:

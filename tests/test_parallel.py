@@ -87,3 +87,26 @@ def test_each_calling_thread_gets_its_own_helpers_and_dead_callers_are_cleaned_u
     t2.join()
     assert all(not h._thread.is_alive() for h in theirs)
     assert all(h._thread.is_alive() for h in mine)
+
+
+def _fresh_python(code: str, env: dict[str, str]) -> str:
+    import os
+    import subprocess
+    import sys
+
+    clean = {k: v for k, v in os.environ.items() if k != "GOMP_SPINCOUNT"}
+    result = subprocess.run([sys.executable, "-c", code], env={**clean, **env}, capture_output=True, text=True,
+                            check=True)  # fmt: skip
+    return result.stdout.strip()
+
+
+def test_importing_physgm_shortens_openmp_spinning_before_torch_loads():
+    # libgomp reads GOMP_SPINCOUNT when torch loads it: `import physgm` must set it and must not
+    # load torch itself, or the setting would come too late (physgm/__init__.py)
+    code = "import sys, os, physgm; print('torch' in sys.modules, os.environ.get('GOMP_SPINCOUNT'))"
+    assert _fresh_python(code, {}) == "False 100000"
+
+
+def test_a_spin_count_the_user_set_is_kept():
+    code = "import os, physgm; print(os.environ['GOMP_SPINCOUNT'])"
+    assert _fresh_python(code, {"GOMP_SPINCOUNT": "1234"}) == "1234"
