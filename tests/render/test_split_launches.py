@@ -1,5 +1,5 @@
-"""The CPU splits the per-pair and per-entry launches of the warp backend over threads, at image
-and scene boundaries; the result must not depend on it."""
+"""The CPU splits the per-pair and per-entry launches of the warp backend over threads, at image,
+scene or tile-range boundaries; the result must not depend on it."""
 
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ def render(scene: dict, fn, settings: RasterSettings):
     return rgb.detach(), alpha.detach(), {k: v.grad for k, v in leaves.items()}
 
 
-@pytest.mark.parametrize(("num_b", "num_c", "threads"), [(3, 2, 2), (2, 3, 3), (1, 3, 2), (2, 1, 2)])
+@pytest.mark.parametrize(("num_b", "num_c", "threads"), [(3, 2, 2), (2, 3, 3), (1, 3, 2), (2, 1, 2), (1, 1, 2)])
 def test_split_launches_match_one_thread_and_the_torch_twin(kit, monkeypatch, num_b, num_c, threads):
     scene = batched_scene(kit, num_b, num_c)
     serial = render(scene, warp_backend.rasterize_warp, RasterSettings(40, 32, num_threads=1))
@@ -47,13 +47,19 @@ def test_split_launches_match_one_thread_and_the_torch_twin(kit, monkeypatch, nu
 
     monkeypatch.setattr(warp_backend, "_MIN_SPLIT", 1)  # split even these small launches
     monkeypatch.setattr(warp_backend, "_MIN_SPLIT_BOUNDS", 1)
+    monkeypatch.setattr(warp_backend, "_MIN_SPLIT_BIN", 1)
+    monkeypatch.setattr(warp_backend, "_MIN_SPLIT_VJP", 1)
     monkeypatch.setattr(warp_backend, "_run_parallel", recording)
     parallel = render(scene, warp_backend.rasterize_warp, RasterSettings(40, 32, num_threads=threads))
 
-    # per image: bounds and binning split with 2 or more images; per scene: with 2 or more scenes
-    expected = {"pair_bounds_kernel", "bin_entries_kernel"} if num_b * num_c > 1 else set()
+    # per image: bounds split with 2 or more images; binning always (by images, or by the raster's
+    # tile ranges within one image); per scene: with 2 or more scenes, and the projection's
+    # gradient with one camera per scene (a pair then writes only its own Gaussian)
+    expected = {"pair_bounds_kernel", "bin_entries_kernel"} if num_b * num_c > 1 else {"bin_entries_kernel"}
     if num_b > 1:
         expected |= {"scatter_entry_grads_kernel", "project_vjp_kernel"}
+    if num_c == 1:
+        expected |= {"project_vjp_kernel"}
     assert {key for key, parts in split if key in SPLIT_KERNELS and parts > 1} == expected
     for a, b in zip(serial[:2], parallel[:2], strict=True):
         assert torch.equal(a, b)  # each pixel and each Gaussian's sum is computed by one thread, in order
@@ -74,3 +80,56 @@ def test_cuts_fall_on_units():
     assert warp_backend._cuts(4, 4, 2) == [0, 4]  # one scene cannot be split
     assert warp_backend._cuts(0, 0, 2) == [0, 0]  # no Gaussians
     assert warp_backend._cuts(7, 1, 1) == [0, 7]
+
+
+def test_binning_by_tile_ranges_writes_each_tile_once_and_only_its_own():
+    """Launches of `bin_entries_kernel` over tile ranges [lo, hi), run one after another, give the
+    entries of one launch over all tiles, and each leaves every other tile's cursor alone."""
+    import warp as wp
+
+    from physgm.render import warp_kernels as K
+    from physgm.render.projection import tile_rects
+
+    gen = torch.Generator().manual_seed(5)
+    num_n, width, height, tile = 300, 64, 48, 16
+    settings = RasterSettings(width, height, tile_size=tile)
+    tiles_x, tiles = settings.tiles_x, settings.tiles_x * settings.tiles_y
+    means2d = torch.rand(num_n, 2, generator=gen) * torch.tensor([width + 20.0, height + 20.0]) - 10.0
+    extents = torch.rand(num_n, 2, generator=gen) * 20.0
+    rect, nonempty = tile_rects(means2d, extents, torch.ones(num_n, dtype=torch.bool), settings)
+    tile_counts = torch.zeros(tiles, dtype=torch.int32)
+    for (x0, x1, y0, y1), keep in zip(rect.tolist(), nonempty.tolist(), strict=True):
+        for ty in range(y0, y1 + 1):
+            for tx in range(x0, x1 + 1):
+                tile_counts[ty * tiles_x + tx] += int(keep)
+    tile_end = torch.cumsum(tile_counts, 0, dtype=torch.int32)
+    tile_start = tile_end - tile_counts
+    order = torch.randperm(num_n, generator=gen)
+    pair_in = [means2d, torch.rand(num_n, 3, generator=gen), torch.rand(num_n, generator=gen), extents,
+               torch.rand(num_n, generator=gen), torch.rand(num_n, 3, generator=gen)]  # fmt: skip
+    m = int(tile_end[-1])
+
+    def bin_ranges(ranges):
+        cursor = tile_start.clone()
+        out = [torch.full((m,), -1, dtype=torch.int64), torch.full((m,), -1, dtype=torch.int64)]
+        out += [torch.zeros(m, k) if k > 1 else torch.zeros(m) for k in (2, 3, 1, 1, 3, 2)]
+        dtypes = (wp.vec2, wp.vec3, wp.float32, wp.vec2, wp.float32, wp.vec3)
+        pair_args = [warp_backend._arr(x, d) for x, d in zip(pair_in, dtypes, strict=True)]
+        out_dtypes = (wp.int64, wp.int64, wp.vec2, wp.vec3, wp.float32, wp.float32, wp.vec3, wp.vec2)
+        out_args = [warp_backend._arr(x, d) for x, d in zip(out, out_dtypes, strict=True)]
+        for lo, hi in ranges:
+            warp_backend._launch(K.bin_entries_kernel, num_n,
+                                 [warp_backend._arr(order, wp.int64), width, height, tile, tiles_x, tiles, lo, hi,
+                                  warp_backend._arr(cursor, wp.int32), num_n, 1, *pair_args, *out_args],
+                                 torch.device("cpu"))  # fmt: skip
+        return cursor, out
+
+    cursor_all, out_all = bin_ranges([(0, tiles)])
+    assert torch.equal(cursor_all, tile_end) and (out_all[0] >= 0).all()
+    for cut in (1, 5, tiles - 1):
+        cursor, out = bin_ranges([(0, cut), (cut, tiles)])
+        assert torch.equal(cursor, tile_end), cut  # no tile appended to twice
+        for a, b in zip(out, out_all, strict=True):
+            assert torch.equal(a, b), cut
+        cursor, _ = bin_ranges([(cut, tiles)])
+        assert torch.equal(cursor[:cut], tile_start[:cut]) and torch.equal(cursor[cut:], tile_end[cut:])

@@ -207,6 +207,10 @@ _MIN_SPLIT = 8192
 # 5.3 against 4.4 ms; of 262k (4 views) 7.8 against 13.7 ms (interleaved medians of 20). The
 # projection was no faster split at either size (4.3 / 3.1 ms, 11.0 / 10.5 ms), so it stays serial.
 _MIN_SPLIT_BOUNDS = 1 << 17
+# Binning one image on two threads: each walks all pairs (~15 ns each) and writes half the entries.
+_MIN_SPLIT_BIN = 8192
+# The projection's vector-Jacobian product costs ~100 ns a pair, so halves of 2048 pairs pay off.
+_MIN_SPLIT_VJP = 2048
 
 _FORWARD = (T.raster_forward_tile_kernel, R.raster_forward_pixel_kernel)
 _BACKWARD = (T.raster_backward_tile_kernel, R.raster_backward_pixel_kernel)
@@ -261,6 +265,11 @@ class _RasterizeWarp(torch.autograd.Function):
         _launch_split(K.pair_bounds_kernel, image_cuts,
                       [proj_out[0], proj_out[3], proj_in[3], *ints, s.tile_size, s.tiles_x, tiles_per_image,
                        *bounds, _arr(tile_counts, wp.int32)], device, min_part=_MIN_SPLIT_BOUNDS)  # fmt: skip
+        # forward split by entry count (+1: empty tiles are not free); binning within an image
+        # splits by the same ranges, so each thread writes the entries it will read. The backward
+        # split uses the pixel tests the forward counted, since its cost follows the composited pairs.
+        tile_work = tile_counts + 1
+        tile_ranges = _tile_ranges(tile_work, threads)
         tile_end = torch.cumsum(tile_counts, dim=0, dtype=torch.int32)
         tile_start = tile_end - tile_counts
         num_entries = int(tile_end[-1])
@@ -278,16 +287,25 @@ class _RasterizeWarp(torch.autograd.Function):
             # 4-view training batch) 55 -> 5 ms, measured. Stable: equal depths keep pair order.
             emitted = torch.nonzero(counts, as_tuple=True)[0]
             by_depth = emitted[torch.sort(depths[emitted].view(torch.int32), stable=True)[1]]
-            rest = [s.width, s.height, s.tile_size, s.tiles_x, tiles_per_image, _arr(tile_start.clone(), wp.int32),
-                    *pair_data]  # fmt: skip
+            cursor = _arr(tile_start.clone(), wp.int32)
+            head = [s.width, s.height, s.tile_size, s.tiles_x, tiles_per_image]
+            all_tiles = [0, tile_counts.numel()]
             if len(image_cuts) > 2 and by_depth.numel() >= 2 * _MIN_SPLIT:
                 # Each thread appends the pairs of its own images (so to its own tiles), in depth order.
                 part = torch.bucketize(by_depth, torch.tensor(image_cuts[1:-1]), right=True)
                 orders = [by_depth[part == k] for k in range(len(image_cuts) - 1)]
                 _run_parallel(K.bin_entries_kernel,
-                              [(o.numel(), [_arr(o, wp.int64), *rest]) for o in orders if o.numel()], device)
+                              [(o.numel(), [_arr(o, wp.int64), *head, *all_tiles, cursor, *pair_data])
+                               for o in orders if o.numel()], device)  # fmt: skip
+            elif len(tile_ranges) > 1 and by_depth.numel() >= _MIN_SPLIT_BIN:
+                # Every thread walks all pairs and appends to the tiles it rasterises.
+                order = _arr(by_depth, wp.int64)
+                _run_parallel(K.bin_entries_kernel,
+                              [(by_depth.numel(), [order, *head, t0, t0 + n, cursor, *pair_data])
+                               for t0, n in tile_ranges], device)  # fmt: skip
             else:
-                _launch(K.bin_entries_kernel, by_depth.numel(), [_arr(by_depth, wp.int64), *rest], device)
+                _launch(K.bin_entries_kernel, by_depth.numel(),
+                        [_arr(by_depth, wp.int64), *head, *all_tiles, cursor, *pair_data], device)  # fmt: skip
         elif num_entries:
             csum = torch.cumsum(counts, dim=0, dtype=torch.int32)
             entry_tile = torch.empty(num_entries, dtype=torch.int32, device=device)
@@ -307,18 +325,15 @@ class _RasterizeWarp(torch.autograd.Function):
         rgb = means.new_zeros(num_pix, 3)
         trans = means.new_ones(num_pix)
         end = torch.zeros(num_pix, dtype=torch.int32, device=device)
-        # forward split by entry count (+1: empty tiles are not free); the backward split uses
-        # the pixel tests the forward counted, since its cost follows the composited pairs
-        tile_work = tile_counts + 1
         tiles = [_arr(tile_start, wp.int32), _arr(tile_end, wp.int32), *entry_arrs]
         composite = [_arr(trans, wp.float32), _arr(end, wp.int32)]
         if num_entries:
-            _launch_tiles(_FORWARD, _tile_ranges(tile_work, threads), s,
+            _launch_tiles(_FORWARD, tile_ranges, s,
                           [*tiles, _arr(rgb, wp.vec3), *composite,
                            *_row_buffers(s, device, tile_counts.numel(), T.FWD_ROWS),
                            _arr(tile_work, wp.int32)], device)  # fmt: skip
 
-        ctx.settings, ctx.ranges = s, _tile_ranges(tile_work, threads)
+        ctx.settings, ctx.ranges = s, _tile_ranges(tile_work, threads)  # tile_work: now pixel tests
         # The Warp views are kept for the backward (~5 us each to rebuild); save_for_backward
         # still holds the tensors, so an in-place change between the passes is reported.
         ctx.warp_views = (proj_in, tiles, composite)
@@ -369,9 +384,11 @@ class _RasterizeWarp(torch.autograd.Function):
         _launch_split(K.scatter_entry_grads_kernel, entry_cuts,
                       [_arr(e_pair, wp.int64), _arr(e_gauss, wp.int64), *v_entry, _arr(v_means2d, wp.vec2),
                        _arr(v_conics, wp.vec3), _arr(v_opac, wp.float32), _arr(v_colors, wp.vec3)], device)  # fmt: skip
-        _launch_split(K.project_vjp_kernel, scene_cuts,
+        # With one camera per scene a pair writes only its own Gaussian: any pair range will do.
+        vjp_cuts = _cuts(num_pairs, 1, threads) if ctx.num_c == 1 else scene_cuts
+        _launch_split(K.project_vjp_kernel, vjp_cuts,
                       [*proj_in, _arr(v_means2d, wp.vec2), _arr(v_conics, wp.vec3), _arr(v_means, wp.vec3),
-                       _arr(v_quats, wp.vec4), _arr(v_scales, wp.vec3)], device)  # fmt: skip
+                       _arr(v_quats, wp.vec4), _arr(v_scales, wp.vec3)], device, min_part=_MIN_SPLIT_VJP)  # fmt: skip
         return v_means, v_quats, v_scales, v_opac, v_colors, None, None, None, None
 
 

@@ -406,6 +406,8 @@ def bin_entries_kernel(
     tile_size: int,
     tiles_x: int,
     tiles_per_image: int,
+    tile_lo: int,  # this launch appends to global tiles tile_lo .. tile_hi - 1 only (the CPU
+    tile_hi: int,  # splits a launch over threads by tiles)
     cursor: wp.array(dtype=wp.int32),  # [I*tiles] next free entry of each tile; starts at tile_start
     num_gaussians: int,
     num_cameras: int,
@@ -434,7 +436,10 @@ def bin_entries_kernel(
     img = pid // num_gaussians
     for ty in range(r[2], r[3] + 1):
         for tx in range(r[0], r[1] + 1):
-            e = wp.atomic_add(cursor, img * tiles_per_image + ty * tiles_x + tx, 1)  # the old value
+            tile = img * tiles_per_image + ty * tiles_x + tx
+            if tile < tile_lo or tile >= tile_hi:
+                continue
+            e = wp.atomic_add(cursor, tile, 1)  # the old value
             write_entry(e, pid, num_gaussians, num_cameras, means2d, conics, qmax, extents, opacities,
                         colors, e_pair, e_gauss, e_means2d, e_conics, e_opacities, e_qmax, e_colors,
                         e_extents)  # fmt: skip
