@@ -10,7 +10,7 @@ from physgm.render import warp_backend
 from physgm.render.settings import RasterSettings
 from physgm.render.torch_backend import rasterize_torch
 
-SPLIT_KERNELS = {"pair_bounds_kernel", "bin_entries_kernel", "scatter_entry_grads_kernel", "project_vjp_kernel"}
+SPLIT_KERNELS = {"project_bounds_kernel", "bin_entries_kernel", "scatter_entry_grads_kernel", "project_vjp_kernel"}
 
 
 def batched_scene(kit, num_b: int, num_c: int, num_n: int = 150, width: int = 40, height: int = 32) -> dict:
@@ -55,7 +55,7 @@ def test_split_launches_match_one_thread_and_the_torch_twin(kit, monkeypatch, nu
     # per image: bounds split with 2 or more images; binning always (by images, or by the raster's
     # tile ranges within one image); per scene: with 2 or more scenes, and the projection's
     # gradient with one camera per scene (a pair then writes only its own Gaussian)
-    expected = {"pair_bounds_kernel", "bin_entries_kernel"} if num_b * num_c > 1 else {"bin_entries_kernel"}
+    expected = {"project_bounds_kernel", "bin_entries_kernel"} if num_b * num_c > 1 else {"bin_entries_kernel"}
     if num_b > 1:
         expected |= {"scatter_entry_grads_kernel", "project_vjp_kernel"}
     if num_c == 1:

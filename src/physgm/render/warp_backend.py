@@ -2,10 +2,10 @@
 
 Pipeline (kernels in `warp_kernels.py`, `warp_raster_kernels.py` and `warp_tile_kernels.py`, torch
 ops in between):
-project (I*N pairs) -> box and tiles per pair, entries per tile -> prefix sum -> entries in
-(image, tile, depth) order with their data gathered contiguously -> raster forward. The ordering
+project, box and tiles per pair (I*N pairs, one kernel), entries per tile -> prefix sum -> entries
+in (image, tile, depth) order with their data gathered contiguously -> raster forward. The ordering
 step is a counting sort on the CPU (pairs sorted by depth append themselves to their tiles in
-serial launches, one per group of images) and a global key sort on CUDA
+serial launches, one per group of images or range of tiles) and a global key sort on CUDA
 (``RasterSettings.warp_binning``).
 Backward: raster backward into per-entry slots -> summed into pairs / Gaussians -> the
 projection's hand-written vector-Jacobian product (tested against Warp's generated adjoint).
@@ -204,8 +204,10 @@ def _launch_split(kernel, cuts: list[int], args: list, device: torch.device, min
 # costs about what it saves: a CPU handles a few thousand pairs or entries in that time.
 _MIN_SPLIT = 8192
 # The bounds of 65k pairs per thread (a 1-view training batch) took longer split than not,
-# 5.3 against 4.4 ms; of 262k (4 views) 7.8 against 13.7 ms (interleaved medians of 20). The
-# projection was no faster split at either size (4.3 / 3.1 ms, 11.0 / 10.5 ms), so it stays serial.
+# 5.3 against 4.4 ms; of 262k (4 views) 7.8 against 13.7 ms (interleaved medians of 20), when they
+# were a kernel of their own. Fused with the projection, a whole 1-view batch (B 4, C 8, N 4096)
+# took 108 -> 102 ms split at 8192 and 85.6 -> 85.5 ms with this threshold, each against the
+# unfused code in the same process: within the host's noise, so the threshold stayed.
 _MIN_SPLIT_BOUNDS = 1 << 17
 # Binning one image on two threads: each walks all pairs (~15 ns each) and writes half the entries.
 _MIN_SPLIT_BIN = 8192
@@ -217,15 +219,14 @@ _BACKWARD = (T.raster_backward_tile_kernel, R.raster_backward_pixel_kernel)
 
 
 def _projection_args(means, quats, scales, opacities, viewmats, Ks, num_n, num_c, s) -> list:
-    """Argument list of `project_kernel` (also used for its adjoints, which share the layout)."""
+    """Leading arguments of `project_bounds_kernel` and `project_vjp_kernel` (after the offset)."""
     return [_arr(means, wp.vec3), _arr(quats, wp.vec4), _arr(scales, wp.vec3),
             _arr(opacities, wp.float32), _arr(viewmats, wp.mat44), _arr(Ks, wp.mat33),
             num_n, num_c, s.width, s.height, s.near_plane, s.far_plane, s.eps2d]  # fmt: skip
 
 
-def _projection_outputs(means2d, conics, depths, cov_diag) -> list:
-    return [_arr(means2d, wp.vec2), _arr(conics, wp.vec3), _arr(depths, wp.float32),
-            _arr(cov_diag, wp.vec2)]  # fmt: skip
+def _projection_outputs(means2d, conics, depths) -> list:
+    return [_arr(means2d, wp.vec2), _arr(conics, wp.vec3), _arr(depths, wp.float32)]
 
 
 def _entry_arrays(entries: list[Tensor]) -> list[wp.array]:
@@ -244,14 +245,11 @@ class _RasterizeWarp(torch.autograd.Function):
         num_n = num_bn * num_c // num_i
         num_pairs = num_i * num_n
         s = settings
-        ints = [num_n, num_c, s.width, s.height]
         proj_in = _projection_args(means, quats, scales, opacities, viewmats, Ks, num_n, num_c, s)
         means2d = means.new_empty(num_pairs, 2)
         conics = means.new_empty(num_pairs, 3)
         depths = means.new_empty(num_pairs)
-        cov_diag = means.new_empty(num_pairs, 2)
-        proj_out = _projection_outputs(means2d, conics, depths, cov_diag)
-        _launch(K.project_kernel, num_pairs, proj_in + proj_out, device)  # no faster split (_MIN_SPLIT_BOUNDS)
+        proj_out = _projection_outputs(means2d, conics, depths)
 
         # --- binning: box per pair and entries per tile, then entries in (image, tile, depth) order ---
         tiles_per_image = s.tiles_x * s.tiles_y
@@ -262,9 +260,9 @@ class _RasterizeWarp(torch.autograd.Function):
         bounds = [_arr(extents, wp.vec2), _arr(qmax, wp.float32), _arr(counts, wp.int32)]
         threads = s.num_threads if device.type == "cpu" else 1
         image_cuts = _cuts(num_pairs, num_n, threads)  # tile counts are per image
-        _launch_split(K.pair_bounds_kernel, image_cuts,
-                      [proj_out[0], proj_out[3], proj_in[3], *ints, s.tile_size, s.tiles_x, tiles_per_image,
-                       *bounds, _arr(tile_counts, wp.int32)], device, min_part=_MIN_SPLIT_BOUNDS)  # fmt: skip
+        _launch_split(K.project_bounds_kernel, image_cuts,
+                      [*proj_in, s.tile_size, s.tiles_x, tiles_per_image, *proj_out, *bounds,
+                       _arr(tile_counts, wp.int32)], device, min_part=_MIN_SPLIT_BOUNDS)  # fmt: skip
         # forward split by entry count (+1: empty tiles are not free); binning within an image
         # splits by the same ranges, so each thread writes the entries it will read. The backward
         # split uses the pixel tests the forward counted, since its cost follows the composited pairs.

@@ -82,30 +82,24 @@ def cov2d(a0: wp.vec3, a1: wp.vec3, eps2d: float):
     return cov_a0, cov_b, cov_c0, det
 
 
-@wp.kernel
-def project_kernel(
-    means: wp.array(dtype=wp.vec3),  # [B*N] world (m)
-    quats: wp.array(dtype=wp.vec4),  # [B*N] (w, x, y, z), any non-zero norm
-    scales: wp.array(dtype=wp.vec3),  # [B*N] linear std (m)
-    opacities: wp.array(dtype=float),  # [B*N]
-    viewmats: wp.array(dtype=wp.mat44),  # [I] world-to-camera
-    Ks: wp.array(dtype=wp.mat33),  # [I]
-    num_gaussians: int,
-    num_cameras: int,
+@wp.func
+def project_pair(
+    img: int,
+    g: int,
+    means: wp.array(dtype=wp.vec3),
+    quats: wp.array(dtype=wp.vec4),
+    scales: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    viewmats: wp.array(dtype=wp.mat44),
+    Ks: wp.array(dtype=wp.mat33),
     width: int,
     height: int,
     near_plane: float,
     far_plane: float,
     eps2d: float,
-    means2d: wp.array(dtype=wp.vec2),  # [I*N] px, out
-    conics: wp.array(dtype=wp.vec3),  # [I*N] inverse 2D covariance (a, b, c), out
-    depths: wp.array(dtype=float),  # [I*N] camera z (m), 0 when culled, out
-    cov_diag: wp.array(dtype=wp.vec2),  # [I*N] diagonal of the 2D covariance, 0 when culled, out
 ):
-    """EWA projection of one (image, Gaussian) pair. Its gradient is `project_vjp_kernel`; Warp's
-    generated adjoint (kept enabled here) is the reference that kernel is tested against."""
-    pid = wp.tid()
-    img, g = pair_gaussian(pid, num_gaussians, num_cameras)
+    """EWA projection of Gaussian g into image img: (means2d px, conic, depth, diagonal of the 2D
+    covariance), all zero when the pair is culled."""
     rot_w, p = to_camera(viewmats[img], means[g])
     z = p[2]
     m2 = wp.vec2(0.0, 0.0)
@@ -132,6 +126,36 @@ def project_kernel(
             m2 = wp.vec2(fx * p[0] / z + cx, fy * p[1] / z + cy)
             depth = z
             cd = wp.vec2(cov_a, cov_c)
+    return m2, con, depth, cd
+
+
+@wp.kernel
+def project_kernel(
+    means: wp.array(dtype=wp.vec3),  # [B*N] world (m)
+    quats: wp.array(dtype=wp.vec4),  # [B*N] (w, x, y, z), any non-zero norm
+    scales: wp.array(dtype=wp.vec3),  # [B*N] linear std (m)
+    opacities: wp.array(dtype=float),  # [B*N]
+    viewmats: wp.array(dtype=wp.mat44),  # [I] world-to-camera
+    Ks: wp.array(dtype=wp.mat33),  # [I]
+    num_gaussians: int,
+    num_cameras: int,
+    width: int,
+    height: int,
+    near_plane: float,
+    far_plane: float,
+    eps2d: float,
+    means2d: wp.array(dtype=wp.vec2),  # [I*N] px, out
+    conics: wp.array(dtype=wp.vec3),  # [I*N] inverse 2D covariance (a, b, c), out
+    depths: wp.array(dtype=float),  # [I*N] camera z (m), 0 when culled, out
+    cov_diag: wp.array(dtype=wp.vec2),  # [I*N] diagonal of the 2D covariance, 0 when culled, out
+):
+    """EWA projection of one (image, Gaussian) pair, on its own. The renderer runs it fused with
+    the tile bounds (`project_bounds_kernel`); this kernel keeps Warp's generated adjoint, the
+    reference `project_vjp_kernel` is tested against."""
+    pid = wp.tid()
+    img, g = pair_gaussian(pid, num_gaussians, num_cameras)
+    m2, con, depth, cd = project_pair(img, g, means, quats, scales, opacities, viewmats, Ks, width, height,
+                                      near_plane, far_plane, eps2d)  # fmt: skip
     means2d[pid] = m2
     conics[pid] = con
     depths[pid] = depth
@@ -252,28 +276,42 @@ def project_vjp_kernel(
 
 
 @wp.kernel(enable_backward=False)
-def pair_bounds_kernel(
+def project_bounds_kernel(
     offset: int,  # first pair of this launch (the CPU splits a launch over threads)
-    means2d: wp.array(dtype=wp.vec2),  # [I*N]
-    cov_diag: wp.array(dtype=wp.vec2),  # [I*N] 0 when culled
+    means: wp.array(dtype=wp.vec3),  # [B*N] as in project_kernel
+    quats: wp.array(dtype=wp.vec4),  # [B*N]
+    scales: wp.array(dtype=wp.vec3),  # [B*N]
     opacities: wp.array(dtype=float),  # [B*N]
+    viewmats: wp.array(dtype=wp.mat44),  # [I]
+    Ks: wp.array(dtype=wp.mat33),  # [I]
     num_gaussians: int,
     num_cameras: int,
     width: int,
     height: int,
+    near_plane: float,
+    far_plane: float,
+    eps2d: float,
     tile_size: int,
     tiles_x: int,
     tiles_per_image: int,
+    means2d: wp.array(dtype=wp.vec2),  # [I*N] px, out
+    conics: wp.array(dtype=wp.vec3),  # [I*N] out
+    depths: wp.array(dtype=float),  # [I*N] camera z (m), 0 when culled, out
     extents: wp.array(dtype=wp.vec2),  # [I*N] half-size (px) of the alpha >= 1/255 box, out
     qmax: wp.array(dtype=float),  # [I*N] largest q with alpha >= 1/255, plus a margin, out
     counts: wp.array(dtype=wp.int32),  # [I*N] tiles touched, out
     tile_counts: wp.array(dtype=wp.int32),  # [I*tiles] pairs touching each tile, zeroed by the caller
 ):
-    """Mirrors `projection.extents_from_cov` and `projection.tile_rects`; also counts the
-    entries of every tile (atomic, so the counts are the same in any thread order)."""
+    """`project_kernel` and then the pair's box and tiles in one pass. The box mirrors
+    `projection.extents_from_cov` and `projection.tile_rects`; the entries of every tile are
+    counted with atomics, so the counts are the same in any thread order."""
     pid = wp.tid() + offset
     img, g = pair_gaussian(pid, num_gaussians, num_cameras)
-    cd = cov_diag[pid]
+    m2, con, depth, cd = project_pair(img, g, means, quats, scales, opacities, viewmats, Ks, width, height,
+                                      near_plane, far_plane, eps2d)  # fmt: skip
+    means2d[pid] = m2
+    conics[pid] = con
+    depths[pid] = depth
     k2 = 2.0 * wp.log(wp.max(opacities[g] / _ALPHA_MIN, 1.0))
     ext = wp.vec2(0.0, 0.0)
     if cd[0] > 0.0 and k2 > 0.0:
@@ -283,7 +321,7 @@ def pair_bounds_kernel(
         )
     extents[pid] = ext
     qmax[pid] = k2 + _QMAX_MARGIN
-    r = tile_rect(means2d[pid], ext, width, height, tile_size)
+    r = tile_rect(m2, ext, width, height, tile_size)
     counts[pid] = wp.max(r[1] - r[0] + 1, 0) * wp.max(r[3] - r[2] + 1, 0)
     for ty in range(r[2], r[3] + 1):
         for tx in range(r[0], r[1] + 1):
