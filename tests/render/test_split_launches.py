@@ -46,7 +46,6 @@ def test_split_launches_match_one_thread_and_the_torch_twin(kit, monkeypatch, nu
         run_parallel(kernel, launches, device)
 
     monkeypatch.setattr(warp_backend, "_MIN_SPLIT", 1)  # split even these small launches
-    monkeypatch.setattr(warp_backend, "_MIN_SPLIT_BOUNDS", 1)
     monkeypatch.setattr(warp_backend, "_MIN_SPLIT_BIN", 1)
     monkeypatch.setattr(warp_backend, "_MIN_SPLIT_VJP", 1)
     monkeypatch.setattr(warp_backend, "_run_parallel", recording)

@@ -203,15 +203,14 @@ def _launch_split(kernel, cuts: list[int], args: list, device: torch.device, min
 # Fewer indices per thread than this and a helper-thread hand-off (50-75 us, physgm.parallel)
 # costs about what it saves: a CPU handles a few thousand pairs or entries in that time.
 _MIN_SPLIT = 8192
-# The bounds of 65k pairs per thread (a 1-view training batch) took longer split than not,
-# 5.3 against 4.4 ms; of 262k (4 views) 7.8 against 13.7 ms (interleaved medians of 20), when they
-# were a kernel of their own. Fused with the projection, a whole 1-view batch (B 4, C 8, N 4096)
-# took 108 -> 102 ms split at 8192 and 85.6 -> 85.5 ms with this threshold, each against the
-# unfused code in the same process: within the host's noise, so the threshold stayed.
-_MIN_SPLIT_BOUNDS = 1 << 17
-# Binning one image on two threads: each walks all pairs (~15 ns each) and writes half the entries.
+# The fused projection and bounds (`project_bounds_kernel`, ~85 ns a pair) split like the rest:
+# a 1-view training batch (B 4, C 8, N 4096, 65k pairs per thread) took 85.9 -> 78.6 and
+# 88.7 -> 83.0 ms forward + backward split against serial (alternated, medians of 20). When the
+# bounds were a kernel of their own, splitting them at that size had cost time.
+# Binning one image on two threads: each walks all pairs and writes half the entries. With 4096
+# pairs (64 px) the walk cost what the halved writes saved (4.19 -> 4.38 ms forward + backward).
 _MIN_SPLIT_BIN = 8192
-# The projection's vector-Jacobian product costs ~100 ns a pair, so halves of 2048 pairs pay off.
+# The projection's vector-Jacobian product costs ~110 ns a pair (4096 pairs: 0.45 ms in a render).
 _MIN_SPLIT_VJP = 2048
 
 _FORWARD = (T.raster_forward_tile_kernel, R.raster_forward_pixel_kernel)
@@ -262,7 +261,7 @@ class _RasterizeWarp(torch.autograd.Function):
         image_cuts = _cuts(num_pairs, num_n, threads)  # tile counts are per image
         _launch_split(K.project_bounds_kernel, image_cuts,
                       [*proj_in, s.tile_size, s.tiles_x, tiles_per_image, *proj_out, *bounds,
-                       _arr(tile_counts, wp.int32)], device, min_part=_MIN_SPLIT_BOUNDS)  # fmt: skip
+                       _arr(tile_counts, wp.int32)], device)  # fmt: skip
         # forward split by entry count (+1: empty tiles are not free); binning within an image
         # splits by the same ranges, so each thread writes the entries it will read. The backward
         # split uses the pixel tests the forward counted, since its cost follows the composited pairs.
