@@ -165,6 +165,8 @@ def main(argv: list[str] | None = None) -> dict:
             "cpus": os.cpu_count(),
             "loadavg_1min_before": round(load_before[0], 2),
             "loadavg_1min_after": round(os.getloadavg()[0], 2),
+            # torch's idle OpenMP threads spin this long before sleeping; `import physgm` sets it
+            "gomp_spincount": os.environ.get("GOMP_SPINCOUNT"),
         },
     }
     print(json.dumps(report))
