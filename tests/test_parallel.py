@@ -110,3 +110,9 @@ def test_importing_physgm_shortens_openmp_spinning_before_torch_loads():
 def test_a_spin_count_the_user_set_is_kept():
     code = "import os, physgm; print(os.environ['GOMP_SPINCOUNT'])"
     assert _fresh_python(code, {"GOMP_SPINCOUNT": "1234"}) == "1234"
+
+
+def test_the_spin_count_is_left_unset_when_torch_loaded_first():
+    # too late to take effect, so the environment must not claim it
+    code = "import os, torch, physgm; print(os.environ.get('GOMP_SPINCOUNT'))"
+    assert _fresh_python(code, {}) == "None"
