@@ -35,6 +35,20 @@ def test_probe_separates_materials_that_look_different(two_materials):
     assert report["majority_class_accuracy"] == 0.5
     assert report["test_accuracy_4_views"] == 1.0, report
     assert report["test_accuracy_1_view"] >= 0.75, report
+    assert report["train_accuracy_4_views"] >= 0.9, report  # 8 training assets, two easy classes
+
+
+def test_probe_tests_on_another_folder(two_materials, tmp_path):
+    """--test-data takes the test split from a second folder (a larger set tested on the smaller one's assets)."""
+    other = tmp_path / "other"
+    (other / "splits").mkdir(parents=True)
+    test_ids = (two_materials / "splits" / "test.txt").read_text().split()[:2]
+    for asset in test_ids:
+        (other / asset).symlink_to(two_materials / asset)
+    (other / "splits" / "test.txt").write_text("\n".join(test_ids) + "\n")
+    report = material_probe.main(["--data", str(two_materials), "--test-data", str(other), "--seconds", "2", "--batch", "8"])
+    assert report["test_data"] == str(other) and report["test_assets"] == 2, report
+    assert report["data"] == str(two_materials), report
 
 
 def test_probe_refuses_an_empty_split(two_materials, tmp_path):
