@@ -69,7 +69,8 @@ def probe_net(num_classes: int, width: int = 32) -> nn.Sequential:
 def accuracy(net: nn.Module, images: Tensor, labels: Tensor) -> tuple[float, float]:
     """(accuracy from view 1, accuracy from views 1-4 with averaged log-probabilities)."""
     net.eval()
-    # In chunks of assets: a large training split in one batch would need tens of GB.
+    # In chunks of assets: 3195 training assets in one batch are 12780 images, 6.7 GB for every
+    # 32-channel activation of the first block alone.
     logp = torch.cat([net(chunk.flatten(0, 1)).log_softmax(-1).view(*chunk.shape[:2], -1) for chunk in images.split(128)])
     net.train()
     one = (logp[:, 0].argmax(-1) == labels).float().mean().item()
