@@ -149,10 +149,15 @@ def test_physics_choice_rules():
         pytest.approx(0.45, abs=1e-5),
     )
     assert mean.why["material"] == "posterior mean" and mean.density is None
-    # A material override keeps a predicted E inside its range, clips one outside it.
+    # A material override keeps a predicted E inside its range, projects one outside it.
     metal = get_material("metal")
     (m,) = choose_physics(post, PhysicsOverrides(material="metal"), seed=0)
-    assert m.material == "metal" and m.E == pytest.approx(metal.E_range[0]) and "clipped" in m.why["E"]
+    assert m.material == "metal" and m.E == pytest.approx(metal.E_range[0]) and "projected" in m.why["E"]
+    # So does a predicted material: a "plastic" predicted with a rubber's E is simulated at plastic's lowest E.
+    plastic = get_material("plastic")
+    (p,) = choose_physics(_posterior("plastic", 6.9, 0.35), PhysicsOverrides(), seed=0)
+    assert p.E == pytest.approx(plastic.E_range[0]) and "projected onto the plastic range" in p.why["E"]
+    assert p.why["material"] == "posterior mean" and plastic.nu_range[0] <= p.nu <= plastic.nu_range[1]
     (e,) = choose_physics(post, PhysicsOverrides(E=3e4, nu=0.2, density=900.0), seed=0)
     assert (e.material, e.E, e.nu, e.density) == ("rubber", 3e4, 0.2, 900.0)
     # A .ply input: the material is required, E and nu come from the table.

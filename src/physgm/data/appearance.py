@@ -281,16 +281,34 @@ STYLES: dict[str, MaterialStyle] = {
 }
 
 
-def shade(albedo: np.ndarray, normals: np.ndarray, gloss: float) -> np.ndarray:
-    """Bake Lambertian + ambient shading and a view-independent highlight.
+@dataclass(frozen=True)
+class Lighting:
+    """One light from a direction plus an ambient term that is brighter from the sky than the ground."""
+
+    direction: tuple[float, float, float] = tuple(LIGHT_DIR)  # unit, asset frame, towards the light
+    ambient: float = AMBIENT  # ambient share of the shade
+    sky: float = 0.0  # ambient x (1 + sky * n_z): 0 is uniform, > 0 lights tops more than undersides
+
+    @staticmethod
+    def sample(rng: np.random.Generator) -> Lighting:
+        """A light somewhere above the front half (azimuth within 70 degrees of the azimuth-0 camera)."""
+        az, el = np.radians(rng.uniform(-70, 70)), np.radians(rng.uniform(25, 75))
+        d = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        return Lighting(tuple(d), float(rng.uniform(0.3, 0.5)), float(rng.uniform(0.1, 0.4)))
+
+
+def shade(albedo: np.ndarray, normals: np.ndarray, gloss: float, light: Lighting = Lighting()) -> np.ndarray:
+    """Bake Lambertian + (hemispheric) ambient shading and a view-independent highlight.
 
     Args:
         albedo: [N, 3] in [0, 1].
         normals: [N, 3] unit, asset frame.
         gloss: highlight strength; the highlight sits where the normal faces the light.
+        light: the light; the default is the fixed light real meshes are rendered under.
     Returns:
         colours [N, 3] in [0, 1].
     """
-    ndl = np.clip(normals @ LIGHT_DIR, 0.0, 1.0)
-    lit = albedo * (AMBIENT + (1 - AMBIENT) * ndl)[:, None]
+    ndl = np.clip(normals @ np.asarray(light.direction), 0.0, 1.0)
+    ambient = light.ambient * (1.0 + light.sky * normals[:, 2]) / (1.0 + light.sky)
+    lit = albedo * (ambient + (1 - light.ambient) * ndl)[:, None]
     return np.clip(lit + gloss * ndl[:, None] ** 24, 0.0, 1.0)

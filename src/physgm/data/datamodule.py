@@ -21,7 +21,9 @@ from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
 from physgm.data.format import SPLITS, Asset, AssetError, load_asset, read_split
+from physgm.data.feature_cache import FeatureStore, build_feature_cache, mobilenet_key
 from physgm.data.views import Example, ViewConfig, build_example
+from physgm.model.cnn_encoder import ImageFeatures
 
 CORRUPT_MODES = ("raise", "skip")
 
@@ -49,6 +51,7 @@ class Batch:
     true_known: Tensor  # [B] bool: False for real assets, whose labels are annotations only
     asset_ids: list[str]
     skipped: list[str]  # corrupt assets dropped while making this batch (on_corrupt="skip")
+    features: ImageFeatures | None = None  # [B, V, ...] cached frozen-encoder outputs of the inputs
 
     @property
     def num_views(self) -> int:
@@ -58,13 +61,12 @@ class Batch:
         return self.images.shape[0]
 
     def to(self, device: torch.device | str) -> Batch:
-        return Batch(
-            **{
-                f.name: (v.to(device) if isinstance(v, Tensor) else v)
-                for f in dataclasses.fields(self)
-                for v in [getattr(self, f.name)]
-            }
-        )
+        def move(v):
+            if isinstance(v, Tensor):
+                return v.to(device)
+            return v.map(lambda t: t.to(device)) if isinstance(v, ImageFeatures) else v
+
+        return Batch(**{f.name: move(getattr(self, f.name)) for f in dataclasses.fields(self)})
 
 
 class Collate:
@@ -121,7 +123,16 @@ class Collate:
             true_known=vec("true_known", torch.bool),
             asset_ids=[e.id for e in examples],
             skipped=skipped,
+            features=_stack_features([e.input_features for e in examples], v),
         )
+
+
+def _stack_features(items: list[ImageFeatures | None], v: int) -> ImageFeatures | None:
+    if all(f is None for f in items):
+        return None
+    if any(f is None for f in items):
+        raise ValueError("some examples of a batch have cached features and others not; rebuild the feature cache")
+    return ImageFeatures.stack([f.map(lambda t: t[:v]) for f in items])
 
 
 @dataclass
@@ -160,11 +171,13 @@ class FolderDataset(Dataset):
         deterministic: bool,
         on_corrupt: str = "raise",
         seed: int = 0,
+        features: FeatureStore | None = None,
     ):
         if on_corrupt not in CORRUPT_MODES:
             raise ValueError(f"on_corrupt must be one of {CORRUPT_MODES}, got {on_corrupt!r}")
         self.root, self.split, self.views = Path(root), split, views
         self.deterministic, self.on_corrupt, self.seed = deterministic, on_corrupt, seed
+        self.features = features
         self.assets: list[Asset] = []
         self.skipped: dict[str, str] = {}  # found malformed while scanning (on_corrupt="skip")
         for aid in read_split(self.root, split):
@@ -191,9 +204,8 @@ class FolderDataset(Dataset):
         for k in range(min(len(self.assets), 8)):
             asset = self.assets[(index + k) % len(self.assets)]
             try:
-                return build_example(
-                    FolderRecord(asset), self.views, example_rng(asset.id, self.deterministic, self.seed)
-                ), skipped
+                rng = example_rng(asset.id, self.deterministic, self.seed)
+                return build_example(FolderRecord(asset), self.views, rng, self.features), skipped
             except _LOAD_ERRORS as err:
                 if self.on_corrupt == "raise":
                     raise AssetError(f"asset {asset.id} ({asset.path}) could not be loaded: {err}") from err
@@ -221,6 +233,9 @@ class PhysAssetsDataModule(L.LightningDataModule):
         train_split, val_split, test_split: which split files feed each stage (the DPO
             stage trains on "dpo").
         seed: seed for the fixed evaluation views.
+        feature_cache: ``"mobilenet_v2"`` reads the frozen encoder's features of the input views
+            from ``<root>/features/`` (``physgm.data.feature_cache``, built on first use) so that
+            training skips the encoder; None computes them in every step.
     """
 
     def __init__(
@@ -243,8 +258,15 @@ class PhysAssetsDataModule(L.LightningDataModule):
         val_split: str = "val",
         test_split: str = "test",
         seed: int = 0,
+        feature_cache: str | None = None,
     ):
         super().__init__()
+        if feature_cache not in (None, "mobilenet_v2"):
+            raise ValueError(f"feature_cache must be null or 'mobilenet_v2', got {feature_cache!r}")
+        if feature_cache and backend != "folder":
+            raise ValueError("feature_cache works with backend='folder' (the shards do not carry features yet)")
+        if feature_cache and not input_resolution:
+            raise ValueError("feature_cache needs input_resolution: the cache is keyed by it")
         if backend not in ("folder", "shards"):
             raise ValueError(f"backend must be 'folder' or 'shards', got {backend!r}")
         if backend == "shards" and not shards_dir:
@@ -273,7 +295,8 @@ class PhysAssetsDataModule(L.LightningDataModule):
         if key not in self.datasets:
             if self.hp.backend == "folder":
                 self.datasets[key] = FolderDataset(
-                    self.hp.root, split, self.view_config(train), not train, self.hp.on_corrupt, self.hp.seed
+                    self.hp.root, split, self.view_config(train), not train, self.hp.on_corrupt, self.hp.seed,
+                    self.feature_store(),
                 )
             else:
                 from physgm.data.shards import ShardDataset
@@ -287,6 +310,15 @@ class PhysAssetsDataModule(L.LightningDataModule):
                     seed=self.hp.seed,
                 )
         return self.datasets[key]
+
+    def feature_store(self) -> FeatureStore | None:
+        """The frozen encoder's cache of this data set, built (once) if it is incomplete."""
+        if not self.hp.feature_cache:
+            return None
+        if getattr(self, "_features", None) is None:
+            key = mobilenet_key(self.hp.input_resolution, self.hp.background)
+            self._features = FeatureStore(build_feature_cache(self.hp.root, key))
+        return self._features
 
     def setup(self, stage: str | None = None) -> None:
         if stage in (None, "fit"):

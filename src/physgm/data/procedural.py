@@ -12,7 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from physgm.data.appearance import STYLES, TextureContext, shade
+from physgm.data.appearance import STYLES, Lighting, TextureContext, shade
+from physgm.data.photo_textures import has_photos, photo_albedo
 from physgm.data.priors import TruePhysics
 from physgm.data.shapes import Shape, make_shape, sample_surface
 from physgm.gaussians import Gaussians, rotmat_to_quat
@@ -41,7 +42,14 @@ def tangent_frames(normals: np.ndarray) -> np.ndarray:
     return np.stack([t1, t2, normals], axis=-1)
 
 
-def make_object(family: str, physics: TruePhysics, count: int, rng: np.random.Generator) -> SyntheticObject:
+def make_object(
+    family: str,
+    physics: TruePhysics,
+    count: int,
+    rng: np.random.Generator,
+    photo_textures: float = 0.0,
+    varied_light: bool = False,
+) -> SyntheticObject:
     """Build the Gaussians of one synthetic asset.
 
     Args:
@@ -49,6 +57,10 @@ def make_object(family: str, physics: TruePhysics, count: int, rng: np.random.Ge
         physics: true physics; its material picks the style, its cues modulate shape and texture.
         count: number of Gaussians N.
         rng: the asset's generator (the only source of randomness).
+        photo_textures: chance that a material with photographs (``physgm.data.photo_textures``)
+            wears one instead of its procedural texture; the cues still modulate its tone.
+        varied_light: a random light above the front half and a sky-brighter ambient, instead
+            of the one fixed light.
     """
     if physics.material not in STYLES:
         raise KeyError(
@@ -82,8 +94,14 @@ def make_object(family: str, physics: TruePhysics, count: int, rng: np.random.Ge
         rng=rng_tex,
     )
     albedo = np.clip(style.texture(ctx), 0.0, 1.0)
+    # Drawn from a stream of their own, so assets made without these options keep their bytes.
+    rng_look = rng.spawn(1)[0] if photo_textures or varied_light else None
+    if photo_textures and has_photos(physics.material) and rng_look.random() < photo_textures:
+        photo = photo_albedo(physics.material, ctx.p, ctx.n, rng_look)
+        tone = albedo.mean(axis=1, keepdims=True) / max(float(albedo.mean()), 1e-6)  # the cue-driven tone
+        albedo = np.clip(photo * np.clip(tone, 0.6, 1.4), 0.0, 1.0)
     gloss = float(style.gloss[0] + (style.gloss[1] - style.gloss[0]) * rng_gauss.random())
-    colors = shade(albedo, nrm, gloss)
+    colors = shade(albedo, nrm, gloss, Lighting.sample(rng_look) if varied_light else Lighting())
 
     base_opacity = style.opacity[0] + (style.opacity[1] - style.opacity[0]) * rng_gauss.random()
     opac = np.clip(base_opacity * (1 + 0.04 * rng_gauss.normal(size=count)), 0.01, 1.0)

@@ -34,7 +34,7 @@ from physgm.data.shapes import FAMILIES
 from physgm.data.writer import TMP_PREFIX, atomic_asset_dir, to_rgba8, write_json, write_views_cameras_physics
 from physgm.gaussians import Gaussians, write_ply
 
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2  # 2: photo textures and varied light (off by default: version-1 bytes otherwise)
 _RENDER_THREADS = 2  # CPU threads per rasterize call; 1 inside worker processes (see _worker_init)
 CONFIG_FILE = "synth.json"  # at the data set root: the settings every asset was made with
 
@@ -51,6 +51,8 @@ class SynthConfig:
     backend: str = "warp"  # physgm.render backend used for the views and videos
     materials: list[str] | None = None  # restrict to these materials (default: all)
     families: list[str] | None = None  # restrict to these shape families (default: all)
+    photo_textures: float = 0.0  # chance an asset wears a photographed material texture (physgm.data.photo_textures)
+    varied_light: bool = False  # a random light per asset instead of the fixed one
     annotator: AnnotatorConfig = field(default_factory=AnnotatorConfig)
     # Split shares: assets without video -> train / val / test; with video -> dpo / test.
     val_fraction: float = 0.05
@@ -150,7 +152,9 @@ def generate_asset(cfg: SynthConfig, index: int, out: Path) -> str:
     plan = plan_asset(cfg, index)
     rng_phys, rng_obj, rng_ann, rng_video = np.random.SeedSequence([cfg.seed, index, 1]).spawn(4)
     physics = sample_physics(plan.material, np.random.default_rng(rng_phys))
-    obj = make_object(plan.family, physics, cfg.gaussians, np.random.default_rng(rng_obj))
+    obj = make_object(
+        plan.family, physics, cfg.gaussians, np.random.default_rng(rng_obj), cfg.photo_textures, cfg.varied_light
+    )
     ann = annotate(plan.material, physics.E, physics.nu, np.random.default_rng(rng_ann), cfg.annotator)
     cameras, az, el = view_cameras(cfg.resolution)
     with torch.no_grad():
@@ -299,6 +303,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--annotator-config", type=Path, default=None, help="JSON or YAML file with AnnotatorConfig fields"
     )
+    p.add_argument(
+        "--photo-textures", type=float, default=0.0, help="chance an asset wears a photographed material texture"
+    )
+    p.add_argument("--varied-light", action="store_true", help="a random light per asset instead of the fixed one")
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
 
@@ -324,6 +332,8 @@ def main(argv: list[str] | None = None) -> int:
         backend=a.backend,
         materials=split(a.materials),
         families=split(a.families),
+        photo_textures=a.photo_textures,
+        varied_light=a.varied_light,
         annotator=AnnotatorConfig.from_dict(ann),
     )
     summary = generate(cfg, a.out, workers=a.workers, progress=not a.no_progress)

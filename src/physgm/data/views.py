@@ -28,6 +28,7 @@ from torch import Tensor
 
 from physgm.data.format import AssetError, PhysicalLabels
 from physgm.data.priors import material_names
+from physgm.model.cnn_encoder import ImageFeatures
 
 NUM_INPUT_SET = 4  # size of the input set every example carries
 
@@ -48,6 +49,13 @@ class ViewConfig:
             raise ValueError(
                 f"num_targets must be at least {NUM_INPUT_SET} (the input set), got {self.num_targets}"
             )
+
+
+class FeatureSource(Protocol):
+    """Cached frozen-encoder features (``physgm.data.feature_cache.FeatureStore``)."""
+
+    def load(self, asset_id: str, views: list[int]) -> ImageFeatures:  # [V, ...]
+        ...
 
 
 class AssetRecord(Protocol):
@@ -86,6 +94,7 @@ class Example:
     true_log10_E: float
     true_nu: float
     true_known: bool
+    input_features: ImageFeatures | None = None  # [I, ...] cached frozen-encoder outputs of the inputs
 
 
 def view_directions(c2w: Tensor) -> np.ndarray:
@@ -97,6 +106,14 @@ def view_directions(c2w: Tensor) -> np.ndarray:
 def _direction(az_deg: float, el_deg: float) -> np.ndarray:
     az, el = math.radians(az_deg), math.radians(el_deg)
     return np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+
+
+def ring_views(c2w: Tensor, elevation_deg: float) -> list[int]:
+    """Views at the input elevation (within 1 degree; else the nearest elevation): where inputs come from."""
+    dirs = view_directions(c2w)
+    gap = np.abs(np.degrees(np.arcsin(np.clip(dirs[:, 2], -1, 1))) - elevation_deg)
+    ring = np.flatnonzero(gap < 1.0)
+    return [int(i) for i in (ring if len(ring) else np.flatnonzero(gap == gap.min()))]
 
 
 def select_views(
@@ -116,15 +133,8 @@ def select_views(
     el = np.degrees(np.arcsin(np.clip(dirs[:, 2], -1, 1)))
     az = np.degrees(np.arctan2(dirs[:, 1], dirs[:, 0]))
     if cfg.random_azimuth and rng is not None:
-        ring = np.flatnonzero(np.abs(el - cfg.input_elevation_deg) < 1.0)
-        ring = (
-            ring
-            if len(ring)
-            else np.flatnonzero(
-                np.abs(el - cfg.input_elevation_deg) == np.abs(el - cfg.input_elevation_deg).min()
-            )
-        )
-        first = int(ring[rng.integers(len(ring))])
+        ring = ring_views(c2w, cfg.input_elevation_deg)
+        first = ring[int(rng.integers(len(ring)))]
     else:
         first = int(np.argmax(dirs @ _direction(0.0, cfg.input_elevation_deg)))
     inputs = [first]
@@ -142,7 +152,7 @@ def select_views(
     return inputs, inputs + [rest[int(i)] for i in picks]
 
 
-def _images(
+def composite_views(
     rgba: np.ndarray,  # [V, H, W, 4] straight alpha in [0, 1]
     Ks: Tensor,  # [V, 3, 3]
     size: int | None,
@@ -162,8 +172,10 @@ def _images(
     return rgb.clamp(0, 1), alpha.clamp(0, 1), Ks
 
 
-def build_example(record: AssetRecord, cfg: ViewConfig, rng: np.random.Generator | None) -> Example:
-    """Cut one example (input set + targets + labels) from an asset."""
+def build_example(
+    record: AssetRecord, cfg: ViewConfig, rng: np.random.Generator | None, features: FeatureSource | None = None
+) -> Example:
+    """Cut one example (input set + targets + labels) from an asset; ``features``: a frozen-encoder cache."""
     inputs, targets = select_views(record.c2w, cfg, rng)
     # Decode each needed view once; inputs are the first four targets.
     rgba = record.load_rgba(targets)
@@ -171,10 +183,10 @@ def build_example(record: AssetRecord, cfg: ViewConfig, rng: np.random.Generator
         raise AssetError(
             f"views are {rgba.shape[2]}x{rgba.shape[1]} px but cameras.json says {record.width}x{record.height}"
         )
-    in_img, in_mask, in_K = _images(
+    in_img, in_mask, in_K = composite_views(
         rgba[:NUM_INPUT_SET], record.Ks[inputs], cfg.input_resolution, cfg.background
     )
-    tg_img, tg_mask, tg_K = _images(rgba, record.Ks[targets], cfg.target_resolution, cfg.background)
+    tg_img, tg_mask, tg_K = composite_views(rgba, record.Ks[targets], cfg.target_resolution, cfg.background)
     phys = record.physical
     names = material_names()
     ann = phys.annotation
@@ -197,4 +209,5 @@ def build_example(record: AssetRecord, cfg: ViewConfig, rng: np.random.Generator
         true_log10_E=math.log10(phys.E),
         true_nu=phys.nu,
         true_known=phys.true_known,
+        input_features=features.load(record.id, inputs) if features is not None else None,
     )

@@ -11,11 +11,14 @@ tell apart every pixel of every view.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 from timm.models.vision_transformer import Block
 from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint
 
+from physgm.model.cnn_encoder import ImageFeatures, MobileNetEncoder
 from physgm.model.config import BackboneConfig
 from physgm.model.encoder import build_encoder
 
@@ -37,6 +40,15 @@ class PluckerEncoder(nn.Module):
         plucker: Tensor,  # [B, 6, H, W] (direction, moment)
     ) -> Tensor:  # [B, (H / p) * (W / p), out_dim]
         return self.norm(self.net(plucker).flatten(2).transpose(1, 2))
+
+
+@dataclass
+class BackboneOutput:
+    """What the backbone hands to the heads."""
+
+    global_tokens: Tensor  # [B, G, D] after the last block
+    patch_tokens: list[Tensor]  # 4 x [B * V, h * w, D] after the blocks in cfg.out_layers
+    features: ImageFeatures | None  # frozen CNN encoder's pyramid and logits, [B * V, ...] (None for ViTs)
 
 
 class Backbone(nn.Module):
@@ -69,15 +81,23 @@ class Backbone(nn.Module):
         self,
         images: Tensor,  # [B, V, 3, H, W] RGB in [0, 1]
         plucker: Tensor,  # [B, V, 6, H, W]
-    ) -> tuple[Tensor, list[Tensor]]:  # global [B, 3, D]; 4 x patch tokens [B * V, h * w, D]
-        """Run the encoder per view and the joint transformer over all views.
+        features: ImageFeatures | None = None,  # [B, V, ...] cached CNN encoder outputs, or None
+    ) -> BackboneOutput:
+        """Run the encoder per view (or take its cached features) and the joint transformer.
 
-        Returns:
-            The global tokens after the last block, and the patch tokens after each block in
-            ``cfg.out_layers`` (views folded into the batch, row-major patches).
+        Patch tokens have the views folded into the batch and row-major patches.
         """
         b, v = images.shape[:2]
-        image_tokens = self.encoder(images.flatten(0, 1))  # [B*V, L, D_enc]
+        if isinstance(self.encoder, MobileNetEncoder):
+            if features is None:
+                features = self.encoder.encode(images.flatten(0, 1))
+            else:
+                features = features.map(lambda t: t.flatten(0, 1).float())
+            image_tokens = self.encoder.tokens(features)  # [B*V, L, D_enc]
+        else:
+            if features is not None:
+                raise ValueError("cached image features are only used with the frozen CNN encoder (encoder.kind=mobilenet_v2)")
+            image_tokens = self.encoder(images.flatten(0, 1))  # [B*V, L, D_enc]
         camera_tokens = self.camera_encoder(plucker.flatten(0, 1))  # [B*V, L, D_cam]
         tokens = self.fuse(torch.cat([image_tokens, camera_tokens], dim=-1))  # [B*V, L, D]
         patches = tokens.shape[1]
@@ -93,7 +113,7 @@ class Backbone(nn.Module):
                 x = block(x)
             if i in self.cfg.out_layers:
                 taken[i] = x[:, g:].reshape(b * v, patches, -1)
-        return x[:, :g], [taken[i] for i in self.cfg.out_layers]
+        return BackboneOutput(x[:, :g], [taken[i] for i in self.cfg.out_layers], features)
 
 
 def _init_linear(module: nn.Module) -> None:

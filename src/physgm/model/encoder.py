@@ -1,4 +1,4 @@
-"""Per-view image encoders: a timm ViT trained from scratch, or DINOv3 from a local weights file.
+"""Per-view image encoders: a timm ViT from scratch, DINOv3 from a local file, frozen ImageNet MobileNetV2.
 
 Both turn each view into one token per ``patch_size`` x ``patch_size`` patch; the joint backbone
 (``physgm.model.backbone``) then mixes the views. Nothing here ever downloads weights: timm models
@@ -15,6 +15,7 @@ import torch
 from timm.models.eva import checkpoint_filter_fn as _eva_checkpoint_filter
 from torch import Tensor, nn
 
+from physgm.model.cnn_encoder import MobileNetEncoder
 from physgm.model.config import EncoderConfig
 
 # DINOv3 was trained on ImageNet-normalised inputs; the scratch ViT uses the same so that the two
@@ -153,11 +154,26 @@ def _key_mismatch(expected: dict[str, Tensor], got: dict[str, Tensor]) -> tuple[
     return missing + sorted(f"{k} (shape)" for k in wrong), unexpected
 
 
+def build_mobilenet_v2(cfg: EncoderConfig, load_pretrained: bool = True) -> MobileNetEncoder:
+    """Frozen ImageNet MobileNetV2 (``physgm.model.cnn_encoder``); ``cfg.weights`` overrides the packaged file."""
+    if (cfg.patch_size, cfg.embed_dim) != (MobileNetEncoder.patch_size, MobileNetEncoder.embed_dim) or not cfg.freeze:
+        raise ValueError(
+            f"encoder.kind=mobilenet_v2 is frozen with patch_size={MobileNetEncoder.patch_size} and "
+            f"embed_dim={MobileNetEncoder.embed_dim}; the config says patch_size={cfg.patch_size}, "
+            f"embed_dim={cfg.embed_dim}, freeze={cfg.freeze}: fix model.backbone.encoder"
+        )
+    return MobileNetEncoder(cfg.weights, load_pretrained)
+
+
 # Registry: EncoderConfig.kind -> builder. Adding an encoder is one entry here.
-ENCODERS: dict[str, Callable[[EncoderConfig, bool], ImageEncoder]] = {"vit": build_vit, "dinov3": build_dinov3}
+ENCODERS: dict[str, Callable[[EncoderConfig, bool], nn.Module]] = {
+    "vit": build_vit,
+    "dinov3": build_dinov3,
+    "mobilenet_v2": build_mobilenet_v2,
+}
 
 
-def build_encoder(cfg: EncoderConfig, load_pretrained: bool = True) -> ImageEncoder:
+def build_encoder(cfg: EncoderConfig, load_pretrained: bool = True) -> ImageEncoder | MobileNetEncoder:
     """Build the image encoder named by ``cfg.kind`` (``load_pretrained``: read local weights if any)."""
     if cfg.kind not in ENCODERS:
         raise ValueError(f"unknown encoder kind {cfg.kind!r}; choose one of {sorted(ENCODERS)}")

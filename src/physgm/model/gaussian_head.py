@@ -154,7 +154,7 @@ class _Fusion(nn.Module):
 class DPTHead(nn.Module):
     """Dense prediction head on 4 token layers; see the module docstring."""
 
-    def __init__(self, cfg: GaussianHeadConfig, dim: int, patch_size: int) -> None:
+    def __init__(self, cfg: GaussianHeadConfig, dim: int, patch_size: int, skip_channels: tuple[int, ...] | None = None) -> None:
         super().__init__()
         if len(cfg.layer_channels) != 4:
             raise ValueError(f"gaussian_head.layer_channels needs 4 entries, got {list(cfg.layer_channels)}")
@@ -170,6 +170,11 @@ class DPTHead(nn.Module):
             nn.Conv2d(ch[3], ch[3], kernel_size=3, stride=2, padding=1),
         ])
         self.to_features = nn.ModuleList(nn.Conv2d(c, cfg.features, 3, padding=1, bias=False) for c in ch)
+        # A frozen CNN encoder's pyramid (strides 4, 8, 16, 32 = this pyramid's levels with patch
+        # size 16) joins each level: the fine levels see image detail the tokens have pooled away.
+        self.encoder_skips = (
+            nn.ModuleList(nn.Conv2d(c, cfg.features, 1) for c in skip_channels) if skip_channels else None
+        )
         self.fusions = nn.ModuleList(_Fusion(cfg.features, has_skip=i < 3) for i in range(4))
         self.pre_upsample = nn.Conv2d(cfg.features, cfg.features // 2, 3, padding=1)
         out_channels = sum(RAW_CHANNELS.values())
@@ -189,13 +194,19 @@ class DPTHead(nn.Module):
         tokens: list[Tensor],  # 4 x [B', h * w, D], fine to coarse backbone layers
         images: Tensor,  # [B', 3, H, W] in [0, 1]
         guide: Tensor | None = None,  # [B', 2, H, W] hull segment start and length (depth_prior="hull")
+        skips: list[Tensor] | None = None,  # 4 x [B', C_i, H / s_i, W / s_i] encoder maps, fine to coarse
     ) -> dict[str, Tensor]:  # name -> [B', H, W, RAW_CHANNELS[name]]
         height, width = images.shape[-2:]
         h, w = height // self.patch_size, width // self.patch_size
+        if (skips is not None) != (self.encoder_skips is not None):
+            raise ValueError("the DPT head takes encoder skip maps exactly when it was built with skip_channels")
         maps = []
         for i, t in enumerate(tokens):
             x = self.norms[i](t).transpose(1, 2).reshape(t.shape[0], -1, h, w)  # [B', D, h, w]
-            maps.append(self.to_features[i](self.resamples[i](self.projects[i](x))))
+            x = self.to_features[i](self.resamples[i](self.projects[i](x)))
+            if skips is not None:
+                x = x + self.encoder_skips[i](skips[i].to(x.dtype))
+            maps.append(x)
         x = self.fusions[3](maps[3], None, maps[2].shape[-2:])
         x = self.fusions[2](x, maps[2], maps[1].shape[-2:])
         x = self.fusions[1](x, maps[1], maps[0].shape[-2:])
@@ -211,10 +222,10 @@ class DPTHead(nn.Module):
 class GaussianHead(nn.Module):
     """DPT head + activations + masking: tokens and rays -> ``GaussianPrediction``."""
 
-    def __init__(self, cfg: GaussianHeadConfig, dim: int, patch_size: int) -> None:
+    def __init__(self, cfg: GaussianHeadConfig, dim: int, patch_size: int, skip_channels: tuple[int, ...] | None = None) -> None:
         super().__init__()
         self.cfg = cfg
-        self.dpt = DPTHead(cfg, dim, patch_size)
+        self.dpt = DPTHead(cfg, dim, patch_size, skip_channels)
         self.activations = GaussianActivations(cfg)
 
     def forward(
@@ -225,6 +236,7 @@ class GaussianHead(nn.Module):
         c2w: Tensor,  # [B, V, 4, 4] OpenCV camera-to-world
         Ks: Tensor,  # [B, V, 3, 3]
         directions: Tensor,  # [B, V, H, W, 3] unit pixel-ray directions
+        skips: list[Tensor] | None = None,  # 4 x [B * V, C_i, H / s_i, W / s_i] frozen encoder maps
     ) -> GaussianPrediction:
         b, v, _, height, width = images.shape
         c = self.cfg
@@ -234,7 +246,7 @@ class GaussianHead(nn.Module):
             span = c.far - c.near
             guide = torch.stack([(lo - c.near) / span, (hi - lo) / span], dim=2).flatten(0, 1)  # [B*V, 2, H, W]
             depth_range = (lo.reshape(b, -1, 1), hi.reshape(b, -1, 1))
-        raw = self.dpt(tokens, images.flatten(0, 1), guide)
+        raw = self.dpt(tokens, images.flatten(0, 1), guide, skips)
         raw = {k: r.reshape(b, v * height * width, -1) for k, r in raw.items()}  # [B, N, c]
         rgb = images.permute(0, 1, 3, 4, 2).reshape(b, -1, 3)
         dirs = directions.reshape(b, -1, 3)

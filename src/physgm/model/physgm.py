@@ -6,14 +6,17 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+import torch
 from torch import Tensor, nn
 
 from physgm.cameras import Cameras, plucker_rays
 from physgm.model.backbone import Backbone
+from physgm.model.cnn_encoder import LEVEL_CHANNELS, ImageFeatures, MobileNetEncoder
 from physgm.model.config import PhysGMConfig
 from physgm.model.gaussian_head import GaussianHead, GaussianPrediction
 from physgm.model.physics_head import PhysicsHead
 from physgm.model.posterior import PhysicsPosterior
+from physgm.model.semantic_prior import material_prior
 
 
 @dataclass
@@ -22,6 +25,7 @@ class PhysGMOutput:
 
     gaussians: GaussianPrediction  # N = V * H * W Gaussians per scene, invalid ones flagged
     physics: PhysicsPosterior  # [B] posterior over material, log10 E, nu
+    semantic_log_prior: Tensor | None = None  # [B, M] the ImageNet classes' material prior (CNN encoder)
 
 
 class PhysGM(nn.Module):
@@ -37,7 +41,9 @@ class PhysGM(nn.Module):
         super().__init__()
         self.config = config = config or PhysGMConfig()
         self.backbone = Backbone(config.backbone, load_pretrained)
-        self.gaussian_head = GaussianHead(config.gaussian_head, config.backbone.width, self.backbone.patch_size)
+        cnn = isinstance(self.backbone.encoder, MobileNetEncoder)
+        skips = tuple(LEVEL_CHANNELS.values()) if cnn else None
+        self.gaussian_head = GaussianHead(config.gaussian_head, config.backbone.width, self.backbone.patch_size, skips)
         self.physics_head = PhysicsHead(config.physics_head, config.backbone.width, config.backbone.num_global_tokens)
 
     @property
@@ -50,20 +56,27 @@ class PhysGM(nn.Module):
         masks: Tensor,  # [B, V, 1, H, W] object mask in [0, 1]
         c2w: Tensor,  # [B, V, 4, 4] OpenCV camera-to-world
         Ks: Tensor,  # [B, V, 3, 3] pixel intrinsics
+        features: ImageFeatures | None = None,  # [B, V, ...] cached frozen-encoder outputs of the views
     ) -> PhysGMOutput:
         """Predict Gaussians (one per in-mask input pixel) and the physics posterior.
 
         Any V >= 1 and any H, W that are multiples of the patch size work; the views of a scene
-        attend to each other jointly.
+        attend to each other jointly. ``features`` (the frozen CNN encoder only) skips the encoder.
         """
         self._check_inputs(images, masks, c2w, Ks)
         b, v, _, height, width = images.shape
         cameras = Cameras(c2w.reshape(b * v, 4, 4).to(images.dtype), Ks.reshape(b * v, 3, 3).to(images.dtype), width, height)
         plucker = plucker_rays(cameras).reshape(b, v, 6, height, width)  # (direction, moment)
-        global_tokens, patch_tokens = self.backbone(images, plucker)
+        out = self.backbone(images, plucker, features)
         directions = plucker[:, :, :3].permute(0, 1, 3, 4, 2)  # [B, V, H, W, 3] unit
-        gaussians = self.gaussian_head(patch_tokens, images, masks, c2w.to(images.dtype), Ks.to(images.dtype), directions)
-        return PhysGMOutput(gaussians=gaussians, physics=self.physics_head(global_tokens))
+        skips = out.features.levels() if out.features is not None else None
+        gaussians = self.gaussian_head(out.patch_tokens, images, masks, c2w.to(images.dtype), Ks.to(images.dtype), directions, skips)
+        log_prior = None
+        if out.features is not None:
+            logits = out.features.imagenet_logits.float().reshape(b, v, -1).mean(dim=1)  # views agree on one object
+            log_prior = semantic_log_prior(logits)
+        physics = self.physics_head(out.global_tokens, log_prior)
+        return PhysGMOutput(gaussians=gaussians, physics=physics, semantic_log_prior=log_prior)
 
     def physics_parameters(self) -> Iterator[nn.Parameter]:
         """Parameters of the physics head: the only ones the DPO stage trains."""
@@ -85,6 +98,15 @@ class PhysGM(nn.Module):
         p = self.patch_size
         if height % p or width % p:
             raise ValueError(f"image size {height}x{width} must be a multiple of the patch size {p}; resize the views")
+
+
+def semantic_log_prior(
+    imagenet_logits: Tensor,  # [B, 1000]
+) -> Tensor:  # [B, M]
+    """log p_prior(material): the ImageNet classes' materials, blended with uniform by how much of the
+    classifier's belief falls on classes the table maps (none on animals or scenes: no opinion)."""
+    probs, mass = material_prior(imagenet_logits)
+    return torch.log(mass[..., None] * probs + (1.0 - mass[..., None]) / probs.shape[-1])
 
 
 def build_physgm(**config: Any) -> PhysGM:

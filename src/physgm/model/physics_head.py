@@ -33,11 +33,17 @@ class PhysicsHead(nn.Module):
     def forward(
         self,
         global_tokens: Tensor,  # [B, G >= 3, D]
+        semantic_log_prior: Tensor | None = None,  # [B, M] log p(material | ImageNet classes)
     ) -> PhysicsPosterior:
+        """The posterior; with a semantic prior the material logits are log(p_head * p_prior^w)."""
         E_mean, E_raw = self.young(global_tokens[:, 1]).unbind(-1)
         nu_mean, nu_raw = self.poisson(global_tokens[:, 2]).unbind(-1)
+        logits = self.material(global_tokens[:, 0])
+        w = self.cfg.semantic_prior_weight
+        if semantic_log_prior is not None and w != 0.0:
+            logits = logits.log_softmax(dim=-1) + w * semantic_log_prior.to(logits.dtype)
         return PhysicsPosterior(
-            material_logits=self.material(global_tokens[:, 0]),
+            material_logits=logits,
             z_E_mean=E_mean,
             z_E_logvar=self._logvar(E_raw),
             z_nu_mean=nu_mean,

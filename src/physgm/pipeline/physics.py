@@ -5,9 +5,11 @@ Rules (each choice records *why* in physics.json):
   always wins;
 * otherwise the run "mean" takes the most likely material and the posterior mean of log10 E and
   nu, and run "sample<k>" a draw from the posterior;
-* when the material is overridden but E or nu are not, the predicted value is kept if it lies in
-  the chosen material's typical range, else clipped to that range (a "jelly" with the stiffness
-  of steel would not be what the user asked for);
+* a predicted E or nu is kept if it lies in the chosen material's typical range, else projected
+  onto that range, whether the material was predicted or overridden: the model's E and nu heads
+  are not conditioned on its material, and a "plastic" with the stiffness of rubber would be
+  neither (the simulator would run a rubbery plastic through tens of thousands of sub-steps
+  where a rigid body would do); physics.json says when a value was projected;
 * a .ply input has no prediction: the material must be given, E and nu default to its table values.
 """
 
@@ -87,9 +89,9 @@ def _choice(name: str, sample: PhysicsSample | None, over: PhysicsOverrides, wha
             values[key], why[key] = float(given), f"override (physics.{key})"
         elif predicted is None:
             values[key], why[key] = float(default), f"material table default for {material}"
-        elif over.material is not None and not lo <= predicted <= hi:
+        elif not lo <= predicted <= hi:
             values[key] = _in_range(predicted, lo, hi)
-            why[key] = f"{what}, {predicted:.3g} clipped to the {material} range [{lo:.3g}, {hi:.3g}]"
+            why[key] = f"{what}, {predicted:.3g} projected onto the {material} range [{lo:.3g}, {hi:.3g}]"
         else:
             values[key], why[key] = predicted, what
     values["nu"] = min(values["nu"], NU_MAX)
@@ -134,5 +136,5 @@ def physics_json(post: PhysicsPosterior | None, over: PhysicsOverrides, runs: li
         "samples": over.samples,
         "runs": [{**asdict(r), "video": videos.get(r.name)} for r in runs],
         "rules": "explicit overrides win; otherwise the posterior mean (run 'mean') or a posterior draw "
-                 "(runs 'sample<k>'); with an overridden material, predicted E and nu are clipped to its typical range",
+                 "(runs 'sample<k>'); predicted E and nu outside the chosen material's typical range are projected onto it",
     }  # fmt: skip

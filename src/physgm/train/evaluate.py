@@ -50,7 +50,7 @@ def evaluate_views(
     opacities = []
     for batch in datamodule.test_dataloader():
         views = batch.images.shape[1]
-        out = model(batch.images, batch.masks, batch.c2w, batch.Ks)
+        out = model(batch.images, batch.masks, batch.c2w, batch.Ks, batch.features)
         h, w = batch.target_images.shape[-2:]
         rgb, _ = render_targets(out, batch.target_c2w, batch.target_Ks, w, h, renderer)
         rendered = rgb.permute(0, 1, 4, 2, 3).clamp(0, 1)

@@ -85,7 +85,7 @@ class LitPretrain(L.LightningModule):
 
     # -- steps -------------------------------------------------------------------------------
     def forward(self, batch) -> PhysGMOutput:
-        return self.model(batch.images, batch.masks, batch.c2w, batch.Ks)
+        return self.model(batch.images, batch.masks, batch.c2w, batch.Ks, batch.features)
 
     def _losses(self, batch) -> tuple[PhysGMOutput, Tensor, Tensor, dict[str, Tensor]]:
         out = self(batch)

