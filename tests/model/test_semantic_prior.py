@@ -90,7 +90,10 @@ def test_broken_tables_give_errors_naming_the_class(tmp_path):
     def duplicate(groups):
         _group(groups, "glass")["classes"][504] = "coffee mug"
 
-    with pytest.raises(ValueError, match=r"class 504 \(coffee mug\) appears twice: under (ceramic and glass|glass and ceramic)"):
+    with pytest.raises(
+        ValueError,
+        match=r"class 504 \(coffee mug\) appears twice: under (ceramic and glass|glass and ceramic)",
+    ):
         load_semantic_table(_broken(tmp_path, duplicate))
 
     def unknown(groups):

@@ -72,15 +72,23 @@ def _parse_group(raw: object, g: int, path: Path) -> MaterialGroup:
         _fail(path, f"group {g} must be a mapping with keys material, reason, classes; got {raw!r:.120}")
     material = raw["material"]
     if material != NONE and material not in MATERIAL_NAMES:
-        _fail(path, f"group {g} names unknown material {material!r}; use one of {', '.join(MATERIAL_NAMES)} or {NONE}")
+        _fail(
+            path,
+            f"group {g} names unknown material {material!r}; use one of {', '.join(MATERIAL_NAMES)} or {NONE}",
+        )
     if not isinstance(raw["reason"], str) or not raw["reason"].strip():
-        _fail(path, f"group {g} ({material}) has no reason; say in a few words why these classes are {material}")
+        _fail(
+            path, f"group {g} ({material}) has no reason; say in a few words why these classes are {material}"
+        )
     classes = raw["classes"]
     if not isinstance(classes, dict) or not classes:
         _fail(path, f"group {g} ({material}): classes must be a non-empty mapping `index: name`")
     for index, name in classes.items():
         if not isinstance(index, int) or not 0 <= index < NUM_CLASSES:
-            _fail(path, f"group {g} ({material}): class key {index!r} ({name}) is not an index in 0..{NUM_CLASSES - 1}")
+            _fail(
+                path,
+                f"group {g} ({material}): class key {index!r} ({name}) is not an index in 0..{NUM_CLASSES - 1}",
+            )
     return MaterialGroup(None if material == NONE else material, raw["reason"].strip(), dict(classes))
 
 
@@ -96,7 +104,9 @@ def load_semantic_table(path: str | Path | None = None, categories: list[str] | 
     """
     path = Path(path) if path is not None else semantic_table_path()
     if not path.is_file():
-        raise FileNotFoundError(f"semantic material table {path} not found (conf/semantic/imagenet_materials.yaml)")
+        raise FileNotFoundError(
+            f"semantic material table {path} not found (conf/semantic/imagenet_materials.yaml)"
+        )
     if categories is None:
         from physgm.model.pretrained import imagenet_categories
 
@@ -110,14 +120,22 @@ def load_semantic_table(path: str | Path | None = None, categories: list[str] | 
         here = grp.material or NONE
         for index, name in grp.classes.items():
             if str(name) != categories[index]:
-                _fail(path, f"class {index} is {categories[index]!r} in ImageNet but the table ({here}) calls it {name!r}")
+                _fail(
+                    path,
+                    f"class {index} is {categories[index]!r} in ImageNet but the table ({here}) calls it {name!r}",
+                )
             if index in seen:
-                _fail(path, f"class {index} ({categories[index]}) appears twice: under {seen[index] or NONE} and {here}")
+                _fail(
+                    path,
+                    f"class {index} ({categories[index]}) appears twice: under {seen[index] or NONE} and {here}",
+                )
             seen[index] = grp.material
     missing = [i for i in range(NUM_CLASSES) if i not in seen]
     if missing:
         listing = ", ".join(f"{i} ({categories[i]})" for i in missing[:10])
-        _fail(path, f"{len(missing)} classes are missing, e.g. {listing}; add each under a material or {NONE}")
+        _fail(
+            path, f"{len(missing)} classes are missing, e.g. {listing}; add each under a material or {NONE}"
+        )
     return SemanticTable(groups, tuple(seen[i] for i in range(NUM_CLASSES)))
 
 
@@ -159,7 +177,9 @@ def material_log_prior(
     if not (temperature > 0 and math.isfinite(temperature)):
         raise ValueError(f"temperature must be a positive number, got {temperature}")
     if imagenet_logits.shape[-1] != NUM_CLASSES:
-        raise ValueError(f"expected ImageNet logits [..., {NUM_CLASSES}], got shape {tuple(imagenet_logits.shape)}")
+        raise ValueError(
+            f"expected ImageNet logits [..., {NUM_CLASSES}], got shape {tuple(imagenet_logits.shape)}"
+        )
     log_q = torch.log_softmax(imagenet_logits.float() / temperature, dim=-1)  # [..., 1000]
     member = _default_matrix().to(log_q.device)  # [1000, M]
     log_member = torch.where(member > 0, 0.0, -math.inf)  # [1000, M]
