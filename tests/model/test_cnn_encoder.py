@@ -50,12 +50,18 @@ def test_pyramid_shapes_and_tokens():
         enc.encode(torch.rand(1, 3, 48, 48))
 
 
-def test_encoder_is_frozen_and_stays_in_eval_mode():
+def test_encoder_is_frozen_stays_in_eval_mode_and_is_not_checkpointed():
     model = PhysGM(PhysGMConfig.from_dict({"backbone": {"encoder": MOBILENET}}))
     enc = model.backbone.encoder
-    assert not any(p.requires_grad for p in enc.parameters())
+    assert not list(enc.parameters())  # nothing for an optimiser to touch
     model.train()
     assert not enc.training and all(not m.training for m in enc.modules())
+    state = model.state_dict()
+    assert not any(k.startswith("backbone.encoder.") for k in state)  # the weights file supplies them
+    from physgm.model.physgm import load_physgm
+
+    again = load_physgm(model.config.to_dict(), state)
+    torch.testing.assert_close(again.backbone.encoder.features[0][0].weight, enc.features[0][0].weight)
 
 
 def test_classifier_matches_torchvision_at_224():

@@ -78,3 +78,49 @@ def test_evaluate_single_view_batches_have_one_input(tiny_dataset, tmp_path):
     model.forward = spy
     r = evaluate_views(model, dm, {"backend": "warp", "num_threads": 1})
     assert set(seen) == {1} and r["assets"] == len(read_split(tiny_dataset, "train"))
+
+
+def test_evaluate_scores_labelled_real_assets_and_sweeps_the_prior(tiny_dataset, tmp_path, capsys):
+    """Assets without true physics (no annotation: real objects) are scored against their label."""
+    import shutil
+
+    from physgm.data.format import load_asset
+    from physgm.physics.behaviour import behaviour_index
+    from physgm.physics.materials import MATERIAL_NAMES
+    from physgm.train.evaluate import fused_logits
+
+    root = tmp_path / "real"
+    shutil.copytree(tiny_dataset, root)
+    for phys in root.glob("*/physical.json"):
+        data = json.loads(phys.read_text())
+        data.pop("annotation")  # what a hand-labelled real asset looks like
+        phys.write_text(json.dumps(data))
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(str(Path(__file__).resolve().parents[2] / "conf"), version_base="1.3"):
+        cfg = compose("train", overrides=["model=physgm_mobilenet", "model.backbone.encoder.img_size=32"])
+    torch.manual_seed(0)
+    module = LitPretrain(model=plain(cfg.model), renderer={"backend": "warp", "num_threads": 1})
+    ckpt = tmp_path / "mobilenet.ckpt"
+    torch.save({"hyper_parameters": dict(module.hparams), "state_dict": module.state_dict()}, ckpt)
+    assert main([str(ckpt), "--data", str(root), "--split", "train", "--views", "1", "--num-targets", "4",
+                 "--prior-sweep", "0,2"]) == 0
+    r = json.loads(capsys.readouterr().out)["views1"]
+    ids = read_split(root, "train")
+    assert r["labelled_assets"] == len(ids) and "material_acc" not in r  # no true physics to score
+    matrix = torch.tensor(r["label_confusion"]["matrix"])
+    assert abs(r["label_material_acc"] - float(matrix.trace()) / len(ids)) < 1e-6
+    assert r["prior_sweep"]["0.0"]["label_material_acc"] == r["label_material_acc"]  # the checkpoint's w is 0
+    # By hand at w = 2: argmax of log p_head + 2 log p_prior, against each asset's labelled material.
+    model = model_from_checkpoint(str(ckpt)).eval()
+    dm = PhysAssetsDataModule(str(root), batch_size=4, eval_p_single=1.0, num_targets=4, input_resolution=32,
+                              target_resolution=32, test_split="train")
+    beh = behaviour_index()
+    hits, beh_hits = [], []
+    with torch.no_grad():
+        for batch in dm.test_dataloader():
+            pred = fused_logits(model(batch.images, batch.masks, batch.c2w, batch.Ks), 2.0).argmax(-1)
+            labels = torch.tensor([MATERIAL_NAMES.index(load_asset(root / a).physical.material) for a in batch.asset_ids])
+            hits.append(pred == labels)
+            beh_hits.append(beh[pred] == beh[labels])
+    assert abs(float(torch.cat(hits).float().mean()) - r["prior_sweep"]["2.0"]["label_material_acc"]) < 1e-6
+    assert abs(float(torch.cat(beh_hits).float().mean()) - r["prior_sweep"]["2.0"]["label_behaviour_acc"]) < 1e-6

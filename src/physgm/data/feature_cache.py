@@ -89,9 +89,10 @@ def build_feature_cache(
     key: CacheKey,
     splits: tuple[str, ...] = SPLITS,
     encoder: MobileNetEncoder | None = None,
-    log=print,
+    log=None,
 ) -> Path:
     """Compute and store the features of every asset in ``splits`` that has none yet; returns the folder."""
+    log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))  # stdout is for JSON reports
     root = Path(root)
     out = cache_dir(root, key)
     out.mkdir(parents=True, exist_ok=True)

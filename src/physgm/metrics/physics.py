@@ -8,6 +8,7 @@ from torchmetrics.classification import MulticlassConfusionMatrix
 from torchmetrics.utilities import dim_zero_cat
 
 from physgm.model.posterior import PhysicsPosterior, PhysicsSample
+from physgm.physics.behaviour import behaviour_index
 
 # Two-sided 90 % interval of a Gaussian: mean +- 1.6449 std.
 Z90 = 1.6448536269514722
@@ -24,8 +25,9 @@ class PhysicsMetrics(Metric):
     def __init__(self, num_materials: int) -> None:
         super().__init__()
         self.confusion = MulticlassConfusionMatrix(num_classes=num_materials)
-        for name in ["correct", "err_E", "err_nu", "nll", "in90_E", "in90_nu"]:
+        for name in ["correct", "correct_behaviour", "err_E", "err_nu", "nll", "in90_E", "in90_nu"]:
             self.add_state(name, default=[], dist_reduce_fx="cat")
+        self.behaviour = behaviour_index()
 
     def update(
         self,
@@ -38,6 +40,8 @@ class PhysicsMetrics(Metric):
         pred = posterior.material_logits.argmax(-1)
         self.confusion.update(pred, material)
         self.correct.append((pred == material).float())
+        behaviour = self.behaviour.to(pred.device)
+        self.correct_behaviour.append((behaviour[pred] == behaviour[material]).float())
         self.err_E.append((posterior.log10_E_mean - log10_E).abs())
         self.err_nu.append((posterior.nu_mean - nu).abs())
         truth = PhysicsSample(material[:, None], log10_E[:, None], nu[:, None])
@@ -46,9 +50,11 @@ class PhysicsMetrics(Metric):
         self.in90_nu.append(((posterior.nu_mean - nu).abs() <= Z90 * posterior.nu_std).float())
 
     def compute(self) -> dict[str, Tensor]:
-        cat = {name: dim_zero_cat(getattr(self, name)) for name in ["correct", "err_E", "err_nu", "nll", "in90_E", "in90_nu"]}
+        names = ["correct", "correct_behaviour", "err_E", "err_nu", "nll", "in90_E", "in90_nu"]
+        cat = {name: dim_zero_cat(getattr(self, name)) for name in names}
         return {
             "material_acc": cat["correct"].mean(),
+            "behaviour_acc": cat["correct_behaviour"].mean(),
             "abs_log10E_median": cat["err_E"].median(),
             "abs_log10E_mean": cat["err_E"].mean(),
             "abs_nu_median": cat["err_nu"].median(),
@@ -56,6 +62,45 @@ class PhysicsMetrics(Metric):
             "nll": cat["nll"].mean(),
             "coverage90_E": cat["in90_E"].mean(),
             "coverage90_nu": cat["in90_nu"].mean(),
+            "confusion": self.confusion.compute(),
+        }
+
+    def reset(self) -> None:
+        super().reset()
+        self.confusion.reset()
+
+
+class LabelMetrics(Metric):
+    """Material and behaviour accuracy against a labelled material, for assets without true physics.
+
+    Real objects (imported meshes, photos) carry a hand or annotator label of their material and
+    no true E or nu; this scores what can be scored. ``compute()`` adds ``confusion`` [M, M].
+    """
+
+    full_state_update = False
+
+    def __init__(self, num_materials: int) -> None:
+        super().__init__()
+        self.confusion = MulticlassConfusionMatrix(num_classes=num_materials)
+        self.add_state("correct", default=[], dist_reduce_fx="cat")
+        self.add_state("correct_behaviour", default=[], dist_reduce_fx="cat")
+        self.behaviour = behaviour_index()
+
+    def update(
+        self,
+        material_logits: Tensor,  # [B, M]
+        material: Tensor,  # [B] labelled material index
+    ) -> None:
+        pred = material_logits.detach().argmax(-1)
+        self.confusion.update(pred, material)
+        behaviour = self.behaviour.to(pred.device)
+        self.correct.append((pred == material).float())
+        self.correct_behaviour.append((behaviour[pred] == behaviour[material]).float())
+
+    def compute(self) -> dict[str, Tensor]:
+        return {
+            "material_acc": dim_zero_cat(self.correct).mean(),
+            "behaviour_acc": dim_zero_cat(self.correct_behaviour).mean(),
             "confusion": self.confusion.compute(),
         }
 

@@ -66,26 +66,32 @@ class ImageFeatures:
 class MobileNetEncoder(nn.Module):
     """Frozen MobileNetV2: views -> ``ImageFeatures`` and tokens on the stride-16 grid.
 
+    Its weights always come from the file (never from a physgm checkpoint): they are held as
+    non-persistent buffers, so a checkpoint stays 14 MB smaller and cannot drift from the file.
+
     Args:
         weights: a state dict file; default: the one the weights package ships.
-        load_pretrained: False builds the architecture only (a checkpoint supplies the weights).
     """
 
     patch_size = TOKEN_STRIDE
     embed_dim = LEVEL_CHANNELS["s8"] + LEVEL_CHANNELS["s16"] + LEVEL_CHANNELS["s32"]  # token channels
 
-    def __init__(self, weights: str | None = None, load_pretrained: bool = True) -> None:
+    def __init__(self, weights: str | None = None) -> None:
         super().__init__()
-        if load_pretrained:
-            net = load_mobilenet_v2(weights)
-        else:
-            import torchvision
-
-            net = torchvision.models.mobilenet_v2(weights=None)
+        net = load_mobilenet_v2(weights)
         self.features = net.features[: _LEVEL_END["s32"] + 1]
         self.head_conv = net.features[18]  # 320 -> 1280, only for the classifier
         self.classifier = net.classifier[-1]  # Linear(1280, 1000); dropout is off when frozen
-        self.requires_grad_(False)
+        for module in self.modules():  # frozen weights as buffers that state_dict() leaves out
+            if isinstance(module, nn.BatchNorm2d):
+                # Eval mode reads the running statistics either way; without tracking, loading a
+                # state dict does not re-insert the batch counter that is not saved.
+                module.track_running_stats = False
+                del module._buffers["num_batches_tracked"]
+            for name, param in list(module.named_parameters(recurse=False)):
+                delattr(module, name)
+                module.register_buffer(name, param.detach(), persistent=False)
+            module._non_persistent_buffers_set.update(module._buffers)
         self.eval()
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)

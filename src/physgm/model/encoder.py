@@ -155,14 +155,17 @@ def _key_mismatch(expected: dict[str, Tensor], got: dict[str, Tensor]) -> tuple[
 
 
 def build_mobilenet_v2(cfg: EncoderConfig, load_pretrained: bool = True) -> MobileNetEncoder:
-    """Frozen ImageNet MobileNetV2 (``physgm.model.cnn_encoder``); ``cfg.weights`` overrides the packaged file."""
+    """Frozen ImageNet MobileNetV2 (``physgm.model.cnn_encoder``); ``cfg.weights`` overrides the packaged file.
+
+    Its weights are read from the file even when a checkpoint is loaded: checkpoints leave them out.
+    """
     if (cfg.patch_size, cfg.embed_dim) != (MobileNetEncoder.patch_size, MobileNetEncoder.embed_dim) or not cfg.freeze:
         raise ValueError(
             f"encoder.kind=mobilenet_v2 is frozen with patch_size={MobileNetEncoder.patch_size} and "
             f"embed_dim={MobileNetEncoder.embed_dim}; the config says patch_size={cfg.patch_size}, "
             f"embed_dim={cfg.embed_dim}, freeze={cfg.freeze}: fix model.backbone.encoder"
         )
-    return MobileNetEncoder(cfg.weights, load_pretrained)
+    return MobileNetEncoder(cfg.weights)
 
 
 # Registry: EncoderConfig.kind -> builder. Adding an encoder is one entry here.

@@ -8,13 +8,21 @@ and renders the target views it did not see. Reported per input-view count: PSNR
 (and LPIPS when its backbone file is given) on those novel views; ``psnr_inputs``, the PSNR of
 the input views rendered back (low when the Gaussians' depths are wrong, since the other
 views' Gaussians then cover them), and the median opacity of the predicted Gaussians;
-material accuracy and confusion matrix, |log10 E - true|, |nu - true|, NLL and 90 % interval
-coverage against the *true* physics of each asset. One JSON object goes to stdout.
+material and behaviour-class accuracy and the confusion matrix, |log10 E - true|, |nu - true|,
+NLL and 90 % interval coverage against the *true* physics of each asset. Assets without true
+physics (real objects: imported meshes with a hand or annotator label) are scored on material
+and behaviour accuracy against their label (``label_*``).
+
+With the frozen MobileNetV2 encoder the material distribution is p_head * p_prior^w
+(``physgm.model.semantic_prior``): ``--prior-weight`` sets w (default: the checkpoint's), and
+``--prior-sweep 0,0.5,1,2`` also reports both accuracies at each w, which is how w is chosen on
+the real validation objects. One JSON object goes to stdout.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -24,7 +32,7 @@ import torch
 
 from physgm.data.datamodule import PhysAssetsDataModule
 from physgm.metrics.image import ImageMetrics
-from physgm.metrics.physics import PhysicsMetrics
+from physgm.metrics.physics import LabelMetrics, PhysicsMetrics
 from physgm.physics.materials import MATERIAL_NAMES
 from physgm.train.pretrain import model_from_checkpoint, render_targets
 
@@ -35,22 +43,51 @@ def checkpoint_renderer(path: str) -> dict:
     return dict(hp.get("renderer") or {"backend": "warp"})
 
 
+def fused_logits(out, weight: float) -> torch.Tensor:  # [B, M]
+    """Material logits of p_head * p_prior^w from an output computed with w = 0."""
+    head = out.physics.material_logits.log_softmax(-1)
+    if out.semantic_log_prior is None or weight == 0.0:
+        return head
+    return head + weight * out.semantic_log_prior
+
+
 @torch.no_grad()
 def evaluate_views(
     model,
     datamodule: PhysAssetsDataModule,
     renderer: dict,
     lpips_model: torch.nn.Module | None = None,
+    prior_weight: float | None = None,
+    prior_sweep: tuple[float, ...] = (),
+    device: str = "cpu",
 ) -> dict:
-    """Metrics of ``model`` over the datamodule's test split, whose eval_p_single fixes the view count."""
-    images = ImageMetrics()
-    seen = ImageMetrics()  # the input views rendered back: tells geometry errors from colour errors
-    physics = PhysicsMetrics(len(MATERIAL_NAMES))
-    lpips_sum, lpips_count, assets, gaussians = 0.0, 0, 0, 0.0
+    """Metrics of ``model`` over the datamodule's test split, whose eval_p_single fixes the view count.
+
+    ``prior_weight``: w of the semantic prior (None: the model's); ``prior_sweep``: also score the
+    material at each of these w.
+    """
+    head_cfg = model.physics_head.cfg
+    weight = head_cfg.semantic_prior_weight if prior_weight is None else prior_weight
+    saved, head_cfg.semantic_prior_weight = head_cfg.semantic_prior_weight, 0.0  # fused below, once per w
+    try:
+        return _evaluate(model, datamodule, renderer, lpips_model, weight, prior_sweep, device)
+    finally:
+        head_cfg.semantic_prior_weight = saved
+
+
+def _evaluate(model, datamodule, renderer, lpips_model, weight, prior_sweep, device) -> dict:
+    images = ImageMetrics().to(device)
+    seen = ImageMetrics().to(device)  # the input views rendered back: tells geometry errors from colour errors
+    physics = PhysicsMetrics(len(MATERIAL_NAMES)).to(device)
+    labels = LabelMetrics(len(MATERIAL_NAMES)).to(device)
+    sweep = {w: (PhysicsMetrics(len(MATERIAL_NAMES)).to(device), LabelMetrics(len(MATERIAL_NAMES)).to(device)) for w in prior_sweep}
+    lpips_sum, lpips_count, assets, gaussians, labelled = 0.0, 0, 0, 0.0, 0
     opacities = []
     for batch in datamodule.test_dataloader():
+        batch = batch.to(device)
         views = batch.images.shape[1]
         out = model(batch.images, batch.masks, batch.c2w, batch.Ks, batch.features)
+        posterior = dataclasses.replace(out.physics, material_logits=fused_logits(out, weight))
         h, w = batch.target_images.shape[-2:]
         rgb, _ = render_targets(out, batch.target_c2w, batch.target_Ks, w, h, renderer)
         rendered = rgb.permute(0, 1, 4, 2, 3).clamp(0, 1)
@@ -64,12 +101,21 @@ def evaluate_views(
             lpips_count += pred.shape[0]
         known = batch.true_known
         if known.any():
-            physics.update(out.physics[known], batch.true_material[known], batch.true_log10_E[known], batch.true_nu[known])
+            physics.update(posterior[known], batch.true_material[known], batch.true_log10_E[known], batch.true_nu[known])
+        if (~known).any():
+            labels.update(posterior.material_logits[~known], batch.material[~known])
+            labelled += int((~known).sum())
+        for w, (p_metric, l_metric) in sweep.items():
+            swept = dataclasses.replace(out.physics, material_logits=fused_logits(out, w))
+            if known.any():
+                p_metric.update(swept[known], batch.true_material[known], batch.true_log10_E[known], batch.true_nu[known])
+            if (~known).any():
+                l_metric.update(swept.material_logits[~known], batch.material[~known])
         assets += batch.images.shape[0]
         gaussians += float(out.gaussians.count.float().sum())
     if not assets:
         raise ValueError(f"split {datamodule.hparams.test_split!r} of {datamodule.hparams.root} has no assets")
-    result = {"assets": assets, "gaussians_mean": gaussians / assets}
+    result = {"assets": assets, "gaussians_mean": gaussians / assets, "prior_weight": weight}
     result.update({k: float(v) for k, v in images.compute().items()})
     result["psnr_inputs"] = float(seen.compute()["psnr"])
     result["opacity_median"] = float(torch.cat(opacities).median())
@@ -80,6 +126,23 @@ def evaluate_views(
         confusion = scores.pop("confusion")
         result.update({k: float(v) for k, v in scores.items()})
         result["confusion"] = {"rows_true_cols_pred": list(MATERIAL_NAMES), "matrix": confusion.tolist()}
+    if labels.update_count:
+        scores = labels.compute()
+        result["labelled_assets"] = labelled
+        result["label_material_acc"] = float(scores["material_acc"])
+        result["label_behaviour_acc"] = float(scores["behaviour_acc"])
+        result["label_confusion"] = {"rows_label_cols_pred": list(MATERIAL_NAMES), "matrix": scores["confusion"].tolist()}
+    if sweep:
+        result["prior_sweep"] = {}
+        for w, (p_metric, l_metric) in sweep.items():
+            row = {}
+            if p_metric.update_count:
+                s = p_metric.compute()
+                row.update(material_acc=float(s["material_acc"]), behaviour_acc=float(s["behaviour_acc"]))
+            if l_metric.update_count:
+                s = l_metric.compute()
+                row.update(label_material_acc=float(s["material_acc"]), label_behaviour_acc=float(s["behaviour_acc"]))
+            result["prior_sweep"][str(w)] = row
     return result
 
 
@@ -95,6 +158,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--lpips-backbone", default=None, help="local LPIPS backbone file; adds LPIPS (see README)")
     p.add_argument("--seed", type=int, default=0, help="seed of the fixed evaluation views")
     p.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+    p.add_argument("--prior-weight", type=float, default=None, help="w of the semantic prior (default: the checkpoint's)")
+    p.add_argument("--prior-sweep", default="", help="comma-separated w values to also score the material at")
+    p.add_argument("--device", default="cpu", help="cpu or cuda[:k]")
     a = p.parse_args(argv)
 
     views = sorted({int(v) for v in a.views.split(",")})
@@ -102,7 +168,11 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"--views takes 1 and/or 4, got {a.views!r}")
     if not Path(a.ckpt).is_file():
         raise SystemExit(f"checkpoint {a.ckpt} not found")
-    model = model_from_checkpoint(a.ckpt).eval()
+    if a.device.startswith("cuda") and not torch.cuda.is_available():
+        raise SystemExit(f"--device {a.device}: CUDA is not available on this machine; use --device cpu")
+    model = model_from_checkpoint(a.ckpt).eval().to(a.device)
+    sweep = tuple(float(w) for w in a.prior_sweep.split(",") if w.strip())
+    cache = "mobilenet_v2" if model.config.backbone.encoder.kind == "mobilenet_v2" else None
     renderer = checkpoint_renderer(a.ckpt)
     res = model.config.backbone.encoder.img_size
     lpips_model = None
@@ -117,8 +187,8 @@ def main(argv: list[str] | None = None) -> int:
         dm = PhysAssetsDataModule(a.data, batch_size=a.batch_size, eval_p_single=1.0 if v == 1 else 0.0,
                                   num_targets=a.num_targets, input_resolution=res,
                                   target_resolution=a.resolution or res, test_split=a.split, val_split=a.split,
-                                  seed=a.seed)
-        report[f"views{v}"] = evaluate_views(model, dm, renderer, lpips_model)
+                                  seed=a.seed, feature_cache=cache)
+        report[f"views{v}"] = evaluate_views(model, dm, renderer, lpips_model, a.prior_weight, sweep, a.device)
         print(f"{v} view(s): " + ", ".join(f"{k}={x:.4g}" for k, x in report[f"views{v}"].items()
                                            if isinstance(x, float)), file=sys.stderr, flush=True)
     report["seconds"] = round(time.perf_counter() - start, 1)
