@@ -85,7 +85,8 @@ OBJECTS: tuple[RealObject, ...] = (
     RealObject("rs_door", "robosuite", "wood", "a dark-wood door panel (most of the object) with a brass handle "
                "in a white frame", xml=RS + "door.xml"),
     # metaworld -> test
-    _mw("mw_mug", "ceramic", "a white coffee mug with a handle", "mug.xml", "coffeemachine_dependencies.xml"),
+    _mw("mw_mug", "ceramic", "a white coffee mug with a handle", "mug.xml", "coffeemachine_dependencies.xml",
+        yaw_deg=90),
     RealObject("mw_cup", "metaworld", "ceramic", "the coffee machine's espresso cup (a mesh no geom uses), coloured "
                "like the mug", mesh="assets/objects/meshes/coffeemachine/cup.stl", rgba=(0.85, 0.85, 0.85)),
     _mw("mw_basketball", "rubber", "a basketball: orange rubber with black seams", "basketball.xml",
@@ -104,8 +105,7 @@ OBJECTS: tuple[RealObject, ...] = (
         "shelf_dependencies.xml", yaw_deg=90),
     _mw("mw_bin", "plastic", "a glossy red storage tray: moulded plastic", "binA.xml", "bin_dependencies.xml"),
     _mw("mw_box", "wood", "an open box with a wood texture", "box.xml", "box_dependencies.xml"),
-    _mw("mw_faucet", "metal", "a tap: metal body and spout with a red lever", "faucet.xml", "faucet_dependencies.xml",
-        yaw_deg=90),
+    _mw("mw_faucet", "metal", "a tap: metal body and spout with a red lever", "faucet.xml", "faucet_dependencies.xml"),
     _mw("mw_thermos", "metal", "a steel thermos flask with a handle", "thermos.xml", "thermos_dependencies.xml",
         yaw_deg=90),
     _mw("mw_button_box", "plastic", "a yellow-and-black stop-button box with a red push button", "buttonbox.xml",
