@@ -23,6 +23,8 @@ def test_table_is_big_enough_labelled_and_its_files_are_installed():
         root = package_root(o.source)
         for f in (o.mesh, o.xml, *o.deps, o.texture):
             assert not f or (root / f).is_file(), f"{o.id}: {f} missing from {root}"
+    with pytest.raises(ModuleNotFoundError, match="scripts/setup.sh"):
+        package_root("physgm_no_such_package")
 
 
 def test_builds_two_objects_into_loadable_labelled_assets(tmp_path):

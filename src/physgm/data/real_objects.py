@@ -38,6 +38,7 @@ from physgm.data.synth import view_cameras
 from physgm.data.writer import atomic_asset_dir, write_json, write_views_cameras_physics
 
 SPLIT_OF_SOURCE = {"robosuite": "val", "metaworld": "test"}
+PINNED = {"robosuite": "1.5.2", "metaworld": "3.1.1"}  # the versions the table was written against
 # MJCF files name meshes and textures relative to the top-level model's folder.
 SEARCH_DIRS = {"robosuite": ("models/assets/objects",), "metaworld": ("assets/sawyer_xyz",)}
 MW = "assets/objects/assets/"  # metaworld's object MJCF folder
@@ -135,7 +136,7 @@ def package_root(name: str) -> Path:
     if spec is None or not spec.submodule_search_locations:
         raise ModuleNotFoundError(
             f"package {name!r} is not installed; its asset files build the real-object set. Run scripts/setup.sh "
-            f"(it installs robosuite==1.5.2 and metaworld==3.1.1 with pip --no-deps)"
+            f"(it runs pip install --no-deps {name}=={PINNED.get(name, '...')})"
         )
     return Path(list(spec.submodule_search_locations)[0])
 
@@ -170,7 +171,9 @@ def load_object(obj: RealObject) -> MeshObject:
     missing = [str(f) for f in _files(obj, root) if not f.is_file()]
     if missing:
         raise FileNotFoundError(
-            f"{obj.id}: {missing} not in the installed {obj.source}; is it version-pinned?"
+            f"{obj.id}: {missing} not in the installed {obj.source} "
+            f"{importlib.metadata.version(obj.source)}; the table is for "
+            f"{obj.source}=={PINNED[obj.source]} (pip install --no-deps {obj.source}=={PINNED[obj.source]})"
         )
     if obj.mesh:
         parts = _mesh_parts(obj, root)
