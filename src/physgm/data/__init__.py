@@ -6,6 +6,7 @@ Modules (see docs/data.md):
     synth        ``python -m physgm.data.synth``: procedural Gaussian assets (+ drop videos, video.py)
     shapes, appearance, procedural, priors, annotation   the pieces of a synthetic asset
     from_meshes  ``python -m physgm.data.from_meshes``: textured meshes by CPU ray casting (raycast.py)
+    real_objects ``python -m physgm.data.real_objects``: the hand-labelled real-object val/test set (mjcf.py)
     views, datamodule   example cutting and ``PhysAssetsDataModule`` -> ``Batch``
     shards       ``python -m physgm.data.shards``: litdata shards for multi-node streaming
 """
