@@ -52,3 +52,29 @@ def test_export_refuses_a_file_that_is_not_a_training_checkpoint(tmp_path):
     with pytest.raises(SystemExit, match="not a physgm training checkpoint"):
         main([str(tmp_path / "x.ckpt"), str(tmp_path / "y.ckpt")])
     assert not (tmp_path / "y.ckpt").exists()
+
+
+def test_export_sets_the_semantic_prior_weight(tmp_path, capsys):
+    """The exported model multiplies the head's material distribution by the prior to the power w."""
+    from physgm.model.physgm import semantic_log_prior
+
+    torch.manual_seed(0)
+    mobilenet = {"backbone": {"encoder": {"kind": "mobilenet_v2", "patch_size": 16, "embed_dim": 448, "freeze": True,
+                                          "img_size": 32}, "depth": 4, "width": 64, "out_layers": [0, 1, 2, 3]}}
+    module = LitPretrain(model=mobilenet)
+    torch.save({"hyper_parameters": dict(module.hparams), "state_dict": module.state_dict()}, tmp_path / "t.ckpt")
+    assert main([str(tmp_path / "t.ckpt"), str(tmp_path / "w.ckpt"), "--prior-weight", "1.5"]) == 0
+    model = model_from_checkpoint(str(tmp_path / "w.ckpt")).eval()
+    assert model.config.physics_head.semantic_prior_weight == 1.5
+    cams = orbit_cameras([0], [0], 1.5, 40.0, 32, 32)
+    images, masks = torch.rand(1, 1, 3, 32, 32), torch.ones(1, 1, 1, 32, 32)
+    with torch.no_grad():
+        head = module.model.eval()(images, masks, cams.c2w[None], cams.Ks[None]).physics.material_logits
+        got = model(images, masks, cams.c2w[None], cams.Ks[None])
+    expected = head.log_softmax(-1) + 1.5 * got.semantic_log_prior
+    torch.testing.assert_close(got.physics.material_logits, expected)
+    logits = model.backbone.encoder.classify(images[0])
+    torch.testing.assert_close(got.semantic_log_prior, semantic_log_prior(logits))
+    with pytest.raises(SystemExit, match="mobilenet_v2"):  # a ViT model has no ImageNet classes to read
+        training_checkpoint(tmp_path / "vit.ckpt")
+        main([str(tmp_path / "vit.ckpt"), str(tmp_path / "v.ckpt"), "--prior-weight", "1"])

@@ -12,6 +12,7 @@ result loads with ``physgm.pipeline.checkpoint.load_model`` and ``model_from_che
 from __future__ import annotations
 
 import argparse
+import copy
 import datetime
 import json
 import subprocess
@@ -34,8 +35,14 @@ def git_revision(cwd: Path) -> str | None:
     return out.stdout.strip() or None if out.returncode == 0 else None
 
 
-def slim(ckpt: dict, source: str, recipe: str | None = None, metrics: dict | None = None) -> dict:
-    """The inference part of a Lightning checkpoint dict of ``LitPretrain`` or ``LitDPO``."""
+def slim(
+    ckpt: dict, source: str, recipe: str | None = None, metrics: dict | None = None, prior_weight: float | None = None
+) -> dict:
+    """The inference part of a Lightning checkpoint dict of ``LitPretrain`` or ``LitDPO``.
+
+    ``prior_weight`` sets the semantic prior's weight w in the exported model (chosen on real
+    validation objects with ``python -m physgm.train.evaluate --prior-sweep``).
+    """
     hparams = ckpt.get("hyper_parameters")
     if not isinstance(hparams, dict) or "model" not in hparams:
         raise ValueError(f"{source} is not a physgm training checkpoint (no hyper_parameters.model)")
@@ -43,6 +50,12 @@ def slim(ckpt: dict, source: str, recipe: str | None = None, metrics: dict | Non
     if not state:
         raise ValueError(f"{source} has no model weights (no state_dict keys starting with 'model.')")
     kept = {k: hparams[k] for k in KEEP_HPARAMS if k in hparams}
+    if prior_weight is not None:
+        model = copy.deepcopy(dict(kept["model"]))
+        if (model.get("backbone") or {}).get("encoder", {}).get("kind") != "mobilenet_v2":
+            raise ValueError("--prior-weight needs a model with the mobilenet_v2 encoder (the prior reads its ImageNet classes)")
+        model["physics_head"] = {**model.get("physics_head", {}), "semantic_prior_weight": float(prior_weight)}
+        kept["model"] = model
     kept.setdefault("format_version", physgm.CHECKPOINT_FORMAT_VERSION)
     return {
         "hyper_parameters": kept,
@@ -67,13 +80,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("out", type=Path, help="slim checkpoint to write")
     p.add_argument("--recipe", default=None, help="the command(s) that trained it, stored in the file")
     p.add_argument("--metrics", type=Path, default=None, help="JSON of measured metrics to store (e.g. evaluate's)")
+    p.add_argument("--prior-weight", type=float, default=None, help="semantic prior weight w of the exported model")
     a = p.parse_args(argv)
     if not a.ckpt.is_file():
         raise SystemExit(f"checkpoint {a.ckpt} not found")
     metrics = json.loads(a.metrics.read_text()) if a.metrics else None
     ckpt = torch.load(a.ckpt, map_location="cpu", weights_only=False)
     try:
-        out = slim(ckpt, str(a.ckpt), a.recipe, metrics)
+        out = slim(ckpt, str(a.ckpt), a.recipe, metrics, a.prior_weight)
     except ValueError as err:
         raise SystemExit(str(err)) from None
     a.out.parent.mkdir(parents=True, exist_ok=True)
