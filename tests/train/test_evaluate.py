@@ -124,3 +124,4 @@ def test_evaluate_scores_labelled_real_assets_and_sweeps_the_prior(tiny_dataset,
             beh_hits.append(beh[pred] == beh[labels])
     assert abs(float(torch.cat(hits).float().mean()) - r["prior_sweep"]["2.0"]["label_material_acc"]) < 1e-6
     assert abs(float(torch.cat(beh_hits).float().mean()) - r["prior_sweep"]["2.0"]["label_behaviour_acc"]) < 1e-6
+    assert 0.0 <= r["prior_only_material_acc"] <= r["prior_only_behaviour_acc"] <= 1.0

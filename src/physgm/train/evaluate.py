@@ -16,7 +16,8 @@ and behaviour accuracy against their label (``label_*``).
 With the frozen MobileNetV2 encoder the material distribution is p_head * p_prior^w
 (``physgm.model.semantic_prior``): ``--prior-weight`` sets w (default: the checkpoint's), and
 ``--prior-sweep 0,0.5,1,2`` also reports both accuracies at each w, which is how w is chosen on
-the real validation objects. One JSON object goes to stdout.
+the real validation objects; ``prior_only_*`` scores the semantic table alone (zero-shot). One
+JSON object goes to stdout.
 """
 
 from __future__ import annotations
@@ -80,6 +81,7 @@ def _evaluate(model, datamodule, renderer, lpips_model, weight, prior_sweep, dev
     seen = ImageMetrics().to(device)  # the input views rendered back: tells geometry errors from colour errors
     physics = PhysicsMetrics(len(MATERIAL_NAMES)).to(device)
     labels = LabelMetrics(len(MATERIAL_NAMES)).to(device)
+    zero_shot = LabelMetrics(len(MATERIAL_NAMES)).to(device)  # the semantic table alone, against label or truth
     sweep = {w: (PhysicsMetrics(len(MATERIAL_NAMES)).to(device), LabelMetrics(len(MATERIAL_NAMES)).to(device)) for w in prior_sweep}
     lpips_sum, lpips_count, assets, gaussians, labelled = 0.0, 0, 0, 0.0, 0
     opacities = []
@@ -105,6 +107,8 @@ def _evaluate(model, datamodule, renderer, lpips_model, weight, prior_sweep, dev
         if (~known).any():
             labels.update(posterior.material_logits[~known], batch.material[~known])
             labelled += int((~known).sum())
+        if out.semantic_log_prior is not None:
+            zero_shot.update(out.semantic_log_prior, torch.where(known, batch.true_material, batch.material))
         for w, (p_metric, l_metric) in sweep.items():
             swept = dataclasses.replace(out.physics, material_logits=fused_logits(out, w))
             if known.any():
@@ -132,6 +136,10 @@ def _evaluate(model, datamodule, renderer, lpips_model, weight, prior_sweep, dev
         result["label_material_acc"] = float(scores["material_acc"])
         result["label_behaviour_acc"] = float(scores["behaviour_acc"])
         result["label_confusion"] = {"rows_label_cols_pred": list(MATERIAL_NAMES), "matrix": scores["confusion"].tolist()}
+    if zero_shot.update_count:
+        scores = zero_shot.compute()
+        result["prior_only_material_acc"] = float(scores["material_acc"])
+        result["prior_only_behaviour_acc"] = float(scores["behaviour_acc"])
     if sweep:
         result["prior_sweep"] = {}
         for w, (p_metric, l_metric) in sweep.items():
