@@ -21,7 +21,7 @@ from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
 from physgm.data.format import SPLITS, Asset, AssetError, load_asset, read_split
-from physgm.data.views import Example, ViewConfig, build_example
+from physgm.data.views import LOAD_ERRORS, Example, ViewConfig, build_example, example_rng
 
 CORRUPT_MODES = ("raise", "skip")
 
@@ -139,16 +139,6 @@ class FolderRecord:
         return self.asset.load_rgba(indices)
 
 
-def example_rng(asset_id: str, deterministic: bool, seed: int = 0) -> np.random.Generator:
-    """Fixed views per asset for evaluation; fresh draws (from torch's seeded RNG) for training."""
-    if deterministic:
-        return np.random.default_rng([seed, zlib.crc32(asset_id.encode())])
-    return np.random.default_rng(int(torch.randint(0, 2**62, ())))
-
-
-_LOAD_ERRORS = (AssetError, OSError, ValueError, SyntaxError)  # PIL reports truncated PNGs as these
-
-
 class FolderDataset(Dataset):
     """Assets of one split read from a PhysAssets folder."""
 
@@ -194,7 +184,7 @@ class FolderDataset(Dataset):
                 return build_example(
                     FolderRecord(asset), self.views, example_rng(asset.id, self.deterministic, self.seed)
                 ), skipped
-            except _LOAD_ERRORS as err:
+            except LOAD_ERRORS as err:
                 if self.on_corrupt == "raise":
                     raise AssetError(f"asset {asset.id} ({asset.path}) could not be loaded: {err}") from err
                 skipped.append(asset.id)

@@ -18,6 +18,7 @@ targets always include whichever inputs the batch keeps.
 from __future__ import annotations
 
 import math
+import zlib
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -198,3 +199,14 @@ def build_example(record: AssetRecord, cfg: ViewConfig, rng: np.random.Generator
         true_nu=phys.nu,
         true_known=phys.true_known,
     )
+
+
+def example_rng(asset_id: str, deterministic: bool, seed: int = 0) -> np.random.Generator:
+    """Fixed views per asset for evaluation; fresh draws (from torch's seeded RNG) for training."""
+    if deterministic:
+        return np.random.default_rng([seed, zlib.crc32(asset_id.encode())])
+    return np.random.default_rng(int(torch.randint(0, 2**62, ())))
+
+
+# What ``build_example`` raises on a damaged asset; PIL reports truncated PNGs as the last three.
+LOAD_ERRORS = (AssetError, OSError, ValueError, SyntaxError)

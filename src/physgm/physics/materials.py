@@ -46,9 +46,16 @@ class Material:
 
     def params(self, E: float | None = None, nu: float | None = None):
         """Solver parameters (``physgm.sim.constitutive.MaterialParams``) at this or another E / nu."""
+        # Imported here so that reading the table does not load Warp.
         from physgm.sim.constitutive import MaterialParams
 
-        return MaterialParams.from_material(self, E=E, nu=nu)
+        return MaterialParams(
+            model=self.model,
+            E=float(self.E if E is None else E),
+            nu=float(self.nu if nu is None else nu),
+            density=float(self.density),
+            **{k: float(v) for k, v in self.plasticity.items()},
+        )
 
 
 def _fail(path: Path, message: str) -> None:

@@ -110,7 +110,7 @@ def resolve_material(physics) -> tuple[str, MaterialParams]:
         raise ValueError(f"physics must name a material (physics.material), got {physics!r}")
     from physgm.physics.materials import get_material
 
-    params = MaterialParams.from_material(get_material(str(name)), E=get("E"), nu=get("nu"))
+    params = get_material(str(name)).params(E=get("E"), nu=get("nu"))
     density = get("density")
     if density is not None:
         params = replace(params, density=float(density))

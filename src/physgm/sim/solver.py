@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Sequence
+from typing import Protocol
 
 import numpy as np
 import warp as wp
@@ -12,7 +13,7 @@ import warp as wp
 from physgm.parallel import PairWorker
 from physgm.sim import kernels as K
 from physgm.sim import particle_ops as ops
-from physgm.sim.boundary import BoxStruct, GridHook
+from physgm.sim.boundary import BoxStruct
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.grid import GridSpec
 from physgm.sim.launches import SubstepLaunches
@@ -26,6 +27,18 @@ from physgm.sim.stepping import SimulationDiverged, SolverConfig, wave_speed
 _AUTO_THREADS_MIN_PARTICLES = 2_000
 _STATS_INIT = np.zeros(K.STATS_ROW, dtype=np.float32)
 _STATS_INIT[[1, 2]] = [1.0e30, -1.0e30]  # running min and max of det F
+
+
+class GridHook(Protocol):
+    """Extension point called after the grid update of every sub-step.
+
+    ``solver.grid_v`` (wp.array3d of ``kernels.vec8``, [nx, ny, nz]: node velocity in m/s, mass
+    in kg, velocity change of this step; see ``physgm.sim``) may be modified in place with Warp
+    kernels on ``solver.device``; e.g. a rigid collider sets the velocity of the nodes it covers
+    and reads the momentum change.
+    """
+
+    def apply(self, solver: MPMSolver, dt: float) -> None: ...
 
 
 class MPMSolver:
