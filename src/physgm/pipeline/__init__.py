@@ -3,7 +3,7 @@
 Layout: ``config`` (typed run settings from conf/simulate.yaml), ``inputs`` (photo, posed views or
 .ply -> model inputs), ``checkpoint`` (loading with a compatibility check), ``physics`` (posterior
 mean / samples / overrides), ``staging`` (physical size, placement, output camera, floor),
-``render`` (frames), ``outputs`` (atomic run folder, videos, contact sheet, JSON), ``stages`` (the
+``frames`` (rendering), ``outputs`` (atomic run folder, videos, contact sheet, JSON), ``stages`` (the
 stages). ``run(cfg)`` is the Hydra entry; ``execute(RunConfig)`` the plain-Python one.
 """
 
