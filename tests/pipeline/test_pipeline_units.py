@@ -137,8 +137,8 @@ def test_physics_choice_rules():
     from physgm.physics.materials import get_material
     from physgm.pipeline import UserError
     from physgm.pipeline.config import PhysicsOverrides
-    from physgm.pipeline.physics import NU_MAX as PIPELINE_NU_MAX
-    from physgm.pipeline.physics import choose_physics
+    from physgm.pipeline.physics_choice import NU_MAX as PIPELINE_NU_MAX
+    from physgm.pipeline.physics_choice import choose_physics
 
     assert PIPELINE_NU_MAX == NU_MAX
     post = _posterior("rubber", 6.0, 0.45)

@@ -1,8 +1,8 @@
 """Photo -> physically simulated 4D clip (``python simulate.py input=photo.png``).
 
 Layout: ``config`` (typed run settings from conf/simulate.yaml), ``inputs`` (photo, posed views or
-.ply -> model inputs), ``checkpoint`` (loading with a compatibility check), ``physics`` (posterior
-mean / samples / overrides), ``staging`` (physical size, placement, output camera, floor),
+.ply -> model inputs), ``checkpoint`` (loading with a compatibility check), ``physics_choice``
+(posterior mean / samples / overrides), ``staging`` (physical size, placement, output camera, floor),
 ``frames`` (rendering), ``outputs`` (atomic run folder, videos, contact sheet, JSON), ``stages`` (the
 stages). ``run(cfg)`` is the Hydra entry; ``execute(RunConfig)`` the plain-Python one.
 """
