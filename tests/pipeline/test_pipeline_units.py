@@ -16,7 +16,7 @@ def test_training_fill_matches_the_synthetic_renders(tiny_dataset):
     """The photo framing constant is the median fill of the canonical view in synthetic assets."""
     from PIL import Image
 
-    from physgm.pipeline.inputs import TRAINING_FILL
+    from physgm.pipeline.prepared_input import TRAINING_FILL
 
     fills = []
     for asset in sorted(p for p in tiny_dataset.iterdir() if (p / "rgba").is_dir()):
@@ -31,7 +31,7 @@ def test_training_fill_matches_the_synthetic_renders(tiny_dataset):
 def test_photo_input_uses_the_canonical_camera(examples):
     from physgm.cameras import orbit_cameras
     from physgm.data.format import CAMERA_RADIUS, FOV_DEG
-    from physgm.pipeline.inputs import TRAINING_FILL, prepare_input
+    from physgm.pipeline.prepared_input import TRAINING_FILL, prepare_input
 
     inp = prepare_input(examples / "metal_can.png", 64)
     ref = orbit_cameras([0.0], [0.0], CAMERA_RADIUS, FOV_DEG, 64, 64)
@@ -215,7 +215,7 @@ def test_run_folder_commit(tmp_path):
 
 def test_keyframes_and_ply_up_axis():
     from physgm.gaussians import Gaussians
-    from physgm.pipeline.inputs import UP_ROTATIONS, rotate_gaussians
+    from physgm.pipeline.prepared_input import UP_ROTATIONS, rotate_gaussians
     from physgm.pipeline.outputs import keyframe_indices
 
     assert keyframe_indices(50, 5) == [0, 12, 24, 37, 49]

@@ -147,7 +147,7 @@ def execute(cfg: RunConfig) -> dict:
 def _execute(cfg: RunConfig) -> dict:
     from hydra.utils import instantiate
 
-    from physgm.pipeline.inputs import input_kind, prepare_input
+    from physgm.pipeline.prepared_input import input_kind, prepare_input
     from physgm.pipeline.physics_choice import choose_physics, physics_json
     from physgm.pipeline.frames import render_gaussians, render_trajectory
     from physgm.pipeline.staging import direction, floor_image, framing_camera, motion_region, place_object
