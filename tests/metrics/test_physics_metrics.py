@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from physgm.metrics.physics import PhysicsMetrics
+from physgm.metrics.physics_metrics import PhysicsMetrics
 from physgm.model.posterior import LOG10_E_RANGE, PhysicsPosterior, normalise_log10_E, normalise_nu
 
 

@@ -24,7 +24,7 @@ import torch
 
 from physgm.data.datamodule import PhysAssetsDataModule
 from physgm.metrics.image import ImageMetrics
-from physgm.metrics.physics import PhysicsMetrics
+from physgm.metrics.physics_metrics import PhysicsMetrics
 from physgm.physics.materials import MATERIAL_NAMES
 from physgm.train.pretrain import model_from_checkpoint, render_targets
 

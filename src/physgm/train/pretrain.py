@@ -11,7 +11,7 @@ from torch import Tensor
 
 from physgm import CHECKPOINT_FORMAT_VERSION
 from physgm.metrics.image import ImageMetrics, save_panel
-from physgm.metrics.physics import PhysicsMetrics
+from physgm.metrics.physics_metrics import PhysicsMetrics
 from physgm.model.config import PhysGMConfig
 from physgm.model.physgm import PhysGM, PhysGMOutput
 from physgm.render import rasterize
