@@ -70,18 +70,18 @@ def test_landscape_is_lowest_at_the_true_E_with_the_true_gaussians(drop_root, ti
 def test_rollout_scores_the_clip_after_the_codec_round_trip(drop_root, monkeypatch):
     """``evaluate_physics`` = ``score_videos`` of ``simulate_clip`` after the H.264 round trip (the
     landscape's ``distance_encoded``), or of the raw clip when that is switched off (``distance``)."""
-    import physgm.sim.run as sim_run
+    import physgm.sim.gaussian_trajectory as gaussian_trajectory
     from physgm.data.video import codec_round_trip
     from physgm.metrics.trajectory import score_videos
 
     calls = []
-    real_simulate = sim_run.simulate
+    real_simulate = gaussian_trajectory.simulate
 
     def spy(gaussians, physics, scene, cameras, **kwargs):  # the real simulator, arguments recorded
         calls.append(kwargs)
         return real_simulate(gaussians, physics, scene, cameras, **kwargs)
 
-    monkeypatch.setattr(sim_run, "simulate", spy)
+    monkeypatch.setattr(gaussian_trajectory, "simulate", spy)
     (scene,) = rollout.load_scenes(drop_root, "dpo", num_views=1)
     # A resized render with a planner override: the pixel bounds rescale and the override wins.
     settings = rollout.SimSettings(resolution=24, n_frames=10, planner={"cells_across": 10}, solver={"cfl": 0.3})

@@ -211,7 +211,7 @@ def test_evaluate_physics_wiring(dpo_root, monkeypatch):
                     planner=planner)
         return SimpleNamespace(frames=lambda: iter([gaussians] * n_frames), plan=SimpleNamespace(mode="rigid", E_used=1.0))
 
-    monkeypatch.setattr("physgm.sim.run.simulate", static_simulate)
+    monkeypatch.setattr("physgm.sim.gaussian_trajectory.simulate", static_simulate)
     settings = rollout.SimSettings(resolution=32, n_frames=6, backend="warp")
     camera = rollout.render_camera(scene, 32)
     reference = render_frames(SimpleNamespace(frames=lambda: iter([placed] * 6)), camera, "warp", 1.0)

@@ -2,7 +2,7 @@
 
 The object (asset frame: radius 0.5, +z up) is scaled to metres by ``object_scale`` and placed
 with its lowest point ``drop_height_m`` above the ground plane z = 0, then simulated by
-``physgm.sim.run.simulate`` with the "drop" scene and rendered from azimuth -45 or 135
+``physgm.sim.gaussian_trajectory.simulate`` with the "drop" scene and rendered from azimuth -45 or 135
 degrees, elevation 0, radius 1.8 m (the PhysGM evaluation camera), looking at the middle of
 the vertical range the object can occupy. 50 frames at 25 fps go to ``videos/drop.mp4``;
 ``videos/drop.json`` holds everything needed to redo the simulation (camera, fps, frames,
@@ -176,7 +176,7 @@ def write_reference_video(
     cfg: VideoConfig | None = None,
 ) -> dict:
     """Simulate, render and write ``videos/<scene>.mp4`` + ``.json`` into an asset folder."""
-    from physgm.sim.run import simulate
+    from physgm.sim.gaussian_trajectory import simulate
     from physgm.sim.stepping import SolverConfig
 
     cfg = cfg or VideoConfig()

@@ -39,7 +39,7 @@ class PhysicsChoice:
     why: dict[str, str] = field(default_factory=dict)  # field -> reason
 
     def sim_physics(self) -> dict:
-        """The physics description ``physgm.sim.run.simulate`` takes."""
+        """The physics description ``physgm.sim.gaussian_trajectory.simulate`` takes."""
         out = {"material": self.material, "E": self.E, "nu": self.nu}
         if self.density is not None:
             out["density"] = self.density

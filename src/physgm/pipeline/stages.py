@@ -1,8 +1,9 @@
 """Photo (or views, or .ply) -> physically simulated clip: the stages and the run folder.
 
 Stages, each timed in report.json: load (input + checkpoint), model (forward pass, physics
-choice, placement), plan and simulate (``physgm.sim.run.simulate``), render (deforming the
-Gaussians per frame + rasterising), write (videos, PLYs, contact sheet, JSON, rename).
+choice, placement), plan and simulate (``physgm.sim.gaussian_trajectory.simulate``), render
+(deforming the Gaussians per frame + rasterising), write (videos, PLYs, contact sheet, JSON,
+rename).
 """
 
 from __future__ import annotations
@@ -102,7 +103,7 @@ def _predict(model, inp, device: str):
 
 def _simulate(g, choice, cfg: RunConfig, camera, overrides: dict):
     from physgm.sim.planner import PlannerConfig
-    from physgm.sim.run import simulate
+    from physgm.sim.gaussian_trajectory import simulate
     from physgm.sim.stepping import SolverConfig
 
     try:
@@ -284,6 +285,7 @@ def _report(cfg, inp, ckpt_info, scene_cfg, placement, camera, az, el, sec, resu
         "finite": all(r["finite"] for r in results),
         "runs": results,
         "stage_notes": "load = input + checkpoint; model = forward pass, physics choice, placement; "
-                       "plan/simulate = physgm.sim.run.simulate; render = deforming + rasterising per frame; "
+                       "plan/simulate = physgm.sim.gaussian_trajectory.simulate; "
+                       "render = deforming + rasterising per frame; "
                        "write = videos, PLYs, images, JSON",
     }  # fmt: skip

@@ -169,7 +169,7 @@ def simulate_clip(scene: RolloutScene, gaussians: Gaussians, physics: dict, sett
     background: frames [n_frames, H, W, 3] uint8, info {mode, E_used} of the plan.
     """
     from physgm.sim.planner import PlannerConfig
-    from physgm.sim.run import simulate
+    from physgm.sim.gaussian_trajectory import simulate
     from physgm.sim.stepping import SolverConfig
 
     world, _ = place_object(gaussians, scene.video)
