@@ -7,12 +7,12 @@ import sys
 
 # Suite name -> module with a ``main(argv: list[str]) -> dict`` function.
 SUITES = {
-    "render": "physgm.bench.render",
-    "sim": "physgm.bench.sim",
+    "render": "physgm.bench.render_speed",
+    "sim": "physgm.bench.sim_speed",
     "sim-verify": "physgm.bench.sim_verify",
     "sim-stability": "physgm.bench.sim_stability",
     "e2e": "physgm.bench.e2e",
-    "model": "physgm.bench.model",
+    "model": "physgm.bench.model_speed",
     "dpo-landscape": "physgm.bench.dpo_landscape",
     "material-probe": "physgm.bench.material_probe",
 }
