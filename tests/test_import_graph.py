@@ -141,3 +141,14 @@ def test_finder_names_every_kind_of_import(tmp_path):
 
     (pkg / "c.py").write_text("C = 2\n")  # the circle opens
     assert find_circles(import_graph(pkg)) == []
+
+
+def test_no_module_shadows_a_top_level_name():
+    """``pipeline/render.py`` beside ``physgm/render/`` made a reader guess which one was meant."""
+    top = {p.stem for p in SRC.glob("*.py")} | {p.name for p in SRC.iterdir() if (p / "__init__.py").exists()}
+    top -= {"__init__", "__main__"}
+    deeper = [p for p in SRC.glob("*/**/*.py") if p.stem in top]
+    assert len(top) > 10, f"found too few top-level names: {sorted(top)}"
+    assert not deeper, "modules named like a top-level physgm package or module (rename them): " + ", ".join(
+        str(p.relative_to(SRC)) for p in deeper
+    )

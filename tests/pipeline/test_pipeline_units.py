@@ -215,8 +215,8 @@ def test_run_folder_commit(tmp_path):
 
 def test_keyframes_and_ply_up_axis():
     from physgm.gaussians import Gaussians
-    from physgm.pipeline.prepared_input import UP_ROTATIONS, rotate_gaussians
     from physgm.pipeline.outputs import keyframe_indices
+    from physgm.pipeline.prepared_input import UP_ROTATIONS, rotate_gaussians
 
     assert keyframe_indices(50, 5) == [0, 12, 24, 37, 49]
     assert keyframe_indices(3, 5) == [0, 1, 2]

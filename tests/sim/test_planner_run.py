@@ -11,8 +11,8 @@ import torch
 from physgm.cameras import orbit_cameras
 from physgm.gaussians import Gaussians, quat_to_rotmat
 from physgm.sim.boundary import GroundPlane
-from physgm.sim.planner import PlannerConfig
 from physgm.sim.gaussian_trajectory import ballistic_frames, simulate
+from physgm.sim.planner import PlannerConfig
 from physgm.sim.scenes import Scene
 
 G = 9.81

@@ -102,8 +102,8 @@ def _predict(model, inp, device: str):
 
 
 def _simulate(g, choice, cfg: RunConfig, camera, overrides: dict):
-    from physgm.sim.planner import PlannerConfig
     from physgm.sim.gaussian_trajectory import simulate
+    from physgm.sim.planner import PlannerConfig
     from physgm.sim.stepping import SolverConfig
 
     try:
@@ -148,9 +148,9 @@ def execute(cfg: RunConfig) -> dict:
 def _execute(cfg: RunConfig) -> dict:
     from hydra.utils import instantiate
 
-    from physgm.pipeline.prepared_input import input_kind, prepare_input
-    from physgm.pipeline.physics_choice import choose_physics, physics_json
     from physgm.pipeline.frames import render_gaussians, render_trajectory
+    from physgm.pipeline.physics_choice import choose_physics, physics_json
+    from physgm.pipeline.prepared_input import input_kind, prepare_input
     from physgm.pipeline.staging import direction, floor_image, framing_camera, motion_region, place_object
 
     start = time.perf_counter()

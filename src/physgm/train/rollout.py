@@ -168,8 +168,8 @@ def simulate_clip(scene: RolloutScene, gaussians: Gaussians, physics: dict, sett
     video's scene at the video's frame rate and rendered from the video's camera over the same
     background: frames [n_frames, H, W, 3] uint8, info {mode, E_used} of the plan.
     """
-    from physgm.sim.planner import PlannerConfig
     from physgm.sim.gaussian_trajectory import simulate
+    from physgm.sim.planner import PlannerConfig
     from physgm.sim.stepping import SolverConfig
 
     world, _ = place_object(gaussians, scene.video)
