@@ -30,13 +30,7 @@ def run(cfg: DictConfig) -> dict:
         raise ValueError(f"torch_threads must be >= 0 (0: torch's default), got {threads}")
     if threads:
         torch.set_num_threads(threads)
-    try:
-        module = importlib.import_module(STAGES[name])
-    except ModuleNotFoundError as err:
-        if err.name != STAGES[name]:
-            raise
-        raise SystemExit(f"stage {name!r} is not part of this version of physgm yet ({STAGES[name]} is missing)") from None
-    return module.fit(cfg)
+    return importlib.import_module(STAGES[name]).fit(cfg)
 
 
 def plain(node: Any) -> Any:
