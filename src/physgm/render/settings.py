@@ -78,8 +78,8 @@ def single_threaded_torch() -> Iterator[None]:
 
     The warp backend's torch glue (sort, cumsum, gathers, checks) works on arrays of ~1e4-1e5
     elements. With two OpenMP threads on a 2-core machine that other processes also use, each
-    such op can stall for a scheduler slice (we measured a 45k-element sort at 190 ms instead
-    of 2 ms), so the glue runs serially; the heavy work is parallel in the raster kernels.
+    such op can stall for a whole scheduler slice, so the glue runs serially; the heavy work is
+    parallel in the raster kernels.
     """
     previous = torch.get_num_threads()
     if previous == 1:

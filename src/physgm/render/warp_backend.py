@@ -38,12 +38,10 @@ def _arr(t: Tensor, dtype) -> ArrayView:
     """Zero-copy Warp kernel argument for a contiguous torch tensor (no Warp gradients).
 
     Returns the array descriptor a launch packs (data pointer, shape, byte strides) rather than a
-    ``wp.array``: both take ~3 us to build, but ``wp.launch`` checks a ``wp.array`` against the
-    kernel signature and then builds this descriptor from it, while a descriptor is passed
-    through verbatim. Over the ~50 arguments of a forward plus backward that saved 0.3-0.4 ms
-    (4096 Gaussians at 64 px, interleaved medians of 25: 7.44 -> 7.01 ms). The descriptor holds
-    the tensor, so the memory lives as long as the argument. Raises ValueError unless the tensor
-    holds ``dtype`` elements (float32, int32 or int64 scalars, trailing dimensions = its shape).
+    ``wp.array``, which ``wp.launch`` would check against the kernel signature and then turn into
+    this descriptor on every call. The descriptor holds the tensor, so the memory lives as long
+    as the argument. Raises ValueError unless the tensor holds ``dtype`` elements (float32,
+    int32 or int64 scalars, trailing dimensions = its shape).
     """
     t = t.contiguous()
     inner = 2 if wp.types.type_is_matrix(dtype) else 1 if wp.types.type_is_vector(dtype) else 0
@@ -92,9 +90,8 @@ def _tile_ranges(work: Tensor, parts: int) -> list[tuple[int, int]]:
     num_tiles = work.numel()
     if parts <= 1 or num_tiles < 2:
         return [(0, num_tiles)]
-    # Plain Python lists: a few hundred tiles at most on the CPU path. Inside a render of 4096
-    # Gaussians at 64 px (16 tiles) the numpy version of this took 0.10-0.17 ms per call, this
-    # one 0.02-0.04 ms (forward + backward, interleaved medians of 30: 8.68 -> 8.50 ms).
+    # Plain Python lists: a few hundred tiles at most on the CPU path, too few for numpy's
+    # per-call cost to pay off.
     total = list(itertools.accumulate(work.tolist()))
     cuts = []
     for k in range(1, parts):
@@ -203,14 +200,11 @@ def _launch_split(kernel, cuts: list[int], args: list, device: torch.device, min
 # Fewer indices per thread than this and a helper-thread hand-off (50-75 us, physgm.parallel)
 # costs about what it saves: a CPU handles a few thousand pairs or entries in that time.
 _MIN_SPLIT = 8192
-# The fused projection and bounds (`project_bounds_kernel`, ~85 ns a pair) split like the rest:
-# a 1-view training batch (B 4, C 8, N 4096, 65k pairs per thread) took 85.9 -> 78.6 and
-# 88.7 -> 83.0 ms forward + backward split against serial (alternated, medians of 20). When the
-# bounds were a kernel of their own, splitting them at that size had cost time.
-# Binning one image on two threads: each walks all pairs and writes half the entries. With 4096
-# pairs (64 px) the walk cost what the halved writes saved (4.19 -> 4.38 ms forward + backward).
+# The fused projection and bounds (`project_bounds_kernel`) split like the rest.
+# Binning one image on two threads: each walks all pairs and writes half the entries, so a small
+# image gains nothing from the split.
 _MIN_SPLIT_BIN = 8192
-# The projection's vector-Jacobian product costs ~110 ns a pair (4096 pairs: 0.45 ms in a render).
+# The projection's vector-Jacobian product costs more per pair, so it splits from fewer pairs.
 _MIN_SPLIT_VJP = 2048
 
 _FORWARD = (T.raster_forward_tile_kernel, R.raster_forward_pixel_kernel)
@@ -280,8 +274,8 @@ class _RasterizeWarp(torch.autograd.Function):
                      _arr(colors, wp.vec3), _arr(e_pair, wp.int64), _arr(e_gauss, wp.int64), *entry_arrs]  # fmt: skip
         if num_entries and _binning(s, device) == "counting":
             # Only pairs that touch a tile are ordered. Their depths are > near_plane > 0, so the
-            # float bits sort like the floats, and torch sorts integers by radix: 524k pairs (a
-            # 4-view training batch) 55 -> 5 ms, measured. Stable: equal depths keep pair order.
+            # float bits sort like the floats, and torch sorts integers by radix, far faster than
+            # a comparison sort. Stable: equal depths keep pair order.
             emitted = torch.nonzero(counts, as_tuple=True)[0]
             by_depth = emitted[torch.sort(depths[emitted].view(torch.int32), stable=True)[1]]
             cursor = _arr(tile_start.clone(), wp.int32)

@@ -22,8 +22,8 @@ from physgm.sim.scenes import Scene
 from physgm.sim.state import Energy, FrameStats, Particles, ParticleState, Trajectory
 from physgm.sim.stepping import SimulationDiverged, SolverConfig, wave_speed
 
-# Two threads pay off from about 2k particles (measured, jelly block: 0.93 -> 0.74 ms per sub-step
-# at 2.2k, 3.14 -> 1.93 ms at 8k); below that the hand-off costs more than the split saves.
+# Two threads pay off from about 2k particles; below that the hand-off costs more than the split
+# saves.
 _AUTO_THREADS_MIN_PARTICLES = 2_000
 _STATS_INIT = np.zeros(K.STATS_ROW, dtype=np.float32)
 _STATS_INIT[[1, 2]] = [1.0e30, -1.0e30]  # running min and max of det F
