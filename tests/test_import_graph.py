@@ -117,8 +117,9 @@ def test_src_has_no_import_circles():
     graph = import_graph(SRC)
     assert len(graph) > 50 and sum(map(len, graph.values())) > 100, "the walk found too few modules"
     circles = find_circles(graph)
-    assert not circles, "import circles in src/physgm (move the shared piece to a third module):\n" + "\n".join(
-        "  " + " -> ".join(c) for c in circles
+    assert not circles, (
+        "import circles in src/physgm (move the shared piece to a third module):\n"
+        + "\n".join("  " + " -> ".join(c) for c in circles)
     )
 
 

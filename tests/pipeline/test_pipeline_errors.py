@@ -207,16 +207,24 @@ def test_cli(tmp_path, blob_ply):
         "output.frames=4",
         "output.progress=false",
     ]
-    bad = subprocess.run([*base, f"input={tmp_path / 'missing.jpg'}", f"paths.output_dir={out}"],
-                         capture_output=True, text=True, timeout=300)  # fmt: skip
+    bad = subprocess.run(
+        [*base, f"input={tmp_path / 'missing.jpg'}", f"paths.output_dir={out}"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert bad.returncode == 2
     assert (
         bad.stderr.strip().splitlines()[-1].startswith("error: input not found")
         and "Traceback" not in bad.stderr
     )
     assert not out.exists()
-    good = subprocess.run([*base, f"input={blob_ply}", "physics.material=metal", "scene=push", f"paths.output_dir={out}"],
-                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    good = subprocess.run(
+        [*base, f"input={blob_ply}", "physics.material=metal", "scene=push", f"paths.output_dir={out}"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert good.returncode == 0, good.stderr[-2000:]
     assert {"video.mp4", "report.json", "physics.json", "contact_sheet.png", "gaussians.ply"} <= {
         p.name for p in out.iterdir()

@@ -67,8 +67,13 @@ def test_framing_camera_fits_the_box(az, el, margin):
     # The tightest corner sits exactly on the 1 / margin frame, none outside it.
     assert float(torch.maximum(u, v).max()) == pytest.approx(1.0 / margin, abs=1e-5)
     centre = cam.c2w[0, :3, 3].double().numpy() - (lo + hi) / 2
-    ref = np.array([math.cos(math.radians(el)) * math.cos(math.radians(az)),
-                    math.cos(math.radians(el)) * math.sin(math.radians(az)), math.sin(math.radians(el))])  # fmt: skip
+    ref = np.array(
+        [
+            math.cos(math.radians(el)) * math.cos(math.radians(az)),
+            math.cos(math.radians(el)) * math.sin(math.radians(az)),
+            math.sin(math.radians(el)),
+        ]
+    )
     np.testing.assert_allclose(centre / np.linalg.norm(centre), ref, atol=1e-5)
 
 
@@ -128,8 +133,13 @@ def _posterior(material: str, log10_E: float, nu: float):
 
     logits = torch.zeros(1, len(MATERIAL_NAMES))
     logits[0, MATERIAL_NAMES.index(material)] = 3.0
-    return PhysicsPosterior(logits, normalise_log10_E(torch.tensor([log10_E])), torch.tensor([-4.0]),
-                            normalise_nu(torch.tensor([nu])), torch.tensor([-6.0]))  # fmt: skip
+    return PhysicsPosterior(
+        logits,
+        normalise_log10_E(torch.tensor([log10_E])),
+        torch.tensor([-4.0]),
+        normalise_nu(torch.tensor([nu])),
+        torch.tensor([-6.0]),
+    )
 
 
 def test_physics_choice_rules():
@@ -173,7 +183,7 @@ def test_physics_choice_rules():
 
 
 def test_checkpoint_layout_is_lightnings(tmp_path, tiny_config):
-    """save_checkpoint writes what LitPretrain.load_from_checkpoint reads, and load_model gives the same net."""
+    """save_checkpoint writes what LitPretrain.load_from_checkpoint reads; load_model gives the same net."""
     from physgm.model import PhysGM
     from physgm.pipeline.checkpoint import load_model, save_checkpoint
     from physgm.train.pretrain import LitPretrain, model_from_checkpoint

@@ -69,7 +69,8 @@ class SynthConfig:
             raise ValueError(f"unknown shape families {bad}; choose from {', '.join(fams)}")
         if self.count < 0 or self.resolution < 8 or not 0 <= self.video_fraction <= 1:
             raise ValueError(
-                f"need count >= 0, resolution >= 8, video_fraction in [0, 1]; got {self.count}, {self.resolution}, {self.video_fraction}"
+                f"need count >= 0, resolution >= 8, video_fraction in [0, 1]; got {self.count}, "
+                f"{self.resolution}, {self.video_fraction}"
             )
 
     def to_json(self) -> dict:
@@ -200,7 +201,8 @@ def _check_config(cfg: SynthConfig, out: Path) -> None:
         diff = sorted(k for k in set(mine) | set(theirs) if k != "count" and mine.get(k) != theirs.get(k))
         if diff:
             raise SystemExit(
-                f"{out} was generated with other settings ({', '.join(diff)} differ, see {path}); use a new --out or the same settings"
+                f"{out} was generated with other settings ({', '.join(diff)} differ, see {path}); use a new "
+                "--out or the same settings"
             )
     write_json(path, mine)
 
@@ -330,8 +332,9 @@ def main(argv: list[str] | None = None) -> int:
     for i, tb in summary.pop("_tracebacks").items():
         print(f"asset {asset_id(i)} failed:\n{tb}", file=sys.stderr)
     print(
-        f"generated {summary['done']} assets ({summary['skipped']} already there, {summary['failed']} failed) "
-        f"in {summary['seconds']:.1f} s: {summary['assets_per_min']:.1f} assets/min"
+        f"generated {summary['done']} assets ({summary['skipped']} already there, "
+        f"{summary['failed']} failed) in {summary['seconds']:.1f} s: "
+        f"{summary['assets_per_min']:.1f} assets/min"
     )
     print(json.dumps(summary))
     return 1 if summary["failed"] else 0

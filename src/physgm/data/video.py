@@ -42,7 +42,7 @@ class VideoConfig:
 
 
 def place_object(gaussians: Gaussians, cfg: VideoConfig) -> tuple[Gaussians, np.ndarray]:
-    """Asset-frame Gaussians scaled and lifted into the simulation world; returns (Gaussians, [4, 4] transform)."""
+    """Asset-frame Gaussians scaled and lifted into the simulation world, and the [4, 4] transform."""
     s = cfg.object_scale
     lift = cfg.drop_height_m - s * float(gaussians.means[:, 2].min())
     T = np.diag([s, s, s, 1.0])
@@ -95,9 +95,18 @@ def render_frames(trajectory, camera: Cameras, backend: str, background: float) 
             frames.append(frames[-1])
             continue
         rgb, alpha, _ = rasterize(
-            g.means, g.quats, g.scales, g.opacities, g.colors, camera.viewmats, camera.Ks,
-            camera.width, camera.height, background=None, backend=backend,
-        )  # fmt: skip
+            g.means,
+            g.quats,
+            g.scales,
+            g.opacities,
+            g.colors,
+            camera.viewmats,
+            camera.Ks,
+            camera.width,
+            camera.height,
+            background=None,
+            backend=backend,
+        )
         rgba = to_rgba8(rgb, alpha)[0].astype(np.float32) / 255.0
         comp = rgba[..., :3] * rgba[..., 3:] + background * (1 - rgba[..., 3:])
         frames.append(np.round(comp * 255).astype(np.uint8))

@@ -170,7 +170,8 @@ def build_example(record: AssetRecord, cfg: ViewConfig, rng: np.random.Generator
     rgba = record.load_rgba(targets)
     if rgba.shape[1:3] != (record.height, record.width):
         raise AssetError(
-            f"views are {rgba.shape[2]}x{rgba.shape[1]} px but cameras.json says {record.width}x{record.height}"
+            f"views are {rgba.shape[2]}x{rgba.shape[1]} px but cameras.json says "
+            f"{record.width}x{record.height}"
         )
     in_img, in_mask, in_K = _images(
         rgba[:NUM_INPUT_SET], record.Ks[inputs], cfg.input_resolution, cfg.background

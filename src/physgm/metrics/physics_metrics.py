@@ -46,7 +46,10 @@ class PhysicsMetrics(Metric):
         self.in90_nu.append(((posterior.nu_mean - nu).abs() <= Z90 * posterior.nu_std).float())
 
     def compute(self) -> dict[str, Tensor]:
-        cat = {name: dim_zero_cat(getattr(self, name)) for name in ["correct", "err_E", "err_nu", "nll", "in90_E", "in90_nu"]}
+        cat = {
+            name: dim_zero_cat(getattr(self, name))
+            for name in ["correct", "err_E", "err_nu", "nll", "in90_E", "in90_nu"]
+        }
         return {
             "material_acc": cat["correct"].mean(),
             "abs_log10E_median": cat["err_E"].median(),

@@ -46,9 +46,14 @@ class Backbone(nn.Module):
         super().__init__()
         if cfg.width % cfg.head_dim:
             raise ValueError(f"backbone width {cfg.width} is not divisible by head_dim {cfg.head_dim}")
-        if len(cfg.out_layers) != 4 or len(set(cfg.out_layers)) != 4 or not all(0 <= i < cfg.depth for i in cfg.out_layers):
+        if (
+            len(cfg.out_layers) != 4
+            or len(set(cfg.out_layers)) != 4
+            or not all(0 <= i < cfg.depth for i in cfg.out_layers)
+        ):
             raise ValueError(
-                f"backbone.out_layers must be 4 distinct block indices in [0, {cfg.depth}), got {list(cfg.out_layers)}"
+                f"backbone.out_layers must be 4 distinct block indices in [0, {cfg.depth}), got "
+                f"{list(cfg.out_layers)}"
             )
         self.cfg = cfg
         self.patch_size = cfg.encoder.patch_size

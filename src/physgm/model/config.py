@@ -16,7 +16,9 @@ from typing import Any
 class EncoderConfig:
     """Per-view image encoder (a timm ViT); see ``physgm.model.encoder.ENCODERS``."""
 
-    kind: str = "vit"  # "vit": timm VisionTransformer trained from scratch; "dinov3": timm DINOv3 + local weights
+    kind: str = (
+        "vit"  # "vit": timm VisionTransformer trained from scratch; "dinov3": timm DINOv3 + local weights
+    )
     arch: str = ""  # timm architecture for kind="dinov3", e.g. "vit_large_patch16_dinov3" (ignored for "vit")
     weights: str | None = None  # local .pth/.safetensors for kind="dinov3"; nothing is ever downloaded
     img_size: int = 64  # grid of the learned position embedding (other sizes are interpolated), px
@@ -63,7 +65,9 @@ class GaussianHeadConfig:
     max_offset: float = 0.05  # bound of the free 3D offset added to the ray point (0 disables it)
     scale_min: float = 0.0005  # smallest Gaussian std
     scale_max: float = 0.1  # largest Gaussian std
-    mask_threshold: float = 0.1  # pixels with mask > threshold get a Gaussian (translucent objects: alpha < 0.5)
+    mask_threshold: float = (
+        0.1  # pixels with mask > threshold get a Gaussian (translucent objects: alpha < 0.5)
+    )
 
 
 @dataclass

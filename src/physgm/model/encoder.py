@@ -92,7 +92,9 @@ def build_dinov3(cfg: EncoderConfig, load_pretrained: bool = True) -> ImageEncod
     arch = DINOV3_ARCHS.get(cfg.arch, cfg.arch)
     available = timm.list_models("*dinov3*")
     if arch not in available:
-        raise ValueError(f"unknown DINOv3 architecture {cfg.arch!r}; timm {timm.__version__} provides {available}")
+        raise ValueError(
+            f"unknown DINOv3 architecture {cfg.arch!r}; timm {timm.__version__} provides {available}"
+        )
     path = _check_weights_path(cfg.weights, arch) if load_pretrained else None
     vit = timm.create_model(arch, pretrained=False, num_classes=0, img_size=cfg.img_size)
     if path is not None:
@@ -100,8 +102,9 @@ def build_dinov3(cfg: EncoderConfig, load_pretrained: bool = True) -> ImageEncod
     actual = (vit.patch_embed.patch_size[0], vit.embed_dim, len(vit.blocks))
     if actual != (cfg.patch_size, cfg.embed_dim, cfg.depth):
         raise ValueError(
-            f"{arch} has patch_size={actual[0]}, embed_dim={actual[1]}, depth={actual[2]}, but the config says "
-            f"patch_size={cfg.patch_size}, embed_dim={cfg.embed_dim}, depth={cfg.depth}; fix model.backbone.encoder"
+            f"{arch} has patch_size={actual[0]}, embed_dim={actual[1]}, depth={actual[2]}, but the config "
+            f"says patch_size={cfg.patch_size}, embed_dim={cfg.embed_dim}, depth={cfg.depth}; fix "
+            "model.backbone.encoder"
         )
     return ImageEncoder(vit, cfg.patch_size, cfg.embed_dim, cfg.freeze)
 
@@ -154,7 +157,10 @@ def _key_mismatch(expected: dict[str, Tensor], got: dict[str, Tensor]) -> tuple[
 
 
 # Registry: EncoderConfig.kind -> builder. Adding an encoder is one entry here.
-ENCODERS: dict[str, Callable[[EncoderConfig, bool], ImageEncoder]] = {"vit": build_vit, "dinov3": build_dinov3}
+ENCODERS: dict[str, Callable[[EncoderConfig, bool], ImageEncoder]] = {
+    "vit": build_vit,
+    "dinov3": build_dinov3,
+}
 
 
 def build_encoder(cfg: EncoderConfig, load_pretrained: bool = True) -> ImageEncoder:

@@ -73,7 +73,10 @@ class GaussianPrediction:
 
     def detach(self) -> GaussianPrediction:
         return GaussianPrediction(
-            **{f.name: v.detach() if isinstance(v := getattr(self, f.name), Tensor) else v for f in fields(self)}
+            **{
+                f.name: v.detach() if isinstance(v := getattr(self, f.name), Tensor) else v
+                for f in fields(self)
+            }
         )
 
 
@@ -85,11 +88,17 @@ class GaussianActivations(nn.Module):
         if not 0 < cfg.near < cfg.far:
             raise ValueError(f"gaussian_head needs 0 < near < far, got near={cfg.near}, far={cfg.far}")
         if not 0 < cfg.scale_min < cfg.scale_max:
-            raise ValueError(f"gaussian_head needs 0 < scale_min < scale_max, got {cfg.scale_min}, {cfg.scale_max}")
+            raise ValueError(
+                f"gaussian_head needs 0 < scale_min < scale_max, got {cfg.scale_min}, {cfg.scale_max}"
+            )
         if cfg.depth_prior not in DEPTH_PRIORS:
-            raise ValueError(f"gaussian_head.depth_prior must be one of {DEPTH_PRIORS}, got {cfg.depth_prior!r}")
+            raise ValueError(
+                f"gaussian_head.depth_prior must be one of {DEPTH_PRIORS}, got {cfg.depth_prior!r}"
+            )
         if cfg.depth_prior == "centre" and not cfg.scene_radius > 0:
-            raise ValueError(f"gaussian_head.scene_radius must be > 0 with depth_prior='centre', got {cfg.scene_radius}")
+            raise ValueError(
+                f"gaussian_head.scene_radius must be > 0 with depth_prior='centre', got {cfg.scene_radius}"
+            )
         self.cfg = cfg
         self.register_buffer("quat_bias", torch.tensor([1.0, 0.0, 0.0, 0.0]), persistent=False)
 
@@ -106,7 +115,9 @@ class GaussianActivations(nn.Module):
             if depth_range is None:
                 raise ValueError("depth_prior='hull' needs the per-ray depth_range from physgm.model.hull")
             lo, hi = depth_range
-            depth = lo + (hi - lo) * torch.sigmoid(raw["depth"])  # [..., 1], the paper's sigmoid on the hull segment
+            depth = lo + (hi - lo) * torch.sigmoid(
+                raw["depth"]
+            )  # [..., 1], the paper's sigmoid on the hull segment
         elif c.depth_prior == "centre":
             # distance along the unit ray to the point closest to the scene origin (object centre)
             centre = -(origins * directions).sum(dim=-1, keepdim=True)
@@ -122,7 +133,14 @@ class GaussianActivations(nn.Module):
         # Residual on the input colour in logit space: a zero output reproduces the pixel colour.
         color = torch.sigmoid(raw["color"] + torch.logit(rgb.clamp(0.0, 1.0), eps=1e-3))
         means = origins + depth * directions + offset
-        return {"means": means, "quats": quat, "scales": scale, "opacities": opacity, "colors": color, "depths": depth[..., 0]}
+        return {
+            "means": means,
+            "quats": quat,
+            "scales": scale,
+            "opacities": opacity,
+            "colors": color,
+            "depths": depth[..., 0],
+        }
 
 
 class _ResidualConv(nn.Module):
@@ -230,9 +248,13 @@ class GaussianHead(nn.Module):
         c = self.cfg
         guide, depth_range = None, None
         if c.depth_prior == "hull":
-            lo, hi = hull_depth_range(masks, c2w, Ks, directions, c.near, c.far, c.hull_samples, c.mask_threshold)
+            lo, hi = hull_depth_range(
+                masks, c2w, Ks, directions, c.near, c.far, c.hull_samples, c.mask_threshold
+            )
             span = c.far - c.near
-            guide = torch.stack([(lo - c.near) / span, (hi - lo) / span], dim=2).flatten(0, 1)  # [B*V, 2, H, W]
+            guide = torch.stack([(lo - c.near) / span, (hi - lo) / span], dim=2).flatten(
+                0, 1
+            )  # [B*V, 2, H, W]
             depth_range = (lo.reshape(b, -1, 1), hi.reshape(b, -1, 1))
         raw = self.dpt(tokens, images.flatten(0, 1), guide)
         raw = {k: r.reshape(b, v * height * width, -1) for k, r in raw.items()}  # [B, N, c]

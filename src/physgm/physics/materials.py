@@ -17,9 +17,22 @@ from pathlib import Path
 import yaml
 
 MATERIAL_NAMES: tuple[str, ...] = (
-    "plastic", "wood", "metal", "fabric", "ceramic", "stone", "paper", "leather",
-    "glass", "rubber", "foam", "snow", "sand", "jelly", "plasticine",
-)  # fmt: skip
+    "plastic",
+    "wood",
+    "metal",
+    "fabric",
+    "ceramic",
+    "stone",
+    "paper",
+    "leather",
+    "glass",
+    "rubber",
+    "foam",
+    "snow",
+    "sand",
+    "jelly",
+    "plasticine",
+)
 
 MATERIAL_DIR = Path(__file__).resolve().parents[3] / "conf" / "sim" / "material"
 PLASTICITY_KEYS = ("yield_stress", "hardening", "friction_angle", "cohesion", "viscosity")

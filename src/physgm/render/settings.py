@@ -56,8 +56,10 @@ class RasterSettings:
     def __post_init__(self) -> None:
         # Both binnings order pairs by the bits of their (positive) depth.
         if not 0.0 < self.near_plane < self.far_plane:
-            raise ValueError(f"near_plane and far_plane must satisfy 0 < near_plane < far_plane (m), "
-                             f"got near_plane={self.near_plane}, far_plane={self.far_plane}")  # fmt: skip
+            raise ValueError(
+                "near_plane and far_plane must satisfy 0 < near_plane < far_plane (m), got "
+                f"near_plane={self.near_plane}, far_plane={self.far_plane}"
+            )
         if self.warp_binning not in ("auto", "counting", "sort"):
             raise ValueError(f"warp_binning must be 'auto', 'counting' or 'sort', got {self.warp_binning!r}")
         if self.warp_layout not in ("auto", "tile", "pixel"):

@@ -49,7 +49,9 @@ def _arr(t: Tensor, dtype) -> ArrayView:
     scalar = getattr(dtype, "_wp_scalar_type_", dtype)
     element_shape = tuple(t.shape[t.dim() - inner :]) if t.dim() >= inner else None
     if t.dtype != _TORCH_SCALARS[scalar] or element_shape != tuple(getattr(dtype, "_shape_", ())):
-        raise ValueError(f"a {t.dtype} tensor of shape {tuple(t.shape)} does not hold {dtype.__name__} elements")
+        raise ValueError(
+            f"a {t.dtype} tensor of shape {tuple(t.shape)} does not hold {dtype.__name__} elements"
+        )
     stride, strides = wp.types.type_size_in_bytes(dtype), []
     for n in reversed(shape):
         strides.append(stride)
@@ -77,8 +79,7 @@ def _launch(kernel, dim: int, inputs: list, device: torch.device, **kwargs) -> N
     stream = wp.stream_from_torch(device) if device.type == "cuda" else None
     wp_device = _DEVICES.get(device) or _device(device)
     ensure_loaded(kernel, wp_device)
-    wp.launch(kernel, dim=dim, inputs=inputs, device=wp_device, stream=stream,
-              **kwargs)  # fmt: skip
+    wp.launch(kernel, dim=dim, inputs=inputs, device=wp_device, stream=stream, **kwargs)
 
 
 def _tile_ranges(work: Tensor, parts: int) -> list[tuple[int, int]]:
@@ -111,8 +112,10 @@ def _binning(settings: RasterSettings, device: torch.device) -> str:
     if settings.warp_binning == "auto":
         return "counting" if device.type == "cpu" else "sort"
     if settings.warp_binning == "counting" and device.type != "cpu":
-        raise ValueError("warp_binning='counting' relies on serial launches and runs on the CPU only; "
-                         "use 'sort' or 'auto' on CUDA")  # fmt: skip
+        raise ValueError(
+            "warp_binning='counting' relies on serial launches and runs on the CPU only; use 'sort' or "
+            "'auto' on CUDA"
+        )
     return settings.warp_binning
 
 
@@ -122,8 +125,10 @@ def _layout(settings: RasterSettings, device: torch.device) -> str:
         return "pixel"
     if settings.tile_size > T.LANES:
         if settings.warp_layout == "tile":
-            raise ValueError(f"warp_layout='tile' handles tiles of at most {T.LANES} px (one SIMD row), "
-                             f"got tile_size={settings.tile_size}; use a smaller tile_size or 'auto'")  # fmt: skip
+            raise ValueError(
+                f"warp_layout='tile' handles tiles of at most {T.LANES} px (one SIMD row), got "
+                f"tile_size={settings.tile_size}; use a smaller tile_size or 'auto'"
+            )
         return "pixel"
     if settings.warp_layout == "tile":
         return "tile"
@@ -186,7 +191,9 @@ def _cuts(total: int, unit: int, parts: int) -> list[int]:
     return [0, *[(units * k // parts) * unit for k in range(1, parts)], total]
 
 
-def _launch_split(kernel, cuts: list[int], args: list, device: torch.device, min_part: int | None = None) -> None:
+def _launch_split(
+    kernel, cuts: list[int], args: list, device: torch.device, min_part: int | None = None
+) -> None:
     """Launches ``kernel(offset, *args)`` over the index ranges between ``cuts``, one thread each
     on the CPU when every range has at least ``min_part`` (default ``_MIN_SPLIT``) indices."""
     ranges = [(a, b - a) for a, b in itertools.pairwise(cuts) if b > a]
@@ -271,7 +278,8 @@ class _RasterizeWarp(torch.autograd.Function):
         entries += [means.new_empty(num_entries, 3), means.new_empty(num_entries, 2)]
         entry_arrs = _entry_arrays(entries)
         pair_data = [num_n, num_c, proj_out[0], proj_out[1], bounds[1], bounds[0], proj_in[3],
-                     _arr(colors, wp.vec3), _arr(e_pair, wp.int64), _arr(e_gauss, wp.int64), *entry_arrs]  # fmt: skip
+                     _arr(colors, wp.vec3), _arr(e_pair, wp.int64), _arr(e_gauss, wp.int64),
+                     *entry_arrs]  # fmt: skip
         if num_entries and _binning(s, device) == "counting":
             # Only pairs that touch a tile are ordered. Their depths are > near_plane > 0, so the
             # float bits sort like the floats, and torch sorts integers by radix, far faster than
@@ -296,7 +304,8 @@ class _RasterizeWarp(torch.autograd.Function):
                                for t0, n in tile_ranges], device)  # fmt: skip
             else:
                 _launch(K.bin_entries_kernel, by_depth.numel(),
-                        [_arr(by_depth, wp.int64), *head, *all_tiles, cursor, *pair_data], device)  # fmt: skip
+                        [_arr(by_depth, wp.int64), *head, *all_tiles, cursor, *pair_data],
+                        device)  # fmt: skip
         elif num_entries:
             csum = torch.cumsum(counts, dim=0, dtype=torch.int32)
             entry_tile = torch.empty(num_entries, dtype=torch.int32, device=device)
@@ -374,12 +383,14 @@ class _RasterizeWarp(torch.autograd.Function):
         v_means2d, v_conics = means.new_zeros(num_pairs, 2), means.new_zeros(num_pairs, 3)
         _launch_split(K.scatter_entry_grads_kernel, entry_cuts,
                       [_arr(e_pair, wp.int64), _arr(e_gauss, wp.int64), *v_entry, _arr(v_means2d, wp.vec2),
-                       _arr(v_conics, wp.vec3), _arr(v_opac, wp.float32), _arr(v_colors, wp.vec3)], device)  # fmt: skip
+                       _arr(v_conics, wp.vec3), _arr(v_opac, wp.float32), _arr(v_colors, wp.vec3)],
+                      device)  # fmt: skip
         # With one camera per scene a pair writes only its own Gaussian: any pair range will do.
         vjp_cuts = _cuts(num_pairs, 1, threads) if ctx.num_c == 1 else scene_cuts
         _launch_split(K.project_vjp_kernel, vjp_cuts,
                       [*proj_in, _arr(v_means2d, wp.vec2), _arr(v_conics, wp.vec3), _arr(v_means, wp.vec3),
-                       _arr(v_quats, wp.vec4), _arr(v_scales, wp.vec3)], device, min_part=_MIN_SPLIT_VJP)  # fmt: skip
+                       _arr(v_quats, wp.vec4), _arr(v_scales, wp.vec3)],
+                      device, min_part=_MIN_SPLIT_VJP)  # fmt: skip
         return v_means, v_quats, v_scales, v_opac, v_colors, None, None, None, None
 
 

@@ -254,7 +254,8 @@ def raster_forward_tile_kernel(
         if su[1] < su[0] or sv[1] < sv[0]:
             continue
         alive -= composite_entry(rows, row_end, row0 + sv[0] - v0, sv[1] - sv[0] + 1, sv[0], u0,
-                                 m[0], m[1], e_conics[e], e_qmax[e], e_opacities[e], e_colors[e], e)  # fmt: skip
+                                 m[0], m[1], e_conics[e], e_qmax[e], e_opacities[e], e_colors[e],
+                                 e)  # fmt: skip
     base = img * height * width
     for r in range(v1 - v0 + 1):
         trans = rows[0, row0 + r]

@@ -93,7 +93,26 @@ from physgm.sim.state import Energy, FrameStats, Particles, ParticleState, Traje
 from physgm.sim.stepping import SimulationDiverged, SolverConfig, cfl_dt, substeps_per_frame, wave_speed
 
 __all__ = [
-    "MODELS", "SCENES", "Energy", "FrameStats", "GridHook", "GridSpec", "GroundPlane", "MPMSolver",
-    "MaterialParams", "ParticleState", "Particles", "Scene", "SceneSetup", "SimulationDiverged", "SolverConfig",
-    "Trajectory", "VelocityBox", "build_scene", "cfl_dt", "simulate", "substeps_per_frame", "wave_speed",
-]  # fmt: skip
+    "MODELS",
+    "SCENES",
+    "Energy",
+    "FrameStats",
+    "GridHook",
+    "GridSpec",
+    "GroundPlane",
+    "MPMSolver",
+    "MaterialParams",
+    "ParticleState",
+    "Particles",
+    "Scene",
+    "SceneSetup",
+    "SimulationDiverged",
+    "SolverConfig",
+    "Trajectory",
+    "VelocityBox",
+    "build_scene",
+    "cfl_dt",
+    "simulate",
+    "substeps_per_frame",
+    "wave_speed",
+]

@@ -267,7 +267,9 @@ def grid_update(
     boxes: wp.array(dtype=BoxStruct),
     num_boxes: int,
     slot: int,
-    work: wp.array2d(dtype=wp.float64),  # [threads, WORK_ROW] energy put in by the velocity boxes (column 0), J
+    work: wp.array2d(
+        dtype=wp.float64
+    ),  # [threads, WORK_ROW] energy put in by the velocity boxes (column 0), J
     grid_v: wp.array3d(dtype=vec8),  # [nx, ny, nz] out: velocity, mass, velocity change
 ):
     """One thread per 4^3-node block; blocks no stencil reached are left as they are (no particle
@@ -343,7 +345,9 @@ def g2p(
     plastic: wp.array(dtype=float),  # [P] in/out, plastic history scalar
     escaped: wp.array(dtype=int),  # [P] in/out, 1 once the clamp stopped the particle
     stats: wp.array2d(dtype=float),  # [threads, STATS_ROW] running reductions in the first NUM_STATS columns
-    work: wp.array2d(dtype=wp.float64),  # [threads, WORK_ROW] energy put in by the velocity boxes (column 0), J
+    work: wp.array2d(
+        dtype=wp.float64
+    ),  # [threads, WORK_ROW] energy put in by the velocity boxes (column 0), J
     touched: wp.array3d(dtype=wp.int32),  # [bx, by, bz] out: blocks reached by the next scatter
     stamp: wp.int32,  # number of the next sub-step
     acc: wp.array(dtype=vec8),  # [G] flat, out: this thread's scatter for the next sub-step

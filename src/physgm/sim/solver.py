@@ -96,9 +96,10 @@ class MPMSolver:
     def _check_inputs(self, particles: Particles) -> None:
         if self.grid.num_nodes > self.config.max_grid_nodes:
             raise ValueError(
-                f"grid {self.grid.res} has {self.grid.num_nodes:,} nodes (~{self.grid.num_nodes * 96 / 1e9:.1f} GB), "
-                f"more than max_grid_nodes={self.config.max_grid_nodes:,}; fit the grid to the region the "
-                "particles can reach (GridSpec.fit) or use a larger dx"
+                f"grid {self.grid.res} has {self.grid.num_nodes:,} nodes "
+                f"(~{self.grid.num_nodes * 96 / 1e9:.1f} GB), more than "
+                f"max_grid_nodes={self.config.max_grid_nodes:,}; fit the grid to the region the particles "
+                "can reach (GridSpec.fit) or use a larger dx"
             )
         if not self.materials or not all(isinstance(m, MaterialParams) for m in self.materials):
             raise ValueError("materials must be a non-empty list of MaterialParams")

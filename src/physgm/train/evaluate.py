@@ -64,11 +64,18 @@ def evaluate_views(
             lpips_count += pred.shape[0]
         known = batch.true_known
         if known.any():
-            physics.update(out.physics[known], batch.true_material[known], batch.true_log10_E[known], batch.true_nu[known])
+            physics.update(
+                out.physics[known],
+                batch.true_material[known],
+                batch.true_log10_E[known],
+                batch.true_nu[known],
+            )
         assets += batch.images.shape[0]
         gaussians += float(out.gaussians.count.float().sum())
     if not assets:
-        raise ValueError(f"split {datamodule.hparams.test_split!r} of {datamodule.hparams.root} has no assets")
+        raise ValueError(
+            f"split {datamodule.hparams.test_split!r} of {datamodule.hparams.root} has no assets"
+        )
     result = {"assets": assets, "gaussians_mean": gaussians / assets}
     result.update({k: float(v) for k, v in images.compute().items()})
     result["psnr_inputs"] = float(seen.compute()["psnr"])
@@ -90,9 +97,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--split", default="test")
     p.add_argument("--views", default="1,4", help="comma-separated input-view counts (1 and/or 4)")
     p.add_argument("--num-targets", type=int, default=8, help="target views per asset, inputs included")
-    p.add_argument("--resolution", type=int, default=None, help="target size, px (default: the model's input size)")
+    p.add_argument(
+        "--resolution", type=int, default=None, help="target size, px (default: the model's input size)"
+    )
     p.add_argument("--batch-size", type=int, default=4)
-    p.add_argument("--lpips-backbone", default=None, help="local LPIPS backbone file; adds LPIPS (see README)")
+    p.add_argument(
+        "--lpips-backbone", default=None, help="local LPIPS backbone file; adds LPIPS (see README)"
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the fixed evaluation views")
     p.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     a = p.parse_args(argv)
@@ -114,10 +125,17 @@ def main(argv: list[str] | None = None) -> int:
               "target_resolution": a.resolution or res, "num_targets": a.num_targets}
     start = time.perf_counter()
     for v in views:
-        dm = PhysAssetsDataModule(a.data, batch_size=a.batch_size, eval_p_single=1.0 if v == 1 else 0.0,
-                                  num_targets=a.num_targets, input_resolution=res,
-                                  target_resolution=a.resolution or res, test_split=a.split, val_split=a.split,
-                                  seed=a.seed)
+        dm = PhysAssetsDataModule(
+            a.data,
+            batch_size=a.batch_size,
+            eval_p_single=1.0 if v == 1 else 0.0,
+            num_targets=a.num_targets,
+            input_resolution=res,
+            target_resolution=a.resolution or res,
+            test_split=a.split,
+            val_split=a.split,
+            seed=a.seed,
+        )
         report[f"views{v}"] = evaluate_views(model, dm, renderer, lpips_model)
         print(f"{v} view(s): " + ", ".join(f"{k}={x:.4g}" for k, x in report[f"views{v}"].items()
                                            if isinstance(x, float)), file=sys.stderr, flush=True)

@@ -28,7 +28,9 @@ KEEP_HPARAMS = ("model", "renderer", "inputs", "format_version")
 def git_revision(cwd: Path) -> str | None:
     """The commit of the working tree the export runs in (None outside git)."""
     try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=cwd, capture_output=True, text=True, timeout=10)
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=cwd, capture_output=True, text=True, timeout=10
+        )
     except (OSError, subprocess.TimeoutExpired):
         return None
     return out.stdout.strip() or None if out.returncode == 0 else None
@@ -66,7 +68,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("ckpt", type=Path, help="Lightning checkpoint written by train.py")
     p.add_argument("out", type=Path, help="slim checkpoint to write")
     p.add_argument("--recipe", default=None, help="the command(s) that trained it, stored in the file")
-    p.add_argument("--metrics", type=Path, default=None, help="JSON of measured metrics to store (e.g. evaluate's)")
+    p.add_argument(
+        "--metrics", type=Path, default=None, help="JSON of measured metrics to store (e.g. evaluate's)"
+    )
     a = p.parse_args(argv)
     if not a.ckpt.is_file():
         raise SystemExit(f"checkpoint {a.ckpt} not found")
