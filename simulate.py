@@ -1,4 +1,4 @@
-"""Photo to 4D clip: ``python simulate.py input=examples/jelly_cube.png [scene=drop]`` (see physgm.pipeline)."""
+"""Photo to 4D clip: ``python simulate.py input=examples/jelly_cube.png [scene=drop]`` (physgm.pipeline)."""
 
 import hydra
 from omegaconf import DictConfig

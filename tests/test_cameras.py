@@ -21,7 +21,9 @@ def project(cams: Cameras, points: torch.Tensor) -> torch.Tensor:
 
 
 def test_orbit_camera_looks_at_target_with_z_up():
-    cams = orbit_cameras([0, 90, -45], [0, 30, 10], radius=2.0, fov_deg=40, width=64, height=48, target=(0.1, 0.2, 0.3))
+    cams = orbit_cameras(
+        [0, 90, -45], [0, 30, 10], radius=2.0, fov_deg=40, width=64, height=48, target=(0.1, 0.2, 0.3)
+    )
     uv = project(cams, torch.tensor([[0.1, 0.2, 0.3]]))
     torch.testing.assert_close(uv[:, 0], torch.tensor([[32.0, 24.0]]).expand(3, 2), atol=1e-4, rtol=0)
     # A point above the target appears higher in the image (smaller v).
@@ -55,7 +57,9 @@ def test_plucker_rays_shape_and_invariants():
     assert pl.shape == (2, 6, 8, 12)
     d, m = pl[:, :3], pl[:, 3:]
     torch.testing.assert_close(d.norm(dim=1), torch.ones(2, 8, 12), atol=1e-6, rtol=0)
-    torch.testing.assert_close((d * m).sum(1), torch.zeros(2, 8, 12), atol=1e-5, rtol=0)  # moment is perpendicular
+    torch.testing.assert_close(
+        (d * m).sum(1), torch.zeros(2, 8, 12), atol=1e-5, rtol=0
+    )  # moment is perpendicular
     # The moment does not depend on which point of the ray is used as origin.
     origins, dirs = pixel_rays(cams)
     shifted = torch.linalg.cross(origins + 0.7 * dirs, dirs, dim=-1).permute(0, 3, 1, 2)

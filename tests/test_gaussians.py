@@ -35,7 +35,9 @@ def test_ply_layout_is_standard_3dgs(tmp_path):
 
     write_ply(random_gaussians(4, sh_k=3), tmp_path / "g.ply")
     names = [p.name for p in PlyData.read(str(tmp_path / "g.ply"))["vertex"].properties]
-    expected = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(9)]
+    expected = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [
+        f"f_rest_{i}" for i in range(9)
+    ]
     expected += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
     assert names == expected
 
@@ -48,7 +50,9 @@ def test_ply_stored_values_use_3dgs_activations(tmp_path):
     v = PlyData.read(str(tmp_path / "g.ply"))["vertex"]
     np.testing.assert_allclose(1 / (1 + np.exp(-np.asarray(v["opacity"]))), g.opacities.numpy(), atol=1e-6)
     np.testing.assert_allclose(np.exp(np.asarray(v["scale_1"])), g.scales[:, 1].numpy(), rtol=1e-6)
-    np.testing.assert_allclose(np.asarray(v["f_dc_0"]) * 0.28209479177387814 + 0.5, g.colors[:, 0].numpy(), atol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(v["f_dc_0"]) * 0.28209479177387814 + 0.5, g.colors[:, 0].numpy(), atol=1e-6
+    )
 
 
 def test_read_ply_drops_sh_with_warning(tmp_path):
@@ -103,5 +107,7 @@ def test_covariance_matches_definition():
 def test_rotation_quaternion_round_trip():
     q = torch.nn.functional.normalize(random_gaussians(1000, seed=3).quats.double(), dim=-1)
     R = quat_to_rotmat(q)
-    torch.testing.assert_close(R @ R.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(1000, 3, 3), atol=1e-12, rtol=0)
+    torch.testing.assert_close(
+        R @ R.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(1000, 3, 3), atol=1e-12, rtol=0
+    )
     torch.testing.assert_close(rotmat_to_quat(R), q, atol=1e-10, rtol=0)

@@ -14,7 +14,10 @@ def test_runs_both_halves_on_two_threads():
     seen = []
     try:
         for i in range(50):
-            worker.run(lambda i=i: seen.append(("task", i, threading.get_ident())), lambda i=i: seen.append(("own", i)))
+            worker.run(
+                lambda i=i: seen.append(("task", i, threading.get_ident())),
+                lambda i=i: seen.append(("own", i)),
+            )
     finally:
         worker.close()
     tasks = [s for s in seen if s[0] == "task"]
@@ -95,8 +98,9 @@ def _fresh_python(code: str, env: dict[str, str]) -> str:
     import sys
 
     clean = {k: v for k, v in os.environ.items() if k != "GOMP_SPINCOUNT"}
-    result = subprocess.run([sys.executable, "-c", code], env={**clean, **env}, capture_output=True, text=True,
-                            check=True)  # fmt: skip
+    result = subprocess.run(
+        [sys.executable, "-c", code], env={**clean, **env}, capture_output=True, text=True, check=True
+    )
     return result.stdout.strip()
 
 

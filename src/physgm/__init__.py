@@ -20,11 +20,9 @@ def _short_openmp_spin() -> None:
 
     physgm runs Warp CPU kernels on helper threads (``physgm.parallel``) between torch ops. After
     a parallel torch op, libgomp's idle worker spins on a core for its spin count before it
-    sleeps: with the default, milliseconds on this machine, during which a helper thread woken
-    for half a raster launch waited for that core (1.3-3.1 ms late at 128 px, measured), so the
-    render's two-thread split ran no faster than one thread. With 100k spins a render of 16384
-    Gaussians at 128 px took 18.9-19.2 ms forward + backward against 21.9-23.7 ms, and the torch
-    reference renderer on two threads up to 12 % longer (README, "Threads"); training ran as fast.
+    sleeps: with the default, milliseconds, during which a helper thread woken for half a raster
+    launch waits for that core, so the render's two-thread split runs no faster than one thread
+    (docs/measurements.md, "Threads on a small CPU").
     libgomp reads the variable when it loads, so this works only if physgm is imported before
     torch: after that it is left unset, so that the environment still says what torch runs with
     (the render benchmark reports it). A value the user set is kept. Builds of torch on Intel's

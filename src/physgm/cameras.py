@@ -39,7 +39,10 @@ class Cameras:
         if self.c2w.ndim != 3 or self.c2w.shape[1:] != (4, 4):
             raise ValueError(f"Cameras.c2w must have shape [C, 4, 4], got {tuple(self.c2w.shape)}")
         if self.Ks.shape != (self.c2w.shape[0], 3, 3):
-            raise ValueError(f"Cameras.Ks must have shape [C, 3, 3] with C = {self.c2w.shape[0]}, got {tuple(self.Ks.shape)}")
+            raise ValueError(
+                f"Cameras.Ks must have shape [C, 3, 3] with C = {self.c2w.shape[0]}, got "
+                f"{tuple(self.Ks.shape)}"
+            )
         if int(self.width) <= 0 or int(self.height) <= 0:
             raise ValueError(f"Cameras width and height must be positive, got {self.width} x {self.height}")
         if not (torch.isfinite(self.c2w).all() and torch.isfinite(self.Ks).all()):
@@ -110,7 +113,9 @@ def look_at(eye: Tensor, target: Tensor, up: Tensor | None = None) -> Tensor:
     # Looking straight up or down: any right vector perpendicular to forward will do.
     degenerate = right.norm(dim=-1) < 1e-8
     if degenerate.any():
-        right[degenerate] = torch.linalg.cross(forward[degenerate], torch.tensor([0.0, 1.0, 0.0], dtype=eye.dtype).expand_as(forward[degenerate]))
+        right[degenerate] = torch.linalg.cross(
+            forward[degenerate], torch.tensor([0.0, 1.0, 0.0], dtype=eye.dtype).expand_as(forward[degenerate])
+        )
     right = torch.nn.functional.normalize(right, dim=-1)
     down = torch.linalg.cross(forward, right)
     c2w = torch.eye(4, dtype=eye.dtype).repeat(eye.shape[0], 1, 1)
@@ -143,7 +148,9 @@ def orbit_cameras(
     az = torch.as_tensor(azimuths_deg, dtype=torch.float32).reshape(-1)
     el = torch.as_tensor(elevations_deg, dtype=torch.float32).reshape(-1)
     if az.shape != el.shape:
-        raise ValueError(f"azimuths_deg and elevations_deg must have the same length, got {az.numel()} and {el.numel()}")
+        raise ValueError(
+            f"azimuths_deg and elevations_deg must have the same length, got {az.numel()} and {el.numel()}"
+        )
     if radius <= 0:
         raise ValueError(f"radius must be positive, got {radius}")
     az, el = torch.deg2rad(az), torch.deg2rad(el)
@@ -168,7 +175,11 @@ def pixel_rays(cameras: Cameras) -> tuple[Tensor, Tensor]:
     """
     c, h, w = len(cameras), cameras.height, cameras.width
     dtype, device = cameras.c2w.dtype, cameras.c2w.device
-    v, u = torch.meshgrid(torch.arange(h, dtype=dtype, device=device) + 0.5, torch.arange(w, dtype=dtype, device=device) + 0.5, indexing="ij")
+    v, u = torch.meshgrid(
+        torch.arange(h, dtype=dtype, device=device) + 0.5,
+        torch.arange(w, dtype=dtype, device=device) + 0.5,
+        indexing="ij",
+    )
     pix = torch.stack([u, v, torch.ones_like(u)], -1).reshape(1, -1, 3)  # [1, HW, 3]
     cam_dirs = pix @ torch.linalg.inv(cameras.Ks).transpose(-1, -2)  # [C, HW, 3]
     dirs = torch.nn.functional.normalize(cam_dirs @ cameras.c2w[:, :3, :3].transpose(-1, -2), dim=-1)

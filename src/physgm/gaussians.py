@@ -52,15 +52,26 @@ class Gaussians:
                 raise TypeError(f"Gaussians.{name} must be a torch.Tensor, got {type(value).__name__}")
             shape, text = ((n,), "[N]") if width is None else ((n, width), f"[N, {width}]")
             if tuple(value.shape) != shape:
-                raise ValueError(f"Gaussians.{name} must have shape {text} with N = {n}, got {tuple(value.shape)}")
-        if self.sh_rest is not None and (self.sh_rest.ndim != 3 or self.sh_rest.shape[0] != n or self.sh_rest.shape[2] != 3):
-            raise ValueError(f"Gaussians.sh_rest must have shape [N, K, 3] with N = {n}, got {tuple(self.sh_rest.shape)}")
+                raise ValueError(
+                    f"Gaussians.{name} must have shape {text} with N = {n}, got {tuple(value.shape)}"
+                )
+        if self.sh_rest is not None and (
+            self.sh_rest.ndim != 3 or self.sh_rest.shape[0] != n or self.sh_rest.shape[2] != 3
+        ):
+            raise ValueError(
+                f"Gaussians.sh_rest must have shape [N, K, 3] with N = {n}, got {tuple(self.sh_rest.shape)}"
+            )
 
     def __len__(self) -> int:
         return self.means.shape[0]
 
     def _map(self, fn) -> Gaussians:
-        return Gaussians(**{f.name: None if getattr(self, f.name) is None else fn(getattr(self, f.name)) for f in fields(self)})
+        return Gaussians(
+            **{
+                f.name: None if getattr(self, f.name) is None else fn(getattr(self, f.name))
+                for f in fields(self)
+            }
+        )
 
     def __getitem__(self, index) -> Gaussians:
         """Select Gaussians by integer index tensor, boolean mask [N] or slice."""
@@ -84,7 +95,9 @@ class Gaussians:
         rest = [p.sh_rest for p in parts]
         keep_rest = all(r is not None for r in rest) and len({r.shape[1] for r in rest}) == 1
         if not keep_rest and any(r is not None for r in rest):
-            warnings.warn("Gaussians.cat: parts have different SH degrees; higher-order SH dropped", stacklevel=2)
+            warnings.warn(
+                "Gaussians.cat: parts have different SH degrees; higher-order SH dropped", stacklevel=2
+            )
         return Gaussians(
             means=torch.cat([p.means for p in parts]),
             quats=torch.cat([p.quats for p in parts]),
@@ -148,10 +161,42 @@ def rotmat_to_quat(rot: Tensor) -> Tensor:
     s = torch.sqrt(t.gather(-1, k).clamp_min(1e-12)).squeeze(-1) * 2  # 4 * largest component
     cands = torch.stack(
         [
-            torch.stack([s / 4, (m[..., 2, 1] - m[..., 1, 2]) / s, (m[..., 0, 2] - m[..., 2, 0]) / s, (m[..., 1, 0] - m[..., 0, 1]) / s], -1),
-            torch.stack([(m[..., 2, 1] - m[..., 1, 2]) / s, s / 4, (m[..., 0, 1] + m[..., 1, 0]) / s, (m[..., 0, 2] + m[..., 2, 0]) / s], -1),
-            torch.stack([(m[..., 0, 2] - m[..., 2, 0]) / s, (m[..., 0, 1] + m[..., 1, 0]) / s, s / 4, (m[..., 1, 2] + m[..., 2, 1]) / s], -1),
-            torch.stack([(m[..., 1, 0] - m[..., 0, 1]) / s, (m[..., 0, 2] + m[..., 2, 0]) / s, (m[..., 1, 2] + m[..., 2, 1]) / s, s / 4], -1),
+            torch.stack(
+                [
+                    s / 4,
+                    (m[..., 2, 1] - m[..., 1, 2]) / s,
+                    (m[..., 0, 2] - m[..., 2, 0]) / s,
+                    (m[..., 1, 0] - m[..., 0, 1]) / s,
+                ],
+                -1,
+            ),
+            torch.stack(
+                [
+                    (m[..., 2, 1] - m[..., 1, 2]) / s,
+                    s / 4,
+                    (m[..., 0, 1] + m[..., 1, 0]) / s,
+                    (m[..., 0, 2] + m[..., 2, 0]) / s,
+                ],
+                -1,
+            ),
+            torch.stack(
+                [
+                    (m[..., 0, 2] - m[..., 2, 0]) / s,
+                    (m[..., 0, 1] + m[..., 1, 0]) / s,
+                    s / 4,
+                    (m[..., 1, 2] + m[..., 2, 1]) / s,
+                ],
+                -1,
+            ),
+            torch.stack(
+                [
+                    (m[..., 1, 0] - m[..., 0, 1]) / s,
+                    (m[..., 0, 2] + m[..., 2, 0]) / s,
+                    (m[..., 1, 2] + m[..., 2, 1]) / s,
+                    s / 4,
+                ],
+                -1,
+            ),
         ],
         dim=-2,
     )
@@ -181,7 +226,9 @@ def write_ply(gaussians: Gaussians, path: str | os.PathLike) -> None:
     rest = g.sh_rest
     # 3DGS stores f_rest channel-major: all coefficients of R, then G, then B.
     rest_flat = None if rest is None else rest.permute(0, 2, 1).reshape(n, -1).double().numpy()
-    names = _PLY_BASE + [f"f_rest_{i}" for i in range(0 if rest_flat is None else rest_flat.shape[1])] + _PLY_TAIL
+    names = (
+        _PLY_BASE + [f"f_rest_{i}" for i in range(0 if rest_flat is None else rest_flat.shape[1])] + _PLY_TAIL
+    )
     data = np.zeros(n, dtype=[(name, "<f4") for name in names])
     means = g.means.double().numpy()
     data["x"], data["y"], data["z"] = means.T
@@ -227,7 +274,9 @@ def read_ply(path: str | os.PathLike, keep_sh: bool = True) -> Gaussians:
     except Exception as err:  # plyfile raises several types for malformed files
         raise ValueError(f"{path} is not a readable PLY file ({err})") from err
     props = {p.name for p in vertex.properties}
-    missing = [name for name in ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2"] + _PLY_TAIL if name not in props]
+    missing = [
+        name for name in ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2"] + _PLY_TAIL if name not in props
+    ]
     if missing:
         raise ValueError(
             f"{path} is not a 3D Gaussian Splatting PLY: missing properties {missing}. "
@@ -253,7 +302,9 @@ def read_ply(path: str | os.PathLike, keep_sh: bool = True) -> Gaussians:
             sh_rest = torch.from_numpy(np.ascontiguousarray(rest)).float()
         else:
             degree = int(math.isqrt(len(rest_names) // 3 + 1)) - 1
-            warnings.warn(f"{path}: dropping SH degree {degree} coefficients; physgm renders SH degree 0", stacklevel=2)
+            warnings.warn(
+                f"{path}: dropping SH degree {degree} coefficients; physgm renders SH degree 0", stacklevel=2
+            )
     values = {"means": means, "colors": colors, "scales": scales, "quats": quats}
     for name, value in values.items():
         if not np.isfinite(value).all():

@@ -45,14 +45,19 @@ def load_photo(path: str | Path) -> Photo:
             Image.MAX_IMAGE_PIXELS = guard
             w, h = im.size
             if max(w, h) > MAX_SIDE:
-                raise ValueError(f"{path} is {w} x {h} px; the largest side allowed is {MAX_SIDE} px. Resize the photo first.")
+                raise ValueError(
+                    f"{path} is {w} x {h} px; the largest side allowed is {MAX_SIDE} px. Resize the photo "
+                    "first."
+                )
             im.load()
             mode = im.mode
             arr = np.asarray(im)
     except UnidentifiedImageError as err:
         raise ValueError(f"{path} is not an image PIL can read (expected PNG or JPEG)") from err
     except (OSError, SyntaxError) as err:  # truncated or corrupt data
-        raise ValueError(f"{path} could not be decoded ({err}); the file may be truncated or corrupt") from err
+        raise ValueError(
+            f"{path} could not be decoded ({err}); the file may be truncated or corrupt"
+        ) from err
     finally:
         Image.MAX_IMAGE_PIXELS = guard
     if arr.dtype == np.uint16 or mode.startswith("I;16") or mode == "I":
@@ -74,8 +79,14 @@ def load_photo(path: str | Path) -> Photo:
     else:
         rgb = img[..., :3]
     if min(rgb.shape[:2]) < 8:
-        raise ValueError(f"{path} is only {rgb.shape[1]} x {rgb.shape[0]} px; need at least 8 px on each side")
-    return Photo(np.ascontiguousarray(rgb, np.float32), None if alpha is None else np.ascontiguousarray(alpha, np.float32), path)
+        raise ValueError(
+            f"{path} is only {rgb.shape[1]} x {rgb.shape[0]} px; need at least 8 px on each side"
+        )
+    return Photo(
+        np.ascontiguousarray(rgb, np.float32),
+        None if alpha is None else np.ascontiguousarray(alpha, np.float32),
+        path,
+    )
 
 
 def load_mask(path: str | Path, shape: tuple[int, int]) -> np.ndarray:
@@ -117,10 +128,21 @@ def segment_foreground(rgb: np.ndarray, border: int | None = None) -> np.ndarray
 
     h, w = rgb.shape[:2]
     scale = min(1.0, WORK_SIDE / max(h, w))
-    small = cv2.resize(rgb, (max(8, round(w * scale)), max(8, round(h * scale))), interpolation=cv2.INTER_AREA) if scale < 1 else rgb
+    small = (
+        cv2.resize(rgb, (max(8, round(w * scale)), max(8, round(h * scale))), interpolation=cv2.INTER_AREA)
+        if scale < 1
+        else rgb
+    )
     sh, sw = small.shape[:2]
     b = border or max(2, round(0.04 * max(sh, sw)))
-    frame = np.concatenate([small[:b].reshape(-1, 3), small[-b:].reshape(-1, 3), small[:, :b].reshape(-1, 3), small[:, -b:].reshape(-1, 3)])
+    frame = np.concatenate(
+        [
+            small[:b].reshape(-1, 3),
+            small[-b:].reshape(-1, 3),
+            small[:, :b].reshape(-1, 3),
+            small[:, -b:].reshape(-1, 3),
+        ]
+    )
     bg_colour, bg_spread = np.median(frame, 0), np.percentile(np.abs(frame - np.median(frame, 0)).max(-1), 95)
     if bg_spread < 0.04:  # plain studio background: a colour distance threshold is exact enough
         mask = np.abs(small - bg_colour).max(-1) > max(0.08, 3 * bg_spread)
@@ -134,13 +156,17 @@ def segment_foreground(rgb: np.ndarray, border: int | None = None) -> np.ndarray
         bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
         cv2.grabCut(cv2.cvtColor(img8, cv2.COLOR_RGB2BGR), gc, None, bgd, fgd, 6, cv2.GC_INIT_WITH_MASK)
         mask = (gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)
-    mask = _clean(cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)).astype(bool))
+    mask = _clean(
+        cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)).astype(bool)
+    )
     if scale < 1:
         mask = cv2.resize(mask.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
     return mask
 
 
-def object_mask(photo: Photo, mask_path: str | Path | None = None, min_fraction: float = 0.002) -> tuple[np.ndarray, str]:
+def object_mask(
+    photo: Photo, mask_path: str | Path | None = None, min_fraction: float = 0.002
+) -> tuple[np.ndarray, str]:
     """The object mask and where it came from ("mask file", "alpha", "segmentation").
 
     Raises:
@@ -155,8 +181,9 @@ def object_mask(photo: Photo, mask_path: str | Path | None = None, min_fraction:
         mask, source = segment_foreground(photo.rgb), "segmentation"
     if mask.mean() < min_fraction:
         raise ValueError(
-            f"no object found in {photo.path} (mask from {source} covers {100 * mask.mean():.2f} % of the image). "
-            "Give a mask with mask=path.png, use a PNG with an alpha channel, or crop the photo around the object."
+            f"no object found in {photo.path} (mask from {source} covers {100 * mask.mean():.2f} % of the "
+            "image). Give a mask with mask=path.png, use a PNG with an alpha channel, or crop the photo "
+            "around the object."
         )
     return mask, source
 
@@ -175,8 +202,13 @@ def frame_object(
     half = max(ys.max() - ys.min() + 1, xs.max() - xs.min() + 1) / (2 * fill)
     x0, y0 = cx - half, cy - half
     # Affine map from the crop square to the output grid; outside the photo is white background.
-    m = np.array([[size / (2 * half), 0, -x0 * size / (2 * half)], [0, size / (2 * half), -y0 * size / (2 * half)]], np.float32)
+    m = np.array(
+        [[size / (2 * half), 0, -x0 * size / (2 * half)], [0, size / (2 * half), -y0 * size / (2 * half)]],
+        np.float32,
+    )
     comp = rgb * mask[..., None] + (1 - mask[..., None])
-    out_rgb = cv2.warpAffine(comp.astype(np.float32), m, (size, size), flags=cv2.INTER_AREA, borderValue=(1, 1, 1))
+    out_rgb = cv2.warpAffine(
+        comp.astype(np.float32), m, (size, size), flags=cv2.INTER_AREA, borderValue=(1, 1, 1)
+    )
     out_mask = cv2.warpAffine(mask.astype(np.float32), m, (size, size), flags=cv2.INTER_LINEAR, borderValue=0)
     return np.clip(out_rgb, 0, 1), out_mask > 0.5

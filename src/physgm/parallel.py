@@ -2,11 +2,10 @@
 
 Warp runs a CPU kernel on one core and releases the GIL while it runs, so a few extra Python
 threads put the other cores to work: the MPM solver splits its particles over two threads, the
-rasteriser its tiles. The hand-off uses two plain locks per helper as binary semaphores:
-``threading.Barrier`` (a Condition underneath) cost about 130 us per round trip on this shared
-2-vCPU machine, two locks about 75 us, and an MPM sub-step of 8k particles takes about 2 ms per
-thread, so the hand-off is a visible share of it. A ``ThreadPoolExecutor`` submit + result adds
-a queue, a future and a condition variable on top.
+rasteriser its tiles. The hand-off uses two plain locks per helper as binary semaphores, which
+round-trip faster than ``threading.Barrier`` (a Condition underneath); the hand-off is a visible
+share of a sub-step. A ``ThreadPoolExecutor`` submit + result adds a queue, a future and a
+condition variable on top.
 """
 
 from __future__ import annotations

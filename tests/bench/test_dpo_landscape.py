@@ -34,35 +34,82 @@ def tiny_ckpt(tmp_path_factory) -> str:
     import lightning as L
 
     encoder = EncoderConfig(img_size=32, patch_size=8, embed_dim=32, depth=1, num_heads=2)
-    backbone = BackboneConfig(encoder=encoder, width=32, depth=4, head_dim=16, camera_dim=8, camera_hidden=16, out_layers=(0, 1, 2, 3))
+    backbone = BackboneConfig(
+        encoder=encoder,
+        width=32,
+        depth=4,
+        head_dim=16,
+        camera_dim=8,
+        camera_hidden=16,
+        out_layers=(0, 1, 2, 3),
+    )
     head = GaussianHeadConfig(features=8, layer_channels=(8, 8, 16, 16), hidden=8)
     torch.manual_seed(0)
     lit = LitPretrain(model=PhysGMConfig(backbone=backbone, gaussian_head=head).to_dict())
     path = tmp_path_factory.mktemp("ckpt") / "tiny.ckpt"
-    torch.save({"state_dict": lit.state_dict(), "hyper_parameters": dict(lit.hparams), "pytorch-lightning_version": L.__version__}, path)
+    torch.save(
+        {
+            "state_dict": lit.state_dict(),
+            "hyper_parameters": dict(lit.hparams),
+            "pytorch-lightning_version": L.__version__,
+        },
+        path,
+    )
     return str(path)
 
 
 def test_landscape_is_lowest_at_the_true_E_with_the_true_gaussians(drop_root, tiny_ckpt, capsys):
-    report = landscape.main(["--data", str(drop_root), "--ckpt", tiny_ckpt, "--splits", "dpo", "--scenes", "1", "--materials", "jelly",
-                             "--decades=-1,0,1", "--resolution", "32", "--frames", "12", "--gaussians", "both"])
-    assert json.loads(capsys.readouterr().out) == json.loads(json.dumps(report))  # exactly one JSON object on stdout
+    report = landscape.main(
+        [
+            "--data",
+            str(drop_root),
+            "--ckpt",
+            tiny_ckpt,
+            "--splits",
+            "dpo",
+            "--scenes",
+            "1",
+            "--materials",
+            "jelly",
+            "--decades=-1,0,1",
+            "--resolution",
+            "32",
+            "--frames",
+            "12",
+            "--gaussians",
+            "both",
+        ]
+    )
+    assert json.loads(capsys.readouterr().out) == json.loads(
+        json.dumps(report)
+    )  # exactly one JSON object on stdout
     (row,) = report["scenes"]
-    assert row["scene"] == asset_id(0) and row["material"] == "jelly" and set(row["sources"]) == {"true", "predicted"}
+    assert (
+        row["scene"] == asset_id(0)
+        and row["material"] == "jelly"
+        and set(row["sources"]) == {"true", "predicted"}
+    )
     true = row["sources"]["true"]
     assert [p["d"] for p in true["points"]] == [-1.0, 0.0, 1.0]
-    assert [p["log10_E"] for p in true["points"]] == pytest.approx([row["log10_E"] - 1, row["log10_E"], row["log10_E"] + 1])
+    assert [p["log10_E"] for p in true["points"]] == pytest.approx(
+        [row["log10_E"] - 1, row["log10_E"], row["log10_E"] + 1]
+    )
     for key in ("distance", "distance_encoded"):
         dist = [p[key] for p in true["points"]]
-        # The true Gaussians, physics and density re-create the reference video: ~0 at d = 0, far off at +-1 decade.
+        # The true Gaussians, physics and density re-create the reference video: ~0 at d = 0, far off
+        # at +-1 decade.
         assert dist[1] < 0.01 and min(dist[0], dist[2]) > 3 * dist[1] + 0.01, dist
         assert true[key]["argmin_d"] == 0.0 and true[key]["at_truth"] == dist[1] and not true[key]["flat"]
         assert true[key]["spread"] == pytest.approx(max(dist) - min(dist))
     assert all(p["mode"] == "mpm" and p["seconds"] > 0 for p in true["points"])
     predicted = row["sources"]["predicted"]
-    assert len(predicted["points"]) == 3 and predicted["density"] == 1000.0  # the table's jelly, as rollout.physics_dict
+    assert (
+        len(predicted["points"]) == 3 and predicted["density"] == 1000.0
+    )  # the table's jelly, as rollout.physics_dict
     assert math.isfinite(predicted["policy_d"]) and true["policy_d"] is None
-    assert all(p["distance"] is not None or p["error"] for p in predicted["points"])  # scored or failed with a reason
+    assert all(
+        p["distance"] is not None or p["error"] for p in predicted["points"]
+    )  # scored or failed with a reason
     summary = report["summary"]["jelly"]["true"]["distance"]
     assert summary["median_abs_argmin_d"] == 0.0 and summary["within_0.5"] == 1.0 and summary["flat"] == 0
 
@@ -70,21 +117,23 @@ def test_landscape_is_lowest_at_the_true_E_with_the_true_gaussians(drop_root, ti
 def test_rollout_scores_the_clip_after_the_codec_round_trip(drop_root, monkeypatch):
     """``evaluate_physics`` = ``score_videos`` of ``simulate_clip`` after the H.264 round trip (the
     landscape's ``distance_encoded``), or of the raw clip when that is switched off (``distance``)."""
-    import physgm.sim.run as sim_run
+    import physgm.sim.gaussian_trajectory as gaussian_trajectory
     from physgm.data.video import codec_round_trip
     from physgm.metrics.trajectory import score_videos
 
     calls = []
-    real_simulate = sim_run.simulate
+    real_simulate = gaussian_trajectory.simulate
 
     def spy(gaussians, physics, scene, cameras, **kwargs):  # the real simulator, arguments recorded
         calls.append(kwargs)
         return real_simulate(gaussians, physics, scene, cameras, **kwargs)
 
-    monkeypatch.setattr(sim_run, "simulate", spy)
+    monkeypatch.setattr(gaussian_trajectory, "simulate", spy)
     (scene,) = rollout.load_scenes(drop_root, "dpo", num_views=1)
     # A resized render with a planner override: the pixel bounds rescale and the override wins.
-    settings = rollout.SimSettings(resolution=24, n_frames=10, planner={"cells_across": 10}, solver={"cfl": 0.3})
+    settings = rollout.SimSettings(
+        resolution=24, n_frames=10, planner={"cells_across": 10}, solver={"cfl": 0.3}
+    )
     reference = rollout.reference_frames(scene, settings.n_frames)
     gaussians = read_ply(drop_root / scene.id / "gaussians.ply")
     physics = {"material": scene.material, "E": 10 ** (scene.log10_E + 0.5), "nu": scene.nu}
@@ -94,19 +143,32 @@ def test_rollout_scores_the_clip_after_the_codec_round_trip(drop_root, monkeypat
     frames, mine = rollout.simulate_clip(scene, gaussians, physics, settings, 10)
     assert all(k["planner"]["bound_px"] < 0.5 and k["planner"]["cells_across"] == 10 for k in calls)
     assert frames.shape == (10, 24, 24, 3) and mine == info
-    assert math.isfinite(encoded) and score_videos(reference, codec_round_trip(frames, scene.fps)).distance == encoded
+    assert (
+        math.isfinite(encoded)
+        and score_videos(reference, codec_round_trip(frames, scene.fps)).distance == encoded
+    )
     assert score_videos(reference, frames).distance == raw
 
 
 def test_flat_landscape_has_no_argmin():
-    pts = [landscape.LandscapePoint(d, 5 + d, dist, dist, "rigid", 1.0, 6, 6, 0.1) for d, dist in [(-1, 0.1005), (0, 0.1), (1, 0.101)]]
+    pts = [
+        landscape.LandscapePoint(d, 5 + d, dist, dist, "rigid", 1.0, 6, 6, 0.1)
+        for d, dist in [(-1, 0.1005), (0, 0.1), (1, 0.101)]
+    ]
     flat = landscape.shape(pts, "distance", min_gap=0.002)
     assert flat["flat"] and flat["argmin_d"] is None and flat["basin_d"] == [-1.0, 0.0, 1.0]
     sharp = landscape.shape(pts, "distance", min_gap=0.0008)
     assert not sharp["flat"] and sharp["argmin_d"] == 0.0 and sharp["basin_d"] == [-1.0, 0.0]
-    # The policy sits at d = +0.8 (nearest grid point +1): one step towards the truth (d = 0) lowers the distance by 0.001.
+    # The policy sits at d = +0.8 (nearest grid point +1): one step towards the truth (d = 0) lowers
+    # the distance by 0.001.
     assert landscape.shape(pts, "distance", 0.002, policy_d=0.8)["slope_toward_truth"] == pytest.approx(0.001)
-    assert landscape.shape(pts, "distance", 0.002, policy_d=-1.2)["slope_toward_truth"] == pytest.approx(0.0005)
-    assert landscape.shape(pts, "distance", 0.002, policy_d=0.1)["slope_toward_truth"] is None  # already at the truth
-    failed = landscape.shape([landscape.LandscapePoint(0.0, 5.0, None, None, "", None, None, None, 0.1, "boom")], "distance", 0.002)
+    assert landscape.shape(pts, "distance", 0.002, policy_d=-1.2)["slope_toward_truth"] == pytest.approx(
+        0.0005
+    )
+    assert (
+        landscape.shape(pts, "distance", 0.002, policy_d=0.1)["slope_toward_truth"] is None
+    )  # already at the truth
+    failed = landscape.shape(
+        [landscape.LandscapePoint(0.0, 5.0, None, None, "", None, None, None, 0.1, "boom")], "distance", 0.002
+    )
     assert failed["argmin_d"] is None and failed["spread"] is None

@@ -15,7 +15,9 @@ from physgm.data.synth import SynthConfig, asset_id, generate
 def two_materials(tmp_path_factory) -> Path:
     """Glass (faint, translucent) and stone (opaque, grey) at 32 px: 2 test assets of each, the rest train."""
     root = tmp_path_factory.mktemp("probe") / "data"
-    cfg = SynthConfig(count=16, seed=0, resolution=32, gaussians=300, video_fraction=0.0, materials=["glass", "stone"])
+    cfg = SynthConfig(
+        count=16, seed=0, resolution=32, gaussians=300, video_fraction=0.0, materials=["glass", "stone"]
+    )
     summary = generate(cfg, root, workers=1, progress=False)
     assert summary["done"] == 16, summary["failures"]
     by_material: dict[str, list[str]] = {}
@@ -39,14 +41,16 @@ def test_probe_separates_materials_that_look_different(two_materials):
 
 
 def test_probe_tests_on_another_folder(two_materials, tmp_path):
-    """--test-data takes the test split from a second folder (a larger set tested on the smaller one's assets)."""
+    """--test-data takes the test split from a second folder (a larger set tested on a smaller one's)."""
     other = tmp_path / "other"
     (other / "splits").mkdir(parents=True)
     test_ids = (two_materials / "splits" / "test.txt").read_text().split()[:2]
     for asset in test_ids:
         (other / asset).symlink_to(two_materials / asset)
     (other / "splits" / "test.txt").write_text("\n".join(test_ids) + "\n")
-    report = material_probe.main(["--data", str(two_materials), "--test-data", str(other), "--seconds", "2", "--batch", "8"])
+    report = material_probe.main(
+        ["--data", str(two_materials), "--test-data", str(other), "--seconds", "2", "--batch", "8"]
+    )
     assert report["test_data"] == str(other) and report["test_assets"] == 2, report
     assert report["data"] == str(two_materials), report
 

@@ -30,7 +30,11 @@ def test_cache_is_reused_and_rebuilt_when_its_key_changes(tiny_copy):
     assert build_feature_cache(tiny_copy, key, encoder=enc, log=lambda *_: None) == folder
     assert CountingEncoder.calls == n  # nothing recomputed
     assert stamp == {p.name: p.stat().st_mtime_ns for p in folder.glob("*.npz")}
-    for other in (mobilenet_key(32, 1.0), mobilenet_key(64, 0.5), key.__class__(**{**key.__dict__, "weights_sha256": "0" * 64})):
+    for other in (
+        mobilenet_key(32, 1.0),
+        mobilenet_key(64, 0.5),
+        key.__class__(**{**key.__dict__, "weights_sha256": "0" * 64}),
+    ):
         assert cache_dir(tiny_copy, other) != folder
         build_feature_cache(tiny_copy, other, encoder=enc, log=lambda *_: None)
     assert CountingEncoder.calls == 4 * n
@@ -38,7 +42,9 @@ def test_cache_is_reused_and_rebuilt_when_its_key_changes(tiny_copy):
 
 def test_cached_features_are_the_encoder_outputs(tiny_copy):
     enc = MobileNetEncoder()
-    store = FeatureStore(build_feature_cache(tiny_copy, mobilenet_key(64, 1.0), encoder=enc, log=lambda *_: None))
+    store = FeatureStore(
+        build_feature_cache(tiny_copy, mobilenet_key(64, 1.0), encoder=enc, log=lambda *_: None)
+    )
     aid = read_split(tiny_copy, "train")[0]
     asset = load_asset(tiny_copy / aid)
     views = ring_views(asset.cameras.c2w, 0.0)[:3]
@@ -53,7 +59,11 @@ def test_cached_features_are_the_encoder_outputs(tiny_copy):
 
 def test_datamodule_batches_carry_cached_features(tiny_copy):
     dm = PhysAssetsDataModule(
-        str(tiny_copy), batch_size=2, input_resolution=64, target_resolution=32, feature_cache="mobilenet_v2",
+        str(tiny_copy),
+        batch_size=2,
+        input_resolution=64,
+        target_resolution=32,
+        feature_cache="mobilenet_v2",
         val_split="train",  # the tiny set's val split may be empty
     )
     dm.setup("fit")

@@ -76,7 +76,8 @@ def test_mjcf_places_geoms_by_body_and_geom_frames(tmp_path):
     parts = mjcf.assemble(tmp_path / "m.xml", mjcf.Assets())
     assert [p.name for p in parts] == ["box", "cylinder"]  # the copy and the group-4 geom are left out
     box = parts[0].triangles.reshape(-1, 3)
-    # pos (.5, 0, 0) turned 90 degrees about z lands at (0, .5, 0), plus the body's (1, 0, 0); x and y swap extents
+    # pos (.5, 0, 0) turned 90 degrees about z lands at (0, .5, 0), plus the body's (1, 0, 0);
+    # x and y swap extents
     np.testing.assert_allclose(box.min(0), [0.8, 0.4, -0.3], atol=1e-9)
     np.testing.assert_allclose(box.max(0), [1.2, 0.6, 0.3], atol=1e-9)
     cyl = parts[1].triangles.reshape(-1, 3)

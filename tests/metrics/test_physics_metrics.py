@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from physgm.metrics.physics import PhysicsMetrics
+from physgm.metrics.physics_metrics import PhysicsMetrics
 from physgm.model.posterior import LOG10_E_RANGE, PhysicsPosterior, normalise_log10_E, normalise_nu
 
 
@@ -20,14 +20,27 @@ def posterior(logits, log10_E, E_std_decades, nu, nu_std) -> PhysicsPosterior:
 
 def test_accuracy_errors_and_confusion_by_hand():
     m = PhysicsMetrics(num_materials=3)
-    post = posterior([[5.0, 0, 0], [0, 5.0, 0], [0, 0, 5.0], [5.0, 0, 0]], [5.0, 6.0, 7.0, 8.0], [1.0] * 4, [0.3] * 4, [0.05] * 4)
-    m.update(post, torch.tensor([0, 1, 1, 0]), torch.tensor([5.5, 6.0, 9.0, 8.2]), torch.tensor([0.3, 0.4, 0.3, 0.2]))
+    post = posterior(
+        [[5.0, 0, 0], [0, 5.0, 0], [0, 0, 5.0], [5.0, 0, 0]],
+        [5.0, 6.0, 7.0, 8.0],
+        [1.0] * 4,
+        [0.3] * 4,
+        [0.05] * 4,
+    )
+    m.update(
+        post,
+        torch.tensor([0, 1, 1, 0]),
+        torch.tensor([5.5, 6.0, 9.0, 8.2]),
+        torch.tensor([0.3, 0.4, 0.3, 0.2]),
+    )
     out = m.compute()
     assert out["material_acc"].item() == pytest.approx(0.75)
     assert out["abs_log10E_mean"].item() == pytest.approx((0.5 + 0 + 2 + 0.2) / 4, abs=1e-5)
     # 2.0 decades off with std 1: outside 1.645 std; the others are inside.
     assert out["coverage90_E"].item() == pytest.approx(0.75)
-    assert out["coverage90_nu"].item() == pytest.approx(0.5)  # errors 0, 0.1, 0, 0.1 against a half-width of 0.082
+    assert out["coverage90_nu"].item() == pytest.approx(
+        0.5
+    )  # errors 0, 0.1, 0, 0.1 against a half-width of 0.082
     assert out["confusion"].tolist() == [[2, 0, 0], [0, 1, 1], [0, 0, 0]]
 
 
@@ -36,7 +49,9 @@ def test_coverage_of_calibrated_gaussian_is_ninety_percent():
     n = 20000
     mean_E = torch.rand(n, generator=g) * 6 + 4
     true_E = mean_E + 0.7 * torch.randn(n, generator=g)
-    post = posterior(torch.zeros(n, 2), mean_E, torch.full((n,), 0.7), torch.full((n,), 0.25), torch.full((n,), 0.05))
+    post = posterior(
+        torch.zeros(n, 2), mean_E, torch.full((n,), 0.7), torch.full((n,), 0.25), torch.full((n,), 0.05)
+    )
     m = PhysicsMetrics(num_materials=2)
     m.update(post, torch.zeros(n, dtype=torch.long), true_E, 0.25 + 0.05 * torch.randn(n, generator=g))
     out = m.compute()

@@ -12,7 +12,9 @@ def drop_tracks(t_frames=40, land=12, bounce=0.3, height=1.0, q=30, seed=0) -> n
     t = np.arange(t_frames, dtype=np.float64)
     fall = np.minimum(t, land) ** 2 / land**2 * height  # reaches `height` at the landing frame
     after = np.clip(t - land, 0, None)
-    hop = bounce * np.abs(np.sin(np.pi * after / 8)) * np.exp(-after / 10)  # goes up (smaller y) after landing
+    hop = (
+        bounce * np.abs(np.sin(np.pi * after / 8)) * np.exp(-after / 10)
+    )  # goes up (smaller y) after landing
     y = fall - hop
     return base[None] + np.stack([np.zeros_like(y), y], -1)[:, None]
 
@@ -30,11 +32,15 @@ def test_landing_frame_found():
     assert landing_frame(normalised(resting).xy, np.ones(resting.shape[:2], bool)) == 0
 
 
-@pytest.mark.parametrize("scale,offset,land_shift", [(1.0, (0, 0), 0), (2.5, (40, -13), 0), (0.6, (7, 90), 5), (1.7, (-3, 4), -4)])
+@pytest.mark.parametrize(
+    "scale,offset,land_shift", [(1.0, (0, 0), 0), (2.5, (40, -13), 0), (0.6, (7, 90), 5), (1.7, (-3, 4), -4)]
+)
 def test_metric_recovers_scale_offset_and_landing_shift(scale, offset, land_shift):
     ref = drop_tracks(land=12) * 30 + 5
     # Same physics seen bigger, elsewhere in the image, and landing later or earlier.
-    cand = drop_tracks(land=12 + land_shift, height=(12 + land_shift) ** 2 / 144) * 30 * scale + np.array(offset)
+    cand = drop_tracks(land=12 + land_shift, height=(12 + land_shift) ** 2 / 144) * 30 * scale + np.array(
+        offset
+    )
     s = score_tracks(normalised(ref), normalised(cand))
     assert (s.landing_reference, s.landing_candidate) == (12, 12 + land_shift)
     assert s.distance < 1e-5

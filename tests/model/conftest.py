@@ -17,8 +17,18 @@ from physgm.model import BackboneConfig, EncoderConfig, GaussianHeadConfig, Phys
 def small_config(**head) -> PhysGMConfig:
     """Smaller than the tiny default so that tests stay fast; same code paths."""
     encoder = EncoderConfig(img_size=32, patch_size=8, embed_dim=64, depth=1, num_heads=2)
-    backbone = BackboneConfig(encoder=encoder, width=64, depth=4, head_dim=32, camera_dim=16, camera_hidden=32, out_layers=(0, 1, 2, 3))
-    gaussian_head = replace(GaussianHeadConfig(features=16, layer_channels=(16, 16, 32, 32), hidden=16), **head)
+    backbone = BackboneConfig(
+        encoder=encoder,
+        width=64,
+        depth=4,
+        head_dim=32,
+        camera_dim=16,
+        camera_hidden=32,
+        out_layers=(0, 1, 2, 3),
+    )
+    gaussian_head = replace(
+        GaussianHeadConfig(features=16, layer_channels=(16, 16, 32, 32), hidden=16), **head
+    )
     return PhysGMConfig(backbone=backbone, gaussian_head=gaussian_head)
 
 

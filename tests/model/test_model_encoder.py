@@ -11,7 +11,15 @@ import torch
 from physgm.model import EncoderConfig, PhysGM
 from physgm.model.encoder import build_encoder
 
-DINO_S = EncoderConfig(kind="dinov3", arch="vit_small_patch16_dinov3", img_size=32, patch_size=16, embed_dim=384, depth=12, freeze=True)
+DINO_S = EncoderConfig(
+    kind="dinov3",
+    arch="vit_small_patch16_dinov3",
+    img_size=32,
+    patch_size=16,
+    embed_dim=384,
+    depth=12,
+    freeze=True,
+)
 
 
 @pytest.fixture(autouse=True)
@@ -80,7 +88,11 @@ def test_dinov3_meta_layout_is_converted(tmp_path, dinov3_small_state):
     """Meta's release names registers storage_tokens and layer scales ls1.gamma / ls2.gamma."""
     meta = {}
     for key, value in dinov3_small_state.items():
-        key = key.replace("reg_token", "storage_tokens").replace("gamma_1", "ls1.gamma").replace("gamma_2", "ls2.gamma")
+        key = (
+            key.replace("reg_token", "storage_tokens")
+            .replace("gamma_1", "ls1.gamma")
+            .replace("gamma_2", "ls2.gamma")
+        )
         meta[key] = value
     meta["mask_token"] = torch.zeros(1, 384)  # pretraining-only entry, dropped on load
     assert "storage_tokens" in meta and "blocks.0.ls1.gamma" in meta

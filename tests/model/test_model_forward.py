@@ -26,7 +26,14 @@ def test_shapes_finite_and_mask_count(small_config, make_batch, views):
     with torch.no_grad():
         out = run(model, batch)
     g, n = out.gaussians, views * 32 * 48
-    shapes = {"means": (2, n, 3), "quats": (2, n, 4), "scales": (2, n, 3), "opacities": (2, n), "colors": (2, n, 3), "depths": (2, n)}
+    shapes = {
+        "means": (2, n, 3),
+        "quats": (2, n, 4),
+        "scales": (2, n, 3),
+        "opacities": (2, n),
+        "colors": (2, n, 3),
+        "depths": (2, n),
+    }
     for name, shape in shapes.items():
         value = getattr(g, name)
         assert tuple(value.shape) == shape, name
@@ -87,7 +94,9 @@ def test_centre_depth_prior_starts_at_the_object_centre_and_reaches_scene_radius
     # rays from the camera towards points within 0.3 of the origin
     directions = torch.nn.functional.normalize(0.3 * torch.randn(n, 3, generator=gen) - origins, dim=-1)
     rgb = torch.rand(n, 3, generator=gen)
-    cfg = replace(GaussianHeadConfig(), depth_prior="centre", scene_radius=0.4, max_offset=0.0, near=0.001, far=2.0)
+    cfg = replace(
+        GaussianHeadConfig(), depth_prior="centre", scene_radius=0.4, max_offset=0.0, near=0.001, far=2.0
+    )
     act = GaussianActivations(cfg)
 
     def depths(value: float) -> torch.Tensor:
@@ -118,8 +127,12 @@ def test_view_permutation_and_batch_independence(small_config, make_batch):
         out_first = run(model, {k: v[:1] for k, v in batch.items()})
     # No view-index embedding: permuting views permutes the Gaussians and keeps the physics.
     means = out.gaussians.means.reshape(2, 3, -1, 3)
-    torch.testing.assert_close(out_perm.gaussians.means.reshape(2, 3, -1, 3), means[:, perm], atol=1e-5, rtol=1e-5)
-    torch.testing.assert_close(out_perm.physics.material_logits, out.physics.material_logits, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(
+        out_perm.gaussians.means.reshape(2, 3, -1, 3), means[:, perm], atol=1e-5, rtol=1e-5
+    )
+    torch.testing.assert_close(
+        out_perm.physics.material_logits, out.physics.material_logits, atol=1e-5, rtol=1e-5
+    )
     # Scenes in a batch do not see each other.
     torch.testing.assert_close(out_first.gaussians.means, out.gaussians.means[:1], atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(out_first.physics.z_E_mean, out.physics.z_E_mean[:1], atol=1e-5, rtol=1e-5)
@@ -134,7 +147,11 @@ def test_every_parameter_gets_gradient_and_split_is_a_partition(small_config, ma
     out = run(model, make_batch(1, 2, 16, 16))
     g, p = out.gaussians, out.physics
     loss = sum(t.square().mean() for t in (g.means, g.quats, g.scales, g.opacities, g.colors))
-    loss = loss + p.material_logits.square().mean() + (p.z_E_mean + p.z_E_logvar + p.z_nu_mean + p.z_nu_logvar).sum()
+    loss = (
+        loss
+        + p.material_logits.square().mean()
+        + (p.z_E_mean + p.z_E_logvar + p.z_nu_mean + p.z_nu_logvar).sum()
+    )
     loss.backward()
     dead = [n for n, q in model.named_parameters() if q.grad is None or not torch.isfinite(q.grad).all()]
     assert not dead
@@ -186,7 +203,13 @@ def test_hydra_configs_map_onto_dataclass(name):
         assert config == PhysGMConfig()  # the dataclass defaults are the tiny YAML model
     if name == "physgm_paper":
         b = config.backbone
-        assert (b.depth, b.width, b.head_dim, b.encoder.kind, b.encoder.patch_size) == (24, 1024, 64, "dinov3", 16)
+        assert (b.depth, b.width, b.head_dim, b.encoder.kind, b.encoder.patch_size) == (
+            24,
+            1024,
+            64,
+            "dinov3",
+            16,
+        )
     if config.backbone.encoder.kind == "vit":
         from hydra.utils import instantiate
 

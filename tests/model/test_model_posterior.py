@@ -46,8 +46,12 @@ def test_log_prob_matches_torch_distributions():
     post = make_posterior()
     sample = PhysicsSample(
         material=torch.tensor([[0, 3, 14, 7], [1, 1, 2, 9], [13, 0, 5, 5]]),
-        log10_E=torch.tensor([[3.5, 6.0, 9.0, 11.0], [4.0, 7.0, 7.5, 10.0], [5.0, 5.5, 8.0, 12.5]], dtype=torch.float64),
-        nu=torch.tensor([[0.1, 0.2, 0.3, 0.45], [0.0, 0.25, 0.33, 0.4], [0.49, 0.05, 0.15, 0.6]], dtype=torch.float64),
+        log10_E=torch.tensor(
+            [[3.5, 6.0, 9.0, 11.0], [4.0, 7.0, 7.5, 10.0], [5.0, 5.5, 8.0, 12.5]], dtype=torch.float64
+        ),
+        nu=torch.tensor(
+            [[0.1, 0.2, 0.3, 0.45], [0.0, 0.25, 0.33, 0.4], [0.49, 0.05, 0.15, 0.6]], dtype=torch.float64
+        ),
     )
     cat = Categorical(logits=post.material_logits[:, None, :])
     e_dist = Normal(post.z_E_mean[:, None], torch.exp(0.5 * post.z_E_logvar)[:, None])
@@ -94,10 +98,14 @@ def test_sample_statistics_match_mean_and_variance():
     # 5 binomial standard errors (plus a floor for tiny probabilities).
     assert ((freq - probs).abs() <= 5 * (probs * (1 - probs) / k).sqrt() + 1e-3).all()
     std_E = post.log10_E_std
-    torch.testing.assert_close(s.log10_E.mean(1), post.log10_E_mean, atol=float(5 * std_E.max() / math.sqrt(k)), rtol=0)
+    torch.testing.assert_close(
+        s.log10_E.mean(1), post.log10_E_mean, atol=float(5 * std_E.max() / math.sqrt(k)), rtol=0
+    )
     torch.testing.assert_close(s.log10_E.std(1), std_E, rtol=0.03, atol=0)
     std_nu = post.nu_std
-    torch.testing.assert_close(s.nu.mean(1), post.nu_mean, atol=float(5 * std_nu.max() / math.sqrt(k)), rtol=0)
+    torch.testing.assert_close(
+        s.nu.mean(1), post.nu_mean, atol=float(5 * std_nu.max() / math.sqrt(k)), rtol=0
+    )
     torch.testing.assert_close(s.nu.std(1), std_nu, rtol=0.03, atol=0)
     # Half-range of log10 E is 4.35 decades: std = exp(logvar / 2) * 4.35.
     torch.testing.assert_close(std_E, torch.exp(0.5 * post.z_E_logvar) * 4.35)
@@ -108,7 +116,9 @@ def test_sampling_is_reproducible_with_a_generator():
     a = post.sample(8, torch.Generator().manual_seed(7))
     b = post.sample(8, torch.Generator().manual_seed(7))
     c = post.sample(8, torch.Generator().manual_seed(8))
-    assert torch.equal(a.material, b.material) and torch.equal(a.log10_E, b.log10_E) and torch.equal(a.nu, b.nu)
+    assert (
+        torch.equal(a.material, b.material) and torch.equal(a.log10_E, b.log10_E) and torch.equal(a.nu, b.nu)
+    )
     assert not torch.equal(a.log10_E, c.log10_E)
 
 
@@ -124,7 +134,9 @@ def test_mean_and_physical_conversions():
         log10_E=torch.tensor([[2.0, 6.0, 9.5, 13.0]]),
         nu=torch.tensor([[-0.1, 0.3, 0.499, 0.7]]),
     )
-    torch.testing.assert_close(s.youngs_modulus(), torch.tensor([[1e3, 1e6, 10**9.5, 10**11.7]]), rtol=1e-5, atol=0)
+    torch.testing.assert_close(
+        s.youngs_modulus(), torch.tensor([[1e3, 1e6, 10**9.5, 10**11.7]]), rtol=1e-5, atol=0
+    )
     torch.testing.assert_close(s.poisson_ratio(), torch.tensor([[0.0, 0.3, NU_MAX, NU_MAX]]))
     assert (s.poisson_ratio() < 0.5).all()
 

@@ -19,8 +19,15 @@ def tiny_model_config():
     from physgm.model import BackboneConfig, EncoderConfig, GaussianHeadConfig, PhysGMConfig
 
     encoder = EncoderConfig(img_size=32, patch_size=8, embed_dim=64, depth=1, num_heads=2)
-    backbone = BackboneConfig(encoder=encoder, width=64, depth=4, head_dim=32, camera_dim=16, camera_hidden=32,
-                              out_layers=(0, 1, 2, 3))  # fmt: skip
+    backbone = BackboneConfig(
+        encoder=encoder,
+        width=64,
+        depth=4,
+        head_dim=32,
+        camera_dim=16,
+        camera_hidden=32,
+        out_layers=(0, 1, 2, 3),
+    )
     return PhysGMConfig(
         backbone=backbone,
         gaussian_head=GaussianHeadConfig(features=16, layer_channels=(16, 16, 32, 32), hidden=16),
@@ -46,12 +53,16 @@ def tiny_ckpt(tmp_path_factory) -> Path:
 
 @pytest.fixture
 def make_cfg(tiny_ckpt, tmp_path):
-    """RunConfig with tiny output settings; keyword arguments replace fields (``output__frames`` for nested ones)."""
+    """RunConfig with tiny output settings; keyword arguments replace fields (``output__frames``: nested)."""
     from physgm.pipeline.config import OutputSettings, RunConfig
 
     def make(input, **kw):
-        cfg = RunConfig(input=Path(input), output_dir=tmp_path / "run", ckpt=tiny_ckpt,
-                        output=OutputSettings(resolution=32, frames=6, keyframes=3, progress=False))  # fmt: skip
+        cfg = RunConfig(
+            input=Path(input),
+            output_dir=tmp_path / "run",
+            ckpt=tiny_ckpt,
+            output=OutputSettings(resolution=32, frames=6, keyframes=3, progress=False),
+        )
         for key, value in kw.items():
             *parents, name = key.split("__")
             obj = cfg
@@ -76,8 +87,13 @@ def blob_ply(tmp_path) -> Path:
     means = x * torch.tensor([0.3, 0.2, 0.15]) + torch.tensor(
         [5.0, -2.0, 1.0]
     )  # off-centre, like a real capture
-    g = Gaussians(means, torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), torch.full((n, 3), 0.03),
-                  torch.full((n,), 0.9), torch.rand(n, 3, generator=gen))  # fmt: skip
+    g = Gaussians(
+        means,
+        torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+        torch.full((n, 3), 0.03),
+        torch.full((n,), 0.9),
+        torch.rand(n, 3, generator=gen),
+    )
     path = tmp_path / "blob.ply"
     write_ply(g, path)
     return path

@@ -93,8 +93,14 @@ def test_photo_segmentation_overrides_and_stretch(make_cfg):
     runs across the line of sight (world y for the canonical camera on the +x axis)."""
     from physgm.gaussians import read_ply
 
-    cfg = make_cfg(EXAMPLES / "rubber_blob_plain.jpg", scene="stretch", physics__material="jelly", physics__E=2e5,
-                   physics__nu=0.4, output__frame_plys=True)  # fmt: skip
+    cfg = make_cfg(
+        EXAMPLES / "rubber_blob_plain.jpg",
+        scene="stretch",
+        physics__material="jelly",
+        physics__E=2e5,
+        physics__nu=0.4,
+        output__frame_plys=True,
+    )
     report = execute(cfg)
     check_run_folder(cfg.output_dir, report)
     assert report["input"]["mask_source"] == "segmentation"

@@ -181,16 +181,16 @@ def test_failure_mid_run_leaves_nothing(tmp_path, make_cfg, examples, monkeypatc
 
 
 def test_non_finite_simulation_writes_nothing(tmp_path, make_cfg, examples, monkeypatch):
-    import physgm.pipeline.render as pipeline_render
+    import physgm.pipeline.frames as pipeline_frames
     from physgm.pipeline import execute
 
-    real = pipeline_render.render_trajectory
+    real = pipeline_frames.render_trajectory
 
     def poisoned(traj, *args, **kwargs):
         traj.x[-1, 0, 0] = float("nan")  # as if the solver had diverged
         return real(traj, *args, **kwargs)
 
-    monkeypatch.setattr(pipeline_render, "render_trajectory", poisoned)
+    monkeypatch.setattr(pipeline_frames, "render_trajectory", poisoned)
     cfg = make_cfg(examples / "metal_can.png", physics__material="rubber")
     with pytest.raises(RuntimeError, match="non-finite"):
         execute(cfg)
@@ -207,16 +207,24 @@ def test_cli(tmp_path, blob_ply):
         "output.frames=4",
         "output.progress=false",
     ]
-    bad = subprocess.run([*base, f"input={tmp_path / 'missing.jpg'}", f"paths.output_dir={out}"],
-                         capture_output=True, text=True, timeout=300)  # fmt: skip
+    bad = subprocess.run(
+        [*base, f"input={tmp_path / 'missing.jpg'}", f"paths.output_dir={out}"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert bad.returncode == 2
     assert (
         bad.stderr.strip().splitlines()[-1].startswith("error: input not found")
         and "Traceback" not in bad.stderr
     )
     assert not out.exists()
-    good = subprocess.run([*base, f"input={blob_ply}", "physics.material=metal", "scene=push", f"paths.output_dir={out}"],
-                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    good = subprocess.run(
+        [*base, f"input={blob_ply}", "physics.material=metal", "scene=push", f"paths.output_dir={out}"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert good.returncode == 0, good.stderr[-2000:]
     assert {"video.mp4", "report.json", "physics.json", "contact_sheet.png", "gaussians.ply"} <= {
         p.name for p in out.iterdir()

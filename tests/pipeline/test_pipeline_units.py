@@ -16,7 +16,7 @@ def test_training_fill_matches_the_synthetic_renders(tiny_dataset):
     """The photo framing constant is the median fill of the canonical view in synthetic assets."""
     from PIL import Image
 
-    from physgm.pipeline.inputs import TRAINING_FILL
+    from physgm.pipeline.prepared_input import TRAINING_FILL
 
     fills = []
     for asset in sorted(p for p in tiny_dataset.iterdir() if (p / "rgba").is_dir()):
@@ -31,7 +31,7 @@ def test_training_fill_matches_the_synthetic_renders(tiny_dataset):
 def test_photo_input_uses_the_canonical_camera(examples):
     from physgm.cameras import orbit_cameras
     from physgm.data.format import CAMERA_RADIUS, FOV_DEG
-    from physgm.pipeline.inputs import TRAINING_FILL, prepare_input
+    from physgm.pipeline.prepared_input import TRAINING_FILL, prepare_input
 
     inp = prepare_input(examples / "metal_can.png", 64)
     ref = orbit_cameras([0.0], [0.0], CAMERA_RADIUS, FOV_DEG, 64, 64)
@@ -67,8 +67,13 @@ def test_framing_camera_fits_the_box(az, el, margin):
     # The tightest corner sits exactly on the 1 / margin frame, none outside it.
     assert float(torch.maximum(u, v).max()) == pytest.approx(1.0 / margin, abs=1e-5)
     centre = cam.c2w[0, :3, 3].double().numpy() - (lo + hi) / 2
-    ref = np.array([math.cos(math.radians(el)) * math.cos(math.radians(az)),
-                    math.cos(math.radians(el)) * math.sin(math.radians(az)), math.sin(math.radians(el))])  # fmt: skip
+    ref = np.array(
+        [
+            math.cos(math.radians(el)) * math.cos(math.radians(az)),
+            math.cos(math.radians(el)) * math.sin(math.radians(az)),
+            math.sin(math.radians(el)),
+        ]
+    )
     np.testing.assert_allclose(centre / np.linalg.norm(centre), ref, atol=1e-5)
 
 
@@ -128,8 +133,13 @@ def _posterior(material: str, log10_E: float, nu: float):
 
     logits = torch.zeros(1, len(MATERIAL_NAMES))
     logits[0, MATERIAL_NAMES.index(material)] = 3.0
-    return PhysicsPosterior(logits, normalise_log10_E(torch.tensor([log10_E])), torch.tensor([-4.0]),
-                            normalise_nu(torch.tensor([nu])), torch.tensor([-6.0]))  # fmt: skip
+    return PhysicsPosterior(
+        logits,
+        normalise_log10_E(torch.tensor([log10_E])),
+        torch.tensor([-4.0]),
+        normalise_nu(torch.tensor([nu])),
+        torch.tensor([-6.0]),
+    )
 
 
 def test_physics_choice_rules():
@@ -137,8 +147,8 @@ def test_physics_choice_rules():
     from physgm.physics.materials import get_material
     from physgm.pipeline import UserError
     from physgm.pipeline.config import PhysicsOverrides
-    from physgm.pipeline.physics import NU_MAX as PIPELINE_NU_MAX
-    from physgm.pipeline.physics import choose_physics
+    from physgm.pipeline.physics_choice import NU_MAX as PIPELINE_NU_MAX
+    from physgm.pipeline.physics_choice import choose_physics
 
     assert PIPELINE_NU_MAX == NU_MAX
     post = _posterior("rubber", 6.0, 0.45)
@@ -153,7 +163,7 @@ def test_physics_choice_rules():
     metal = get_material("metal")
     (m,) = choose_physics(post, PhysicsOverrides(material="metal"), seed=0)
     assert m.material == "metal" and m.E == pytest.approx(metal.E_range[0]) and "projected" in m.why["E"]
-    # So does a predicted material: a "plastic" predicted with a rubber's E is simulated at plastic's lowest E.
+    # So does a predicted material: a "plastic" predicted with a rubber's E runs at plastic's lowest E.
     plastic = get_material("plastic")
     (p,) = choose_physics(_posterior("plastic", 6.9, 0.35), PhysicsOverrides(), seed=0)
     assert p.E == pytest.approx(plastic.E_range[0]) and "projected onto the plastic range" in p.why["E"]
@@ -178,7 +188,7 @@ def test_physics_choice_rules():
 
 
 def test_checkpoint_layout_is_lightnings(tmp_path, tiny_config):
-    """save_checkpoint writes what LitPretrain.load_from_checkpoint reads, and load_model gives the same net."""
+    """save_checkpoint writes what LitPretrain.load_from_checkpoint reads; load_model gives the same net."""
     from physgm.model import PhysGM
     from physgm.pipeline.checkpoint import load_model, save_checkpoint
     from physgm.train.pretrain import LitPretrain, model_from_checkpoint
@@ -220,8 +230,8 @@ def test_run_folder_commit(tmp_path):
 
 def test_keyframes_and_ply_up_axis():
     from physgm.gaussians import Gaussians
-    from physgm.pipeline.inputs import UP_ROTATIONS, rotate_gaussians
     from physgm.pipeline.outputs import keyframe_indices
+    from physgm.pipeline.prepared_input import UP_ROTATIONS, rotate_gaussians
 
     assert keyframe_indices(50, 5) == [0, 12, 24, 37, 49]
     assert keyframe_indices(3, 5) == [0, 1, 2]

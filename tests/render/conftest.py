@@ -61,16 +61,20 @@ def random_gaussians(n: int, seed: int, radius: float = 0.5, scale=(0.01, 0.06))
     }
 
 
-def orbit_cameras(num: int, width: int, height: int, distance: float = 2.0, focal: float = 40.0,
-                  seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+def orbit_cameras(
+    num: int, width: int, height: int, distance: float = 2.0, focal: float = 40.0, seed: int = 0
+) -> tuple[torch.Tensor, torch.Tensor]:
     """`num` cameras at `distance` from the origin looking at it: viewmats [C,4,4], Ks [C,3,3]."""
     gen = torch.Generator().manual_seed(seed + 1000)
     views = []
     for i in range(num):
         az = 2 * math.pi * i / max(num, 1) + 0.3 * float(torch.rand(1, generator=gen))
         el = 0.5 * (float(torch.rand(1, generator=gen)) - 0.5)
-        eye = (distance * math.cos(el) * math.cos(az), distance * math.cos(el) * math.sin(az),
-               distance * math.sin(el))  # fmt: skip
+        eye = (
+            distance * math.cos(el) * math.cos(az),
+            distance * math.cos(el) * math.sin(az),
+            distance * math.sin(el),
+        )
         views.append(look_at(eye))
     K = intrinsics(focal, width, height)
     return torch.stack(views), K.expand(num, 3, 3).clone()
@@ -80,8 +84,11 @@ def to(scene: dict, dtype=torch.float32, requires_grad: bool = False) -> dict:
     """Copies every tensor of a scene to `dtype` as fresh leaves."""
     out = {}
     for key, value in scene.items():
-        out[key] = value.to(dtype).clone().requires_grad_(requires_grad and key in GRAD_KEYS) \
-            if isinstance(value, torch.Tensor) else value  # fmt: skip
+        out[key] = (
+            value.to(dtype).clone().requires_grad_(requires_grad and key in GRAD_KEYS)
+            if isinstance(value, torch.Tensor)
+            else value
+        )
     return out
 
 
@@ -93,12 +100,17 @@ def scene():
     """A 300-Gaussian object seen by 3 cameras at 40 x 32 px (float64 master copy)."""
     width, height = 40, 32
     viewmats, Ks = orbit_cameras(3, width, height)
-    return {**random_gaussians(300, seed=0), "viewmats": viewmats, "Ks": Ks,
-            "width": width, "height": height}  # fmt: skip
+    return {**random_gaussians(300, seed=0), "viewmats": viewmats, "Ks": Ks, "width": width, "height": height}
 
 
 @pytest.fixture
 def kit():
     """Scene helpers: look_at, intrinsics, random_gaussians, orbit_cameras, to, GRAD_KEYS."""
-    return SimpleNamespace(look_at=look_at, intrinsics=intrinsics, random_gaussians=random_gaussians,
-                           orbit_cameras=orbit_cameras, to=to, GRAD_KEYS=GRAD_KEYS)  # fmt: skip
+    return SimpleNamespace(
+        look_at=look_at,
+        intrinsics=intrinsics,
+        random_gaussians=random_gaussians,
+        orbit_cameras=orbit_cameras,
+        to=to,
+        GRAD_KEYS=GRAD_KEYS,
+    )

@@ -63,11 +63,14 @@ def test_single_gaussian_matches_closed_form(backend, scale, opacity, mean2d, si
     x = (mean2d[0] - width / 2) * depth / focal
     y = (mean2d[1] - height / 2) * depth / focal
     gauss = one_gaussian((x, y, depth), scale, opacity)
-    rgb, alpha, meta = rasterize(**gauss, viewmats=viewmats, Ks=Ks, width=width, height=height,
-                                 backend=backend)  # fmt: skip
+    rgb, alpha, meta = rasterize(
+        **gauss, viewmats=viewmats, Ks=Ks, width=width, height=height, backend=backend
+    )
     # off-axis the Jacobian adds a small anisotropy; compute the exact 2D covariance here
-    J = torch.tensor([[focal / depth, 0.0, -focal * x / depth**2],
-                      [0.0, focal / depth, -focal * y / depth**2]], dtype=torch.float64)  # fmt: skip
+    J = torch.tensor(
+        [[focal / depth, 0.0, -focal * x / depth**2], [0.0, focal / depth, -focal * y / depth**2]],
+        dtype=torch.float64,
+    )
     cov = scale**2 * J @ J.T + EPS2D * torch.eye(2, dtype=torch.float64)
     if abs(cov[0, 1]) < 1e-9 and abs(cov[0, 0] - cov[1, 1]) < 1e-9:
         want = expected_alpha(width, height, mean2d, float(cov[0, 0]), opacity)
@@ -79,8 +82,9 @@ def test_single_gaussian_matches_closed_form(backend, scale, opacity, mean2d, si
         want = torch.where(want < 1 / 255, torch.zeros_like(want), want)
     assert want.max() > 0  # the test really draws something
     torch.testing.assert_close(alpha[0, :, :, 0].double(), want, atol=2e-6, rtol=1e-4)
-    torch.testing.assert_close(rgb[0].double(), want[..., None] * gauss["colors"][0].double(),
-                               atol=2e-6, rtol=1e-4)  # fmt: skip
+    torch.testing.assert_close(
+        rgb[0].double(), want[..., None] * gauss["colors"][0].double(), atol=2e-6, rtol=1e-4
+    )
     assert int(meta["n_visible"][0]) == 1
     if opacity == 1.0:
         assert float(alpha.max()) == pytest.approx(0.99, abs=1e-7)
@@ -93,12 +97,18 @@ def test_depth_order_and_early_stop(backend):
     depths = torch.tensor([2.3, 2.0, 2.2, 2.1])  # unsorted on purpose
     colors = torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
     means = torch.stack([torch.zeros(4), torch.zeros(4), depths], -1)
-    gauss = dict(means=means, quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(4, 1),
-                 scales=torch.full((4, 3), 0.05), opacities=torch.full((4,), 0.95), colors=colors)  # fmt: skip
+    gauss = dict(
+        means=means,
+        quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(4, 1),
+        scales=torch.full((4, 3), 0.05),
+        opacities=torch.full((4,), 0.95),
+        colors=colors,
+    )
     viewmats, Ks = camera(40.0, cx=20.5, cy=16.5)  # centre pixel (20, 16) sits on the axis
     bg = torch.tensor([0.0, 1.0, 0.0])
-    rgb, alpha, _ = rasterize(**gauss, viewmats=viewmats, Ks=Ks, width=40, height=32,
-                              background=bg, backend=backend)  # fmt: skip
+    rgb, alpha, _ = rasterize(
+        **gauss, viewmats=viewmats, Ks=Ks, width=40, height=32, background=bg, backend=backend
+    )
     centre = rgb[0, 16, 20]
     t3 = 0.05**3
     assert float(alpha[0, 16, 20, 0]) == pytest.approx(1 - t3, abs=1e-6)
@@ -107,9 +117,13 @@ def test_depth_order_and_early_stop(backend):
     assert float(centre[2]) == 0.0  # the blue one behind was never composited
 
     # a red Gaussian in front of a blue one: rgb = a_r red + (1 - a_r) a_b blue at the centre
-    two = dict(means=torch.tensor([[0.0, 0.0, 2.5], [0.0, 0.0, 2.0]]),
-               quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(2, 1), scales=torch.full((2, 3), 0.05),
-               opacities=torch.tensor([0.7, 0.6]), colors=torch.tensor([[0.0, 0, 1], [1.0, 0, 0]]))  # fmt: skip
+    two = dict(
+        means=torch.tensor([[0.0, 0.0, 2.5], [0.0, 0.0, 2.0]]),
+        quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(2, 1),
+        scales=torch.full((2, 3), 0.05),
+        opacities=torch.tensor([0.7, 0.6]),
+        colors=torch.tensor([[0.0, 0, 1], [1.0, 0, 0]]),
+    )
     rgb, _, _ = rasterize(**two, viewmats=viewmats, Ks=Ks, width=40, height=32, backend=backend)
     torch.testing.assert_close(rgb[0, 16, 20], torch.tensor([0.6, 0.0, 0.4 * 0.7]), atol=1e-6, rtol=0)
 

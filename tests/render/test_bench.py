@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from physgm.bench import render as bench
+from physgm.bench import render_speed as bench
 
 
 def test_bench_scene_is_an_object_in_front_of_the_camera():

@@ -11,8 +11,17 @@ BACKENDS = ("warp", "torch")
 
 
 def args_of(s: dict) -> list:
-    return [s["means"], s["quats"], s["scales"], s["opacities"], s["colors"], s["viewmats"], s["Ks"],
-            s["width"], s["height"]]  # fmt: skip
+    return [
+        s["means"],
+        s["quats"],
+        s["scales"],
+        s["opacities"],
+        s["colors"],
+        s["viewmats"],
+        s["Ks"],
+        s["width"],
+        s["height"],
+    ]
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -33,14 +42,20 @@ def test_gaussians_behind_the_camera_give_the_background(backend, scene, kit):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_near_plane_culls_gaussians_closer_than_it(backend):
-    gauss = dict(means=torch.tensor([[0.0, 0.0, 0.3]]), quats=torch.tensor([[1.0, 0, 0, 0]]),
-                 scales=torch.full((1, 3), 0.01), opacities=torch.tensor([0.9]),
-                 colors=torch.ones(1, 3))  # fmt: skip
+    gauss = dict(
+        means=torch.tensor([[0.0, 0.0, 0.3]]),
+        quats=torch.tensor([[1.0, 0, 0, 0]]),
+        scales=torch.full((1, 3), 0.01),
+        opacities=torch.tensor([0.9]),
+        colors=torch.ones(1, 3),
+    )
     K = torch.tensor([[[30.0, 0.0, 16.0], [0.0, 30.0, 16.0], [0.0, 0.0, 1.0]]])
-    shown, _, _ = rasterize(**gauss, viewmats=torch.eye(4)[None], Ks=K, width=32, height=32,
-                            backend=backend, near_plane=0.2)  # fmt: skip
-    culled, _, meta = rasterize(**gauss, viewmats=torch.eye(4)[None], Ks=K, width=32, height=32,
-                                backend=backend, near_plane=0.5)  # fmt: skip
+    shown, _, _ = rasterize(
+        **gauss, viewmats=torch.eye(4)[None], Ks=K, width=32, height=32, backend=backend, near_plane=0.2
+    )
+    culled, _, meta = rasterize(
+        **gauss, viewmats=torch.eye(4)[None], Ks=K, width=32, height=32, backend=backend, near_plane=0.5
+    )
     assert shown.max() > 0.5
     assert not culled.any() and int(meta["n_visible"][0]) == 0
 
@@ -91,14 +106,22 @@ def test_batch_equals_a_loop_over_the_batch(backend, kit):
     viewmats = torch.stack([c[0] for c in cams]).float()  # [B, C, 4, 4]
     Ks = torch.stack([c[1] for c in cams]).float()
     bg = torch.rand(B, C, 3, generator=torch.Generator().manual_seed(1))
-    rgb, alpha, meta = rasterize(**stacked, viewmats=viewmats, Ks=Ks, width=width, height=height,
-                                 background=bg, backend=backend)  # fmt: skip
+    rgb, alpha, meta = rasterize(
+        **stacked, viewmats=viewmats, Ks=Ks, width=width, height=height, background=bg, backend=backend
+    )
     assert rgb.shape == (B, C, height, width, 3) and meta["radii"].shape == (B, C, 200, 2)
     rgb.square().sum().backward()
     for b in range(B):
         single = {k: gauss[b][k].clone().requires_grad_(True) for k in kit.GRAD_KEYS}
-        rgb_b, alpha_b, meta_b = rasterize(**single, viewmats=viewmats[b], Ks=Ks[b], width=width,
-                                           height=height, background=bg[b], backend=backend)  # fmt: skip
+        rgb_b, alpha_b, meta_b = rasterize(
+            **single,
+            viewmats=viewmats[b],
+            Ks=Ks[b],
+            width=width,
+            height=height,
+            background=bg[b],
+            backend=backend,
+        )
         rgb_b.square().sum().backward()
         torch.testing.assert_close(rgb[b], rgb_b, atol=1e-6, rtol=0)
         torch.testing.assert_close(alpha[b], alpha_b, atol=1e-6, rtol=0)

@@ -16,8 +16,14 @@ pytestmark = [
 def _render(s: dict, device: str, backend: str):
     keys = ("means", "quats", "scales", "opacities", "colors")
     params = {k: s[k].to(device).requires_grad_(True) for k in keys}
-    rgb, alpha, _ = rasterize(**params, viewmats=s["viewmats"].to(device), Ks=s["Ks"].to(device),
-                              width=s["width"], height=s["height"], backend=backend)  # fmt: skip
+    rgb, alpha, _ = rasterize(
+        **params,
+        viewmats=s["viewmats"].to(device),
+        Ks=s["Ks"].to(device),
+        width=s["width"],
+        height=s["height"],
+        backend=backend,
+    )
     (rgb.square().sum() + alpha.sum()).backward()
     return rgb.detach().cpu(), alpha.detach().cpu(), {k: p.grad.cpu() for k, p in params.items()}
 

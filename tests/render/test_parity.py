@@ -86,8 +86,9 @@ def test_a_loss_on_one_output_gets_the_twins_gradients(scene, kit, output):
         weights = torch.randn(out.shape, generator=torch.Generator().manual_seed(3))
         (out * weights).sum().backward()
         # alpha does not depend on the colours: the twin leaves their gradient None
-        grads[backend] = {k: torch.zeros_like(s[k]) if s[k].grad is None else s[k].grad
-                          for k in kit.GRAD_KEYS}  # fmt: skip
+        grads[backend] = {
+            k: torch.zeros_like(s[k]) if s[k].grad is None else s[k].grad for k in kit.GRAD_KEYS
+        }
     assert grads["torch"]["means"].abs().sum() > 0
     assert_grads_close(grads["warp"], grads["torch"])
 

@@ -49,8 +49,16 @@ def test_vjp_matches_warps_generated_adjoint(kit, focal):
     adj_outs = [wp.from_torch(v_means2d, dtype=wp.vec2), wp.from_torch(v_conics, dtype=wp.vec3)]
     adj_outs += [wp.zeros(pairs, dtype=float), wp.zeros(pairs, dtype=wp.vec2)]
     fresh = [wp.zeros(pairs, dtype=t) for t in (wp.vec2, wp.vec3, float, wp.vec2)]
-    wp.launch(K.project_kernel, pairs, inputs + scalars, outputs=fresh, adj_inputs=ref + [None] * 7,
-              adj_outputs=adj_outs, adjoint=True, device="cpu")  # fmt: skip
+    wp.launch(
+        K.project_kernel,
+        pairs,
+        inputs + scalars,
+        outputs=fresh,
+        adj_inputs=ref + [None] * 7,
+        adj_outputs=adj_outs,
+        adjoint=True,
+        device="cpu",
+    )
 
     got = [wp.zeros(num_n, dtype=t) for t in (wp.vec3, wp.vec4, wp.vec3)]
     wp.launch(K.project_vjp_kernel, pairs, [0] + inputs + scalars + adj_outs[:2] + got, device="cpu")

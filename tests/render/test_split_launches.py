@@ -10,7 +10,12 @@ from physgm.render import warp_backend
 from physgm.render.settings import RasterSettings
 from physgm.render.torch_backend import rasterize_torch
 
-SPLIT_KERNELS = {"project_bounds_kernel", "bin_entries_kernel", "scatter_entry_grads_kernel", "project_vjp_kernel"}
+SPLIT_KERNELS = {
+    "project_bounds_kernel",
+    "bin_entries_kernel",
+    "scatter_entry_grads_kernel",
+    "project_vjp_kernel",
+}
 
 
 def batched_scene(kit, num_b: int, num_c: int, num_n: int = 150, width: int = 40, height: int = 32) -> dict:
@@ -25,15 +30,21 @@ def batched_scene(kit, num_b: int, num_c: int, num_n: int = 150, width: int = 40
 
 def render(scene: dict, fn, settings: RasterSettings):
     """rgb, alpha and the gradients of a fixed random loss."""
-    leaves = {k: scene[k].clone().requires_grad_() for k in ("means", "quats", "scales", "opacities", "colors")}
+    leaves = {
+        k: scene[k].clone().requires_grad_() for k in ("means", "quats", "scales", "opacities", "colors")
+    }
     rgb, alpha, _ = fn(*leaves.values(), scene["viewmats"], scene["Ks"], settings)
     gen = torch.Generator().manual_seed(3)
-    loss = (rgb * torch.randn(rgb.shape, generator=gen)).sum() + (alpha * torch.randn(alpha.shape, generator=gen)).sum()
+    loss = (rgb * torch.randn(rgb.shape, generator=gen)).sum() + (
+        alpha * torch.randn(alpha.shape, generator=gen)
+    ).sum()
     loss.backward()
     return rgb.detach(), alpha.detach(), {k: v.grad for k, v in leaves.items()}
 
 
-@pytest.mark.parametrize(("num_b", "num_c", "threads"), [(3, 2, 2), (2, 3, 3), (1, 3, 2), (2, 1, 2), (1, 1, 2)])
+@pytest.mark.parametrize(
+    ("num_b", "num_c", "threads"), [(3, 2, 2), (2, 3, 3), (1, 3, 2), (2, 1, 2), (1, 1, 2)]
+)
 def test_split_launches_match_one_thread_and_the_torch_twin(kit, monkeypatch, num_b, num_c, threads):
     scene = batched_scene(kit, num_b, num_c)
     serial = render(scene, warp_backend.rasterize_warp, RasterSettings(40, 32, num_threads=1))
@@ -54,7 +65,9 @@ def test_split_launches_match_one_thread_and_the_torch_twin(kit, monkeypatch, nu
     # per image: bounds split with 2 or more images; binning always (by images, or by the raster's
     # tile ranges within one image); per scene: with 2 or more scenes, and the projection's
     # gradient with one camera per scene (a pair then writes only its own Gaussian)
-    expected = {"project_bounds_kernel", "bin_entries_kernel"} if num_b * num_c > 1 else {"bin_entries_kernel"}
+    expected = (
+        {"project_bounds_kernel", "bin_entries_kernel"} if num_b * num_c > 1 else {"bin_entries_kernel"}
+    )
     if num_b > 1:
         expected |= {"scatter_entry_grads_kernel", "project_vjp_kernel"}
     if num_c == 1:
@@ -104,8 +117,14 @@ def test_binning_by_tile_ranges_writes_each_tile_once_and_only_its_own():
     tile_end = torch.cumsum(tile_counts, 0, dtype=torch.int32)
     tile_start = tile_end - tile_counts
     order = torch.randperm(num_n, generator=gen)
-    pair_in = [means2d, torch.rand(num_n, 3, generator=gen), torch.rand(num_n, generator=gen), extents,
-               torch.rand(num_n, generator=gen), torch.rand(num_n, 3, generator=gen)]  # fmt: skip
+    pair_in = [
+        means2d,
+        torch.rand(num_n, 3, generator=gen),
+        torch.rand(num_n, generator=gen),
+        extents,
+        torch.rand(num_n, generator=gen),
+        torch.rand(num_n, 3, generator=gen),
+    ]
     m = int(tile_end[-1])
 
     def bin_ranges(ranges):
@@ -117,10 +136,26 @@ def test_binning_by_tile_ranges_writes_each_tile_once_and_only_its_own():
         out_dtypes = (wp.int64, wp.int64, wp.vec2, wp.vec3, wp.float32, wp.float32, wp.vec3, wp.vec2)
         out_args = [warp_backend._arr(x, d) for x, d in zip(out, out_dtypes, strict=True)]
         for lo, hi in ranges:
-            warp_backend._launch(K.bin_entries_kernel, num_n,
-                                 [warp_backend._arr(order, wp.int64), width, height, tile, tiles_x, tiles, lo, hi,
-                                  warp_backend._arr(cursor, wp.int32), num_n, 1, *pair_args, *out_args],
-                                 torch.device("cpu"))  # fmt: skip
+            warp_backend._launch(
+                K.bin_entries_kernel,
+                num_n,
+                [
+                    warp_backend._arr(order, wp.int64),
+                    width,
+                    height,
+                    tile,
+                    tiles_x,
+                    tiles,
+                    lo,
+                    hi,
+                    warp_backend._arr(cursor, wp.int32),
+                    num_n,
+                    1,
+                    *pair_args,
+                    *out_args,
+                ],
+                torch.device("cpu"),
+            )
         return cursor, out
 
     cursor_all, out_all = bin_ranges([(0, tiles)])

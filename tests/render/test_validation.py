@@ -13,9 +13,17 @@ from physgm.render import Renderer, rasterize
 @pytest.fixture
 def good(scene, kit):
     s = kit.to(scene)
-    return dict(means=s["means"], quats=s["quats"], scales=s["scales"], opacities=s["opacities"],
-                colors=s["colors"], viewmats=s["viewmats"], Ks=s["Ks"], width=s["width"],
-                height=s["height"])  # fmt: skip
+    return dict(
+        means=s["means"],
+        quats=s["quats"],
+        scales=s["scales"],
+        opacities=s["opacities"],
+        colors=s["colors"],
+        viewmats=s["viewmats"],
+        Ks=s["Ks"],
+        width=s["width"],
+        height=s["height"],
+    )
 
 
 def nan_at(x: torch.Tensor) -> torch.Tensor:
@@ -45,9 +53,14 @@ CASES = [
     (lambda g: {"quats": torch.zeros_like(g["quats"])}, r"quats must have non-zero norm"),
     (lambda g: {"quats": torch.cat([g["quats"][:-1], torch.zeros(1, 4)])}, r"quats must have non-zero norm"),
     (lambda g: {"scales": torch.cat([g["scales"][:-1], -torch.ones(1, 3)])}, r"scales must be non-negative"),
-    (lambda g: {"opacities": torch.cat([g["opacities"][:-1], torch.tensor([1.5])])}, r"opacities must lie in"),
-    (lambda g: {"colors": torch.cat([g["colors"][:-1], torch.tensor([[0.0, float("inf"), 0.0]])])},
-     r"colors contains NaN or Inf"),
+    (
+        lambda g: {"opacities": torch.cat([g["opacities"][:-1], torch.tensor([1.5])])},
+        r"opacities must lie in",
+    ),
+    (
+        lambda g: {"colors": torch.cat([g["colors"][:-1], torch.tensor([[0.0, float("inf"), 0.0]])])},
+        r"colors contains NaN or Inf",
+    ),
     (lambda g: {"Ks": -g["Ks"]}, r"Ks must have positive focal lengths"),
     (lambda g: {"width": 0}, r"width must be a positive int"),
     (lambda g: {"height": -3}, r"height must be a positive int"),
@@ -109,5 +122,12 @@ def test_finite_values_whose_sum_overflows_are_accepted(good):
     colors = torch.full_like(good["colors"], 3.0e38)  # finite, but their float32 sum is inf
     assert not torch.isfinite(colors.sum())
     args = {**good, "colors": colors}
-    validate_inputs(*(args[k] for k in ("means", "quats", "scales", "opacities", "colors", "viewmats", "Ks")),
-                    args["width"], args["height"], None, 0.01, 1e10, 0.3)  # fmt: skip
+    validate_inputs(
+        *(args[k] for k in ("means", "quats", "scales", "opacities", "colors", "viewmats", "Ks")),
+        args["width"],
+        args["height"],
+        None,
+        0.01,
+        1e10,
+        0.3,
+    )

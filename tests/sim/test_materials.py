@@ -12,9 +12,22 @@ from physgm.sim.constitutive import MODELS, MaterialParams
 
 def test_fifteen_materials_in_the_model_order():
     assert MATERIAL_NAMES == (
-        "plastic", "wood", "metal", "fabric", "ceramic", "stone", "paper", "leather",
-        "glass", "rubber", "foam", "snow", "sand", "jelly", "plasticine",
-    )  # fmt: skip
+        "plastic",
+        "wood",
+        "metal",
+        "fabric",
+        "ceramic",
+        "stone",
+        "paper",
+        "leather",
+        "glass",
+        "rubber",
+        "foam",
+        "snow",
+        "sand",
+        "jelly",
+        "plasticine",
+    )
     table = material_table()
     assert list(table) == list(MATERIAL_NAMES)
     assert [get_material(n).index for n in MATERIAL_NAMES] == list(range(15))

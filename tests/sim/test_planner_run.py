@@ -11,8 +11,8 @@ import torch
 from physgm.cameras import orbit_cameras
 from physgm.gaussians import Gaussians, quat_to_rotmat
 from physgm.sim.boundary import GroundPlane
+from physgm.sim.gaussian_trajectory import ballistic_frames, simulate
 from physgm.sim.planner import PlannerConfig
-from physgm.sim.run import ballistic_frames, simulate
 from physgm.sim.scenes import Scene
 
 G = 9.81
@@ -108,7 +108,7 @@ def test_early_stop_holds_frames_once_still():
 
 
 def test_resolve_material_reads_table_and_overrides():
-    from physgm.sim.run import resolve_material
+    from physgm.sim.gaussian_trajectory import resolve_material
 
     name, params = resolve_material({"material": "rubber", "E": 2e6, "nu": 0.45, "density": 1200.0})
     assert name == "rubber" and params.model == "neo_hookean"

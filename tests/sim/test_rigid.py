@@ -123,8 +123,15 @@ def test_throw_at_a_wall_rebounds_with_restitution(restitution):
     # No gravity, no ground: a cube thrown at 2 m/s along x into the plane x = 0.3 (normal -x).
     x, mass = _cube(center=(0.0, 0.0, 0.0))
     v = np.tile([2.0, 0.0, 0.0], (len(x), 1))
-    sim = _sim(x, mass, v, ground_height=None, walls=(((-1.0, 0.0, 0.0), -0.3),), gravity=(0.0, 0.0, 0.0),
-               restitution=restitution)  # fmt: skip
+    sim = _sim(
+        x,
+        mass,
+        v,
+        ground_height=None,
+        walls=(((-1.0, 0.0, 0.0), -0.3),),
+        gravity=(0.0, 0.0, 0.0),
+        restitution=restitution,
+    )
     traj = sim.run(n_frames=16, frame_dt=0.04, dt=1e-3)
     assert np.all(traj.coms[:, 0] + 0.05 <= 0.3 + 1e-6)  # the front face never passes the wall
     np.testing.assert_allclose(traj.velocities[-1], [-2.0 * restitution, 0.0, 0.0], atol=1e-6)
@@ -154,8 +161,16 @@ def test_sliding_on_the_ground_into_a_wall_bounces_at_the_wall():
     # No gravity, so the cube keeps touching the ground instead of hopping.
     x, mass = _cube(center=(0.0, 0.0, 0.05))
     v = np.tile([2.0, 0.0, 0.0], (len(x), 1))
-    sim = _sim(x, mass, v, ground_height=0.0, friction=0.0, restitution=1.0, gravity=(0.0, 0.0, 0.0),
-               walls=(((-1.0, 0.0, 0.0), -0.3),))  # fmt: skip
+    sim = _sim(
+        x,
+        mass,
+        v,
+        ground_height=0.0,
+        friction=0.0,
+        restitution=1.0,
+        gravity=(0.0, 0.0, 0.0),
+        walls=(((-1.0, 0.0, 0.0), -0.3),),
+    )
     traj = sim.run(n_frames=6, frame_dt=0.04, dt=7e-3)  # coarse steps: 14 mm of travel each
     assert np.all(traj.coms[:, 0] + 0.05 <= 0.3 + 1e-6)
     # Elastic and frictionless: at t = 0.2 s it went 0.25 m out and 0.15 m back.

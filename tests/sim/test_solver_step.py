@@ -59,7 +59,9 @@ def test_substeps_match_numpy_twin(flip, threads):
     )
     ref = {k: np.asarray(val, dtype=np.float64) if k != "material" else val for k, val in ref.items()}
     for step, dt in enumerate([2e-4, 1.5e-4, 2e-4]):  # dt changes: the scatter must not depend on it
-        out = reference_mpm.substep(ref, MATS, grid, scene, dt, solver.time, flip, SolverConfig().boundary_cells)
+        out = reference_mpm.substep(
+            ref, MATS, grid, scene, dt, solver.time, flip, SolverConfig().boundary_cells
+        )
         solver.substep(dt)
         s1 = solver.state()
         loose = 1 + 2 * step  # float32 against float64 drifts apart step by step

@@ -20,7 +20,15 @@ from physgm.train.pretrain import LitPretrain, model_from_checkpoint
 
 def tiny_model_config() -> dict:
     encoder = EncoderConfig(img_size=32, patch_size=8, embed_dim=32, depth=1, num_heads=2)
-    backbone = BackboneConfig(encoder=encoder, width=32, depth=4, head_dim=16, camera_dim=8, camera_hidden=16, out_layers=(0, 1, 2, 3))
+    backbone = BackboneConfig(
+        encoder=encoder,
+        width=32,
+        depth=4,
+        head_dim=16,
+        camera_dim=8,
+        camera_hidden=16,
+        out_layers=(0, 1, 2, 3),
+    )
     head = GaussianHeadConfig(features=8, layer_channels=(8, 8, 16, 16), hidden=8)
     return PhysGMConfig(backbone=backbone, gaussian_head=head).to_dict()
 
@@ -39,7 +47,9 @@ def fake_pairs(n: int = 6, v: int = 2, size: int = 32) -> tuple[list[SceneRecord
     cams = orbit_cameras([0.0, 90.0][:v], [0.0] * v, 1.8, 34.0, size, size)
     for i in range(n):
         sid = f"s{i}"
-        inputs[sid] = SceneInputs(torch.rand(v, 3, size, size, generator=gen), torch.ones(v, 1, size, size), cams.c2w, cams.Ks)
+        inputs[sid] = SceneInputs(
+            torch.rand(v, 3, size, size, generator=gen), torch.ones(v, 1, size, size), cams.c2w, cams.Ks
+        )
         w = Candidate(9, "rubber", 6.0 + 0.1 * i, 0.45, 0.05)
         l = Candidate(9 if i % 2 else 13, "x", 7.5 - 0.1 * i, 0.30, 0.4)
         records.append(SceneRecord(sid, i, 0, "h", "p", [w, l], 0, 1))
@@ -73,9 +83,16 @@ def test_analytic_kl_matches_torch_distributions():
     p = PhysicsPosterior(*(torch.randn(3, 15, generator=gen), *torch.randn(4, 3, generator=gen)))
     q = PhysicsPosterior(*(torch.randn(3, 15, generator=gen), *torch.randn(4, 3, generator=gen)))
     D = torch.distributions
-    expected = (D.kl_divergence(D.Categorical(logits=p.material_logits), D.Categorical(logits=q.material_logits))
-                + D.kl_divergence(D.Normal(p.z_E_mean, (0.5 * p.z_E_logvar).exp()), D.Normal(q.z_E_mean, (0.5 * q.z_E_logvar).exp()))
-                + D.kl_divergence(D.Normal(p.z_nu_mean, (0.5 * p.z_nu_logvar).exp()), D.Normal(q.z_nu_mean, (0.5 * q.z_nu_logvar).exp())))
+    expected = (
+        D.kl_divergence(D.Categorical(logits=p.material_logits), D.Categorical(logits=q.material_logits))
+        + D.kl_divergence(
+            D.Normal(p.z_E_mean, (0.5 * p.z_E_logvar).exp()), D.Normal(q.z_E_mean, (0.5 * q.z_E_logvar).exp())
+        )
+        + D.kl_divergence(
+            D.Normal(p.z_nu_mean, (0.5 * p.z_nu_logvar).exp()),
+            D.Normal(q.z_nu_mean, (0.5 * q.z_nu_logvar).exp()),
+        )
+    )
     torch.testing.assert_close(posterior_kl(p, q), expected)
     assert posterior_kl(p, p).abs().max() < 1e-6
 
@@ -87,7 +104,9 @@ def test_reference_is_a_frozen_copy_outside_the_module_tree(tmp_path):
     assert all(not p.requires_grad for p in ref.parameters())
     policy_ids = {id(p) for p in lit.model.parameters()}
     assert not policy_ids & {id(p) for p in ref.parameters()}
-    assert all(k.startswith("model.") for k in lit.state_dict()) and len(lit.state_dict()) == len(lit.model.state_dict())
+    assert all(k.startswith("model.") for k in lit.state_dict()) and len(lit.state_dict()) == len(
+        lit.model.state_dict()
+    )
     assert not any(m is ref for m in lit.modules())
     # Same weights as the stage-1 model it was copied from.
     stage1 = model_from_checkpoint(str(tmp_path / "s1.ckpt"))
@@ -95,7 +114,11 @@ def test_reference_is_a_frozen_copy_outside_the_module_tree(tmp_path):
         assert torch.equal(a, b)
     # Only the physics head trains; the rest is frozen and stays in eval mode in training.
     lit.train()
-    assert not lit.model.backbone.training and not lit.model.gaussian_head.training and lit.model.physics_head.training
+    assert (
+        not lit.model.backbone.training
+        and not lit.model.gaussian_head.training
+        and lit.model.physics_head.training
+    )
     trainable = {id(p) for p in lit.model.parameters() if p.requires_grad}
     assert trainable == {id(p) for p in lit.model.physics_head.parameters()}
 
@@ -143,7 +166,9 @@ def test_loss_masks_tie_anchors_and_adds_the_kl(tmp_path):
         loss = lit.training_step(batch, 0)
     lp = [policy.log_prob(s)[:2, 0] for s in (batch.winner, batch.loser)]
     lr = [reference.log_prob(s)[:2, 0] for s in (batch.winner, batch.loser)]
-    expected = dpo_loss(lp[0], lp[1], lr[0], lr[1], 0.5).loss.mean() + 0.7 * posterior_kl(policy, reference).mean()
+    expected = (
+        dpo_loss(lp[0], lp[1], lr[0], lr[1], 0.5).loss.mean() + 0.7 * posterior_kl(policy, reference).mean()
+    )
     torch.testing.assert_close(loss, expected)
     assert posterior_kl(policy, reference)[2] > 0
 
@@ -151,11 +176,22 @@ def test_loss_masks_tie_anchors_and_adds_the_kl(tmp_path):
 def test_training_moves_only_the_physics_head_and_never_the_reference(tmp_path):
     torch.set_num_threads(1)
     PairsDPO.pairs = fake_pairs()
-    lit = PairsDPO(init_ckpt=stage1_checkpoint(tmp_path / "s1.ckpt"), loss={"beta": 0.5}, optim={"lr": 3e-3, "warmup_steps": 1})
+    lit = PairsDPO(
+        init_ckpt=stage1_checkpoint(tmp_path / "s1.ckpt"),
+        loss={"beta": 0.5},
+        optim={"lr": 3e-3, "warmup_steps": 1},
+    )
     ref_before = copy.deepcopy(lit.reference.state_dict())
     policy_before = copy.deepcopy(lit.model.state_dict())
-    trainer = L.Trainer(max_steps=4, accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                        enable_model_summary=False, default_root_dir=tmp_path)
+    trainer = L.Trainer(
+        max_steps=4,
+        accelerator="cpu",
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        default_root_dir=tmp_path,
+    )
     trainer.fit(lit)
     opt = trainer.optimizers[0]
     in_opt = {id(p) for g in opt.param_groups for p in g["params"]}
@@ -170,7 +206,14 @@ def test_training_moves_only_the_physics_head_and_never_the_reference(tmp_path):
         if not k.startswith("physics_head."):
             assert torch.equal(after[k], policy_before[k]), f"frozen weight {k} changed"
     m = trainer.callback_metrics
-    for key in ("train/loss", "rewards/chosen", "rewards/rejected", "rewards/margins", "rewards/accuracies", "train/kl"):
+    for key in (
+        "train/loss",
+        "rewards/chosen",
+        "rewards/rejected",
+        "rewards/margins",
+        "rewards/accuracies",
+        "train/kl",
+    ):
         assert key in m and torch.isfinite(m[key]), key
     # 4 steps of DPO on consistent pairs: the winners became relatively more likely than the losers.
     assert m["rewards/margins"] > 0 and m["train/kl"] > 0
@@ -186,17 +229,26 @@ def test_training_moves_only_the_physics_head_and_never_the_reference(tmp_path):
         assert torch.equal(policy.state_dict()[k], v)
     back = LitDPO.load_from_checkpoint(path)
     assert torch.equal(back.model.physics_head.young[-1].weight, lit.model.physics_head.young[-1].weight)
-    for k, v in back.reference.state_dict().items():  # rebuilt from the stage-1 file, not from the DPO weights
+    for (
+        k,
+        v,
+    ) in back.reference.state_dict().items():  # rebuilt from the stage-1 file, not from the DPO weights
         assert torch.equal(v, ref_before[k])
 
 
 def test_dpo_checkpoint_loads_without_the_stage1_file(tmp_path):
     s1 = stage1_checkpoint(tmp_path / "s1.ckpt")
     lit = LitDPO(init_ckpt=s1)
-    ckpt = {"state_dict": lit.state_dict(), "hyper_parameters": dict(lit.hparams), "pytorch-lightning_version": L.__version__}
+    ckpt = {
+        "state_dict": lit.state_dict(),
+        "hyper_parameters": dict(lit.hparams),
+        "pytorch-lightning_version": L.__version__,
+    }
     torch.save(ckpt, tmp_path / "dpo.ckpt")
     (tmp_path / "s1.ckpt").unlink()
     back = LitDPO.load_from_checkpoint(tmp_path / "dpo.ckpt")
-    assert torch.equal(back.model.physics_head.material[-1].weight, lit.model.physics_head.material[-1].weight)
+    assert torch.equal(
+        back.model.physics_head.material[-1].weight, lit.model.physics_head.material[-1].weight
+    )
     with pytest.raises(RuntimeError, match="stage-1 checkpoint"):
         back.reference  # noqa: B018

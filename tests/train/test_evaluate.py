@@ -29,8 +29,22 @@ def save_random_checkpoint(tmp_path: Path) -> Path:
 def test_evaluate_reports_both_view_counts_and_matches_a_hand_computation(tiny_dataset, tmp_path, capsys):
     ckpt = save_random_checkpoint(tmp_path)
     out = tmp_path / "metrics.json"
-    assert main([str(ckpt), "--data", str(tiny_dataset), "--split", "train", "--num-targets", "5",
-                 "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                str(ckpt),
+                "--data",
+                str(tiny_dataset),
+                "--split",
+                "train",
+                "--num-targets",
+                "5",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     report = json.loads(capsys.readouterr().out)
     assert json.loads(out.read_text()) == report
     n = len(read_split(tiny_dataset, "train"))
@@ -44,8 +58,15 @@ def test_evaluate_reports_both_view_counts_and_matches_a_hand_computation(tiny_d
 
     # PSNR by hand over the novel views of the 4-view inputs: mean over images of -10 log10(MSE).
     model = model_from_checkpoint(str(ckpt)).eval()
-    dm = PhysAssetsDataModule(str(tiny_dataset), batch_size=3, eval_p_single=0.0, num_targets=5,
-                              input_resolution=32, target_resolution=32, test_split="train")
+    dm = PhysAssetsDataModule(
+        str(tiny_dataset),
+        batch_size=3,
+        eval_p_single=0.0,
+        num_targets=5,
+        input_resolution=32,
+        target_resolution=32,
+        test_split="train",
+    )
     psnrs, psnrs_inputs, opacities = [], [], []
     with torch.no_grad():
         for batch in dm.test_dataloader():
@@ -66,8 +87,15 @@ def test_evaluate_reports_both_view_counts_and_matches_a_hand_computation(tiny_d
 def test_evaluate_single_view_batches_have_one_input(tiny_dataset, tmp_path):
     ckpt = save_random_checkpoint(tmp_path)
     model = model_from_checkpoint(str(ckpt)).eval()
-    dm = PhysAssetsDataModule(str(tiny_dataset), batch_size=4, eval_p_single=1.0, num_targets=4,
-                              input_resolution=32, target_resolution=32, test_split="train")
+    dm = PhysAssetsDataModule(
+        str(tiny_dataset),
+        batch_size=4,
+        eval_p_single=1.0,
+        num_targets=4,
+        input_resolution=32,
+        target_resolution=32,
+        test_split="train",
+    )
     seen = []
     original = model.forward
 
@@ -102,8 +130,24 @@ def test_evaluate_scores_labelled_real_assets_and_sweeps_the_prior(tiny_dataset,
     module = LitPretrain(model=plain(cfg.model), renderer={"backend": "warp", "num_threads": 1})
     ckpt = tmp_path / "mobilenet.ckpt"
     torch.save({"hyper_parameters": dict(module.hparams), "state_dict": module.state_dict()}, ckpt)
-    assert main([str(ckpt), "--data", str(root), "--split", "train", "--views", "1", "--num-targets", "4",
-                 "--prior-sweep", "0,2"]) == 0
+    assert (
+        main(
+            [
+                str(ckpt),
+                "--data",
+                str(root),
+                "--split",
+                "train",
+                "--views",
+                "1",
+                "--num-targets",
+                "4",
+                "--prior-sweep",
+                "0,2",
+            ]
+        )
+        == 0
+    )
     r = json.loads(capsys.readouterr().out)["views1"]
     ids = read_split(root, "train")
     assert r["labelled_assets"] == len(ids) and "material_acc" not in r  # no true physics to score
@@ -112,16 +156,27 @@ def test_evaluate_scores_labelled_real_assets_and_sweeps_the_prior(tiny_dataset,
     assert r["prior_sweep"]["0.0"]["label_material_acc"] == r["label_material_acc"]  # the checkpoint's w is 0
     # By hand at w = 2: argmax of log p_head + 2 log p_prior, against each asset's labelled material.
     model = model_from_checkpoint(str(ckpt)).eval()
-    dm = PhysAssetsDataModule(str(root), batch_size=4, eval_p_single=1.0, num_targets=4, input_resolution=32,
-                              target_resolution=32, test_split="train")
+    dm = PhysAssetsDataModule(
+        str(root),
+        batch_size=4,
+        eval_p_single=1.0,
+        num_targets=4,
+        input_resolution=32,
+        target_resolution=32,
+        test_split="train",
+    )
     beh = behaviour_index()
     hits, beh_hits = [], []
     with torch.no_grad():
         for batch in dm.test_dataloader():
             pred = fused_logits(model(batch.images, batch.masks, batch.c2w, batch.Ks), 2.0).argmax(-1)
-            labels = torch.tensor([MATERIAL_NAMES.index(load_asset(root / a).physical.material) for a in batch.asset_ids])
+            labels = torch.tensor(
+                [MATERIAL_NAMES.index(load_asset(root / a).physical.material) for a in batch.asset_ids]
+            )
             hits.append(pred == labels)
             beh_hits.append(beh[pred] == beh[labels])
     assert abs(float(torch.cat(hits).float().mean()) - r["prior_sweep"]["2.0"]["label_material_acc"]) < 1e-6
-    assert abs(float(torch.cat(beh_hits).float().mean()) - r["prior_sweep"]["2.0"]["label_behaviour_acc"]) < 1e-6
+    assert (
+        abs(float(torch.cat(beh_hits).float().mean()) - r["prior_sweep"]["2.0"]["label_behaviour_acc"]) < 1e-6
+    )
     assert 0.0 <= r["prior_only_material_acc"] <= r["prior_only_behaviour_acc"] <= 1.0

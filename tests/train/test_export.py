@@ -10,7 +10,9 @@ from physgm.pipeline.checkpoint import load_model
 from physgm.train.export import main
 from physgm.train.pretrain import LitPretrain, model_from_checkpoint
 
-SMALL = {"backbone": {"encoder": {"img_size": 16, "depth": 1}, "depth": 4, "width": 64, "out_layers": [0, 1, 2, 3]}}
+SMALL = {
+    "backbone": {"encoder": {"img_size": 16, "depth": 1}, "depth": 4, "width": 64, "out_layers": [0, 1, 2, 3]}
+}
 
 
 def training_checkpoint(path):
@@ -19,8 +21,17 @@ def training_checkpoint(path):
     opt = torch.optim.AdamW(module.parameters())
     sum(p.sum() for p in module.parameters()).backward()
     opt.step()  # real optimiser state (AdamW: 2 moments per weight), as a Lightning checkpoint holds it
-    torch.save({"hyper_parameters": dict(module.hparams), "state_dict": module.state_dict(), "global_step": 12,
-                "optimizer_states": [opt.state_dict()], "loops": {"fit_loop": {}}, "callbacks": {"x": 1}}, path)
+    torch.save(
+        {
+            "hyper_parameters": dict(module.hparams),
+            "state_dict": module.state_dict(),
+            "global_step": 12,
+            "optimizer_states": [opt.state_dict()],
+            "loops": {"fit_loop": {}},
+            "callbacks": {"x": 1},
+        },
+        path,
+    )
     return module
 
 
@@ -28,20 +39,46 @@ def test_export_keeps_predictions_and_drops_training_state(tmp_path, capsys):
     module = training_checkpoint(tmp_path / "train.ckpt")
     metrics = tmp_path / "m.json"
     metrics.write_text(json.dumps({"views4": {"psnr": 20.0}}))
-    assert main([str(tmp_path / "train.ckpt"), str(tmp_path / "out" / "slim.ckpt"), "--recipe", "python train.py x=1",
-                 "--metrics", str(metrics)]) == 0
+    assert (
+        main(
+            [
+                str(tmp_path / "train.ckpt"),
+                str(tmp_path / "out" / "slim.ckpt"),
+                "--recipe",
+                "python train.py x=1",
+                "--metrics",
+                str(metrics),
+            ]
+        )
+        == 0
+    )
     report = json.loads(capsys.readouterr().out)
     slim = torch.load(tmp_path / "out" / "slim.ckpt", weights_only=False)
-    assert set(slim) == {"hyper_parameters", "state_dict", "global_step", "epoch", "pytorch-lightning_version", "physgm"}
-    assert slim["physgm"]["recipe"] == "python train.py x=1" and slim["physgm"]["metrics"]["views4"]["psnr"] == 20.0
-    assert report["global_step"] == 12 and report["parameters"] == sum(p.numel() for p in module.model.parameters())
+    assert set(slim) == {
+        "hyper_parameters",
+        "state_dict",
+        "global_step",
+        "epoch",
+        "pytorch-lightning_version",
+        "physgm",
+    }
+    assert (
+        slim["physgm"]["recipe"] == "python train.py x=1"
+        and slim["physgm"]["metrics"]["views4"]["psnr"] == 20.0
+    )
+    assert report["global_step"] == 12 and report["parameters"] == sum(
+        p.numel() for p in module.model.parameters()
+    )
     assert (tmp_path / "out" / "slim.ckpt").stat().st_size < 0.6 * (tmp_path / "train.ckpt").stat().st_size
     assert not list((tmp_path / "out").glob("*.tmp"))
 
     cams = orbit_cameras([0, 90, 180, 270], [0] * 4, 1.5, 40.0, 16, 16)
     images, masks = torch.rand(1, 4, 3, 16, 16), torch.ones(1, 4, 1, 16, 16)
     expected = module.model.eval()(images, masks, cams.c2w[None], cams.Ks[None])
-    for model in (load_model(tmp_path / "out" / "slim.ckpt")[0], model_from_checkpoint(str(tmp_path / "out" / "slim.ckpt"))):
+    for model in (
+        load_model(tmp_path / "out" / "slim.ckpt")[0],
+        model_from_checkpoint(str(tmp_path / "out" / "slim.ckpt")),
+    ):
         got = model.eval()(images, masks, cams.c2w[None], cams.Ks[None])
         assert torch.equal(got.gaussians.means, expected.gaussians.means)
         assert torch.equal(got.physics.material_logits, expected.physics.material_logits)
@@ -59,10 +96,24 @@ def test_export_sets_the_semantic_prior_weight(tmp_path, capsys):
     from physgm.model.physgm import semantic_log_prior
 
     torch.manual_seed(0)
-    mobilenet = {"backbone": {"encoder": {"kind": "mobilenet_v2", "patch_size": 16, "embed_dim": 448, "freeze": True,
-                                          "img_size": 32}, "depth": 4, "width": 64, "out_layers": [0, 1, 2, 3]}}
+    mobilenet = {
+        "backbone": {
+            "encoder": {
+                "kind": "mobilenet_v2",
+                "patch_size": 16,
+                "embed_dim": 448,
+                "freeze": True,
+                "img_size": 32,
+            },
+            "depth": 4,
+            "width": 64,
+            "out_layers": [0, 1, 2, 3],
+        }
+    }
     module = LitPretrain(model=mobilenet)
-    torch.save({"hyper_parameters": dict(module.hparams), "state_dict": module.state_dict()}, tmp_path / "t.ckpt")
+    torch.save(
+        {"hyper_parameters": dict(module.hparams), "state_dict": module.state_dict()}, tmp_path / "t.ckpt"
+    )
     assert main([str(tmp_path / "t.ckpt"), str(tmp_path / "w.ckpt"), "--prior-weight", "1.5"]) == 0
     model = model_from_checkpoint(str(tmp_path / "w.ckpt")).eval()
     assert model.config.physics_head.semantic_prior_weight == 1.5

@@ -38,14 +38,24 @@ def test_pretrain_losses_add_the_weighted_anisotropy_term():
     gen = torch.Generator().manual_seed(0)
     rgb, alpha = torch.rand(b, t, h, w, 3, generator=gen), torch.rand(b, t, h, w, 1, generator=gen)
     target, mask = torch.rand(b, t, 3, h, w, generator=gen), torch.rand(b, t, 1, h, w, generator=gen)
-    posterior = PhysicsPosterior(torch.randn(b, 15, generator=gen), torch.zeros(b), torch.zeros(b),
-                                 torch.zeros(b), torch.zeros(b))  # fmt: skip
+    posterior = PhysicsPosterior(
+        torch.randn(b, 15, generator=gen), torch.zeros(b), torch.zeros(b), torch.zeros(b), torch.zeros(b)
+    )
     labels = (torch.tensor([0, 3]), torch.tensor([5.0, 6.0]), torch.tensor([0.3, 0.4]))
     scales = 0.01 + torch.rand(b, n, 3, generator=gen)
     valid = torch.ones(b, n, dtype=torch.bool)
     off = pretrain_losses(PretrainLossConfig(), rgb, alpha, target, mask, posterior, *labels)
-    on = pretrain_losses(PretrainLossConfig(aniso=0.5), rgb, alpha, target, mask, posterior, *labels,
-                         scales=scales, valid=valid)  # fmt: skip
+    on = pretrain_losses(
+        PretrainLossConfig(aniso=0.5),
+        rgb,
+        alpha,
+        target,
+        mask,
+        posterior,
+        *labels,
+        scales=scales,
+        valid=valid,
+    )
     assert "aniso" not in off
     expected = off["loss"] + 0.5 * anisotropy_penalty(scales, valid, 4.0)
     assert on["loss"].item() == pytest.approx(expected.item(), rel=1e-6)

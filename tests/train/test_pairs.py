@@ -104,8 +104,15 @@ def test_gather_on_one_process_sorts_by_scene_index():
 
 
 def test_dataset_serves_only_pairs_with_raw_sampled_physics():
-    inputs = {s: SceneInputs(torch.full((2, 3, 8, 8), float(i)), torch.ones(2, 1, 8, 8), torch.eye(4).expand(2, 4, 4),
-                             torch.eye(3).expand(2, 3, 3)) for i, s in enumerate("abc")}
+    inputs = {
+        s: SceneInputs(
+            torch.full((2, 3, 8, 8), float(i)),
+            torch.ones(2, 1, 8, 8),
+            torch.eye(4).expand(2, 4, 4),
+            torch.eye(3).expand(2, 3, 3),
+        )
+        for i, s in enumerate("abc")
+    }
     recs = [record("a"), record("b", distances=(0.1, 0.1, 0.1)), record("c", distances=(0.9, None, 0.2))]
     ds = PairDataset(recs, inputs)
     assert len(ds) == 2  # the tie of scene b gives no pair
@@ -126,7 +133,9 @@ def test_dataset_serves_only_pairs_with_raw_sampled_physics():
 def _gather_worker(rank: int, world: int, init: str, out: str) -> None:
     torch.distributed.init_process_group("gloo", init_method=init, rank=rank, world_size=world)
     try:
-        mine = [record(f"s{i}", index=i) for i in range(5) if i % world == rank]  # this rank's share of 5 scenes
+        mine = [
+            record(f"s{i}", index=i) for i in range(5) if i % world == rank
+        ]  # this rank's share of 5 scenes
         gathered = gather_records(mine)
         with open(f"{out}.{rank}", "w") as f:
             json.dump([r.to_json() for r in gathered], f)

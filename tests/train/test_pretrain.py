@@ -12,7 +12,9 @@ from physgm.train.pretrain import LitPretrain, model_from_checkpoint
 from physgm.train.run import run
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
-EXPERIMENTS = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml") if not p.stem.endswith("_dpo"))  # DPO: test_rollout
+EXPERIMENTS = sorted(
+    p.stem for p in (CONF / "experiment").glob("*.yaml") if not p.stem.endswith("_dpo")
+)  # DPO: test_rollout
 
 
 def tiny_overrides(root: Path, out: Path) -> list[str]:
@@ -36,22 +38,38 @@ def shrink_paper(tmp_path: Path) -> list[str]:
     import torchvision
 
     weights = tmp_path / "dinov3_vits16.pth"
-    torch.save(timm.create_model("vit_small_patch16_dinov3", pretrained=False, num_classes=0).state_dict(), weights)
-    alexnet = tmp_path / "alexnet.pth"  # LPIPS is on in the paper config; a random local backbone exercises it
+    torch.save(
+        timm.create_model("vit_small_patch16_dinov3", pretrained=False, num_classes=0).state_dict(), weights
+    )
+    alexnet = (
+        tmp_path / "alexnet.pth"
+    )  # LPIPS is on in the paper config; a random local backbone exercises it
     torch.save(torchvision.models.alexnet().state_dict(), alexnet)
-    return [f"stage.loss.lpips_backbone_path={alexnet}",
-        "model.backbone.encoder.arch=vit_small_patch16_dinov3", f"model.backbone.encoder.weights={weights}",
-        "model.backbone.encoder.embed_dim=384", "model.backbone.encoder.depth=12", "model.backbone.encoder.num_heads=6",
+    return [
+        f"stage.loss.lpips_backbone_path={alexnet}",
+        "model.backbone.encoder.arch=vit_small_patch16_dinov3",
+        f"model.backbone.encoder.weights={weights}",
+        "model.backbone.encoder.embed_dim=384",
+        "model.backbone.encoder.depth=12",
+        "model.backbone.encoder.num_heads=6",
         "model.backbone.encoder.img_size=32",
-        "model.backbone.width=128", "model.backbone.depth=4", "model.backbone.out_layers=[0,1,2,3]",
-        "data.batch_size=1", "data.p_single=0.0", "data.eval_p_single=0.0",
+        "model.backbone.width=128",
+        "model.backbone.depth=4",
+        "model.backbone.out_layers=[0,1,2,3]",
+        "data.batch_size=1",
+        "data.p_single=0.0",
+        "data.eval_p_single=0.0",
         "trainer.precision=32-true",
     ]
 
 
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
 def test_fast_dev_run_every_experiment(experiment, tiny_dataset, tmp_path):
-    overrides = [f"experiment={experiment}", *tiny_overrides(tiny_dataset, tmp_path / "run"), "+trainer.fast_dev_run=1"]
+    overrides = [
+        f"experiment={experiment}",
+        *tiny_overrides(tiny_dataset, tmp_path / "run"),
+        "+trainer.fast_dev_run=1",
+    ]
     if experiment == "paper":
         overrides += shrink_paper(tmp_path)
     metrics = run(compose_train(overrides))
@@ -73,8 +91,15 @@ def test_resume_continues_step_count_and_checkpoint_predicts_the_same(tiny_datas
     # The checkpoint rebuilds outside Hydra and Lightning and predicts what the trained module predicts.
     module = LitPretrain.load_from_checkpoint(last, map_location="cpu").eval()
     model = model_from_checkpoint(str(last)).eval()
-    dm = PhysAssetsDataModule(root=str(tiny_dataset), val_split="train", input_resolution=32, target_resolution=32,
-                              num_targets=5, batch_size=2, eval_p_single=0.0)
+    dm = PhysAssetsDataModule(
+        root=str(tiny_dataset),
+        val_split="train",
+        input_resolution=32,
+        target_resolution=32,
+        num_targets=5,
+        batch_size=2,
+        eval_p_single=0.0,
+    )
     dm.setup("validate")
     batch = next(iter(dm.val_dataloader()))
     with torch.no_grad():
@@ -86,9 +111,17 @@ def test_resume_continues_step_count_and_checkpoint_predicts_the_same(tiny_datas
 def test_last_checkpoint_is_written_when_training_stops_between_saves(tiny_dataset, tmp_path):
     """max_steps (or max_time) between two intervals: last.ckpt still holds the final step."""
     out = tmp_path / "run"
-    run(compose_train([*tiny_overrides(tiny_dataset, out), "callbacks.model_checkpoint.every_n_train_steps=2",
-                       "callbacks.snapshots.every_n_train_steps=2", "trainer.max_steps=3",
-                       "trainer.limit_val_batches=0"]))  # fmt: skip
+    run(
+        compose_train(
+            [
+                *tiny_overrides(tiny_dataset, out),
+                "callbacks.model_checkpoint.every_n_train_steps=2",
+                "callbacks.snapshots.every_n_train_steps=2",
+                "trainer.max_steps=3",
+                "trainer.limit_val_batches=0",
+            ]
+        )
+    )
     ckpts = out / "checkpoints"
     assert torch.load(ckpts / "last.ckpt", weights_only=False)["global_step"] == 3
     assert sorted(p.name for p in ckpts.glob("step*.ckpt")) == ["step0000002.ckpt"]
@@ -97,8 +130,15 @@ def test_last_checkpoint_is_written_when_training_stops_between_saves(tiny_datas
 def test_overfits_one_batch(tiny_dataset):
     """Rendered MSE + alpha + material CE on one batch fall at least 10x."""
     torch.manual_seed(0)
-    dm = PhysAssetsDataModule(root=str(tiny_dataset), input_resolution=32, target_resolution=32, num_targets=4,
-                              batch_size=2, p_single=0.0, val_split="train")
+    dm = PhysAssetsDataModule(
+        root=str(tiny_dataset),
+        input_resolution=32,
+        target_resolution=32,
+        num_targets=4,
+        batch_size=2,
+        p_single=0.0,
+        val_split="train",
+    )
     dm.setup("fit")
     batch = next(iter(dm.train_dataloader()))
     module = LitPretrain(optim={"lr": 2e-3, "warmup_steps": 0}, loss={"nll": 0.0}, total_steps=10**6)

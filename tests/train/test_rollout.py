@@ -34,7 +34,15 @@ COUNT = 4
 
 def tiny_model_config() -> dict:
     encoder = EncoderConfig(img_size=32, patch_size=8, embed_dim=32, depth=1, num_heads=2)
-    backbone = BackboneConfig(encoder=encoder, width=32, depth=4, head_dim=16, camera_dim=8, camera_hidden=16, out_layers=(0, 1, 2, 3))
+    backbone = BackboneConfig(
+        encoder=encoder,
+        width=32,
+        depth=4,
+        head_dim=16,
+        camera_dim=8,
+        camera_hidden=16,
+        out_layers=(0, 1, 2, 3),
+    )
     head = GaussianHeadConfig(features=8, layer_channels=(8, 8, 16, 16), hidden=8)
     return PhysGMConfig(backbone=backbone, gaussian_head=head).to_dict()
 
@@ -51,9 +59,14 @@ def falling_square(frames: int = 10, size: int = 32) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def dpo_root(tmp_path_factory) -> Path:
-    """4 tiny synthetic assets, each given a reference video (a falling square) and listed in the dpo split."""
+    """4 tiny synthetic assets, each with a reference video (a falling square), listed in the dpo split."""
     root = tmp_path_factory.mktemp("dpo") / "data"
-    summary = generate(SynthConfig(count=COUNT, seed=5, resolution=32, gaussians=300, video_fraction=0.0), root, workers=1, progress=False)
+    summary = generate(
+        SynthConfig(count=COUNT, seed=5, resolution=32, gaussians=300, video_fraction=0.0),
+        root,
+        workers=1,
+        progress=False,
+    )
     assert summary["done"] == COUNT
     vcfg = VideoConfig()
     for i in range(COUNT):
@@ -62,8 +75,16 @@ def dpo_root(tmp_path_factory) -> Path:
         frames = falling_square()
         write_mp4(vdir / "drop.mp4", frames, vcfg.fps)
         cam = video_camera(vcfg, -45.0, 32)
-        write_json(vdir / "drop.json", {"scene": "drop", "fps": vcfg.fps, "frames": len(frames), "settings": asdict(vcfg),
-                                        "camera": camera_entry(cam.c2w[0], cam.Ks[0], 32, 32)})
+        write_json(
+            vdir / "drop.json",
+            {
+                "scene": "drop",
+                "fps": vcfg.fps,
+                "frames": len(frames),
+                "settings": asdict(vcfg),
+                "camera": camera_entry(cam.c2w[0], cam.Ks[0], 32, 32),
+            },
+        )
     (root / "splits" / "dpo.txt").write_text("".join(f"{asset_id(i)}\n" for i in range(COUNT)))
     return root
 
@@ -75,7 +96,14 @@ def stage1_ckpt(tmp_path_factory) -> str:
     path = tmp_path_factory.mktemp("ckpt") / "stage1.ckpt"
     import lightning as L
 
-    torch.save({"state_dict": lit.state_dict(), "hyper_parameters": dict(lit.hparams), "pytorch-lightning_version": L.__version__}, path)
+    torch.save(
+        {
+            "state_dict": lit.state_dict(),
+            "hyper_parameters": dict(lit.hparams),
+            "pytorch-lightning_version": L.__version__,
+        },
+        path,
+    )
     return str(path)
 
 
@@ -91,7 +119,11 @@ class StandIn:
         self.kill_at_scene = kill_at_scene
 
     def __call__(self, scene, gaussians, physics, reference, settings, device="cpu"):
-        assert reference.dtype == np.uint8 and reference.shape[1:] == (32, 32, 3)  # the decoded reference video
+        assert reference.dtype == np.uint8 and reference.shape[1:] == (
+            32,
+            32,
+            3,
+        )  # the decoded reference video
         assert len(gaussians) > 0 and physics["material"] and physics["E"] > 0
         if scene.id == self.kill_at_scene:
             raise Killed()
@@ -145,7 +177,9 @@ def test_cache_resumes_after_a_kill_and_never_reads_half_files(dpo_root, policy,
     assert not list((tmp_path / "pairs" / "round_0000").glob(".*"))
     # Same scene and round: the same candidates whatever the interruption (seeded per scene and round).
     redo = [p for s, p in rerun.calls if s == asset_id(1)]
-    assert [c.log10_E for c in records[1].candidates] == pytest.approx([math.log10(p["E"]) for p in redo], abs=1e-5)
+    assert [c.log10_E for c in records[1].candidates] == pytest.approx(
+        [math.log10(p["E"]) for p in redo], abs=1e-5
+    )
     # A third run simulates nothing.
     again = StandIn()
     monkeypatch.setattr(rollout, "evaluate_physics", again)
@@ -167,7 +201,9 @@ def test_winner_is_lowest_distance_and_candidates_are_raw_samples(dpo_root, poli
         assert len(d) == 4 and r.has_pair
         assert r.winner == int(np.argmin(d)) and r.loser == int(np.argmax(d))
         target = 4.0 + r.scene_index
-        assert d == pytest.approx([abs(min(max(c.log10_E, 3.0), 11.7) - target) for c in r.candidates], abs=1e-4)
+        assert d == pytest.approx(
+            [abs(min(max(c.log10_E, 3.0), 11.7) - target) for c in r.candidates], abs=1e-4
+        )
     # The exploration floor of 1 decade shows in the spread of the draws.
     spread = np.std([c.log10_E for r in records for c in r.candidates])
     assert spread > 0.5
@@ -192,33 +228,64 @@ def test_ddp_ranks_simulate_disjoint_shares(dpo_root, policy, tmp_path, monkeypa
         cb.setup(None, None, "fit")
         local = cb.refresh(fake_trainer(tmp_path, rank=rank, world=2), policy, 0, "p0")
         seen[rank] = {s for s, _ in stand_in.calls}
-        assert [r.scene_index % 2 for r in local] == [rank] * (COUNT // 2)  # single process: no gather partner
+        assert [r.scene_index % 2 for r in local] == [rank] * (
+            COUNT // 2
+        )  # single process: no gather partner
     assert seen[0] == {asset_id(0), asset_id(2)} and seen[1] == {asset_id(1), asset_id(3)}
 
 
 def test_evaluate_physics_wiring(dpo_root, monkeypatch):
-    """Placement, camera, frame rate and scene handed to the simulator; real render + score of a static object."""
+    """Placement, camera, frame rate and scene given to the simulator; real render + score, still object."""
     scene = rollout.load_scenes(dpo_root, "dpo", num_views=1)[0]
     n = 200
     gen = torch.Generator().manual_seed(0)
-    g = Gaussians(torch.rand(n, 3, generator=gen) * 0.6 - 0.3, torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), torch.full((n, 3), 0.03),
-                  torch.full((n,), 0.9), torch.rand(n, 3, generator=gen) * 0.7)
+    g = Gaussians(
+        torch.rand(n, 3, generator=gen) * 0.6 - 0.3,
+        torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+        torch.full((n, 3), 0.03),
+        torch.full((n,), 0.9),
+        torch.rand(n, 3, generator=gen) * 0.7,
+    )
     placed, _ = place_object(g, scene.video)
     seen = {}
 
-    def static_simulate(gaussians, physics, scene_name, cameras, n_frames, planner=None, solver=None, scene_overrides=None, device="cpu"):
-        seen.update(g=gaussians, scene=scene_name, cams=cameras, n=n_frames, solver=solver, over=scene_overrides, physics=physics,
-                    planner=planner)
-        return SimpleNamespace(frames=lambda: iter([gaussians] * n_frames), plan=SimpleNamespace(mode="rigid", E_used=1.0))
+    def static_simulate(
+        gaussians,
+        physics,
+        scene_name,
+        cameras,
+        n_frames,
+        planner=None,
+        solver=None,
+        scene_overrides=None,
+        device="cpu",
+    ):
+        seen.update(
+            g=gaussians,
+            scene=scene_name,
+            cams=cameras,
+            n=n_frames,
+            solver=solver,
+            over=scene_overrides,
+            physics=physics,
+            planner=planner,
+        )
+        return SimpleNamespace(
+            frames=lambda: iter([gaussians] * n_frames), plan=SimpleNamespace(mode="rigid", E_used=1.0)
+        )
 
-    monkeypatch.setattr("physgm.sim.run.simulate", static_simulate)
+    monkeypatch.setattr("physgm.sim.gaussian_trajectory.simulate", static_simulate)
     settings = rollout.SimSettings(resolution=32, n_frames=6, backend="warp")
     camera = rollout.render_camera(scene, 32)
     reference = render_frames(SimpleNamespace(frames=lambda: iter([placed] * 6)), camera, "warp", 1.0)
-    dist, info = rollout.evaluate_physics(scene, g, {"material": "rubber", "E": 1e6, "nu": 0.45}, reference, settings)
+    dist, info = rollout.evaluate_physics(
+        scene, g, {"material": "rubber", "E": 1e6, "nu": 0.45}, reference, settings
+    )
     torch.testing.assert_close(seen["g"].means, placed.means)
     assert seen["g"].means[:, 2].min().item() == pytest.approx(scene.video.drop_height_m, abs=1e-6)
-    assert seen["scene"] == "drop" and seen["n"] == 6 and seen["over"] == {"height": scene.video.drop_height_m}
+    assert (
+        seen["scene"] == "drop" and seen["n"] == 6 and seen["over"] == {"height": scene.video.drop_height_m}
+    )
     assert seen["solver"].frame_dt == pytest.approx(1 / scene.fps)
     assert seen["planner"] == {"min_opacity": pytest.approx(0.05)}  # min(0.05, half the faintest opacity 0.9)
     # Rendering at half the reference size: the pixel bounds halve, so the plan is the reference's.
@@ -226,7 +293,9 @@ def test_evaluate_physics_wiring(dpo_root, monkeypatch):
 
     half = rollout.SimSettings(resolution=16, n_frames=6, backend="warp", planner={"cells_across": 7})
     rollout.evaluate_physics(scene, g, {"material": "rubber", "E": 1e6, "nu": 0.45}, reference, half)
-    assert seen["cams"].width == 16 and seen["cams"].Ks[0, 0, 0].item() == pytest.approx(scene.camera.Ks[0, 0, 0].item() / 2)
+    assert seen["cams"].width == 16 and seen["cams"].Ks[0, 0, 0].item() == pytest.approx(
+        scene.camera.Ks[0, 0, 0].item() / 2
+    )
     d = PlannerConfig()
     assert seen["planner"] == {"min_opacity": pytest.approx(0.05), "bound_px": pytest.approx(d.bound_px / 2),
                                "rest_px": pytest.approx(d.rest_px / 2), "cells_across": 7}
@@ -243,9 +312,19 @@ def test_fit_trains_and_resumes_mid_round_from_the_cache(dpo_root, stage1_ckpt, 
     stand_in = StandIn()
     monkeypatch.setattr(rollout, "evaluate_physics", stand_in)
     overrides = [
-        "stage=dpo", "experiment=tiny_cpu_dpo", f"stage.init_ckpt={stage1_ckpt}", f"++data.root={dpo_root}", "++data.input_resolution=32",
-        f"paths.output_dir={tmp_path}", "stage.rollout.refresh_every_n_epochs=2", "stage.rollout.batch_size=2",
-        "stage.rollout.num_views=2", "stage.rollout.workers=1", "stage.rollout.sim.resolution=32", "callbacks.progress_bar=null", "stage.optim.warmup_steps=1",
+        "stage=dpo",
+        "experiment=tiny_cpu_dpo",
+        f"stage.init_ckpt={stage1_ckpt}",
+        f"++data.root={dpo_root}",
+        "++data.input_resolution=32",
+        f"paths.output_dir={tmp_path}",
+        "stage.rollout.refresh_every_n_epochs=2",
+        "stage.rollout.batch_size=2",
+        "stage.rollout.num_views=2",
+        "stage.rollout.workers=1",
+        "stage.rollout.sim.resolution=32",
+        "callbacks.progress_bar=null",
+        "stage.optim.warmup_steps=1",
     ]
 
     def train(*extra: str) -> dict:
@@ -277,7 +356,10 @@ def test_fit_trains_and_resumes_mid_round_from_the_cache(dpo_root, stage1_ckpt, 
     with pytest.raises(RuntimeError, match="simulated crash"):
         train("stage.trainer.max_epochs=3")
     monkeypatch.setattr(LitDPO, "training_step", step)
-    assert torch.load(tmp_path / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)["epoch"] == 0
+    assert (
+        torch.load(tmp_path / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)["epoch"]
+        == 0
+    )
     # Resume: epoch 1 is still round 0 (read from the cache), epoch 2 starts round 1.
     again = StandIn()
     monkeypatch.setattr(rollout, "evaluate_physics", again)
@@ -290,20 +372,26 @@ def test_fit_trains_and_resumes_mid_round_from_the_cache(dpo_root, stage1_ckpt, 
 def test_real_rollout_on_a_generated_drop_scene(tmp_path):
     """One scene generated with a real reference video; K = 2 real MPM rollouts (slow: minutes on CPU)."""
     root = tmp_path / "data"
-    summary = generate(SynthConfig(count=1, seed=11, resolution=32, gaussians=400, video_fraction=1.0, materials=["jelly"]), root,
-                       workers=1, progress=False)
+    summary = generate(
+        SynthConfig(count=1, seed=11, resolution=32, gaussians=400, video_fraction=1.0, materials=["jelly"]),
+        root,
+        workers=1,
+        progress=False,
+    )
     assert summary["done"] == 1, summary["failures"]
     (root / "splits" / "dpo.txt").write_text(f"{asset_id(0)}\n")
     torch.manual_seed(0)
     model = PhysGM(PhysGMConfig.from_dict(tiny_model_config()))
-    cb = make_callback(root, num_candidates=2, sim={"resolution": 32, "n_frames": 12, "planner": {"cells_across": 10}})
+    cb = make_callback(
+        root, num_candidates=2, sim={"resolution": 32, "n_frames": 12, "planner": {"cells_across": 10}}
+    )
     cb.setup(None, None, "fit")
     (record,) = cb.refresh(fake_trainer(tmp_path), SimpleNamespace(model=model), 0, "p0")
     assert all(c.distance is not None and math.isfinite(c.distance) for c in record.candidates), record
 
 
 def test_evaluate_command_compares_two_checkpoints(dpo_root, stage1_ckpt, tmp_path, monkeypatch, capsys):
-    """Bookkeeping of ``python -m physgm.train.evaluate_dpo`` with a stand-in score (|mean log10 E - true|)."""
+    """Bookkeeping of ``python -m physgm.train.evaluate_dpo``, stand-in score |mean log10 E - true|."""
     import lightning as L
 
     from physgm.train import evaluate_dpo
@@ -311,9 +399,18 @@ def test_evaluate_command_compares_two_checkpoints(dpo_root, stage1_ckpt, tmp_pa
 
     lit = LitDPO(init_ckpt=stage1_ckpt, inputs={"num_views": 2, "input_resolution": 32, "background": 1.0})
     with torch.no_grad():
-        lit.model.physics_head.young[-1].bias[0] += 0.5  # shift the mean of normalised log10 E by +0.5 (2.2 decades)
+        lit.model.physics_head.young[-1].bias[0] += (
+            0.5  # shift the mean of normalised log10 E by +0.5 (2.2 decades)
+        )
     dpo_path = tmp_path / "dpo.ckpt"
-    torch.save({"state_dict": lit.state_dict(), "hyper_parameters": dict(lit.hparams), "pytorch-lightning_version": L.__version__}, dpo_path)
+    torch.save(
+        {
+            "state_dict": lit.state_dict(),
+            "hyper_parameters": dict(lit.hparams),
+            "pytorch-lightning_version": L.__version__,
+        },
+        dpo_path,
+    )
     truth = {s.id: s.log10_E for s in rollout.load_scenes(dpo_root, "dpo", num_views=2, input_resolution=32)}
 
     def score(scene, gaussians, physics, reference, settings, device="cpu"):
@@ -321,23 +418,47 @@ def test_evaluate_command_compares_two_checkpoints(dpo_root, stage1_ckpt, tmp_pa
 
     monkeypatch.setattr(evaluate_dpo, "evaluate_physics", score)
     table = tmp_path / "eval.md"
-    assert evaluate_dpo.main(["--pretrain", stage1_ckpt, "--dpo", str(dpo_path), "--data", str(dpo_root), "--split", "dpo",
-                              "--frames", "6", "--table", str(table), "--workers", "1"]) == 0
+    assert (
+        evaluate_dpo.main(
+            [
+                "--pretrain",
+                stage1_ckpt,
+                "--dpo",
+                str(dpo_path),
+                "--data",
+                str(dpo_root),
+                "--split",
+                "dpo",
+                "--frames",
+                "6",
+                "--table",
+                str(table),
+                "--workers",
+                "1",
+            ]
+        )
+        == 0
+    )
     report = json.loads(capsys.readouterr().out)
     assert report["scenes"] == COUNT and report["views"] == 2 and report["input_resolution"] == 32
     rows = report["per_scene"]
     for r in rows:
         for name in ("pretrain", "dpo"):
-            assert r[name]["distance"] == pytest.approx(abs(min(max(r[name]["log10_E"], 3.0), 11.7) - r["log10_E"]), abs=1e-4)
+            assert r[name]["distance"] == pytest.approx(
+                abs(min(max(r[name]["log10_E"], 3.0), 11.7) - r["log10_E"]), abs=1e-4
+            )
             assert r[name]["abs_log10_E_error"] == pytest.approx(abs(r[name]["log10_E"] - r["log10_E"]))
         assert r["dpo"]["log10_E"] - r["pretrain"]["log10_E"] == pytest.approx(0.5 * 8.7 / 2, abs=1e-3)
     overall = report["summary"]["overall"]
     for name in ("pretrain", "dpo"):
         assert overall[name]["mean_distance"] == pytest.approx(np.mean([r[name]["distance"] for r in rows]))
-        assert overall[name]["median_abs_log10_E_error"] == pytest.approx(np.median([r[name]["abs_log10_E_error"] for r in rows]))
+        assert overall[name]["median_abs_log10_E_error"] == pytest.approx(
+            np.median([r[name]["abs_log10_E_error"] for r in rows])
+        )
     gain = 1 - overall["dpo"]["mean_distance"] / overall["pretrain"]["mean_distance"]
     assert overall["gain"]["mean_distance"] == pytest.approx(gain)
-    assert set(evaluate_dpo.KEY_MATERIALS) <= set(report["summary"]) and report["summary"]["metal"]["pretrain"]["n"] == sum(
-        r["material"] == "metal" for r in rows)
+    assert set(evaluate_dpo.KEY_MATERIALS) <= set(report["summary"]) and report["summary"]["metal"][
+        "pretrain"
+    ]["n"] == sum(r["material"] == "metal" for r in rows)
     text = table.read_text()
     assert text.count("\n") == len(report["summary"]) + 2 and "| overall |" in text and "| sand |" in text

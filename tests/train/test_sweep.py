@@ -17,8 +17,16 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def small_model() -> PhysGM:
-    cfg = PhysGMConfig.from_dict({"backbone": {"encoder": {"img_size": 16, "depth": 1}, "depth": 4, "width": 64,
-                                               "out_layers": [0, 1, 2, 3]}})
+    cfg = PhysGMConfig.from_dict(
+        {
+            "backbone": {
+                "encoder": {"img_size": 16, "depth": 1},
+                "depth": 4,
+                "width": 64,
+                "out_layers": [0, 1, 2, 3],
+            }
+        }
+    )
     return PhysGM(cfg, load_pretrained=False)
 
 
@@ -38,9 +46,20 @@ def test_run_summary_counts_parameters_and_times_the_forward(tmp_path):
 def test_table_orders_runs_by_speed_and_draws_the_plot(tmp_path):
     for i, (ms, psnr) in enumerate([(30.0, 24.0), (10.0, 21.0), (90.0, 26.5)]):
         (tmp_path / str(i)).mkdir()
-        (tmp_path / str(i) / "summary.json").write_text(json.dumps({
-            "overrides": f"w={i}", "parameters": 1_000_000 * (i + 1), "input_resolution": 64, "forward_ms": ms,
-            "steps": 10, "val/v4/psnr": psnr, "val/v1/psnr": psnr - 3, "val/v4/material_acc": 0.5}))
+        (tmp_path / str(i) / "summary.json").write_text(
+            json.dumps(
+                {
+                    "overrides": f"w={i}",
+                    "parameters": 1_000_000 * (i + 1),
+                    "input_resolution": 64,
+                    "forward_ms": ms,
+                    "steps": 10,
+                    "val/v4/psnr": psnr,
+                    "val/v1/psnr": psnr - 3,
+                    "val/v4/material_acc": 0.5,
+                }
+            )
+        )
     paths = write_table(tmp_path)
     rows = list(csv.DictReader(open(paths["csv"])))
     assert [float(r["forward_ms"]) for r in rows] == [10.0, 30.0, 90.0]
@@ -59,6 +78,9 @@ def test_hydra_multirun_writes_one_row_per_job(tiny_dataset, tmp_path):
     done = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=480)
     assert done.returncode == 0, done.stderr[-3000:]
     rows = list(csv.DictReader(open(sweep / "sweep.csv")))
-    assert sorted(r["overrides"].split()[0] for r in rows) == ["model.backbone.width=128", "model.backbone.width=64"]
+    assert sorted(r["overrides"].split()[0] for r in rows) == [
+        "model.backbone.width=128",
+        "model.backbone.width=64",
+    ]
     assert all(r["input_resolution"] == "32" for r in rows)
     assert (sweep / "sweep.png").is_file()

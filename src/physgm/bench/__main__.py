@@ -7,12 +7,12 @@ import sys
 
 # Suite name -> module with a ``main(argv: list[str]) -> dict`` function.
 SUITES = {
-    "render": "physgm.bench.render",
-    "sim": "physgm.bench.sim",
+    "render": "physgm.bench.render_speed",
+    "sim": "physgm.bench.sim_speed",
     "sim-verify": "physgm.bench.sim_verify",
     "sim-stability": "physgm.bench.sim_stability",
     "e2e": "physgm.bench.e2e",
-    "model": "physgm.bench.model",
+    "model": "physgm.bench.model_speed",
     "dpo-landscape": "physgm.bench.dpo_landscape",
     "material-probe": "physgm.bench.material_probe",
 }
@@ -23,14 +23,7 @@ def main(argv: list[str] | None = None) -> None:
     if not argv or argv[0] not in SUITES:
         names = ", ".join(SUITES)
         sys.exit(f"usage: python -m physgm.bench SUITE [args]; SUITE is one of: {names}")
-    module_name = SUITES[argv[0]]
-    try:
-        module = importlib.import_module(module_name)
-    except ModuleNotFoundError as err:
-        if err.name == module_name:
-            sys.exit(f"benchmark suite {argv[0]!r} is not implemented yet ({module_name})")
-        raise
-    module.main(argv[1:])
+    importlib.import_module(SUITES[argv[0]]).main(argv[1:])
 
 
 if __name__ == "__main__":

@@ -61,7 +61,7 @@ class LandscapePoint:
 
 def sweep(scene, gaussians: Gaussians, physics: dict, decades: list[float], reference: np.ndarray, settings,
           device: str = "cpu", log=None) -> list[LandscapePoint]:
-    """Simulate ``physics`` with E = physics["E"] x 10^d for each d and score every clip against ``reference``."""
+    """Simulate ``physics`` with E = physics["E"] x 10^d for each d; score each clip against ``reference``."""
     from physgm.data.video import codec_round_trip
     from physgm.metrics.trajectory import score_videos
     from physgm.train.rollout import simulate_clip
@@ -72,7 +72,9 @@ def sweep(scene, gaussians: Gaussians, physics: dict, decades: list[float], refe
         start = time.perf_counter()
         point = LandscapePoint(d, math.log10(E), None, None, "", None, None, None, 0.0)
         try:
-            frames, info = simulate_clip(scene, gaussians, {**physics, "E": E}, settings, len(reference), device)
+            frames, info = simulate_clip(
+                scene, gaussians, {**physics, "E": E}, settings, len(reference), device
+            )
             raw = score_videos(reference, frames)
             enc = score_videos(reference, codec_round_trip(frames, scene.fps))
             point.distance = _finite(raw.distance)
@@ -86,8 +88,11 @@ def sweep(scene, gaussians: Gaussians, physics: dict, decades: list[float], refe
         point.seconds = round(time.perf_counter() - start, 2)
         points.append(point)
         if log:
-            log(f"  d={d:+.2f} distance={point.distance} encoded={point.distance_encoded} {point.mode} {point.seconds}s"
-                + (f" error={point.error}" if point.error else ""))
+            log(
+                f"  d={d:+.2f} distance={point.distance} encoded={point.distance_encoded} {point.mode} "
+                f"{point.seconds}s"
+                + (f" error={point.error}" if point.error else "")
+            )
     return points
 
 
@@ -95,7 +100,14 @@ def shape(points: list[LandscapePoint], key: str, min_gap: float, policy_d: floa
     """Argmin d, spread, the basin (every d DPO could not tell from the best) and the slope at the policy."""
     ok = sorted((p.d, getattr(p, key)) for p in points if getattr(p, key) is not None)
     if not ok:
-        return {"argmin_d": None, "spread": None, "flat": None, "basin_d": [], "at_truth": None, "slope_toward_truth": None}
+        return {
+            "argmin_d": None,
+            "spread": None,
+            "flat": None,
+            "basin_d": [],
+            "at_truth": None,
+            "slope_toward_truth": None,
+        }
     ds, dist = np.array([d for d, _ in ok]), np.array([v for _, v in ok])
     spread = float(dist.max() - dist.min())
     flat = spread < min_gap
@@ -106,9 +118,14 @@ def shape(points: list[LandscapePoint], key: str, min_gap: float, policy_d: floa
         j = i - 1 if ds[i] > 0 else i + 1  # one grid step towards d = 0
         if abs(ds[i]) > 1e-9 and 0 <= j < len(ds):
             slope = float(dist[i] - dist[j])
-    return {"argmin_d": None if flat else float(ds[int(np.argmin(dist))]), "spread": spread, "flat": bool(flat),
-            "basin_d": [float(d) for d in ds[dist - dist.min() < min_gap]], "at_truth": at_truth,
-            "slope_toward_truth": slope}
+    return {
+        "argmin_d": None if flat else float(ds[int(np.argmin(dist))]),
+        "spread": spread,
+        "flat": bool(flat),
+        "basin_d": [float(d) for d in ds[dist - dist.min() < min_gap]],
+        "at_truth": at_truth,
+        "slope_toward_truth": slope,
+    }
 
 
 def summarise(rows: list[dict], sources: list[str]) -> dict:
@@ -137,14 +154,25 @@ def summarise(rows: list[dict], sources: list[str]) -> dict:
                     "median_at_truth": float(np.median(truth)) if truth else None,
                 }
                 slopes = [s["slope_toward_truth"] for s in shapes if s.get("slope_toward_truth") is not None]
-                if slopes:  # predicted source: does a step from the policy's E towards the truth lower the distance?
+                if (
+                    slopes
+                ):  # predicted source: does a step from the policy's E towards the truth lower the distance?
                     entry[key]["toward_truth_at_policy"] = sum(v > 0 for v in slopes) / len(slopes)
             out[material][source] = entry
     return out
 
 
-def select_scenes(data: str, splits: list[str], materials: list[str], per_material: int, input_resolution: int | None,
-                  num_views: int, background: float, seed: int, skip: int = 0) -> list:
+def select_scenes(
+    data: str,
+    splits: list[str],
+    materials: list[str],
+    per_material: int,
+    input_resolution: int | None,
+    num_views: int,
+    background: float,
+    seed: int,
+    skip: int = 0,
+) -> list:
     """``per_material`` scenes of each material, in split order, after skipping the first ``skip``."""
     from physgm.train.rollout import load_scenes
 
@@ -157,7 +185,10 @@ def select_scenes(data: str, splits: list[str], materials: list[str], per_materi
                 count[scene.material] += 1
     missing = {m: per_material - max(c, 0) for m, c in count.items() if c < per_material}
     if missing:
-        print(f"dpo-landscape: fewer scenes than asked for {missing} (splits {splits} of {data})", file=sys.stderr)
+        print(
+            f"dpo-landscape: fewer scenes than asked for {missing} (splits {splits} of {data})",
+            file=sys.stderr,
+        )
     return sorted(chosen, key=lambda s: (materials.index(s.material), s.id))
 
 
@@ -195,27 +226,44 @@ def parse_decades(values: list[str]) -> list[float]:
     try:
         return [float(v) for text in values for v in text.split(",") if v.strip()]
     except ValueError:
-        raise SystemExit(f"--decades takes numbers like -2 -1 0 1 2 (or --decades=-2,-1,0,1,2); got {values}") from None
+        raise SystemExit(
+            f"--decades takes numbers like -2 -1 0 1 2 (or --decades=-2,-1,0,1,2); got {values}"
+        ) from None
 
 
 def main(argv: list[str] | None = None) -> dict:
     from physgm.train.evaluate_dpo import input_settings
     from physgm.train.rollout import SimSettings, reference_frames
 
-    p = argparse.ArgumentParser(prog="python -m physgm.bench dpo-landscape", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(
+        prog="python -m physgm.bench dpo-landscape", description=__doc__.split("\n")[0]
+    )
     p.add_argument("--data", default="data/dpo_eval_tiny", help="PhysAssets root with reference drop videos")
     p.add_argument("--ckpt", default="checkpoints/physgm_tiny.ckpt", help="model for --gaussians predicted")
     p.add_argument("--splits", default="dpo,test", help="splits to take scenes from, comma-separated")
     p.add_argument("--scenes", type=int, default=2, help="scenes per material")
     p.add_argument("--skip", type=int, default=0, help="skip the first N scenes of each material")
     p.add_argument("--materials", nargs="+", default=list(DEFAULT_MATERIALS))
-    p.add_argument("--decades", nargs="+", default=[str(d) for d in DEFAULT_DECADES], help="d values, E = true E x 10^d")
+    p.add_argument(
+        "--decades", nargs="+", default=[str(d) for d in DEFAULT_DECADES], help="d values, E = true E x 10^d"
+    )
     p.add_argument("--gaussians", choices=(*SOURCES, "both"), default="both")
-    p.add_argument("--density", choices=("auto", "asset", "table"), default="auto",
-                   help="auto: the asset's for true Gaussians (re-creates the reference), the table's for predicted (as DPO)")
-    p.add_argument("--resolution", type=int, default=SimSettings.resolution, help="render size, px (rollout default)")
-    p.add_argument("--frames", type=int, default=SimSettings.n_frames, help="frames compared (rollout default)")
-    p.add_argument("--min-gap", type=float, default=0.002, help="distance gap under which DPO calls two candidates a tie")
+    p.add_argument(
+        "--density",
+        choices=("auto", "asset", "table"),
+        default="auto",
+        help="auto: the asset's for true Gaussians (re-creates the reference), "
+        "the table's for predicted (as DPO)",
+    )
+    p.add_argument(
+        "--resolution", type=int, default=SimSettings.resolution, help="render size, px (rollout default)"
+    )
+    p.add_argument(
+        "--frames", type=int, default=SimSettings.n_frames, help="frames compared (rollout default)"
+    )
+    p.add_argument(
+        "--min-gap", type=float, default=0.002, help="distance gap under which DPO calls two candidates a tie"
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the fixed input views (as the rollouts)")
     a = p.parse_args(argv)
     sources = list(SOURCES) if a.gaussians == "both" else [a.gaussians]
@@ -234,8 +282,17 @@ def main(argv: list[str] | None = None) -> dict:
 
         model = model_from_checkpoint(a.ckpt).eval()
         inputs = input_settings(a.ckpt, model)
-    scenes = select_scenes(a.data, [s.strip() for s in a.splits.split(",")], a.materials, a.scenes,
-                           inputs["input_resolution"], int(inputs["num_views"]), float(inputs["background"]), a.seed, a.skip)
+    scenes = select_scenes(
+        a.data,
+        [s.strip() for s in a.splits.split(",")],
+        a.materials,
+        a.scenes,
+        inputs["input_resolution"],
+        int(inputs["num_views"]),
+        float(inputs["background"]),
+        a.seed,
+        a.skip,
+    )
     settings = SimSettings(resolution=a.resolution, n_frames=a.frames, device="cpu")
 
     def log(msg: str) -> None:
@@ -244,23 +301,44 @@ def main(argv: list[str] | None = None) -> dict:
     rows = []
     for i, scene in enumerate(scenes):
         reference = reference_frames(scene, settings.n_frames)
-        row = {"scene": scene.id, "material": scene.material, "log10_E": scene.log10_E, "nu": scene.nu, "sources": {}}
+        row = {
+            "scene": scene.id,
+            "material": scene.material,
+            "log10_E": scene.log10_E,
+            "nu": scene.nu,
+            "sources": {},
+        }
         for source in sources:
             gaussians, default_density, policy_d = source_gaussians(source, scene, a.data, model)
             physics = physics_for(scene, a.data, default_density if a.density == "auto" else a.density)
             log(f"[{i + 1}/{len(scenes)}] {scene.id} {scene.material} log10E={scene.log10_E:.2f} {source} "
                 f"({len(gaussians)} Gaussians, density {physics['density']:.0f} kg/m^3, policy_d={policy_d})")
             points = sweep(scene, gaussians, physics, a.decades, reference, settings, log=log)
-            row["sources"][source] = {"gaussians": len(gaussians), "density": physics["density"], "policy_d": policy_d,
-                                      "points": [asdict(pt) for pt in points],
-                                      "distance": shape(points, "distance", a.min_gap, policy_d),
-                                      "distance_encoded": shape(points, "distance_encoded", a.min_gap, policy_d)}
+            row["sources"][source] = {
+                "gaussians": len(gaussians),
+                "density": physics["density"],
+                "policy_d": policy_d,
+                "points": [asdict(pt) for pt in points],
+                "distance": shape(points, "distance", a.min_gap, policy_d),
+                "distance_encoded": shape(points, "distance_encoded", a.min_gap, policy_d),
+            }
         rows.append(row)
     report = {
-        "data": a.data, "ckpt": a.ckpt if model is not None else None, "decades": a.decades, "sources": sources,
-        "settings": {"resolution": a.resolution, "frames": a.frames, "min_gap": a.min_gap, "density": a.density,
-                     "input": inputs, "torch_threads": 1},
-        "scenes": rows, "summary": summarise(rows, sources), "seconds": round(time.perf_counter() - start, 1),
+        "data": a.data,
+        "ckpt": a.ckpt if model is not None else None,
+        "decades": a.decades,
+        "sources": sources,
+        "settings": {
+            "resolution": a.resolution,
+            "frames": a.frames,
+            "min_gap": a.min_gap,
+            "density": a.density,
+            "input": inputs,
+            "torch_threads": 1,
+        },
+        "scenes": rows,
+        "summary": summarise(rows, sources),
+        "seconds": round(time.perf_counter() - start, 1),
     }
     print(json.dumps(report))
     return report

@@ -58,10 +58,15 @@ def bench_one(path: Path, scene: str, ckpt: Path, out: Path, args) -> dict:
     from physgm.pipeline import UserError, execute
 
     overrides = [
-        f"input={path}", f"ckpt={ckpt}", f"scene={scene}", f"paths.output_dir={out}",
-        f"output.resolution={args.res}", f"output.frames={args.frames}", "output.progress=false",
+        f"input={path}",
+        f"ckpt={ckpt}",
+        f"scene={scene}",
+        f"paths.output_dir={out}",
+        f"output.resolution={args.res}",
+        f"output.frames={args.frames}",
+        "output.progress=false",
         f"device={args.device}",
-    ]  # fmt: skip
+    ]
     if args.material:
         overrides.append(f"physics.material={args.material}")
     row = {"input": path.name, "scene": scene, "frames": args.frames, "res": args.res}
@@ -133,7 +138,7 @@ def main(argv: list[str] | None = None) -> dict:
             "cpus": os.cpu_count(),
             "loadavg": [round(x, 2) for x in os.getloadavg()],
             "python": platform.python_version(),
-        },  # fmt: skip
+        },
     }
     print(json.dumps(result))
     return result

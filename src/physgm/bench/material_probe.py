@@ -55,14 +55,20 @@ def probe_net(num_classes: int, width: int = 32) -> nn.Sequential:
 
     def block(c_in: int, c_out: int) -> nn.Sequential:
         return nn.Sequential(
-            nn.Conv2d(c_in, c_out, 3, padding=1), nn.BatchNorm2d(c_out), nn.ReLU(),
-            nn.Conv2d(c_out, c_out, 3, padding=1), nn.BatchNorm2d(c_out), nn.ReLU(),
+            nn.Conv2d(c_in, c_out, 3, padding=1),
+            nn.BatchNorm2d(c_out),
+            nn.ReLU(),
+            nn.Conv2d(c_out, c_out, 3, padding=1),
+            nn.BatchNorm2d(c_out),
+            nn.ReLU(),
             nn.MaxPool2d(2),
-        )  # fmt: skip
+        )
 
     chans = [4, width, 2 * width, 4 * width, 4 * width]
     blocks = [block(a, b) for a, b in zip(chans[:-1], chans[1:], strict=True)]
-    return nn.Sequential(*blocks, nn.AdaptiveAvgPool2d(1), nn.Flatten(), nn.Dropout(0.3), nn.Linear(chans[-1], num_classes))
+    return nn.Sequential(
+        *blocks, nn.AdaptiveAvgPool2d(1), nn.Flatten(), nn.Dropout(0.3), nn.Linear(chans[-1], num_classes)
+    )
 
 
 @torch.no_grad()
@@ -71,7 +77,9 @@ def accuracy(net: nn.Module, images: Tensor, labels: Tensor) -> tuple[float, flo
     net.eval()
     # In chunks of assets: 3195 training assets in one batch are 12780 images, 6.7 GB for every
     # 32-channel activation of the first block alone.
-    logp = torch.cat([net(chunk.flatten(0, 1)).log_softmax(-1).view(*chunk.shape[:2], -1) for chunk in images.split(128)])
+    logp = torch.cat(
+        [net(chunk.flatten(0, 1)).log_softmax(-1).view(*chunk.shape[:2], -1) for chunk in images.split(128)]
+    )
     net.train()
     one = (logp[:, 0].argmax(-1) == labels).float().mean().item()
     four = (logp.mean(1).argmax(-1) == labels).float().mean().item()
@@ -79,9 +87,15 @@ def accuracy(net: nn.Module, images: Tensor, labels: Tensor) -> tuple[float, flo
 
 
 def main(argv: list[str] | None = None) -> dict:
-    p = argparse.ArgumentParser(prog="python -m physgm.bench material-probe", description=__doc__.splitlines()[0])
-    p.add_argument("--data", default="data/synthetic_tiny", help="PhysAssets folder with splits/train.txt and test.txt")
-    p.add_argument("--test-data", default=None, help="take the test split from this folder instead (default: --data)")
+    p = argparse.ArgumentParser(
+        prog="python -m physgm.bench material-probe", description=__doc__.splitlines()[0]
+    )
+    p.add_argument(
+        "--data", default="data/synthetic_tiny", help="PhysAssets folder with splits/train.txt and test.txt"
+    )
+    p.add_argument(
+        "--test-data", default=None, help="take the test split from this folder instead (default: --data)"
+    )
     p.add_argument("--seconds", type=float, default=900.0, help="training budget (wall clock)")
     p.add_argument("--batch", type=int, default=64)
     p.add_argument("--lr", type=float, default=2e-3)
@@ -112,8 +126,14 @@ def main(argv: list[str] | None = None) -> dict:
         opt.step()
         steps += 1
         if steps % 300 == 0:
-            curve.append({"step": steps, "seconds": round(time.perf_counter() - start, 1),
-                          "train_loss": round(loss.item(), 4), "test_accuracy_1_view": accuracy(net, test_x, test_y)[0]})  # fmt: skip
+            curve.append(
+                {
+                    "step": steps,
+                    "seconds": round(time.perf_counter() - start, 1),
+                    "train_loss": round(loss.item(), 4),
+                    "test_accuracy_1_view": accuracy(net, test_x, test_y)[0],
+                }
+            )
     one, four = accuracy(net, test_x, test_y)
     train_one, train_four = accuracy(net, fit_x, fit_y)
     report = {

@@ -149,8 +149,8 @@ def main(argv: list[str] | None = None) -> dict:
                     cells.append(run_cell(m, E, nu, s, budget=args.budget))
                     c = cells[-1]
                     print(
-                        f"{len(cells):3d} {m} E={E:.0e} nu={nu} {s}: finite={c['finite']} escaped={c['escaped']} "
-                        f"energy_ratio={c['energy_ratio']:.3f} {c['seconds']:.1f}s",
+                        f"{len(cells):3d} {m} E={E:.0e} nu={nu} {s}: finite={c['finite']} "
+                        f"escaped={c['escaped']} energy_ratio={c['energy_ratio']:.3f} {c['seconds']:.1f}s",
                         file=sys.stderr,
                         flush=True,
                     )

@@ -81,7 +81,8 @@ def asset_folders(root: Path) -> list[Path]:
     if not found:
         raise FileNotFoundError(
             f"no assets under {root}: expected folders <asset_id>/ with physical.json, cameras.json and "
-            "rgba/ views (docs/data.md); make them with python -m physgm.data.from_meshes or physgm.data.synth"
+            "rgba/ views (docs/data.md); make them with python -m physgm.data.from_meshes or "
+            "physgm.data.synth"
         )
     return found
 
@@ -159,8 +160,8 @@ def annotate_root(
     if views < 1:
         raise ValueError(f"views must be at least 1, got {views}")
     folders = asset_folders(Path(root))
-    summary: dict = {"root": str(root), "assets": len(folders), "annotated": 0, "kept_existing": 0,
-                     "below_min_mass": 0, "failed": 0, "materials": {}, "labels": {}, "failures": {}}  # fmt: skip
+    summary: dict = {"root": str(root), "assets": len(folders), "annotated": 0, "kept_existing": 0}
+    summary.update({"below_min_mass": 0, "failed": 0, "materials": {}, "labels": {}, "failures": {}})
     materials: Counter[str] = Counter()
     for folder in folders:
         try:

@@ -20,9 +20,9 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
-from physgm.data.format import SPLITS, Asset, AssetError, load_asset, read_split
 from physgm.data.feature_cache import FeatureStore, build_feature_cache, mobilenet_key
-from physgm.data.views import Example, ViewConfig, build_example
+from physgm.data.format import SPLITS, Asset, AssetError, load_asset, read_split
+from physgm.data.views import LOAD_ERRORS, Example, ViewConfig, build_example, example_rng
 from physgm.model.cnn_encoder import ImageFeatures
 
 CORRUPT_MODES = ("raise", "skip")
@@ -131,7 +131,9 @@ def _stack_features(items: list[ImageFeatures | None], v: int) -> ImageFeatures 
     if all(f is None for f in items):
         return None
     if any(f is None for f in items):
-        raise ValueError("some examples of a batch have cached features and others not; rebuild the feature cache")
+        raise ValueError(
+            "some examples of a batch have cached features and others not; rebuild the feature cache"
+        )
     return ImageFeatures.stack([f.map(lambda t: t[:v]) for f in items])
 
 
@@ -148,16 +150,6 @@ class FolderRecord:
 
     def load_rgba(self, indices: list[int]) -> np.ndarray:
         return self.asset.load_rgba(indices)
-
-
-def example_rng(asset_id: str, deterministic: bool, seed: int = 0) -> np.random.Generator:
-    """Fixed views per asset for evaluation; fresh draws (from torch's seeded RNG) for training."""
-    if deterministic:
-        return np.random.default_rng([seed, zlib.crc32(asset_id.encode())])
-    return np.random.default_rng(int(torch.randint(0, 2**62, ())))
-
-
-_LOAD_ERRORS = (AssetError, OSError, ValueError, SyntaxError)  # PIL reports truncated PNGs as these
 
 
 class FolderDataset(Dataset):
@@ -206,7 +198,7 @@ class FolderDataset(Dataset):
             try:
                 rng = example_rng(asset.id, self.deterministic, self.seed)
                 return build_example(FolderRecord(asset), self.views, rng, self.features), skipped
-            except _LOAD_ERRORS as err:
+            except LOAD_ERRORS as err:
                 if self.on_corrupt == "raise":
                     raise AssetError(f"asset {asset.id} ({asset.path}) could not be loaded: {err}") from err
                 skipped.append(asset.id)
@@ -264,7 +256,9 @@ class PhysAssetsDataModule(L.LightningDataModule):
         if feature_cache not in (None, "mobilenet_v2"):
             raise ValueError(f"feature_cache must be null or 'mobilenet_v2', got {feature_cache!r}")
         if feature_cache and backend != "folder":
-            raise ValueError("feature_cache works with backend='folder' (the shards do not carry features yet)")
+            raise ValueError(
+                "feature_cache works with backend='folder' (the shards do not carry features yet)"
+            )
         if feature_cache and not input_resolution:
             raise ValueError("feature_cache needs input_resolution: the cache is keyed by it")
         if backend not in ("folder", "shards"):
@@ -295,7 +289,12 @@ class PhysAssetsDataModule(L.LightningDataModule):
         if key not in self.datasets:
             if self.hp.backend == "folder":
                 self.datasets[key] = FolderDataset(
-                    self.hp.root, split, self.view_config(train), not train, self.hp.on_corrupt, self.hp.seed,
+                    self.hp.root,
+                    split,
+                    self.view_config(train),
+                    not train,
+                    self.hp.on_corrupt,
+                    self.hp.seed,
                     self.feature_store(),
                 )
             else:

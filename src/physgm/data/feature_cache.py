@@ -67,10 +67,14 @@ def file_sha256(path: str) -> str:
     return h.hexdigest()
 
 
-def mobilenet_key(resolution: int, background: float, weights: str | None = None, input_elevation_deg: float = 0.0) -> CacheKey:
+def mobilenet_key(
+    resolution: int, background: float, weights: str | None = None, input_elevation_deg: float = 0.0
+) -> CacheKey:
     """The key of MobileNetV2 features (``weights``: default the packaged file)."""
     path = str(weights) if weights else str(mobilenet_v2_weights_path())
-    return CacheKey("mobilenet_v2", file_sha256(path), int(resolution), float(background), float(input_elevation_deg))
+    return CacheKey(
+        "mobilenet_v2", file_sha256(path), int(resolution), float(background), float(input_elevation_deg)
+    )
 
 
 def cache_dir(root: str | Path, key: CacheKey) -> Path:
@@ -116,7 +120,9 @@ def build_feature_cache(
             log(f"feature cache: skipping malformed asset {aid}: {err}")
             continue
         views = ring_views(asset.cameras.c2w, key.input_elevation_deg)
-        images, _, _ = composite_views(asset.load_rgba(views), asset.cameras.Ks[views], key.resolution, key.background)
+        images, _, _ = composite_views(
+            asset.load_rgba(views), asset.cameras.Ks[views], key.resolution, key.background
+        )
         feats = encoder.encode(images)
         arrays = {name: getattr(feats, name).numpy().astype(np.float16) for name in _FIELDS}
         _save_atomic(out / f"{aid}.npz", {"views": np.asarray(views, dtype=np.int64), **arrays})
@@ -131,18 +137,25 @@ class FeatureStore:
     def __init__(self, folder: str | Path) -> None:
         self.folder = Path(folder)
         if not (self.folder / "meta.json").exists():
-            raise FileNotFoundError(f"{self.folder} is not a feature cache (no meta.json); build it with python -m physgm.data.feature_cache")
+            raise FileNotFoundError(
+                f"{self.folder} is not a feature cache (no meta.json); build it with python -m "
+                f"physgm.data.feature_cache"
+            )
 
     def load(self, asset_id: str, views: list[int]) -> ImageFeatures:  # [V, ...] float16 tensors
         path = self.folder / f"{asset_id}.npz"
         if not path.exists():
-            raise FileNotFoundError(f"no cached features for asset {asset_id} in {self.folder}; rebuild the cache")
+            raise FileNotFoundError(
+                f"no cached features for asset {asset_id} in {self.folder}; rebuild the cache"
+            )
         with np.load(path) as data:
             stored = [int(v) for v in data["views"]]
             missing = [v for v in views if v not in stored]
             if missing:
-                raise ValueError(f"views {missing} of asset {asset_id} are not cached (cached: {stored}); "
-                                 "the cache holds the input-elevation ring only")
+                raise ValueError(
+                    f"views {missing} of asset {asset_id} are not cached (cached: {stored}); "
+                    "the cache holds the input-elevation ring only"
+                )
             rows = [stored.index(v) for v in views]
             return ImageFeatures(**{name: torch.from_numpy(data[name][rows]) for name in _FIELDS})
 

@@ -346,8 +346,8 @@ def load_asset(path: str | os.PathLike) -> Asset:
     if problems:
         listing = "\n  - ".join(problems)
         raise AssetError(
-            f"asset {path} is malformed:\n  - {listing}\n"
-            f"Fix or remove it; `python -m physgm.data.check {Path(path).parent}` lists every defect in the data set."
+            f"asset {path} is malformed:\n  - {listing}\nFix or remove it; `python -m physgm.data.check "
+            f"{Path(path).parent}` lists every defect in the data set."
         )
     return asset
 

@@ -24,21 +24,46 @@ from PIL import Image
 PHOTO_TEXTURES: dict[str, list[tuple[str, str]]] = {
     "wood": [
         ("robosuite", f"models/assets/textures/{n}.png")
-        for n in ("blue-wood", "dark-wood", "gray-woodgrain", "green-wood", "light-wood", "red-wood",
-                  "wood-tiles", "wood-varnished-panels")
-    ] + [
+        for n in (
+            "blue-wood",
+            "dark-wood",
+            "gray-woodgrain",
+            "green-wood",
+            "light-wood",
+            "red-wood",
+            "wood-tiles",
+            "wood-varnished-panels",
+        )
+    ]
+    + [
         ("metaworld", f"assets/textures/{n}.png")
-        for n in ("darkwood", "light_wood", "light_wood_v2", "light_wood_v3", "wood", "wood1", "wood2",
-                  "wood3", "wood4", "wood_light")
+        for n in (
+            "darkwood",
+            "light_wood",
+            "light_wood_v2",
+            "light_wood_v3",
+            "wood",
+            "wood1",
+            "wood2",
+            "wood3",
+            "wood4",
+            "wood_light",
+        )
     ],  # fmt: skip
     "metal": [
-        ("robosuite", f"models/assets/textures/{n}.png") for n in ("steel-brushed", "steel-scratched", "metal", "brass-ambra")
-    ] + [("metaworld", f"assets/textures/{n}.png") for n in ("metal1", "metal2")],
-    "ceramic": [("robosuite", "models/assets/textures/ceramic.png"), ("robosuite", "models/assets/textures/light-gray-floor-tile.png")],
+        ("robosuite", f"models/assets/textures/{n}.png")
+        for n in ("steel-brushed", "steel-scratched", "metal", "brass-ambra")
+    ]
+    + [("metaworld", f"assets/textures/{n}.png") for n in ("metal1", "metal2")],
+    "ceramic": [
+        ("robosuite", "models/assets/textures/ceramic.png"),
+        ("robosuite", "models/assets/textures/light-gray-floor-tile.png"),
+    ],
     "stone": [
         ("robosuite", f"models/assets/textures/{n}.png")
         for n in ("white-bricks", "gray-plaster", "cream-plaster", "light-gray-plaster", "white-plaster")
-    ] + [("metaworld", f"assets/textures/{n}.png") for n in ("granite", "marble", "brick1", "plaster1")],
+    ]
+    + [("metaworld", f"assets/textures/{n}.png") for n in ("granite", "marble", "brick1", "plaster1")],
     "fabric": [
         ("robosuite", "models/assets/textures/gray-felt.png"),
         ("metaworld", "assets/scene/textures/fabricPattern.png"),
@@ -95,7 +120,9 @@ def triplanar(
     return out
 
 
-def photo_albedo(material: str, p: np.ndarray, n: np.ndarray, rng: np.random.Generator) -> np.ndarray:  # [N, 3]
+def photo_albedo(
+    material: str, p: np.ndarray, n: np.ndarray, rng: np.random.Generator
+) -> np.ndarray:  # [N, 3]
     """A randomly chosen photograph of ``material`` on the surface, at a random scale and offset."""
     choices = PHOTO_TEXTURES[material]
     package, relpath = choices[int(rng.integers(len(choices)))]

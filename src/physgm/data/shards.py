@@ -21,9 +21,8 @@ import torch
 from litdata import StreamingDataset
 from PIL import Image
 
-from physgm.data.datamodule import _LOAD_ERRORS, example_rng
 from physgm.data.format import SPLITS, AssetError, load_asset, parse_camera, parse_physical, read_split
-from physgm.data.views import Example, ViewConfig, build_example
+from physgm.data.views import LOAD_ERRORS, Example, ViewConfig, build_example, example_rng
 
 
 def asset_to_sample(path: str) -> dict:
@@ -136,7 +135,7 @@ class ShardDataset(StreamingDataset):
             return build_example(
                 record, self.views, example_rng(record.id, self.deterministic, self.example_seed)
             ), []
-        except _LOAD_ERRORS as err:
+        except LOAD_ERRORS as err:
             if self.on_corrupt == "raise":
                 raise AssetError(f"shard sample {sample.get('id')} could not be loaded: {err}") from err
             return None, [str(sample.get("id"))]

@@ -51,7 +51,9 @@ class SynthConfig:
     backend: str = "warp"  # physgm.render backend used for the views and videos
     materials: list[str] | None = None  # restrict to these materials (default: all)
     families: list[str] | None = None  # restrict to these shape families (default: all)
-    photo_textures: float = 0.0  # chance an asset wears a photographed material texture (physgm.data.photo_textures)
+    photo_textures: float = (
+        0.0  # chance an asset wears a photographed material texture (physgm.data.photo_textures)
+    )
     varied_light: bool = False  # a random light per asset instead of the fixed one
     annotator: AnnotatorConfig = field(default_factory=AnnotatorConfig)
     # Split shares: assets without video -> train / val / test; with video -> dpo / test.
@@ -71,7 +73,8 @@ class SynthConfig:
             raise ValueError(f"unknown shape families {bad}; choose from {', '.join(fams)}")
         if self.count < 0 or self.resolution < 8 or not 0 <= self.video_fraction <= 1:
             raise ValueError(
-                f"need count >= 0, resolution >= 8, video_fraction in [0, 1]; got {self.count}, {self.resolution}, {self.video_fraction}"
+                f"need count >= 0, resolution >= 8, video_fraction in [0, 1]; got {self.count}, "
+                f"{self.resolution}, {self.video_fraction}"
             )
 
     def to_json(self) -> dict:
@@ -153,7 +156,12 @@ def generate_asset(cfg: SynthConfig, index: int, out: Path) -> str:
     rng_phys, rng_obj, rng_ann, rng_video = np.random.SeedSequence([cfg.seed, index, 1]).spawn(4)
     physics = sample_physics(plan.material, np.random.default_rng(rng_phys))
     obj = make_object(
-        plan.family, physics, cfg.gaussians, np.random.default_rng(rng_obj), cfg.photo_textures, cfg.varied_light
+        plan.family,
+        physics,
+        cfg.gaussians,
+        np.random.default_rng(rng_obj),
+        cfg.photo_textures,
+        cfg.varied_light,
     )
     ann = annotate(plan.material, physics.E, physics.nu, np.random.default_rng(rng_ann), cfg.annotator)
     cameras, az, el = view_cameras(cfg.resolution)
@@ -204,7 +212,8 @@ def _check_config(cfg: SynthConfig, out: Path) -> None:
         diff = sorted(k for k in set(mine) | set(theirs) if k != "count" and mine.get(k) != theirs.get(k))
         if diff:
             raise SystemExit(
-                f"{out} was generated with other settings ({', '.join(diff)} differ, see {path}); use a new --out or the same settings"
+                f"{out} was generated with other settings ({', '.join(diff)} differ, see {path}); use a new "
+                "--out or the same settings"
             )
     write_json(path, mine)
 
@@ -304,9 +313,14 @@ def main(argv: list[str] | None = None) -> int:
         "--annotator-config", type=Path, default=None, help="JSON or YAML file with AnnotatorConfig fields"
     )
     p.add_argument(
-        "--photo-textures", type=float, default=0.0, help="chance an asset wears a photographed material texture"
+        "--photo-textures",
+        type=float,
+        default=0.0,
+        help="chance an asset wears a photographed material texture",
     )
-    p.add_argument("--varied-light", action="store_true", help="a random light per asset instead of the fixed one")
+    p.add_argument(
+        "--varied-light", action="store_true", help="a random light per asset instead of the fixed one"
+    )
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
 
@@ -340,8 +354,9 @@ def main(argv: list[str] | None = None) -> int:
     for i, tb in summary.pop("_tracebacks").items():
         print(f"asset {asset_id(i)} failed:\n{tb}", file=sys.stderr)
     print(
-        f"generated {summary['done']} assets ({summary['skipped']} already there, {summary['failed']} failed) "
-        f"in {summary['seconds']:.1f} s: {summary['assets_per_min']:.1f} assets/min"
+        f"generated {summary['done']} assets ({summary['skipped']} already there, "
+        f"{summary['failed']} failed) in {summary['seconds']:.1f} s: "
+        f"{summary['assets_per_min']:.1f} assets/min"
     )
     print(json.dumps(summary))
     return 1 if summary["failed"] else 0

@@ -2,7 +2,7 @@
 
 The object (asset frame: radius 0.5, +z up) is scaled to metres by ``object_scale`` and placed
 with its lowest point ``drop_height_m`` above the ground plane z = 0, then simulated by
-``physgm.sim.run.simulate`` with the "drop" scene and rendered from azimuth -45 or 135
+``physgm.sim.gaussian_trajectory.simulate`` with the "drop" scene and rendered from azimuth -45 or 135
 degrees, elevation 0, radius 1.8 m (the PhysGM evaluation camera), looking at the middle of
 the vertical range the object can occupy. 50 frames at 25 fps go to ``videos/drop.mp4``;
 ``videos/drop.json`` holds everything needed to redo the simulation (camera, fps, frames,
@@ -42,7 +42,7 @@ class VideoConfig:
 
 
 def place_object(gaussians: Gaussians, cfg: VideoConfig) -> tuple[Gaussians, np.ndarray]:
-    """Asset-frame Gaussians scaled and lifted into the simulation world; returns (Gaussians, [4, 4] transform)."""
+    """Asset-frame Gaussians scaled and lifted into the simulation world, and the [4, 4] transform."""
     s = cfg.object_scale
     lift = cfg.drop_height_m - s * float(gaussians.means[:, 2].min())
     T = np.diag([s, s, s, 1.0])
@@ -95,9 +95,18 @@ def render_frames(trajectory, camera: Cameras, backend: str, background: float) 
             frames.append(frames[-1])
             continue
         rgb, alpha, _ = rasterize(
-            g.means, g.quats, g.scales, g.opacities, g.colors, camera.viewmats, camera.Ks,
-            camera.width, camera.height, background=None, backend=backend,
-        )  # fmt: skip
+            g.means,
+            g.quats,
+            g.scales,
+            g.opacities,
+            g.colors,
+            camera.viewmats,
+            camera.Ks,
+            camera.width,
+            camera.height,
+            background=None,
+            backend=backend,
+        )
         rgba = to_rgba8(rgb, alpha)[0].astype(np.float32) / 255.0
         comp = rgba[..., :3] * rgba[..., 3:] + background * (1 - rgba[..., 3:])
         frames.append(np.round(comp * 255).astype(np.uint8))
@@ -176,7 +185,7 @@ def write_reference_video(
     cfg: VideoConfig | None = None,
 ) -> dict:
     """Simulate, render and write ``videos/<scene>.mp4`` + ``.json`` into an asset folder."""
-    from physgm.sim.run import simulate
+    from physgm.sim.gaussian_trajectory import simulate
     from physgm.sim.stepping import SolverConfig
 
     cfg = cfg or VideoConfig()

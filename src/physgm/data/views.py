@@ -18,6 +18,7 @@ targets always include whichever inputs the batch keeps.
 from __future__ import annotations
 
 import math
+import zlib
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -173,7 +174,10 @@ def composite_views(
 
 
 def build_example(
-    record: AssetRecord, cfg: ViewConfig, rng: np.random.Generator | None, features: FeatureSource | None = None
+    record: AssetRecord,
+    cfg: ViewConfig,
+    rng: np.random.Generator | None,
+    features: FeatureSource | None = None,
 ) -> Example:
     """Cut one example (input set + targets + labels) from an asset; ``features``: a frozen-encoder cache."""
     inputs, targets = select_views(record.c2w, cfg, rng)
@@ -181,7 +185,8 @@ def build_example(
     rgba = record.load_rgba(targets)
     if rgba.shape[1:3] != (record.height, record.width):
         raise AssetError(
-            f"views are {rgba.shape[2]}x{rgba.shape[1]} px but cameras.json says {record.width}x{record.height}"
+            f"views are {rgba.shape[2]}x{rgba.shape[1]} px but cameras.json says "
+            f"{record.width}x{record.height}"
         )
     in_img, in_mask, in_K = composite_views(
         rgba[:NUM_INPUT_SET], record.Ks[inputs], cfg.input_resolution, cfg.background
@@ -211,3 +216,14 @@ def build_example(
         true_known=phys.true_known,
         input_features=features.load(record.id, inputs) if features is not None else None,
     )
+
+
+def example_rng(asset_id: str, deterministic: bool, seed: int = 0) -> np.random.Generator:
+    """Fixed views per asset for evaluation; fresh draws (from torch's seeded RNG) for training."""
+    if deterministic:
+        return np.random.default_rng([seed, zlib.crc32(asset_id.encode())])
+    return np.random.default_rng(int(torch.randint(0, 2**62, ())))
+
+
+# What ``build_example`` raises on a damaged asset; PIL reports truncated PNGs as the last three.
+LOAD_ERRORS = (AssetError, OSError, ValueError, SyntaxError)

@@ -39,9 +39,10 @@ def load_lpips(net: str = "alex", backbone_path: str | Path | None = None) -> nn
     path = Path(backbone_path) if backbone_path else default_backbone_path(net)
     if not path.is_file():
         raise FileNotFoundError(
-            f"LPIPS needs the ImageNet weights of its {net} backbone and physgm never downloads them. "
-            f"Put the torchvision file {BACKBONE_FILES[net]} at {path} (or set stage.loss.lpips_backbone_path=/path/to/file), "
-            "or switch the LPIPS term off with stage.loss.lpips=0."
+            f"LPIPS needs the ImageNet weights of its {net} backbone and physgm never downloads them. Put "
+            f"the torchvision file {BACKBONE_FILES[net]} at {path} (or set "
+            "stage.loss.lpips_backbone_path=/path/to/file), or switch the LPIPS term off with "
+            "stage.loss.lpips=0."
         )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # torchvision's 'pretrained' deprecation notice
@@ -52,7 +53,9 @@ def load_lpips(net: str = "alex", backbone_path: str | Path | None = None) -> nn
     for key in model.net.state_dict():
         index_and_param = re.sub(r"^slice\d+\.", "", key)  # "slice2.3.weight" -> "3.weight"
         if index_and_param not in features:
-            raise ValueError(f"{path} does not look like torchvision {net} weights: no features.{index_and_param}")
+            raise ValueError(
+                f"{path} does not look like torchvision {net} weights: no features.{index_and_param}"
+            )
         mapped[key] = features[index_and_param]
     model.net.load_state_dict(mapped)
     return model.eval().requires_grad_(False)

@@ -26,7 +26,9 @@ class Tracks:
 
     def __post_init__(self) -> None:
         if self.xy.ndim != 3 or self.xy.shape[-1] != 2 or self.visible.shape != self.xy.shape[:2]:
-            raise ValueError(f"Tracks need xy [T, Q, 2] and visible [T, Q], got {self.xy.shape} and {self.visible.shape}")
+            raise ValueError(
+                f"Tracks need xy [T, Q, 2] and visible [T, Q], got {self.xy.shape} and {self.visible.shape}"
+            )
 
 
 class PointTracker(Protocol):
@@ -53,7 +55,9 @@ def background_mask(frames: np.ndarray, background=(255, 255, 255), threshold: f
     return np.stack([cv2.morphologyEx(m, cv2.MORPH_OPEN, kernel) for m in masks]).astype(bool)
 
 
-def select_queries(frame: np.ndarray, mask: np.ndarray, max_points: int = 64, min_distance: int = 3) -> np.ndarray:
+def select_queries(
+    frame: np.ndarray, mask: np.ndarray, max_points: int = 64, min_distance: int = 3
+) -> np.ndarray:
     """Good features to track inside ``mask`` of one frame, [Q, 2] pixels.
 
     Falls back to a regular grid over the mask when the object has too little texture for corners.
@@ -62,7 +66,9 @@ def select_queries(frame: np.ndarray, mask: np.ndarray, max_points: int = 64, mi
 
     grey = cv2.cvtColor(np.ascontiguousarray(frame), cv2.COLOR_RGB2GRAY)
     mask_u8 = mask.astype(np.uint8) * 255
-    corners = cv2.goodFeaturesToTrack(grey, maxCorners=max_points, qualityLevel=0.01, minDistance=min_distance, mask=mask_u8)
+    corners = cv2.goodFeaturesToTrack(
+        grey, maxCorners=max_points, qualityLevel=0.01, minDistance=min_distance, mask=mask_u8
+    )
     points = np.zeros((0, 2), np.float32) if corners is None else corners.reshape(-1, 2)
     if len(points) < max_points // 2:
         ys, xs = np.nonzero(mask)
@@ -98,7 +104,12 @@ class LucasKanadeTracker:
             nxt, ok, _ = cv2.calcOpticalFlowPyrLK(grey[i - 1], grey[i], prev, None, **params)
             back, ok_b, _ = cv2.calcOpticalFlowPyrLK(grey[i], grey[i - 1], nxt, None, **params)
             fb = np.linalg.norm(back.reshape(-1, 2) - xy[i - 1], axis=-1)
-            good = visible[i - 1] & ok.reshape(-1).astype(bool) & ok_b.reshape(-1).astype(bool) & (fb < self.max_fb_error)
+            good = (
+                visible[i - 1]
+                & ok.reshape(-1).astype(bool)
+                & ok_b.reshape(-1).astype(bool)
+                & (fb < self.max_fb_error)
+            )
             # A lost point stays where it was last seen, so later frames do not jump; it is marked invisible.
             xy[i] = np.where(good[:, None], nxt.reshape(-1, 2), xy[i - 1])
             visible[i] = good

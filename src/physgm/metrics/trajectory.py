@@ -29,7 +29,9 @@ class BoundingBox:
         ys, xs = np.nonzero(mask)
         if len(xs) == 0:
             raise ValueError("the object mask of the first frame is empty: no object to measure")
-        return BoundingBox(float(xs.min()), float(ys.min()), float(max(xs.max() - xs.min(), ys.max() - ys.min(), 1) + 1))
+        return BoundingBox(
+            float(xs.min()), float(ys.min()), float(max(xs.max() - xs.min(), ys.max() - ys.min(), 1) + 1)
+        )
 
     def normalise(self, xy: np.ndarray) -> np.ndarray:
         """Pixel positions [..., 2] to box units."""

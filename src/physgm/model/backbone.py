@@ -58,9 +58,14 @@ class Backbone(nn.Module):
         super().__init__()
         if cfg.width % cfg.head_dim:
             raise ValueError(f"backbone width {cfg.width} is not divisible by head_dim {cfg.head_dim}")
-        if len(cfg.out_layers) != 4 or len(set(cfg.out_layers)) != 4 or not all(0 <= i < cfg.depth for i in cfg.out_layers):
+        if (
+            len(cfg.out_layers) != 4
+            or len(set(cfg.out_layers)) != 4
+            or not all(0 <= i < cfg.depth for i in cfg.out_layers)
+        ):
             raise ValueError(
-                f"backbone.out_layers must be 4 distinct block indices in [0, {cfg.depth}), got {list(cfg.out_layers)}"
+                f"backbone.out_layers must be 4 distinct block indices in [0, {cfg.depth}), got "
+                f"{list(cfg.out_layers)}"
             )
         self.cfg = cfg
         self.patch_size = cfg.encoder.patch_size
@@ -96,7 +101,10 @@ class Backbone(nn.Module):
             image_tokens = self.encoder.tokens(features)  # [B*V, L, D_enc]
         else:
             if features is not None:
-                raise ValueError("cached image features are only used with the frozen CNN encoder (encoder.kind=mobilenet_v2)")
+                raise ValueError(
+                    "cached image features are only used with the frozen CNN encoder "
+                    "(encoder.kind=mobilenet_v2)"
+                )
             image_tokens = self.encoder(images.flatten(0, 1))  # [B*V, L, D_enc]
         camera_tokens = self.camera_encoder(plucker.flatten(0, 1))  # [B*V, L, D_cam]
         tokens = self.fuse(torch.cat([image_tokens, camera_tokens], dim=-1))  # [B*V, L, D]

@@ -60,7 +60,9 @@ class ImageFeatures:
 
     @staticmethod
     def stack(items: list[ImageFeatures], dim: int = 0) -> ImageFeatures:
-        return ImageFeatures(**{f.name: torch.stack([getattr(i, f.name) for i in items], dim) for f in fields(ImageFeatures)})
+        return ImageFeatures(
+            **{f.name: torch.stack([getattr(i, f.name) for i in items], dim) for f in fields(ImageFeatures)}
+        )
 
 
 class MobileNetEncoder(nn.Module):
@@ -107,7 +109,9 @@ class MobileNetEncoder(nn.Module):
         """The feature pyramid at the view's own size and the classifier's logits at 224 px."""
         h, w = images.shape[-2:]
         if h % 32 or w % 32:
-            raise ValueError(f"image size {h}x{w} must be a multiple of 32 for the MobileNetV2 encoder; resize the views")
+            raise ValueError(
+                f"image size {h}x{w} must be a multiple of 32 for the MobileNetV2 encoder; resize the views"
+            )
         x = (images - self.mean) / self.std
         out = {}
         for i, block in enumerate(self.features):
@@ -123,7 +127,13 @@ class MobileNetEncoder(nn.Module):
         images: Tensor,  # [B', 3, H, W] RGB in [0, 1]
     ) -> Tensor:  # [B', 1000]
         """ImageNet logits of each view, resized to the classifier's 224 px."""
-        x = F.interpolate(images, size=(CLASSIFIER_SIZE, CLASSIFIER_SIZE), mode="bilinear", antialias=True, align_corners=False)
+        x = F.interpolate(
+            images,
+            size=(CLASSIFIER_SIZE, CLASSIFIER_SIZE),
+            mode="bilinear",
+            antialias=True,
+            align_corners=False,
+        )
         x = self.head_conv(self.features((x - self.mean) / self.std))
         return self.classifier(x.mean(dim=(2, 3)))
 

@@ -65,7 +65,9 @@ class GaussianHeadConfig:
     max_offset: float = 0.05  # bound of the free 3D offset added to the ray point (0 disables it)
     scale_min: float = 0.0005  # smallest Gaussian std
     scale_max: float = 0.1  # largest Gaussian std
-    mask_threshold: float = 0.1  # pixels with mask > threshold get a Gaussian (translucent objects: alpha < 0.5)
+    mask_threshold: float = (
+        0.1  # pixels with mask > threshold get a Gaussian (translucent objects: alpha < 0.5)
+    )
 
 
 @dataclass

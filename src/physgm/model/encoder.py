@@ -93,7 +93,9 @@ def build_dinov3(cfg: EncoderConfig, load_pretrained: bool = True) -> ImageEncod
     arch = DINOV3_ARCHS.get(cfg.arch, cfg.arch)
     available = timm.list_models("*dinov3*")
     if arch not in available:
-        raise ValueError(f"unknown DINOv3 architecture {cfg.arch!r}; timm {timm.__version__} provides {available}")
+        raise ValueError(
+            f"unknown DINOv3 architecture {cfg.arch!r}; timm {timm.__version__} provides {available}"
+        )
     path = _check_weights_path(cfg.weights, arch) if load_pretrained else None
     vit = timm.create_model(arch, pretrained=False, num_classes=0, img_size=cfg.img_size)
     if path is not None:
@@ -101,8 +103,9 @@ def build_dinov3(cfg: EncoderConfig, load_pretrained: bool = True) -> ImageEncod
     actual = (vit.patch_embed.patch_size[0], vit.embed_dim, len(vit.blocks))
     if actual != (cfg.patch_size, cfg.embed_dim, cfg.depth):
         raise ValueError(
-            f"{arch} has patch_size={actual[0]}, embed_dim={actual[1]}, depth={actual[2]}, but the config says "
-            f"patch_size={cfg.patch_size}, embed_dim={cfg.embed_dim}, depth={cfg.depth}; fix model.backbone.encoder"
+            f"{arch} has patch_size={actual[0]}, embed_dim={actual[1]}, depth={actual[2]}, but the config "
+            f"says patch_size={cfg.patch_size}, embed_dim={cfg.embed_dim}, depth={cfg.depth}; fix "
+            "model.backbone.encoder"
         )
     return ImageEncoder(vit, cfg.patch_size, cfg.embed_dim, cfg.freeze)
 
@@ -155,11 +158,14 @@ def _key_mismatch(expected: dict[str, Tensor], got: dict[str, Tensor]) -> tuple[
 
 
 def build_mobilenet_v2(cfg: EncoderConfig, load_pretrained: bool = True) -> MobileNetEncoder:
-    """Frozen ImageNet MobileNetV2 (``physgm.model.cnn_encoder``); ``cfg.weights`` overrides the packaged file.
+    """Frozen ImageNet MobileNetV2 (``physgm.model.cnn_encoder``); ``cfg.weights`` overrides its file.
 
     Its weights are read from the file even when a checkpoint is loaded: checkpoints leave them out.
     """
-    if (cfg.patch_size, cfg.embed_dim) != (MobileNetEncoder.patch_size, MobileNetEncoder.embed_dim) or not cfg.freeze:
+    if (cfg.patch_size, cfg.embed_dim) != (
+        MobileNetEncoder.patch_size,
+        MobileNetEncoder.embed_dim,
+    ) or not cfg.freeze:
         raise ValueError(
             f"encoder.kind=mobilenet_v2 is frozen with patch_size={MobileNetEncoder.patch_size} and "
             f"embed_dim={MobileNetEncoder.embed_dim}; the config says patch_size={cfg.patch_size}, "

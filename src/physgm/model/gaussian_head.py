@@ -73,7 +73,10 @@ class GaussianPrediction:
 
     def detach(self) -> GaussianPrediction:
         return GaussianPrediction(
-            **{f.name: v.detach() if isinstance(v := getattr(self, f.name), Tensor) else v for f in fields(self)}
+            **{
+                f.name: v.detach() if isinstance(v := getattr(self, f.name), Tensor) else v
+                for f in fields(self)
+            }
         )
 
 
@@ -85,11 +88,17 @@ class GaussianActivations(nn.Module):
         if not 0 < cfg.near < cfg.far:
             raise ValueError(f"gaussian_head needs 0 < near < far, got near={cfg.near}, far={cfg.far}")
         if not 0 < cfg.scale_min < cfg.scale_max:
-            raise ValueError(f"gaussian_head needs 0 < scale_min < scale_max, got {cfg.scale_min}, {cfg.scale_max}")
+            raise ValueError(
+                f"gaussian_head needs 0 < scale_min < scale_max, got {cfg.scale_min}, {cfg.scale_max}"
+            )
         if cfg.depth_prior not in DEPTH_PRIORS:
-            raise ValueError(f"gaussian_head.depth_prior must be one of {DEPTH_PRIORS}, got {cfg.depth_prior!r}")
+            raise ValueError(
+                f"gaussian_head.depth_prior must be one of {DEPTH_PRIORS}, got {cfg.depth_prior!r}"
+            )
         if cfg.depth_prior == "centre" and not cfg.scene_radius > 0:
-            raise ValueError(f"gaussian_head.scene_radius must be > 0 with depth_prior='centre', got {cfg.scene_radius}")
+            raise ValueError(
+                f"gaussian_head.scene_radius must be > 0 with depth_prior='centre', got {cfg.scene_radius}"
+            )
         self.cfg = cfg
         self.register_buffer("quat_bias", torch.tensor([1.0, 0.0, 0.0, 0.0]), persistent=False)
 
@@ -106,7 +115,9 @@ class GaussianActivations(nn.Module):
             if depth_range is None:
                 raise ValueError("depth_prior='hull' needs the per-ray depth_range from physgm.model.hull")
             lo, hi = depth_range
-            depth = lo + (hi - lo) * torch.sigmoid(raw["depth"])  # [..., 1], the paper's sigmoid on the hull segment
+            depth = lo + (hi - lo) * torch.sigmoid(
+                raw["depth"]
+            )  # [..., 1], the paper's sigmoid on the hull segment
         elif c.depth_prior == "centre":
             # distance along the unit ray to the point closest to the scene origin (object centre)
             centre = -(origins * directions).sum(dim=-1, keepdim=True)
@@ -122,7 +133,14 @@ class GaussianActivations(nn.Module):
         # Residual on the input colour in logit space: a zero output reproduces the pixel colour.
         color = torch.sigmoid(raw["color"] + torch.logit(rgb.clamp(0.0, 1.0), eps=1e-3))
         means = origins + depth * directions + offset
-        return {"means": means, "quats": quat, "scales": scale, "opacities": opacity, "colors": color, "depths": depth[..., 0]}
+        return {
+            "means": means,
+            "quats": quat,
+            "scales": scale,
+            "opacities": opacity,
+            "colors": color,
+            "depths": depth[..., 0],
+        }
 
 
 class _ResidualConv(nn.Module):
@@ -154,7 +172,9 @@ class _Fusion(nn.Module):
 class DPTHead(nn.Module):
     """Dense prediction head on 4 token layers; see the module docstring."""
 
-    def __init__(self, cfg: GaussianHeadConfig, dim: int, patch_size: int, skip_channels: tuple[int, ...] | None = None) -> None:
+    def __init__(
+        self, cfg: GaussianHeadConfig, dim: int, patch_size: int, skip_channels: tuple[int, ...] | None = None
+    ) -> None:
         super().__init__()
         if len(cfg.layer_channels) != 4:
             raise ValueError(f"gaussian_head.layer_channels needs 4 entries, got {list(cfg.layer_channels)}")
@@ -163,12 +183,14 @@ class DPTHead(nn.Module):
         self.norms = nn.ModuleList(nn.LayerNorm(dim) for _ in range(4))
         self.projects = nn.ModuleList(nn.Conv2d(dim, c, 1) for c in ch)
         # Reassemble into a pyramid: 4x, 2x, 1x and 1/2x the patch grid.
-        self.resamples = nn.ModuleList([
-            nn.ConvTranspose2d(ch[0], ch[0], kernel_size=4, stride=4),
-            nn.ConvTranspose2d(ch[1], ch[1], kernel_size=2, stride=2),
-            nn.Identity(),
-            nn.Conv2d(ch[3], ch[3], kernel_size=3, stride=2, padding=1),
-        ])
+        self.resamples = nn.ModuleList(
+            [
+                nn.ConvTranspose2d(ch[0], ch[0], kernel_size=4, stride=4),
+                nn.ConvTranspose2d(ch[1], ch[1], kernel_size=2, stride=2),
+                nn.Identity(),
+                nn.Conv2d(ch[3], ch[3], kernel_size=3, stride=2, padding=1),
+            ]
+        )
         self.to_features = nn.ModuleList(nn.Conv2d(c, cfg.features, 3, padding=1, bias=False) for c in ch)
         # A frozen CNN encoder's pyramid (strides 4, 8, 16, 32 = this pyramid's levels with patch
         # size 16) joins each level: the fine levels see image detail the tokens have pooled away.
@@ -199,7 +221,9 @@ class DPTHead(nn.Module):
         height, width = images.shape[-2:]
         h, w = height // self.patch_size, width // self.patch_size
         if (skips is not None) != (self.encoder_skips is not None):
-            raise ValueError("the DPT head takes encoder skip maps exactly when it was built with skip_channels")
+            raise ValueError(
+                "the DPT head takes encoder skip maps exactly when it was built with skip_channels"
+            )
         maps = []
         for i, t in enumerate(tokens):
             x = self.norms[i](t).transpose(1, 2).reshape(t.shape[0], -1, h, w)  # [B', D, h, w]
@@ -222,7 +246,9 @@ class DPTHead(nn.Module):
 class GaussianHead(nn.Module):
     """DPT head + activations + masking: tokens and rays -> ``GaussianPrediction``."""
 
-    def __init__(self, cfg: GaussianHeadConfig, dim: int, patch_size: int, skip_channels: tuple[int, ...] | None = None) -> None:
+    def __init__(
+        self, cfg: GaussianHeadConfig, dim: int, patch_size: int, skip_channels: tuple[int, ...] | None = None
+    ) -> None:
         super().__init__()
         self.cfg = cfg
         self.dpt = DPTHead(cfg, dim, patch_size, skip_channels)
@@ -242,9 +268,13 @@ class GaussianHead(nn.Module):
         c = self.cfg
         guide, depth_range = None, None
         if c.depth_prior == "hull":
-            lo, hi = hull_depth_range(masks, c2w, Ks, directions, c.near, c.far, c.hull_samples, c.mask_threshold)
+            lo, hi = hull_depth_range(
+                masks, c2w, Ks, directions, c.near, c.far, c.hull_samples, c.mask_threshold
+            )
             span = c.far - c.near
-            guide = torch.stack([(lo - c.near) / span, (hi - lo) / span], dim=2).flatten(0, 1)  # [B*V, 2, H, W]
+            guide = torch.stack([(lo - c.near) / span, (hi - lo) / span], dim=2).flatten(
+                0, 1
+            )  # [B*V, 2, H, W]
             depth_range = (lo.reshape(b, -1, 1), hi.reshape(b, -1, 1))
         raw = self.dpt(tokens, images.flatten(0, 1), guide, skips)
         raw = {k: r.reshape(b, v * height * width, -1) for k, r in raw.items()}  # [B, N, c]

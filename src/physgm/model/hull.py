@@ -61,8 +61,19 @@ def hull_depth_range(
         origin = c2w[i, :, None, None, :3, 3].to(dtype).expand(v, height, width, 3)[sel]  # [R, 3]
         direction = directions[i][sel]  # [R, 3]
         boxes = _mask_boxes(sel)
-        parts = [_hull_segment(origin[k : k + RAY_CHUNK], direction[k : k + RAY_CHUNK], proj[i], boxes, sel,
-                               samples, near, far) for k in range(0, origin.shape[0], RAY_CHUNK)]  # fmt: skip
+        parts = [
+            _hull_segment(
+                origin[k : k + RAY_CHUNK],
+                direction[k : k + RAY_CHUNK],
+                proj[i],
+                boxes,
+                sel,
+                samples,
+                near,
+                far,
+            )
+            for k in range(0, origin.shape[0], RAY_CHUNK)
+        ]
         if parts:
             lo[i][sel] = torch.cat([part[0] for part in parts])
             hi[i][sel] = torch.cat([part[1] for part in parts])
@@ -132,8 +143,10 @@ def _clip_to_mask_frusta(
     """
     u0, u1, v0, v1 = boxes.to(origin).unbind(dim=1)  # [V] each
     p0, p1, p2 = proj.unbind(dim=1)  # [V, 4] each
-    planes = torch.stack([p0 - u0[:, None] * p2, u1[:, None] * p2 - p0, p1 - v0[:, None] * p2,
-                          v1[:, None] * p2 - p1, p2], dim=1).reshape(-1, 4)  # [V * 5, 4]  # fmt: skip
+    planes = torch.stack(
+        [p0 - u0[:, None] * p2, u1[:, None] * p2 - p0, p1 - v0[:, None] * p2, v1[:, None] * p2 - p1, p2],
+        dim=1,
+    ).reshape(-1, 4)  # [V * 5, 4]
     a = origin @ planes[:, :3].T + planes[:, 3]  # [R, V * 5] plane value at t = 0
     s = direction @ planes[:, :3].T  # [R, V * 5] its rate along the ray
     ratio = -a / torch.where(s == 0, torch.ones_like(s), s)

@@ -43,8 +43,12 @@ class PhysGM(nn.Module):
         self.backbone = Backbone(config.backbone, load_pretrained)
         cnn = isinstance(self.backbone.encoder, MobileNetEncoder)
         skips = tuple(LEVEL_CHANNELS.values()) if cnn else None
-        self.gaussian_head = GaussianHead(config.gaussian_head, config.backbone.width, self.backbone.patch_size, skips)
-        self.physics_head = PhysicsHead(config.physics_head, config.backbone.width, config.backbone.num_global_tokens)
+        self.gaussian_head = GaussianHead(
+            config.gaussian_head, config.backbone.width, self.backbone.patch_size, skips
+        )
+        self.physics_head = PhysicsHead(
+            config.physics_head, config.backbone.width, config.backbone.num_global_tokens
+        )
 
     @property
     def patch_size(self) -> int:
@@ -65,15 +69,21 @@ class PhysGM(nn.Module):
         """
         self._check_inputs(images, masks, c2w, Ks)
         b, v, _, height, width = images.shape
-        cameras = Cameras(c2w.reshape(b * v, 4, 4).to(images.dtype), Ks.reshape(b * v, 3, 3).to(images.dtype), width, height)
+        cameras = Cameras(
+            c2w.reshape(b * v, 4, 4).to(images.dtype), Ks.reshape(b * v, 3, 3).to(images.dtype), width, height
+        )
         plucker = plucker_rays(cameras).reshape(b, v, 6, height, width)  # (direction, moment)
         out = self.backbone(images, plucker, features)
         directions = plucker[:, :, :3].permute(0, 1, 3, 4, 2)  # [B, V, H, W, 3] unit
         skips = out.features.levels() if out.features is not None else None
-        gaussians = self.gaussian_head(out.patch_tokens, images, masks, c2w.to(images.dtype), Ks.to(images.dtype), directions, skips)
+        gaussians = self.gaussian_head(
+            out.patch_tokens, images, masks, c2w.to(images.dtype), Ks.to(images.dtype), directions, skips
+        )
         log_prior = None
         if out.features is not None:
-            logits = out.features.imagenet_logits.float().reshape(b, v, -1).mean(dim=1)  # views agree on one object
+            logits = (
+                out.features.imagenet_logits.float().reshape(b, v, -1).mean(dim=1)
+            )  # views agree on one object
             log_prior = semantic_log_prior(logits)
         physics = self.physics_head(out.global_tokens, log_prior)
         return PhysGMOutput(gaussians=gaussians, physics=physics, semantic_log_prior=log_prior)
@@ -91,13 +101,22 @@ class PhysGM(nn.Module):
         if images.ndim != 5 or images.shape[2] != 3:
             raise ValueError(f"images must have shape [B, V, 3, H, W], got {tuple(images.shape)}")
         b, v, _, height, width = images.shape
-        expected = {"masks": (masks, (b, v, 1, height, width)), "c2w": (c2w, (b, v, 4, 4)), "Ks": (Ks, (b, v, 3, 3))}
+        expected = {
+            "masks": (masks, (b, v, 1, height, width)),
+            "c2w": (c2w, (b, v, 4, 4)),
+            "Ks": (Ks, (b, v, 3, 3)),
+        }
         for name, (tensor, shape) in expected.items():
             if tuple(tensor.shape) != shape:
-                raise ValueError(f"{name} must have shape {list(shape)} to match images {tuple(images.shape)}, got {tuple(tensor.shape)}")
+                raise ValueError(
+                    f"{name} must have shape {list(shape)} to match images {tuple(images.shape)}, got "
+                    f"{tuple(tensor.shape)}"
+                )
         p = self.patch_size
         if height % p or width % p:
-            raise ValueError(f"image size {height}x{width} must be a multiple of the patch size {p}; resize the views")
+            raise ValueError(
+                f"image size {height}x{width} must be a multiple of the patch size {p}; resize the views"
+            )
 
 
 def semantic_log_prior(

@@ -20,9 +20,13 @@ class PhysicsHead(nn.Module):
     def __init__(self, cfg: PhysicsHeadConfig, dim: int, num_global_tokens: int) -> None:
         super().__init__()
         if num_global_tokens < 3:
-            raise ValueError(f"the physics head reads 3 global tokens, backbone.num_global_tokens is {num_global_tokens}")
+            raise ValueError(
+                f"the physics head reads 3 global tokens, backbone.num_global_tokens is {num_global_tokens}"
+            )
         if not cfg.logvar_min < cfg.logvar_max:
-            raise ValueError(f"physics_head needs logvar_min < logvar_max, got {cfg.logvar_min}, {cfg.logvar_max}")
+            raise ValueError(
+                f"physics_head needs logvar_min < logvar_max, got {cfg.logvar_min}, {cfg.logvar_max}"
+            )
         self.cfg = cfg
         self.material = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, cfg.num_materials))
         self.young = _mean_logvar_mlp(dim, cfg.hidden)

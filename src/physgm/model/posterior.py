@@ -110,8 +110,12 @@ class PhysicsPosterior:
         """Draw K = ``num_samples`` independent candidates per batch element (no gradient)."""
         with torch.no_grad():
             b = self.material_logits.shape[0]
-            material = torch.multinomial(self.material_probs, num_samples, replacement=True, generator=generator)
-            noise = torch.randn(2, b, num_samples, generator=generator, device=self.z_E_mean.device, dtype=self.z_E_mean.dtype)
+            material = torch.multinomial(
+                self.material_probs, num_samples, replacement=True, generator=generator
+            )
+            noise = torch.randn(
+                2, b, num_samples, generator=generator, device=self.z_E_mean.device, dtype=self.z_E_mean.dtype
+            )
             z_E = self.z_E_mean[:, None] + torch.exp(0.5 * self.z_E_logvar)[:, None] * noise[0]
             z_nu = self.z_nu_mean[:, None] + torch.exp(0.5 * self.z_nu_logvar)[:, None] * noise[1]
         return PhysicsSample(material, denormalise_log10_E(z_E), denormalise_nu(z_nu))

@@ -31,7 +31,9 @@ def mobilenet_v2_weights_path() -> Path:
         raise FileNotFoundError(f"the ImageNet MobileNetV2 weights are missing: {_INSTALL_HINT}")
     path = Path(next(iter(spec.submodule_search_locations))) / MOBILENET_V2_FILE
     if not path.is_file():
-        raise FileNotFoundError(f"{path} is missing from the package {MOBILENET_V2_PACKAGE}: reinstall it; {_INSTALL_HINT}")
+        raise FileNotFoundError(
+            f"{path} is missing from the package {MOBILENET_V2_PACKAGE}: reinstall it; {_INSTALL_HINT}"
+        )
     return path
 
 

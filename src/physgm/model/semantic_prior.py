@@ -74,7 +74,8 @@ def _parse_group(raw: object, g: int, path: Path) -> MaterialGroup:
     if material != NONE and material not in MATERIAL_NAMES:
         _fail(
             path,
-            f"group {g} names unknown material {material!r}; use one of {', '.join(MATERIAL_NAMES)} or {NONE}",
+            f"group {g} names unknown material {material!r}; "
+            f"use one of {', '.join(MATERIAL_NAMES)} or {NONE}",
         )
     if not isinstance(raw["reason"], str) or not raw["reason"].strip():
         _fail(
@@ -87,7 +88,8 @@ def _parse_group(raw: object, g: int, path: Path) -> MaterialGroup:
         if not isinstance(index, int) or not 0 <= index < NUM_CLASSES:
             _fail(
                 path,
-                f"group {g} ({material}): class key {index!r} ({name}) is not an index in 0..{NUM_CLASSES - 1}",
+                f"group {g} ({material}): class key {index!r} ({name}) is not an index in "
+                f"0..{NUM_CLASSES - 1}",
             )
     return MaterialGroup(None if material == NONE else material, raw["reason"].strip(), dict(classes))
 
@@ -122,12 +124,14 @@ def load_semantic_table(path: str | Path | None = None, categories: list[str] | 
             if str(name) != categories[index]:
                 _fail(
                     path,
-                    f"class {index} is {categories[index]!r} in ImageNet but the table ({here}) calls it {name!r}",
+                    f"class {index} is {categories[index]!r} in ImageNet but the table ({here}) calls "
+                    f"it {name!r}",
                 )
             if index in seen:
                 _fail(
                     path,
-                    f"class {index} ({categories[index]}) appears twice: under {seen[index] or NONE} and {here}",
+                    f"class {index} ({categories[index]}) appears twice: under {seen[index] or NONE} "
+                    f"and {here}",
                 )
             seen[index] = grp.material
     missing = [i for i in range(NUM_CLASSES) if i not in seen]
@@ -213,7 +217,8 @@ def classifier_input(
     background: float = 1.0,
     size: int = CLASSIFIER_SIZE,
 ) -> Tensor:  # [B, 3, size, size] ImageNet-normalised
-    """Pad to a square with the background (the whole object stays in view, undistorted), resize, normalise."""
+    """Pad to a square with the background (the whole object stays in view, undistorted), resize,
+    normalise."""
     h, w = rgb.shape[-2:]
     side = max(h, w)
     top, left = (side - h) // 2, (side - w) // 2
@@ -268,7 +273,9 @@ def main(argv: list[str] | None = None) -> int:
             "material": MATERIAL_NAMES[m],
             "material_probability": round(float(probs[m]), 4),
             "mass": round(float(mass), 4),
-            "top_classes": [{"index": i, "name": n, "p": round(q, 4)} for i, n, q in top_classes(logits, a.top)],
+            "top_classes": [
+                {"index": i, "name": n, "p": round(q, 4)} for i, n, q in top_classes(logits, a.top)
+            ],
         })  # fmt: skip
     print(json.dumps(report, indent=1))
     return 0

@@ -2,7 +2,7 @@
 
 Confusing ceramic with metal changes little in a clip (both fall as rigid bodies); confusing
 ceramic with jelly changes everything. Evaluation therefore scores the behaviour class next to
-the material (``physgm.metrics.physics``). The classes follow how the simulator treats each
+the material (``physgm.metrics.physics_metrics``). The classes follow how the simulator treats each
 material: the planner runs the stiff ones as rigid bodies, the elastic ones spring back, the
 von Mises ones keep a dent, the Drucker-Prager ones flow as grains, and foam crushes.
 """

@@ -17,9 +17,22 @@ from pathlib import Path
 import yaml
 
 MATERIAL_NAMES: tuple[str, ...] = (
-    "plastic", "wood", "metal", "fabric", "ceramic", "stone", "paper", "leather",
-    "glass", "rubber", "foam", "snow", "sand", "jelly", "plasticine",
-)  # fmt: skip
+    "plastic",
+    "wood",
+    "metal",
+    "fabric",
+    "ceramic",
+    "stone",
+    "paper",
+    "leather",
+    "glass",
+    "rubber",
+    "foam",
+    "snow",
+    "sand",
+    "jelly",
+    "plasticine",
+)
 
 MATERIAL_DIR = Path(__file__).resolve().parents[3] / "conf" / "sim" / "material"
 PLASTICITY_KEYS = ("yield_stress", "hardening", "friction_angle", "cohesion", "viscosity")
@@ -46,9 +59,16 @@ class Material:
 
     def params(self, E: float | None = None, nu: float | None = None):
         """Solver parameters (``physgm.sim.constitutive.MaterialParams``) at this or another E / nu."""
+        # Imported here so that reading the table does not load Warp.
         from physgm.sim.constitutive import MaterialParams
 
-        return MaterialParams.from_material(self, E=E, nu=nu)
+        return MaterialParams(
+            model=self.model,
+            E=float(self.E if E is None else E),
+            nu=float(self.nu if nu is None else nu),
+            density=float(self.density),
+            **{k: float(v) for k, v in self.plasticity.items()},
+        )
 
 
 def _fail(path: Path, message: str) -> None:

@@ -58,8 +58,17 @@ def load_model(path: Path, device: str = "cpu") -> tuple[PhysGM, dict]:
     try:
         # weights_only=False: Lightning stores plain-Python hyper-parameters next to the tensors.
         ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    except (pickle.UnpicklingError, EOFError, zipfile.BadZipFile, RuntimeError, OSError, ValueError,
-            AttributeError, ModuleNotFoundError, IndexError) as err:  # fmt: skip
+    except (
+        pickle.UnpicklingError,
+        EOFError,
+        zipfile.BadZipFile,
+        RuntimeError,
+        OSError,
+        ValueError,
+        AttributeError,
+        ModuleNotFoundError,
+        IndexError,
+    ) as err:
         raise UserError(
             f"{path} is not a readable PyTorch checkpoint ({type(err).__name__}: {str(err)[:120]})"
         ) from None
@@ -69,7 +78,8 @@ def load_model(path: Path, device: str = "cpu") -> tuple[PhysGM, dict]:
         or "model" not in ckpt["hyper_parameters"]
     ):
         raise UserError(
-            f"{path} is not a physgm checkpoint: it has no hyper_parameters.model (train one with `python train.py`)"
+            f"{path} is not a physgm checkpoint: it has no hyper_parameters.model (train one with `python "
+            "train.py`)"
         )
     if not isinstance(ckpt.get("state_dict"), dict):
         raise UserError(f"{path} is not a physgm checkpoint: it has no state_dict")
@@ -77,8 +87,8 @@ def load_model(path: Path, device: str = "cpu") -> tuple[PhysGM, dict]:
     version = hparams.get("format_version", 1)
     if version != CHECKPOINT_FORMAT_VERSION:
         raise UserError(
-            f"{path} has checkpoint format version {version!r}, this physgm reads version {CHECKPOINT_FORMAT_VERSION}; "
-            "use the physgm release that wrote it, or retrain"
+            f"{path} has checkpoint format version {version!r}, this physgm reads version "
+            f"{CHECKPOINT_FORMAT_VERSION}; use the physgm release that wrote it, or retrain"
         )
     try:
         config = PhysGMConfig.from_dict(dict(hparams["model"] or {}))
@@ -93,8 +103,11 @@ def load_model(path: Path, device: str = "cpu") -> tuple[PhysGM, dict]:
     expected = model.state_dict()
     missing = sorted(set(expected) - set(state))
     unexpected = sorted(set(state) - set(expected))
-    shapes = [f"{k} {tuple(state[k].shape)} != {tuple(v.shape)}" for k, v in expected.items()
-              if k in state and tuple(state[k].shape) != tuple(v.shape)]  # fmt: skip
+    shapes = [
+        f"{k} {tuple(state[k].shape)} != {tuple(v.shape)}"
+        for k, v in expected.items()
+        if k in state and tuple(state[k].shape) != tuple(v.shape)
+    ]
     problems = []
     if missing:
         problems.append(f"{len(missing)} weights missing ({_list(missing)})")

@@ -97,23 +97,32 @@ class RunConfig:
             f"physics.E={p.E!r} must be a positive number of pascals",
         )
         _check(p.nu is None or -1.0 < p.nu < 0.5, f"physics.nu={p.nu!r} must be in (-1, 0.5)")
-        _check(p.density is None or (math.isfinite(p.density) and p.density > 0),
-               f"physics.density={p.density!r} must be a positive number (kg/m^3)")  # fmt: skip
+        _check(
+            p.density is None or (math.isfinite(p.density) and p.density > 0),
+            f"physics.density={p.density!r} must be a positive number (kg/m^3)",
+        )
         _check(0 <= p.samples <= 64, f"physics.samples={p.samples!r} must be an integer in [0, 64]")
         _check(
             math.isfinite(self.size_m) and 1e-3 <= self.size_m <= 10.0,
             f"object.size={self.size_m!r} must be in [0.001, 10] m",
         )
-        _check(self.drop_height_m is None or (math.isfinite(self.drop_height_m) and 0 <= self.drop_height_m <= 10),
-               f"object.drop_height={self.drop_height_m!r} must be in [0, 10] m")  # fmt: skip
+        _check(
+            self.drop_height_m is None
+            or (math.isfinite(self.drop_height_m) and 0 <= self.drop_height_m <= 10),
+            f"object.drop_height={self.drop_height_m!r} must be in [0, 10] m",
+        )
         _check(self.up in UP_AXES, f"object.up={self.up!r} must be one of {', '.join(UP_AXES)}")
-        _check(16 <= o.resolution <= 4096 and o.resolution % 2 == 0,
-               f"output.resolution={o.resolution!r} must be an even number of pixels in [16, 4096]")  # fmt: skip
+        _check(
+            16 <= o.resolution <= 4096 and o.resolution % 2 == 0,
+            f"output.resolution={o.resolution!r} must be an even number of pixels in [16, 4096]",
+        )
         _check(2 <= o.frames <= 10000, f"output.frames={o.frames!r} must be in [2, 10000]")
         _check(math.isfinite(o.fps) and 1 <= o.fps <= 240, f"output.fps={o.fps!r} must be in [1, 240]")
         _check(1 <= o.keyframes <= 16, f"output.keyframes={o.keyframes!r} must be in [1, 16]")
-        _check(len(o.background) == 3 and all(0 <= v <= 1 for v in o.background),
-               f"output.background={list(o.background)!r} must be three numbers in [0, 1]")  # fmt: skip
+        _check(
+            len(o.background) == 3 and all(0 <= v <= 1 for v in o.background),
+            f"output.background={list(o.background)!r} must be three numbers in [0, 1]",
+        )
         _check(0 < c.fov_deg < 170, f"camera.fov_deg={c.fov_deg!r} must be in (0, 170)")
         _check(c.margin >= 1.0, f"camera.margin={c.margin!r} must be >= 1")
         _check(

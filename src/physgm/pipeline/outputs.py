@@ -27,7 +27,8 @@ class RunFolder:
         self.committed = False
         if self.target.exists() and (not self.target.is_dir() or any(self.target.iterdir())):
             raise UserError(
-                f"output folder {self.target} already exists and is not empty; choose another paths.output_dir"
+                f"output folder {self.target} already exists and is not empty; choose another "
+                "paths.output_dir"
             )
         try:
             self.target.parent.mkdir(parents=True, exist_ok=True)
@@ -38,7 +39,8 @@ class RunFolder:
         except OSError as err:
             shutil.rmtree(self.tmp, ignore_errors=True)
             raise UserError(
-                f"cannot write the run folder {self.target} ({err.strerror or err}); choose another paths.output_dir"
+                f"cannot write the run folder {self.target} ({err.strerror or err}); choose another "
+                "paths.output_dir"
             ) from None
 
     def __enter__(self) -> Path:
@@ -82,11 +84,29 @@ def write_mp4(path: Path, frames: np.ndarray, fps: float) -> None:
 
     t, h, w = frames.shape[:3]
     writer = imageio_ffmpeg.write_frames(
-        str(path), (w, h), fps=fps, codec="libx264", pix_fmt_out="yuv420p", quality=None, macro_block_size=1,
-        output_params=["-crf", "18", "-preset", "veryfast", "-threads", "1", "-fflags", "+bitexact",
-                       "-flags:v", "+bitexact", "-map_metadata", "-1"],
+        str(path),
+        (w, h),
+        fps=fps,
+        codec="libx264",
+        pix_fmt_out="yuv420p",
+        quality=None,
+        macro_block_size=1,
+        output_params=[
+            "-crf",
+            "18",
+            "-preset",
+            "veryfast",
+            "-threads",
+            "1",
+            "-fflags",
+            "+bitexact",
+            "-flags:v",
+            "+bitexact",
+            "-map_metadata",
+            "-1",
+        ],
         ffmpeg_log_level="error",
-    )  # fmt: skip
+    )
     writer.send(None)
     for f in frames:
         writer.send(np.ascontiguousarray(f))

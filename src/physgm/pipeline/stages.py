@@ -1,8 +1,9 @@
 """Photo (or views, or .ply) -> physically simulated clip: the stages and the run folder.
 
 Stages, each timed in report.json: load (input + checkpoint), model (forward pass, physics
-choice, placement), plan and simulate (``physgm.sim.run.simulate``), render (deforming the
-Gaussians per frame + rasterising), write (videos, PLYs, contact sheet, JSON, rename).
+choice, placement), plan and simulate (``physgm.sim.gaussian_trajectory.simulate``), render
+(deforming the Gaussians per frame + rasterising), write (videos, PLYs, contact sheet, JSON,
+rename).
 """
 
 from __future__ import annotations
@@ -42,10 +43,14 @@ def run(cfg) -> dict:
         print(f"error: {err}", file=sys.stderr)
         raise SystemExit(2) from None
     for r in report["runs"]:
-        print(f"{run_cfg.output_dir / r['video']}: {r['material']} E={r['E']:.3g} Pa nu={r['nu']:.2f}, "
-              f"{r['mode']} ({r['predicted_error_px']:.2f} px predicted error)")  # fmt: skip
-    print(f"done in {report['seconds']['total']:.1f} s; contact sheet: {run_cfg.output_dir / 'contact_sheet.png'}, "
-          f"report: {run_cfg.output_dir / 'report.json'}")
+        print(
+            f"{run_cfg.output_dir / r['video']}: {r['material']} E={r['E']:.3g} Pa nu={r['nu']:.2f}, "
+            f"{r['mode']} ({r['predicted_error_px']:.2f} px predicted error)"
+        )
+    print(
+        f"done in {report['seconds']['total']:.1f} s; contact sheet: "
+        f"{run_cfg.output_dir / 'contact_sheet.png'}, report: {run_cfg.output_dir / 'report.json'}"
+    )
     return report
 
 
@@ -95,14 +100,15 @@ def _predict(model, inp, device: str):
     values = [g.means, g.scales, g.opacities, g.colors, post.material_logits, post.z_E_mean, post.z_nu_mean]
     if not all(bool(torch.isfinite(v).all()) for v in values):
         raise UserError(
-            "the model produced non-finite values for this input; the checkpoint is probably broken (NaN weights)"
+            "the model produced non-finite values for this input; the checkpoint is probably broken (NaN "
+            "weights)"
         )
     return g, post
 
 
 def _simulate(g, choice, cfg: RunConfig, camera, overrides: dict):
+    from physgm.sim.gaussian_trajectory import simulate
     from physgm.sim.planner import PlannerConfig
-    from physgm.sim.run import simulate
     from physgm.sim.stepping import SolverConfig
 
     try:
@@ -111,8 +117,17 @@ def _simulate(g, choice, cfg: RunConfig, camera, overrides: dict):
     except (TypeError, ValueError) as err:
         raise UserError(f"bad planner/solver settings: {err}") from None
     try:
-        traj = simulate(g, choice.sim_physics(), cfg.scene, camera, n_frames=cfg.output.frames, planner=planner,
-                        solver=solver, scene_overrides=overrides or None, device=cfg.device)  # fmt: skip
+        traj = simulate(
+            g,
+            choice.sim_physics(),
+            cfg.scene,
+            camera,
+            n_frames=cfg.output.frames,
+            planner=planner,
+            solver=solver,
+            scene_overrides=overrides or None,
+            device=cfg.device,
+        )
     except ValueError as err:  # the simulator validates materials and scenes with ValueError
         raise UserError(f"cannot simulate {choice.label()} in scene {cfg.scene!r}: {err}") from None
     plan_s = float(traj.plan_seconds)  # particle sampling + planning, inside traj.seconds
@@ -123,12 +138,24 @@ def _run_summary(choice, traj, seconds: dict, finite: bool, video: str) -> dict:
     plan = traj.plan
     summary = plan.summary()
     return {
-        "name": choice.name, "video": video, "material": choice.material, "E": choice.E, "nu": choice.nu,
-        "mode": plan.mode, "predicted_error_px": plan.predicted_error_px, "E_used": plan.E_used,
-        "particles": int(len(traj.particles.x)), "grid_cells": summary["grid_cells"], "dx_m": plan.dx,
-        "substeps": int(traj.substeps), "rest_frame": traj.rest_frame, "ballistic_frames": traj.ballistic_frames,
-        "reason": plan.reason, "finite": finite, "seconds": {k: round(v, 3) for k, v in seconds.items()},
-    }  # fmt: skip
+        "name": choice.name,
+        "video": video,
+        "material": choice.material,
+        "E": choice.E,
+        "nu": choice.nu,
+        "mode": plan.mode,
+        "predicted_error_px": plan.predicted_error_px,
+        "E_used": plan.E_used,
+        "particles": int(len(traj.particles.x)),
+        "grid_cells": summary["grid_cells"],
+        "dx_m": plan.dx,
+        "substeps": int(traj.substeps),
+        "rest_frame": traj.rest_frame,
+        "ballistic_frames": traj.ballistic_frames,
+        "reason": plan.reason,
+        "finite": finite,
+        "seconds": {k: round(v, 3) for k, v in seconds.items()},
+    }
 
 
 def execute(cfg: RunConfig) -> dict:
@@ -147,9 +174,9 @@ def execute(cfg: RunConfig) -> dict:
 def _execute(cfg: RunConfig) -> dict:
     from hydra.utils import instantiate
 
-    from physgm.pipeline.inputs import input_kind, prepare_input
-    from physgm.pipeline.physics import choose_physics, physics_json
-    from physgm.pipeline.render import render_gaussians, render_trajectory
+    from physgm.pipeline.frames import render_gaussians, render_trajectory
+    from physgm.pipeline.physics_choice import choose_physics, physics_json
+    from physgm.pipeline.prepared_input import input_kind, prepare_input
     from physgm.pipeline.staging import direction, floor_image, framing_camera, motion_region, place_object
 
     start = time.perf_counter()
@@ -192,8 +219,16 @@ def _execute(cfg: RunConfig) -> dict:
                 if cfg.output.frame_plys
                 else None
             )
-            frames, finite = render_trajectory(traj, camera, renderer, bg, cfg.device, cfg.output.progress,
-                                               f"{choice.name} ({traj.plan.mode})", ply_dir)  # fmt: skip
+            frames, finite = render_trajectory(
+                traj,
+                camera,
+                renderer,
+                bg,
+                cfg.device,
+                cfg.output.progress,
+                f"{choice.name} ({traj.plan.mode})",
+                ply_dir,
+            )
             render_s = time.perf_counter() - t0
             if not finite:
                 raise RuntimeError(
@@ -270,10 +305,18 @@ def _report(cfg, inp, ckpt_info, scene_cfg, placement, camera, az, el, sec, resu
         "scene_settings": scene_cfg,
         "device": cfg.device,
         "torch_threads": cfg.torch_threads,
-        "output": {"resolution": cfg.output.resolution, "frames": cfg.output.frames, "fps": cfg.output.fps,
-                   "videos": [r["video"] for r in results]},  # fmt: skip
-        "object": {"size_m": cfg.size_m, "m_per_model_unit": placement.scale, "gaussians": n_gaussians,
-                   "object_to_world": placement.object_to_world},  # fmt: skip
+        "output": {
+            "resolution": cfg.output.resolution,
+            "frames": cfg.output.frames,
+            "fps": cfg.output.fps,
+            "videos": [r["video"] for r in results],
+        },
+        "object": {
+            "size_m": cfg.size_m,
+            "m_per_model_unit": placement.scale,
+            "gaussians": n_gaussians,
+            "object_to_world": placement.object_to_world,
+        },
         "camera": {"azimuth_deg": az, "elevation_deg": el, "fov_deg": cfg.camera.fov_deg, "eye_m": eye},
         "seconds": {k: round(v, 3) for k, v in sec.items()},
         "mode": mean["mode"],
@@ -284,6 +327,6 @@ def _report(cfg, inp, ckpt_info, scene_cfg, placement, camera, az, el, sec, resu
         "finite": all(r["finite"] for r in results),
         "runs": results,
         "stage_notes": "load = input + checkpoint; model = forward pass, physics choice, placement; "
-                       "plan/simulate = physgm.sim.run.simulate; render = deforming + rasterising per frame; "
-                       "write = videos, PLYs, images, JSON",
-    }  # fmt: skip
+        "plan/simulate = physgm.sim.gaussian_trajectory.simulate; render = deforming + rasterising per "
+        "frame; write = videos, PLYs, images, JSON",
+    }

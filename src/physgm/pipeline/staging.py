@@ -32,7 +32,7 @@ class Placement:
 
 
 def place_object(g: Gaussians, size_m: float, ground: float, min_opacity: float) -> Placement:
-    """Scale ``g`` so its largest extent is ``size_m``, centred over the origin, lowest point at ``ground``."""
+    """Scale ``g`` to a largest extent of ``size_m``, centred over the origin, lowest point at ``ground``."""
     keep = g.opacities >= min_opacity
     if not bool(keep.any()):
         raise UserError(
@@ -47,7 +47,8 @@ def place_object(g: Gaussians, size_m: float, ground: float, min_opacity: float)
     extent = float((hi - lo).max())
     if not math.isfinite(extent) or extent <= 1e-9:
         raise UserError(
-            f"the object has no size (extent {extent:.3g}); the input holds a single point or non-finite Gaussians"
+            f"the object has no size (extent {extent:.3g}); the input holds a single point or non-finite "
+            "Gaussians"
         )
     s = size_m / extent
     shift = torch.stack([-(lo[0] + hi[0]) / 2, -(lo[1] + hi[1]) / 2, -lo[2]]) * s + torch.tensor(

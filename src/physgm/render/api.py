@@ -60,8 +60,7 @@ def rasterize(
         eps2d: Screen-space dilation (px^2) added to each 2D covariance.
         tile_size: Screen tile side (px) for binning; does not change the image beyond float
             rounding. The warp backend's CPU layout handles at most 16 (one SIMD row per tile
-            row); with larger tiles it runs the pixel layout (4096 Gaussians at 64 px: 43 ms
-            forward + backward with 32 px tiles against 10 ms with 16 px, measured).
+            row); with larger tiles it runs the slower pixel layout.
         num_threads: CPU threads for the warp raster kernels.
 
     Returns:
@@ -81,21 +80,66 @@ def rasterize(
         raise ValueError(f"num_threads must be a positive int, got {num_threads!r}")
     # the checks and the warp backend's glue are many small ops, see single_threaded_torch
     with single_threaded_torch() if backend == "warp" else contextlib.nullcontext():
-        return _rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-                          background, backend, near_plane, far_plane, eps2d, tile_size,
-                          num_threads)  # fmt: skip
+        return _rasterize(
+            means,
+            quats,
+            scales,
+            opacities,
+            colors,
+            viewmats,
+            Ks,
+            width,
+            height,
+            background,
+            backend,
+            near_plane,
+            far_plane,
+            eps2d,
+            tile_size,
+            num_threads,
+        )
 
 
-def _rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, height, background,
-               backend, near_plane, far_plane, eps2d, tile_size, num_threads):  # fmt: skip
-    lead, num_n, num_c = validate_inputs(means, quats, scales, opacities, colors, viewmats, Ks,
-                                         width, height, background, near_plane, far_plane,
-                                         eps2d)  # fmt: skip
-    settings = RasterSettings(width, height, float(near_plane), float(far_plane), float(eps2d),
-                              tile_size, num_threads)  # fmt: skip
+def _rasterize(
+    means,
+    quats,
+    scales,
+    opacities,
+    colors,
+    viewmats,
+    Ks,
+    width,
+    height,
+    background,
+    backend,
+    near_plane,
+    far_plane,
+    eps2d,
+    tile_size,
+    num_threads,
+):
+    lead, num_n, num_c = validate_inputs(
+        means,
+        quats,
+        scales,
+        opacities,
+        colors,
+        viewmats,
+        Ks,
+        width,
+        height,
+        background,
+        near_plane,
+        far_plane,
+        eps2d,
+    )
+    settings = RasterSettings(
+        width, height, float(near_plane), float(far_plane), float(eps2d), tile_size, num_threads
+    )
     num_b = math.prod(lead)
-    gauss = [x.reshape(num_b, num_n, *x.shape[len(lead) + 1:])
-             for x in (means, quats, scales, opacities, colors)]  # fmt: skip
+    gauss = [
+        x.reshape(num_b, num_n, *x.shape[len(lead) + 1 :]) for x in (means, quats, scales, opacities, colors)
+    ]
     cams = [x.reshape(num_b, num_c, *x.shape[len(lead) + 1 :]) for x in (viewmats, Ks)]
 
     if num_n == 0 or num_c == 0:
@@ -110,8 +154,7 @@ def _rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, hei
         bg = background if background.dim() == 1 else background.reshape(num_b, num_c, 1, 1, 3)
         rgb = rgb + (1.0 - alpha) * bg
     out_shape = (*lead, num_c, height, width)
-    meta = {k: (v.reshape(*lead, *v.shape[1:]) if isinstance(v, Tensor) else v)
-            for k, v in meta.items()}  # fmt: skip
+    meta = {k: (v.reshape(*lead, *v.shape[1:]) if isinstance(v, Tensor) else v) for k, v in meta.items()}
     return rgb.reshape(*out_shape, 3), alpha.reshape(*out_shape, 1), meta
 
 
@@ -178,7 +221,21 @@ class Renderer:
         background: Tensor | None = None,  # [3] or [..., C, 3]
     ) -> tuple[Tensor, Tensor, dict]:
         """Same as `rasterize` with this object's options."""
-        return rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-                         background=background, backend=self.backend, near_plane=self.near_plane,
-                         far_plane=self.far_plane, eps2d=self.eps2d, tile_size=self.tile_size,
-                         num_threads=self.num_threads)  # fmt: skip
+        return rasterize(
+            means,
+            quats,
+            scales,
+            opacities,
+            colors,
+            viewmats,
+            Ks,
+            width,
+            height,
+            background=background,
+            backend=self.backend,
+            near_plane=self.near_plane,
+            far_plane=self.far_plane,
+            eps2d=self.eps2d,
+            tile_size=self.tile_size,
+            num_threads=self.num_threads,
+        )

@@ -32,18 +32,30 @@ def rasterize_gsplat(
     try:
         import gsplat
     except ImportError as err:
-        raise ValueError(f"the gsplat backend needs the gsplat package (`pip install gsplat`). "
-                         f"{_HOW_TO_SWITCH}") from err  # fmt: skip
+        raise ValueError(
+            f"the gsplat backend needs the gsplat package (`pip install gsplat`). {_HOW_TO_SWITCH}"
+        ) from err
 
     rgbs, alphas, metas = [], [], []
     # one call per batch element: works with every gsplat release (batch dims came in 1.5)
     for b in range(means.shape[0]):
         rgb, alpha, meta = gsplat.rasterization(
-            means[b], quats[b], scales[b], opacities[b], colors[b], viewmats[b], Ks[b],
-            settings.width, settings.height, near_plane=settings.near_plane,
-            far_plane=settings.far_plane, eps2d=settings.eps2d, tile_size=settings.tile_size,
-            packed=False, rasterize_mode="classic",
-        )  # fmt: skip
+            means[b],
+            quats[b],
+            scales[b],
+            opacities[b],
+            colors[b],
+            viewmats[b],
+            Ks[b],
+            settings.width,
+            settings.height,
+            near_plane=settings.near_plane,
+            far_plane=settings.far_plane,
+            eps2d=settings.eps2d,
+            tile_size=settings.tile_size,
+            packed=False,
+            rasterize_mode="classic",
+        )
         rgbs.append(rgb)
         alphas.append(alpha)
         metas.append(meta)

@@ -38,8 +38,8 @@ def _check_tensor(name: str, x, tail: tuple) -> None:
         raise ValueError(f"{name} must be a floating-point tensor (float32 or float64), got {x.dtype}")
     fixed = tail[1:] if isinstance(tail[0], str) else tail
     ok = x.dim() >= len(tail) and all(
-        want == got for want, got in zip(fixed, x.shape[x.dim() - len(fixed):], strict=True)
-    )  # fmt: skip
+        want == got for want, got in zip(fixed, x.shape[x.dim() - len(fixed) :], strict=True)
+    )
     if not ok:
         raise ValueError(f"{name} must have shape {_spec(tail)}, got {tuple(x.shape)}")
     if not _all_finite(x):
@@ -47,9 +47,20 @@ def _check_tensor(name: str, x, tail: tuple) -> None:
 
 
 def validate_inputs(
-    means, quats, scales, opacities, colors, viewmats, Ks, width, height, background,
-    near_plane: float, far_plane: float, eps2d: float,
-) -> tuple[tuple[int, ...], int, int]:  # fmt: skip
+    means,
+    quats,
+    scales,
+    opacities,
+    colors,
+    viewmats,
+    Ks,
+    width,
+    height,
+    background,
+    near_plane: float,
+    far_plane: float,
+    eps2d: float,
+) -> tuple[tuple[int, ...], int, int]:
     """Checks every argument of `rasterize`.
 
     Returns:
@@ -58,8 +69,9 @@ def validate_inputs(
     Raises:
         ValueError: naming the offending argument and the expected shape or range.
     """
-    args = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
-                viewmats=viewmats, Ks=Ks)  # fmt: skip
+    args = dict(
+        means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, viewmats=viewmats, Ks=Ks
+    )
     for name, tail in {**_GAUSSIAN_SHAPES, **_CAMERA_SHAPES}.items():
         _check_tensor(name, args[name], tail)
 
@@ -91,13 +103,17 @@ def validate_inputs(
         if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
             raise ValueError(f"{name} must be a positive int (pixels), got {value!r}")
     if not 0.0 < near_plane < far_plane:
-        raise ValueError(f"near_plane and far_plane must satisfy 0 < near_plane < far_plane (m), "
-                         f"got near_plane={near_plane}, far_plane={far_plane}")  # fmt: skip
+        raise ValueError(
+            "near_plane and far_plane must satisfy 0 < near_plane < far_plane (m), got "
+            f"near_plane={near_plane}, far_plane={far_plane}"
+        )
     if not eps2d >= 0.0:
         raise ValueError(f"eps2d must be >= 0 (px^2), got {eps2d}")
     if scales.numel() and float(scales.detach().min()) < 0:
-        raise ValueError("scales must be non-negative linear standard deviations (m); "
-                         "if you hold log-scales, pass scales.exp()")  # fmt: skip
+        raise ValueError(
+            "scales must be non-negative linear standard deviations (m); if you hold log-scales, pass "
+            "scales.exp()"
+        )
     lo_hi = torch.aminmax(opacities.detach()) if opacities.numel() else (0.0, 0.0)
     if float(lo_hi[0]) < 0 or float(lo_hi[1]) > 1:
         raise ValueError("opacities must lie in [0, 1]; if you hold logits, pass opacities.sigmoid()")
@@ -110,8 +126,9 @@ def validate_inputs(
         if not isinstance(background, Tensor) or not background.is_floating_point():
             raise ValueError("background must be a float tensor of shape [3] or [..., C, 3]")
         if tuple(background.shape) not in ((3,), (*lead, num_c, 3)):
-            raise ValueError(f"background must have shape [3] or {[*lead, num_c, 3]}, "
-                             f"got {tuple(background.shape)}")  # fmt: skip
+            raise ValueError(
+                f"background must have shape [3] or {[*lead, num_c, 3]}, got {tuple(background.shape)}"
+            )
         if str(background.device) != str(means.device):
             raise ValueError(f"background must be on {means.device}, got {background.device}")
         if not _all_finite(background):

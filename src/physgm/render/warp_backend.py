@@ -38,12 +38,10 @@ def _arr(t: Tensor, dtype) -> ArrayView:
     """Zero-copy Warp kernel argument for a contiguous torch tensor (no Warp gradients).
 
     Returns the array descriptor a launch packs (data pointer, shape, byte strides) rather than a
-    ``wp.array``: both take ~3 us to build, but ``wp.launch`` checks a ``wp.array`` against the
-    kernel signature and then builds this descriptor from it, while a descriptor is passed
-    through verbatim. Over the ~50 arguments of a forward plus backward that saved 0.3-0.4 ms
-    (4096 Gaussians at 64 px, interleaved medians of 25: 7.44 -> 7.01 ms). The descriptor holds
-    the tensor, so the memory lives as long as the argument. Raises ValueError unless the tensor
-    holds ``dtype`` elements (float32, int32 or int64 scalars, trailing dimensions = its shape).
+    ``wp.array``, which ``wp.launch`` would check against the kernel signature and then turn into
+    this descriptor on every call. The descriptor holds the tensor, so the memory lives as long
+    as the argument. Raises ValueError unless the tensor holds ``dtype`` elements (float32,
+    int32 or int64 scalars, trailing dimensions = its shape).
     """
     t = t.contiguous()
     inner = 2 if wp.types.type_is_matrix(dtype) else 1 if wp.types.type_is_vector(dtype) else 0
@@ -51,7 +49,9 @@ def _arr(t: Tensor, dtype) -> ArrayView:
     scalar = getattr(dtype, "_wp_scalar_type_", dtype)
     element_shape = tuple(t.shape[t.dim() - inner :]) if t.dim() >= inner else None
     if t.dtype != _TORCH_SCALARS[scalar] or element_shape != tuple(getattr(dtype, "_shape_", ())):
-        raise ValueError(f"a {t.dtype} tensor of shape {tuple(t.shape)} does not hold {dtype.__name__} elements")
+        raise ValueError(
+            f"a {t.dtype} tensor of shape {tuple(t.shape)} does not hold {dtype.__name__} elements"
+        )
     stride, strides = wp.types.type_size_in_bytes(dtype), []
     for n in reversed(shape):
         strides.append(stride)
@@ -79,8 +79,7 @@ def _launch(kernel, dim: int, inputs: list, device: torch.device, **kwargs) -> N
     stream = wp.stream_from_torch(device) if device.type == "cuda" else None
     wp_device = _DEVICES.get(device) or _device(device)
     ensure_loaded(kernel, wp_device)
-    wp.launch(kernel, dim=dim, inputs=inputs, device=wp_device, stream=stream,
-              **kwargs)  # fmt: skip
+    wp.launch(kernel, dim=dim, inputs=inputs, device=wp_device, stream=stream, **kwargs)
 
 
 def _tile_ranges(work: Tensor, parts: int) -> list[tuple[int, int]]:
@@ -92,9 +91,8 @@ def _tile_ranges(work: Tensor, parts: int) -> list[tuple[int, int]]:
     num_tiles = work.numel()
     if parts <= 1 or num_tiles < 2:
         return [(0, num_tiles)]
-    # Plain Python lists: a few hundred tiles at most on the CPU path. Inside a render of 4096
-    # Gaussians at 64 px (16 tiles) the numpy version of this took 0.10-0.17 ms per call, this
-    # one 0.02-0.04 ms (forward + backward, interleaved medians of 30: 8.68 -> 8.50 ms).
+    # Plain Python lists: a few hundred tiles at most on the CPU path, too few for numpy's
+    # per-call cost to pay off.
     total = list(itertools.accumulate(work.tolist()))
     cuts = []
     for k in range(1, parts):
@@ -114,8 +112,10 @@ def _binning(settings: RasterSettings, device: torch.device) -> str:
     if settings.warp_binning == "auto":
         return "counting" if device.type == "cpu" else "sort"
     if settings.warp_binning == "counting" and device.type != "cpu":
-        raise ValueError("warp_binning='counting' relies on serial launches and runs on the CPU only; "
-                         "use 'sort' or 'auto' on CUDA")  # fmt: skip
+        raise ValueError(
+            "warp_binning='counting' relies on serial launches and runs on the CPU only; use 'sort' or "
+            "'auto' on CUDA"
+        )
     return settings.warp_binning
 
 
@@ -125,8 +125,10 @@ def _layout(settings: RasterSettings, device: torch.device) -> str:
         return "pixel"
     if settings.tile_size > T.LANES:
         if settings.warp_layout == "tile":
-            raise ValueError(f"warp_layout='tile' handles tiles of at most {T.LANES} px (one SIMD row), "
-                             f"got tile_size={settings.tile_size}; use a smaller tile_size or 'auto'")  # fmt: skip
+            raise ValueError(
+                f"warp_layout='tile' handles tiles of at most {T.LANES} px (one SIMD row), got "
+                f"tile_size={settings.tile_size}; use a smaller tile_size or 'auto'"
+            )
         return "pixel"
     if settings.warp_layout == "tile":
         return "tile"
@@ -189,7 +191,9 @@ def _cuts(total: int, unit: int, parts: int) -> list[int]:
     return [0, *[(units * k // parts) * unit for k in range(1, parts)], total]
 
 
-def _launch_split(kernel, cuts: list[int], args: list, device: torch.device, min_part: int | None = None) -> None:
+def _launch_split(
+    kernel, cuts: list[int], args: list, device: torch.device, min_part: int | None = None
+) -> None:
     """Launches ``kernel(offset, *args)`` over the index ranges between ``cuts``, one thread each
     on the CPU when every range has at least ``min_part`` (default ``_MIN_SPLIT``) indices."""
     ranges = [(a, b - a) for a, b in itertools.pairwise(cuts) if b > a]
@@ -203,14 +207,11 @@ def _launch_split(kernel, cuts: list[int], args: list, device: torch.device, min
 # Fewer indices per thread than this and a helper-thread hand-off (50-75 us, physgm.parallel)
 # costs about what it saves: a CPU handles a few thousand pairs or entries in that time.
 _MIN_SPLIT = 8192
-# The fused projection and bounds (`project_bounds_kernel`, ~85 ns a pair) split like the rest:
-# a 1-view training batch (B 4, C 8, N 4096, 65k pairs per thread) took 85.9 -> 78.6 and
-# 88.7 -> 83.0 ms forward + backward split against serial (alternated, medians of 20). When the
-# bounds were a kernel of their own, splitting them at that size had cost time.
-# Binning one image on two threads: each walks all pairs and writes half the entries. With 4096
-# pairs (64 px) the walk cost what the halved writes saved (4.19 -> 4.38 ms forward + backward).
+# The fused projection and bounds (`project_bounds_kernel`) split like the rest.
+# Binning one image on two threads: each walks all pairs and writes half the entries, so a small
+# image gains nothing from the split.
 _MIN_SPLIT_BIN = 8192
-# The projection's vector-Jacobian product costs ~110 ns a pair (4096 pairs: 0.45 ms in a render).
+# The projection's vector-Jacobian product costs more per pair, so it splits from fewer pairs.
 _MIN_SPLIT_VJP = 2048
 
 _FORWARD = (T.raster_forward_tile_kernel, R.raster_forward_pixel_kernel)
@@ -277,11 +278,12 @@ class _RasterizeWarp(torch.autograd.Function):
         entries += [means.new_empty(num_entries, 3), means.new_empty(num_entries, 2)]
         entry_arrs = _entry_arrays(entries)
         pair_data = [num_n, num_c, proj_out[0], proj_out[1], bounds[1], bounds[0], proj_in[3],
-                     _arr(colors, wp.vec3), _arr(e_pair, wp.int64), _arr(e_gauss, wp.int64), *entry_arrs]  # fmt: skip
+                     _arr(colors, wp.vec3), _arr(e_pair, wp.int64), _arr(e_gauss, wp.int64),
+                     *entry_arrs]  # fmt: skip
         if num_entries and _binning(s, device) == "counting":
             # Only pairs that touch a tile are ordered. Their depths are > near_plane > 0, so the
-            # float bits sort like the floats, and torch sorts integers by radix: 524k pairs (a
-            # 4-view training batch) 55 -> 5 ms, measured. Stable: equal depths keep pair order.
+            # float bits sort like the floats, and torch sorts integers by radix, far faster than
+            # a comparison sort. Stable: equal depths keep pair order.
             emitted = torch.nonzero(counts, as_tuple=True)[0]
             by_depth = emitted[torch.sort(depths[emitted].view(torch.int32), stable=True)[1]]
             cursor = _arr(tile_start.clone(), wp.int32)
@@ -302,7 +304,8 @@ class _RasterizeWarp(torch.autograd.Function):
                                for t0, n in tile_ranges], device)  # fmt: skip
             else:
                 _launch(K.bin_entries_kernel, by_depth.numel(),
-                        [_arr(by_depth, wp.int64), *head, *all_tiles, cursor, *pair_data], device)  # fmt: skip
+                        [_arr(by_depth, wp.int64), *head, *all_tiles, cursor, *pair_data],
+                        device)  # fmt: skip
         elif num_entries:
             csum = torch.cumsum(counts, dim=0, dtype=torch.int32)
             entry_tile = torch.empty(num_entries, dtype=torch.int32, device=device)
@@ -380,12 +383,14 @@ class _RasterizeWarp(torch.autograd.Function):
         v_means2d, v_conics = means.new_zeros(num_pairs, 2), means.new_zeros(num_pairs, 3)
         _launch_split(K.scatter_entry_grads_kernel, entry_cuts,
                       [_arr(e_pair, wp.int64), _arr(e_gauss, wp.int64), *v_entry, _arr(v_means2d, wp.vec2),
-                       _arr(v_conics, wp.vec3), _arr(v_opac, wp.float32), _arr(v_colors, wp.vec3)], device)  # fmt: skip
+                       _arr(v_conics, wp.vec3), _arr(v_opac, wp.float32), _arr(v_colors, wp.vec3)],
+                      device)  # fmt: skip
         # With one camera per scene a pair writes only its own Gaussian: any pair range will do.
         vjp_cuts = _cuts(num_pairs, 1, threads) if ctx.num_c == 1 else scene_cuts
         _launch_split(K.project_vjp_kernel, vjp_cuts,
                       [*proj_in, _arr(v_means2d, wp.vec2), _arr(v_conics, wp.vec3), _arr(v_means, wp.vec3),
-                       _arr(v_quats, wp.vec4), _arr(v_scales, wp.vec3)], device, min_part=_MIN_SPLIT_VJP)  # fmt: skip
+                       _arr(v_quats, wp.vec4), _arr(v_scales, wp.vec3)],
+                      device, min_part=_MIN_SPLIT_VJP)  # fmt: skip
         return v_means, v_quats, v_scales, v_opac, v_colors, None, None, None, None
 
 

@@ -30,13 +30,12 @@ BWD_ROWS = 9
 
 # The row loops are C++ (``wp.func_native``): in Warp's language the same per-lane code was
 # vectorised only in part (Warp unrolls the 16 lanes, and the long unrolled chains exceed what
-# the compiler's SLP vectoriser follows), and the backward ran 5-8x slower than the scalar
-# kernel it replaces, measured. A plain C++ loop over the 16 lanes, with selects instead of
-# branches, is vectorised whole by the loop vectoriser.
+# the compiler's SLP vectoriser follows), and the backward ran slower than the scalar kernel it
+# replaces. A plain C++ loop over the 16 lanes, with selects instead of branches, is vectorised
+# whole by the loop vectoriser.
 # Constants are pasted in so the snippets use exactly the thresholds of `settings`.
 # A row is copied into local arrays and back: through pointers into the row buffers the compiler
-# has to allow for overlap, guards the vector loop with run-time checks and took the scalar path
-# (an entry of 5 rows: 2.0 us through pointers, 0.12 us with copies, measured).
+# has to allow for overlap, guards the vector loop with run-time checks and takes the scalar path.
 _CONSTANTS = f"""
 const float alpha_min = {ALPHA_MIN!r}f, alpha_max = {ALPHA_MAX!r}f, t_min = {T_MIN!r}f;
 #define ROW_IN(local, buffer, row) __builtin_memcpy(local, wp::address(buffer, row, k), 64)
@@ -255,7 +254,8 @@ def raster_forward_tile_kernel(
         if su[1] < su[0] or sv[1] < sv[0]:
             continue
         alive -= composite_entry(rows, row_end, row0 + sv[0] - v0, sv[1] - sv[0] + 1, sv[0], u0,
-                                 m[0], m[1], e_conics[e], e_qmax[e], e_opacities[e], e_colors[e], e)  # fmt: skip
+                                 m[0], m[1], e_conics[e], e_qmax[e], e_opacities[e], e_colors[e],
+                                 e)  # fmt: skip
     base = img * height * width
     for r in range(v1 - v0 + 1):
         trans = rows[0, row0 + r]

@@ -14,9 +14,8 @@ Building blocks (all importable from ``physgm.sim``)
 ``MaterialParams(model, E, nu, density, yield_stress=0, hardening=0, friction_angle=0,
 cohesion=0, viscosity=0)``                          (constitutive/__init__.py)
     Solver-level parameters of one material; validated (E > 0, -1 < nu < 0.5, density > 0,
-    model extras) with a ValueError naming the bad value. ``MaterialParams.from_material(
-    get_material("rubber"), E=..., nu=...)`` or ``get_material(name).params(E, nu)`` build one
-    from the material table (``physgm.physics.materials``). ``.mu``, ``.lam``, ``.bulk``,
+    model extras) with a ValueError naming the bad value. ``get_material(name).params(E, nu)``
+    builds one from the material table (``physgm.physics.materials``). ``.mu``, ``.lam``, ``.bulk``,
     ``.wave_speed()`` (P-wave speed, m/s). ``constitutive.MODELS``: the registry
     name -> ``ConstitutiveModel(id, stiffness, validate, plastic)``; models: fixed_corotated,
     neo_hookean, drucker_prager, von_mises, foam, fluid.
@@ -85,16 +84,35 @@ Design notes (why the code looks the way it does)
   sim-verify); the stiffness sweep: python -m physgm.bench sim-stability.
 """
 
-from physgm.sim.boundary import GridHook, GroundPlane, VelocityBox
+from physgm.sim.boundary import GroundPlane, VelocityBox
 from physgm.sim.constitutive import MODELS, MaterialParams
 from physgm.sim.grid import GridSpec
 from physgm.sim.scenes import SCENES, Scene, SceneSetup, build_scene
-from physgm.sim.solver import MPMSolver, simulate
+from physgm.sim.solver import GridHook, MPMSolver, simulate
 from physgm.sim.state import Energy, FrameStats, Particles, ParticleState, Trajectory
 from physgm.sim.stepping import SimulationDiverged, SolverConfig, cfl_dt, substeps_per_frame, wave_speed
 
 __all__ = [
-    "MODELS", "SCENES", "Energy", "FrameStats", "GridHook", "GridSpec", "GroundPlane", "MPMSolver",
-    "MaterialParams", "ParticleState", "Particles", "Scene", "SceneSetup", "SimulationDiverged", "SolverConfig",
-    "Trajectory", "VelocityBox", "build_scene", "cfl_dt", "simulate", "substeps_per_frame", "wave_speed",
-]  # fmt: skip
+    "MODELS",
+    "SCENES",
+    "Energy",
+    "FrameStats",
+    "GridHook",
+    "GridSpec",
+    "GroundPlane",
+    "MPMSolver",
+    "MaterialParams",
+    "ParticleState",
+    "Particles",
+    "Scene",
+    "SceneSetup",
+    "SimulationDiverged",
+    "SolverConfig",
+    "Trajectory",
+    "VelocityBox",
+    "build_scene",
+    "cfl_dt",
+    "simulate",
+    "substeps_per_frame",
+    "wave_speed",
+]

@@ -1,4 +1,4 @@
-"""Boundary conditions acting on the grid: ground plane, moving velocity boxes, grid hooks.
+"""Boundary conditions acting on the grid: ground plane and moving velocity boxes.
 
 The domain walls are not configured here: the solver always keeps particles ``boundary_cells``
 cells away from the grid edge (separating walls on the grid, plus a clamp that stops and counts
@@ -9,13 +9,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 import warp as wp
-
-if TYPE_CHECKING:
-    from physgm.sim.solver import MPMSolver
 
 GROUND_SEPARATE = wp.constant(0)  # Coulomb friction, may lift off
 GROUND_SLIP = wp.constant(1)  # frictionless, may lift off
@@ -108,18 +104,6 @@ def no_ground() -> GroundStruct:
     s = GroundStruct()
     s.enabled = 0
     return s
-
-
-class GridHook(Protocol):
-    """Extension point called after the grid update of every sub-step.
-
-    ``solver.grid_v`` (wp.array3d of ``kernels.vec8``, [nx, ny, nz]: node velocity in m/s, mass
-    in kg, velocity change of this step; see ``physgm.sim``) may be modified in place with Warp
-    kernels on ``solver.device``; e.g. a rigid collider sets the velocity of the nodes it covers
-    and reads the momentum change.
-    """
-
-    def apply(self, solver: MPMSolver, dt: float) -> None: ...
 
 
 @wp.func

@@ -96,7 +96,8 @@ def deform_gaussians(
     n = len(gaussians)
     if means.shape != (n, 3) or F.shape != (n, 3, 3):
         raise ValueError(
-            f"deform_gaussians needs means [N, 3] and F [N, 3, 3] with N = {n}, got {tuple(means.shape)} and {tuple(F.shape)}"
+            f"deform_gaussians needs means [N, 3] and F [N, 3, 3] with N = {n}, got {tuple(means.shape)} "
+            f"and {tuple(F.shape)}"
         )
     rot0 = quat_to_rotmat(gaussians.quats)
     axes0 = rot0 * gaussians.scales[:, None, :]  # [N, 3, 3]: columns R_0 S_0, so Sigma_0 = A A^T

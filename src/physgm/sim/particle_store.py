@@ -27,7 +27,9 @@ class ParticleStore:
     def __init__(self, particles: Particles, materials: Sequence[MaterialParams], device) -> None:
         n = len(particles)
         self.n, self.device = n, device
-        ensure_loaded(ops.cell_keys, device)  # the particle kernels (sort, gathers, stress, energy) share a module
+        ensure_loaded(
+            ops.cell_keys, device
+        )  # the particle kernels (sort, gathers, stress, energy) share a module
         density = np.array([m.density for m in materials], np.float32)
         F0 = particles.F if particles.F is not None else np.tile(np.eye(3, dtype=np.float32), (n, 1, 1))
         v0 = particles.v if particles.v is not None else np.zeros((n, 3), np.float32)

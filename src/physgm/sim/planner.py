@@ -360,18 +360,41 @@ def plan_simulation(
     steps["rigid"] = max(1, math.ceil(frame_dt / cfg.rigid_dt - 1e-9))
     P = len(pts)
     cost = {"mpm": float((n_frames - 1) * steps["mpm"] * P), "rigid": float((n_frames - 1) * steps["rigid"])}
-    common = dict(material=name, E_requested=material.E, px_per_m=px_per_m, grid_lo=g_lo, grid_hi=g_hi, dx=grid_dx,
-                  particle_spacing=particle_spacing, n_particles=P, frame_dt=frame_dt, n_frames=n_frames,
-                  rest_px=cfg.rest_px, rest_frames=cfg.rest_frames, restitution=cfg.restitution,
-                  alternatives=cost)  # fmt: skip
+    common = dict(
+        material=name,
+        E_requested=material.E,
+        px_per_m=px_per_m,
+        grid_lo=g_lo,
+        grid_hi=g_hi,
+        dx=grid_dx,
+        particle_spacing=particle_spacing,
+        n_particles=P,
+        frame_dt=frame_dt,
+        n_frames=n_frames,
+        rest_px=cfg.rest_px,
+        rest_frames=cfg.rest_frames,
+        restitution=cfg.restitution,
+        alternatives=cost,
+    )
     rigid_px = deform.total * px_per_m
     walls = static_walls(scene.boxes, lo, hi)  # still walls are contact planes of the rigid path
     if cfg.allow_rigid and walls is not None and rigid_px <= cfg.bound_px:
         parts = ", ".join(f"{k[:-3]} {v:.2g}" for k, v in terms.items())
-        reason = f"{name} (E={material.E:.3g} Pa) deforms ~{rigid_px:.3g} px <= {cfg.bound_px} px ({parts}): rigid body"
-        return Plan("rigid", E_used=material.E, predicted_error_px=rigid_px, error_terms=terms,
-                    substeps_per_frame=steps["rigid"], predicted_cost=cost["rigid"], reason=reason, walls=walls,
-                    **common)  # fmt: skip
+        reason = (
+            f"{name} (E={material.E:.3g} Pa) deforms ~{rigid_px:.3g} px <= {cfg.bound_px} px ({parts}): "
+            "rigid body"
+        )
+        return Plan(
+            "rigid",
+            E_used=material.E,
+            predicted_error_px=rigid_px,
+            error_terms=terms,
+            substeps_per_frame=steps["rigid"],
+            predicted_cost=cost["rigid"],
+            reason=reason,
+            walls=walls,
+            **common,
+        )
     if flows:
         why = "it flows (granular / fluid)"
     elif walls is None:
@@ -406,8 +429,16 @@ def plan_simulation(
     terms["stiffness_cap_px"] = cap_px
     cost["mpm_capped"] = float((n_frames - 1) * n_steps * P)
     reason = f"MPM because {why}{note}; grid {n_nodes} nodes, dx={grid_dx:.3g} m"
-    return Plan("mpm", E_used=E_used, predicted_error_px=cap_px, error_terms=terms, substeps_per_frame=n_steps,
-                predicted_cost=cost["mpm_capped"], reason=reason, **common)  # fmt: skip
+    return Plan(
+        "mpm",
+        E_used=E_used,
+        predicted_error_px=cap_px,
+        error_terms=terms,
+        substeps_per_frame=n_steps,
+        predicted_cost=cost["mpm_capped"],
+        reason=reason,
+        **common,
+    )
 
 
 def _grid_region(

@@ -82,8 +82,9 @@ def fill_interior(
     dims = occupied.max(0) + 2 + 2 * close_gaps
     if int(np.prod(dims)) > MAX_FILL_VOXELS:
         raise ValueError(
-            f"interior filling needs a {dims.tolist()} voxel grid (> {MAX_FILL_VOXELS} voxels): the Gaussians span "
-            "far more than the object; prune floaters (raise min_opacity) or set fill_interior: false"
+            f"interior filling needs a {dims.tolist()} voxel grid (> {MAX_FILL_VOXELS} voxels): the "
+            "Gaussians span far more than the object; prune floaters (raise min_opacity) or set "
+            "fill_interior: false"
         )
     grid = np.zeros(dims, dtype=bool)
     shift = occupied + close_gaps
@@ -109,7 +110,8 @@ def sample_particles(
     keep = gaussians.opacities >= min_opacity
     if int(keep.sum()) == 0:
         raise ValueError(
-            f"no Gaussian has opacity >= {min_opacity}; lower min_opacity or check that the opacities are in [0, 1], not logits"
+            f"no Gaussian has opacity >= {min_opacity}; lower min_opacity or check that the opacities are "
+            "in [0, 1], not logits"
         )
     pts = gaussians.means[keep].detach().double().cpu().numpy()
     origin = pts.min(0)

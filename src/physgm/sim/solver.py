@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Sequence
+from typing import Protocol
 
 import numpy as np
 import warp as wp
@@ -12,7 +13,7 @@ import warp as wp
 from physgm.parallel import PairWorker
 from physgm.sim import kernels as K
 from physgm.sim import particle_ops as ops
-from physgm.sim.boundary import BoxStruct, GridHook
+from physgm.sim.boundary import BoxStruct
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.grid import GridSpec
 from physgm.sim.launches import SubstepLaunches
@@ -21,11 +22,23 @@ from physgm.sim.scenes import Scene
 from physgm.sim.state import Energy, FrameStats, Particles, ParticleState, Trajectory
 from physgm.sim.stepping import SimulationDiverged, SolverConfig, wave_speed
 
-# Two threads pay off from about 2k particles (measured, jelly block: 0.93 -> 0.74 ms per sub-step
-# at 2.2k, 3.14 -> 1.93 ms at 8k); below that the hand-off costs more than the split saves.
+# Two threads pay off from about 2k particles; below that the hand-off costs more than the split
+# saves.
 _AUTO_THREADS_MIN_PARTICLES = 2_000
 _STATS_INIT = np.zeros(K.STATS_ROW, dtype=np.float32)
 _STATS_INIT[[1, 2]] = [1.0e30, -1.0e30]  # running min and max of det F
+
+
+class GridHook(Protocol):
+    """Extension point called after the grid update of every sub-step.
+
+    ``solver.grid_v`` (wp.array3d of ``kernels.vec8``, [nx, ny, nz]: node velocity in m/s, mass
+    in kg, velocity change of this step; see ``physgm.sim``) may be modified in place with Warp
+    kernels on ``solver.device``; e.g. a rigid collider sets the velocity of the nodes it covers
+    and reads the momentum change.
+    """
+
+    def apply(self, solver: MPMSolver, dt: float) -> None: ...
 
 
 class MPMSolver:
@@ -83,9 +96,10 @@ class MPMSolver:
     def _check_inputs(self, particles: Particles) -> None:
         if self.grid.num_nodes > self.config.max_grid_nodes:
             raise ValueError(
-                f"grid {self.grid.res} has {self.grid.num_nodes:,} nodes (~{self.grid.num_nodes * 96 / 1e9:.1f} GB), "
-                f"more than max_grid_nodes={self.config.max_grid_nodes:,}; fit the grid to the region the "
-                "particles can reach (GridSpec.fit) or use a larger dx"
+                f"grid {self.grid.res} has {self.grid.num_nodes:,} nodes "
+                f"(~{self.grid.num_nodes * 96 / 1e9:.1f} GB), more than "
+                f"max_grid_nodes={self.config.max_grid_nodes:,}; fit the grid to the region the particles "
+                "can reach (GridSpec.fit) or use a larger dx"
             )
         if not self.materials or not all(isinstance(m, MaterialParams) for m in self.materials):
             raise ValueError("materials must be a non-empty list of MaterialParams")

@@ -1,4 +1,4 @@
-"""Stage 2: DPO of the physics head against a frozen copy of the stage-1 model (``python train.py stage=dpo``).
+"""Stage 2 (``python train.py stage=dpo``): DPO of the physics head against a frozen stage-1 copy.
 
 The policy is the stage-1 PhysGM with its backbone and Gaussian head frozen (no gradients, eval
 mode); only the physics head trains. The reference is a ``copy.deepcopy`` of the policy taken
@@ -45,7 +45,10 @@ class DPOLossConfig:
 
     def __post_init__(self) -> None:
         if not self.beta > 0 or self.sft_weight < 0 or self.kl_weight < 0:
-            raise ValueError(f"DPO needs beta > 0, sft_weight >= 0 and kl_weight >= 0, got {self.beta}, {self.sft_weight}, {self.kl_weight}")
+            raise ValueError(
+                f"DPO needs beta > 0, sft_weight >= 0 and kl_weight >= 0, got {self.beta}, "
+                f"{self.sft_weight}, {self.kl_weight}"
+            )
 
 
 @dataclass
@@ -102,23 +105,37 @@ class LitDPO(L.LightningModule):
         format_version: checkpoint layout version (``physgm.CHECKPOINT_FORMAT_VERSION``), checked on load.
     """
 
-    def __init__(self, model: dict[str, Any] | None = None, init_ckpt: str | None = None,
-                 loss: dict[str, Any] | None = None, optim: dict[str, Any] | None = None, total_steps: int = 1000,
-                 inputs: dict[str, Any] | None = None, format_version: int = CHECKPOINT_FORMAT_VERSION) -> None:
+    def __init__(
+        self,
+        model: dict[str, Any] | None = None,
+        init_ckpt: str | None = None,
+        loss: dict[str, Any] | None = None,
+        optim: dict[str, Any] | None = None,
+        total_steps: int = 1000,
+        inputs: dict[str, Any] | None = None,
+        format_version: int = CHECKPOINT_FORMAT_VERSION,
+    ) -> None:
         super().__init__()
         self.save_hyperparameters()
         stage1 = model_from_checkpoint(init_ckpt) if init_ckpt and Path(init_ckpt).is_file() else None
         if model is None:
             if stage1 is None:
-                raise ValueError(f"LitDPO needs a model config or an existing stage-1 checkpoint, got init_ckpt={init_ckpt!r}")
+                raise ValueError(
+                    "LitDPO needs a model config or an existing stage-1 checkpoint, got "
+                    f"init_ckpt={init_ckpt!r}"
+                )
             model = stage1.config.to_dict()
             self.hparams["model"] = model  # stored so the DPO checkpoint rebuilds on its own
         config = PhysGMConfig.from_dict(model)
         self.model = PhysGM(config, load_pretrained=False)
-        self._reference: list[PhysGM] = []  # a list, so the reference is not a submodule (not saved, not optimised)
+        # A list, so the reference is not a submodule (not saved, not optimised).
+        self._reference: list[PhysGM] = []
         if stage1 is not None:
             if stage1.config != config:
-                raise ValueError(f"the model config does not match the stage-1 checkpoint {init_ckpt}; drop the model override")
+                raise ValueError(
+                    f"the model config does not match the stage-1 checkpoint {init_ckpt}; drop the model "
+                    "override"
+                )
             self.model.load_state_dict(stage1.state_dict())
             self._reference.append(freeze(copy.deepcopy(self.model)))
         freeze(self.model.backbone)
@@ -132,8 +149,11 @@ class LitDPO(L.LightningModule):
     def reference(self) -> PhysGM:
         """The frozen stage-1 copy, on this module's device."""
         if not self._reference:
-            raise RuntimeError(f"no frozen reference: the stage-1 checkpoint init_ckpt={self.hparams.init_ckpt!r} was not found "
-                               "when this module was built (DPO checkpoints never contain the reference); pass its path")
+            raise RuntimeError(
+                f"no frozen reference: the stage-1 checkpoint init_ckpt={self.hparams.init_ckpt!r} was not "
+                "found when this module was built (DPO checkpoints never contain the reference); pass its "
+                "path"
+            )
         return self._reference[0].to(self.device)
 
     def train(self, mode: bool = True) -> LitDPO:
@@ -149,7 +169,9 @@ class LitDPO(L.LightningModule):
             self.reference  # noqa: B018 - fail before any rollout when the reference is missing
 
     def configure_optimizers(self):
-        opt, sched = build_optimizer(self.model.physics_head.named_parameters(), self.optim_cfg, self.total_steps)
+        opt, sched = build_optimizer(
+            self.model.physics_head.named_parameters(), self.optim_cfg, self.total_steps
+        )
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
 
     def train_dataloader(self):
@@ -158,9 +180,14 @@ class LitDPO(L.LightningModule):
         for cb in self.trainer.callbacks:
             if isinstance(cb, RolloutCallback):
                 return cb.train_dataloader(self.trainer, self)
-        raise RuntimeError("LitDPO trains on pairs made by physgm.train.rollout.RolloutCallback; add one to the trainer's callbacks")
+        raise RuntimeError(
+            "LitDPO trains on pairs made by physgm.train.rollout.RolloutCallback; add one to the trainer's "
+            "callbacks"
+        )
 
-    def transfer_batch_to_device(self, batch: DPOBatch, device: torch.device, dataloader_idx: int) -> DPOBatch:
+    def transfer_batch_to_device(
+        self, batch: DPOBatch, device: torch.device, dataloader_idx: int
+    ) -> DPOBatch:
         return batch.to(device)
 
     def global_tokens(self, batch: DPOBatch) -> Tensor:  # [B, G, D]
@@ -172,10 +199,14 @@ class LitDPO(L.LightningModule):
         missing = [i for i, s in enumerate(batch.scenes) if s not in self._tokens]
         if missing:
             seen: list[Tensor] = []
-            hook = self.model.physics_head.register_forward_hook(lambda mod, args, out: seen.append(args[0].detach()))
+            hook = self.model.physics_head.register_forward_hook(
+                lambda mod, args, out: seen.append(args[0].detach())
+            )
             try:
                 with torch.no_grad():
-                    self.model(batch.images[missing], batch.masks[missing], batch.c2w[missing], batch.Ks[missing])
+                    self.model(
+                        batch.images[missing], batch.masks[missing], batch.c2w[missing], batch.Ks[missing]
+                    )
             finally:
                 hook.remove()
             for i, tokens in zip(missing, seen[0], strict=True):
@@ -222,12 +253,18 @@ class LitDPO(L.LightningModule):
             "train/log10_E_shift": ((policy.z_E_mean.detach() - reference.z_E_mean) * decades).abs().mean(),
         }
         if len(margins):
-            logs.update({
-                "train/dpo_loss": terms.loss.detach().mean(), "rewards/chosen": terms.chosen_rewards.mean(),
-                "rewards/rejected": terms.rejected_rewards.mean(), "rewards/margins": margins.mean(),
-                "rewards/accuracies": (margins > 0).float().mean(), "train/logps_chosen": pw.detach().mean(),
-                "train/logps_rejected": pl.detach().mean(), "train/distance_winner": batch.distance_winner[batch.has_pair].mean(),
-            })
+            logs.update(
+                {
+                    "train/dpo_loss": terms.loss.detach().mean(),
+                    "rewards/chosen": terms.chosen_rewards.mean(),
+                    "rewards/rejected": terms.rejected_rewards.mean(),
+                    "rewards/margins": margins.mean(),
+                    "rewards/accuracies": (margins > 0).float().mean(),
+                    "train/logps_chosen": pw.detach().mean(),
+                    "train/logps_rejected": pl.detach().mean(),
+                    "train/distance_winner": batch.distance_winner[batch.has_pair].mean(),
+                }
+            )
             losers = batch.distance_loser[batch.has_pair]
             if torch.isfinite(losers).any():
                 logs["train/distance_loser"] = losers[torch.isfinite(losers)].mean()
@@ -264,18 +301,25 @@ def fit(cfg) -> dict[str, float]:
     stage = cfg.stage
     init = str(stage.init_ckpt)
     if not Path(init).is_file():
-        raise FileNotFoundError(f"stage.init_ckpt={init} is not a file; pass the stage-1 checkpoint (e.g. outputs/<run>/checkpoints/last.ckpt)")
+        raise FileNotFoundError(
+            f"stage.init_ckpt={init} is not a file; pass the stage-1 checkpoint (e.g. "
+            "outputs/<run>/checkpoints/last.ckpt)"
+        )
     rollout = plain(stage.rollout)
     data = plain(cfg.get("data")) or {}
     rollout["data_root"] = rollout.get("data_root") or data.get("root")
     rollout["input_resolution"] = rollout.get("input_resolution") or data.get("input_resolution")
-    rollout["background"] = next(v for v in (rollout.get("background"), data.get("background"), 1.0) if v is not None)
+    rollout["background"] = next(
+        v for v in (rollout.get("background"), data.get("background"), 1.0) if v is not None
+    )
     callback = RolloutCallback(**rollout)
     _merge_overrides(cfg, "trainer", stage.get("trainer"))
     _merge_overrides(cfg, "callbacks", stage.get("callbacks"))
     trainer = build_trainer(cfg, extra_callbacks=[callback])
     if trainer.reload_dataloaders_every_n_epochs != 1:
-        raise ValueError("the DPO stage needs trainer.reload_dataloaders_every_n_epochs=1 (pairs change every round)")
+        raise ValueError(
+            "the DPO stage needs trainer.reload_dataloaders_every_n_epochs=1 (pairs change every round)"
+        )
     scenes = len(read_split(callback.cfg.data_root, callback.cfg.split))
     if callback.cfg.max_scenes:
         scenes = min(scenes, callback.cfg.max_scenes)
@@ -283,11 +327,19 @@ def fit(cfg) -> dict[str, float]:
     total = trainer.max_steps if trainer.max_steps > 0 else max(1, trainer.max_epochs) * per_epoch
     warmup = int(stage.optim.get("warmup_steps", 0))
     if warmup >= total:
-        raise ValueError(f"stage.optim.warmup_steps={warmup} is not below the {total} optimiser steps of this DPO run, so the "
-                         "learning rate would never reach its peak (a stage-1 experiment's optimiser settings?); "
-                         "lower stage.optim.warmup_steps or use experiment=tiny_cpu_dpo")
+        raise ValueError(
+            f"stage.optim.warmup_steps={warmup} is not below the {total} optimiser steps of this DPO run, "
+            "so the learning rate would never reach its peak (a stage-1 experiment's optimiser settings?); "
+            "lower stage.optim.warmup_steps or use experiment=tiny_cpu_dpo"
+        )
     inputs = {k: getattr(callback.cfg, k) for k in ("num_views", "input_resolution", "background")}
-    module = LitDPO(init_ckpt=init, loss=plain(stage.loss), optim=plain(stage.optim), total_steps=int(total), inputs=inputs)
+    module = LitDPO(
+        init_ckpt=init,
+        loss=plain(stage.loss),
+        optim=plain(stage.optim),
+        total_steps=int(total),
+        inputs=inputs,
+    )
     trainer.fit(module, ckpt_path=cfg.get("ckpt_path"))
     return {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
 

@@ -33,7 +33,7 @@ import torch
 
 from physgm.data.datamodule import PhysAssetsDataModule
 from physgm.metrics.image import ImageMetrics
-from physgm.metrics.physics import LabelMetrics, PhysicsMetrics
+from physgm.metrics.physics_metrics import LabelMetrics, PhysicsMetrics
 from physgm.physics.materials import MATERIAL_NAMES
 from physgm.train.pretrain import model_from_checkpoint, render_targets
 
@@ -78,11 +78,18 @@ def evaluate_views(
 
 def _evaluate(model, datamodule, renderer, lpips_model, weight, prior_sweep, device) -> dict:
     images = ImageMetrics().to(device)
-    seen = ImageMetrics().to(device)  # the input views rendered back: tells geometry errors from colour errors
+    seen = ImageMetrics().to(
+        device
+    )  # the input views rendered back: tells geometry errors from colour errors
     physics = PhysicsMetrics(len(MATERIAL_NAMES)).to(device)
     labels = LabelMetrics(len(MATERIAL_NAMES)).to(device)
-    zero_shot = LabelMetrics(len(MATERIAL_NAMES)).to(device)  # the semantic table alone, against label or truth
-    sweep = {w: (PhysicsMetrics(len(MATERIAL_NAMES)).to(device), LabelMetrics(len(MATERIAL_NAMES)).to(device)) for w in prior_sweep}
+    zero_shot = LabelMetrics(len(MATERIAL_NAMES)).to(
+        device
+    )  # the semantic table alone, against label or truth
+    sweep = {
+        w: (PhysicsMetrics(len(MATERIAL_NAMES)).to(device), LabelMetrics(len(MATERIAL_NAMES)).to(device))
+        for w in prior_sweep
+    }
     lpips_sum, lpips_count, assets, gaussians, labelled = 0.0, 0, 0, 0.0, 0
     opacities = []
     for batch in datamodule.test_dataloader():
@@ -103,7 +110,9 @@ def _evaluate(model, datamodule, renderer, lpips_model, weight, prior_sweep, dev
             lpips_count += pred.shape[0]
         known = batch.true_known
         if known.any():
-            physics.update(posterior[known], batch.true_material[known], batch.true_log10_E[known], batch.true_nu[known])
+            physics.update(
+                posterior[known], batch.true_material[known], batch.true_log10_E[known], batch.true_nu[known]
+            )
         if (~known).any():
             labels.update(posterior.material_logits[~known], batch.material[~known])
             labelled += int((~known).sum())
@@ -112,13 +121,17 @@ def _evaluate(model, datamodule, renderer, lpips_model, weight, prior_sweep, dev
         for w, (p_metric, l_metric) in sweep.items():
             swept = dataclasses.replace(out.physics, material_logits=fused_logits(out, w))
             if known.any():
-                p_metric.update(swept[known], batch.true_material[known], batch.true_log10_E[known], batch.true_nu[known])
+                p_metric.update(
+                    swept[known], batch.true_material[known], batch.true_log10_E[known], batch.true_nu[known]
+                )
             if (~known).any():
                 l_metric.update(swept.material_logits[~known], batch.material[~known])
         assets += batch.images.shape[0]
         gaussians += float(out.gaussians.count.float().sum())
     if not assets:
-        raise ValueError(f"split {datamodule.hparams.test_split!r} of {datamodule.hparams.root} has no assets")
+        raise ValueError(
+            f"split {datamodule.hparams.test_split!r} of {datamodule.hparams.root} has no assets"
+        )
     result = {"assets": assets, "gaussians_mean": gaussians / assets, "prior_weight": weight}
     result.update({k: float(v) for k, v in images.compute().items()})
     result["psnr_inputs"] = float(seen.compute()["psnr"])
@@ -135,7 +148,10 @@ def _evaluate(model, datamodule, renderer, lpips_model, weight, prior_sweep, dev
         result["labelled_assets"] = labelled
         result["label_material_acc"] = float(scores["material_acc"])
         result["label_behaviour_acc"] = float(scores["behaviour_acc"])
-        result["label_confusion"] = {"rows_label_cols_pred": list(MATERIAL_NAMES), "matrix": scores["confusion"].tolist()}
+        result["label_confusion"] = {
+            "rows_label_cols_pred": list(MATERIAL_NAMES),
+            "matrix": scores["confusion"].tolist(),
+        }
     if zero_shot.update_count:
         scores = zero_shot.compute()
         result["prior_only_material_acc"] = float(scores["material_acc"])
@@ -149,7 +165,9 @@ def _evaluate(model, datamodule, renderer, lpips_model, weight, prior_sweep, dev
                 row.update(material_acc=float(s["material_acc"]), behaviour_acc=float(s["behaviour_acc"]))
             if l_metric.update_count:
                 s = l_metric.compute()
-                row.update(label_material_acc=float(s["material_acc"]), label_behaviour_acc=float(s["behaviour_acc"]))
+                row.update(
+                    label_material_acc=float(s["material_acc"]), label_behaviour_acc=float(s["behaviour_acc"])
+                )
             result["prior_sweep"][str(w)] = row
     return result
 
@@ -161,12 +179,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--split", default="test")
     p.add_argument("--views", default="1,4", help="comma-separated input-view counts (1 and/or 4)")
     p.add_argument("--num-targets", type=int, default=8, help="target views per asset, inputs included")
-    p.add_argument("--resolution", type=int, default=None, help="target size, px (default: the model's input size)")
+    p.add_argument(
+        "--resolution", type=int, default=None, help="target size, px (default: the model's input size)"
+    )
     p.add_argument("--batch-size", type=int, default=4)
-    p.add_argument("--lpips-backbone", default=None, help="local LPIPS backbone file; adds LPIPS (see README)")
+    p.add_argument(
+        "--lpips-backbone", default=None, help="local LPIPS backbone file; adds LPIPS (see README)"
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the fixed evaluation views")
     p.add_argument("--out", type=Path, default=None, help="also write the JSON here")
-    p.add_argument("--prior-weight", type=float, default=None, help="w of the semantic prior (default: the checkpoint's)")
+    p.add_argument(
+        "--prior-weight", type=float, default=None, help="w of the semantic prior (default: the checkpoint's)"
+    )
     p.add_argument("--prior-sweep", default="", help="comma-separated w values to also score the material at")
     p.add_argument("--device", default="cpu", help="cpu or cuda[:k]")
     a = p.parse_args(argv)
@@ -188,17 +212,37 @@ def main(argv: list[str] | None = None) -> int:
         from physgm.metrics.lpips import load_lpips
 
         lpips_model = load_lpips("alex", a.lpips_backbone)
-    report = {"ckpt": a.ckpt, "data": a.data, "split": a.split, "input_resolution": res,
-              "target_resolution": a.resolution or res, "num_targets": a.num_targets}
+    report = {
+        "ckpt": a.ckpt,
+        "data": a.data,
+        "split": a.split,
+        "input_resolution": res,
+        "target_resolution": a.resolution or res,
+        "num_targets": a.num_targets,
+    }
     start = time.perf_counter()
     for v in views:
-        dm = PhysAssetsDataModule(a.data, batch_size=a.batch_size, eval_p_single=1.0 if v == 1 else 0.0,
-                                  num_targets=a.num_targets, input_resolution=res,
-                                  target_resolution=a.resolution or res, test_split=a.split, val_split=a.split,
-                                  seed=a.seed, feature_cache=cache)
-        report[f"views{v}"] = evaluate_views(model, dm, renderer, lpips_model, a.prior_weight, sweep, a.device)
-        print(f"{v} view(s): " + ", ".join(f"{k}={x:.4g}" for k, x in report[f"views{v}"].items()
-                                           if isinstance(x, float)), file=sys.stderr, flush=True)
+        dm = PhysAssetsDataModule(
+            a.data,
+            batch_size=a.batch_size,
+            eval_p_single=1.0 if v == 1 else 0.0,
+            num_targets=a.num_targets,
+            input_resolution=res,
+            target_resolution=a.resolution or res,
+            test_split=a.split,
+            val_split=a.split,
+            seed=a.seed,
+            feature_cache=cache,
+        )
+        report[f"views{v}"] = evaluate_views(
+            model, dm, renderer, lpips_model, a.prior_weight, sweep, a.device
+        )
+        print(
+            f"{v} view(s): "
+            + ", ".join(f"{k}={x:.4g}" for k, x in report[f"views{v}"].items() if isinstance(x, float)),
+            file=sys.stderr,
+            flush=True,
+        )
     report["seconds"] = round(time.perf_counter() - start, 1)
     text = json.dumps(report)
     if a.out:

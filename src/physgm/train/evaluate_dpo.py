@@ -51,13 +51,23 @@ def input_settings(path: str, model) -> dict:
 def evaluate_scene(models: dict, scene, settings: SimSettings, workers: int) -> dict:
     """Both models' mean-physics rollouts of one scene."""
     reference = reference_frames(scene, settings.n_frames)
-    row = {"scene": scene.id, "material": scene.material, "log10_E": scene.log10_E, "nu": scene.nu, "true_known": scene.true_known}
+    row = {
+        "scene": scene.id,
+        "material": scene.material,
+        "log10_E": scene.log10_E,
+        "nu": scene.nu,
+        "true_known": scene.true_known,
+    }
 
     def run(name: str) -> tuple[str, dict]:
         gaussians, posterior = predict(models[name], scene.inputs)
         mean = posterior.mean()
         physics = physics_dict(mean)
-        out = {"material": physics["material"], "log10_E": float(mean.log10_E[0, 0]), "nu": float(mean.nu[0, 0])}
+        out = {
+            "material": physics["material"],
+            "log10_E": float(mean.log10_E[0, 0]),
+            "nu": float(mean.nu[0, 0]),
+        }
         start = time.perf_counter()
         try:
             distance, info = evaluate_physics(scene, gaussians, physics, reference, settings)
@@ -77,7 +87,10 @@ def evaluate_scene(models: dict, scene, settings: SimSettings, workers: int) -> 
 def summarise(rows: list[dict], names: list[str]) -> dict:
     """Per-material and overall metrics of each model, and the DPO gains."""
     present = sorted({r["material"] for r in rows}, key=MATERIAL_NAMES.index)
-    groups = {m: [r for r in rows if r["material"] == m] for m in (*KEY_MATERIALS, *[p for p in present if p not in KEY_MATERIALS])}
+    groups = {
+        m: [r for r in rows if r["material"] == m]
+        for m in (*KEY_MATERIALS, *[p for p in present if p not in KEY_MATERIALS])
+    }
     groups["overall"] = rows
 
     def stats(subset: list[dict], name: str) -> dict:
@@ -109,7 +122,9 @@ def markdown(summary: dict, names: list[str]) -> str:
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for group, s in summary.items():
         cells = [group, str(s[names[0]]["n"])]
-        cells += [fmt(s[n]["mean_distance"]) for n in names] + [fmt(s[n]["median_abs_log10_E_error"]) for n in names]
+        cells += [fmt(s[n]["mean_distance"]) for n in names] + [
+            fmt(s[n]["median_abs_log10_E_error"]) for n in names
+        ]
         cells += [fmt(s[n]["material_accuracy"]) for n in names]
         gain = s.get("gain", {})
         cells += [fmt(gain.get("mean_distance"), True), fmt(gain.get("median_abs_log10_E_error"), True)]
@@ -118,26 +133,52 @@ def markdown(summary: dict, names: list[str]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m physgm.train.evaluate_dpo", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(
+        prog="python -m physgm.train.evaluate_dpo", description=__doc__.split("\n")[0]
+    )
     p.add_argument("--pretrain", required=True, help="stage-1 checkpoint")
     p.add_argument("--dpo", required=True, help="stage-2 (DPO) checkpoint")
     p.add_argument("--data", required=True, help="PhysAssets root with splits/ and reference videos")
-    p.add_argument("--split", default="test", help="split(s) to evaluate, comma-separated (e.g. test,dpo of a held-out set)")
+    p.add_argument(
+        "--split",
+        default="test",
+        help="split(s) to evaluate, comma-separated (e.g. test,dpo of a held-out set)",
+    )
     p.add_argument("--video", default="drop", help="reference video name (videos/<name>.mp4)")
     p.add_argument("--max-scenes", type=int, default=None)
-    p.add_argument("--views", type=int, default=None, help="input views (default: as in DPO training, else 4)")
-    p.add_argument("--input-resolution", type=int, default=None, help="input view size, px (default: as in training)")
-    p.add_argument("--resolution", type=int, default=None, help="render size, px (default: the reference video's)")
-    p.add_argument("--frames", type=int, default=None, help="frames to compare (default: the whole reference video)")
-    p.add_argument("--cells-across", type=int, default=None, help="MPM cells across the object (default: planner default)")
+    p.add_argument(
+        "--views", type=int, default=None, help="input views (default: as in DPO training, else 4)"
+    )
+    p.add_argument(
+        "--input-resolution", type=int, default=None, help="input view size, px (default: as in training)"
+    )
+    p.add_argument(
+        "--resolution", type=int, default=None, help="render size, px (default: the reference video's)"
+    )
+    p.add_argument(
+        "--frames", type=int, default=None, help="frames to compare (default: the whole reference video)"
+    )
+    p.add_argument(
+        "--cells-across",
+        type=int,
+        default=None,
+        help="MPM cells across the object (default: planner default)",
+    )
     p.add_argument("--backend", default="warp")
     p.add_argument("--workers", type=int, default=2, help="models simulated at once (threads)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the fixed evaluation views (as the datamodule)")
-    p.add_argument("--table", type=Path, default=None, help="markdown output (default: next to the DPO checkpoint)")
+    p.add_argument(
+        "--seed", type=int, default=0, help="seed of the fixed evaluation views (as the datamodule)"
+    )
+    p.add_argument(
+        "--table", type=Path, default=None, help="markdown output (default: next to the DPO checkpoint)"
+    )
     a = p.parse_args(argv)
 
     torch.manual_seed(a.seed)
-    models = {"pretrain": model_from_checkpoint(a.pretrain).eval(), "dpo": model_from_checkpoint(a.dpo).eval()}
+    models = {
+        "pretrain": model_from_checkpoint(a.pretrain).eval(),
+        "dpo": model_from_checkpoint(a.dpo).eval(),
+    }
     inputs = input_settings(a.dpo, models["dpo"])
     views = a.views or int(inputs["num_views"])
     res = a.input_resolution or inputs["input_resolution"]

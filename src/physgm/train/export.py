@@ -29,14 +29,20 @@ KEEP_HPARAMS = ("model", "renderer", "inputs", "format_version")
 def git_revision(cwd: Path) -> str | None:
     """The commit of the working tree the export runs in (None outside git)."""
     try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=cwd, capture_output=True, text=True, timeout=10)
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=cwd, capture_output=True, text=True, timeout=10
+        )
     except (OSError, subprocess.TimeoutExpired):
         return None
     return out.stdout.strip() or None if out.returncode == 0 else None
 
 
 def slim(
-    ckpt: dict, source: str, recipe: str | None = None, metrics: dict | None = None, prior_weight: float | None = None
+    ckpt: dict,
+    source: str,
+    recipe: str | None = None,
+    metrics: dict | None = None,
+    prior_weight: float | None = None,
 ) -> dict:
     """The inference part of a Lightning checkpoint dict of ``LitPretrain`` or ``LitDPO``.
 
@@ -53,8 +59,14 @@ def slim(
     if prior_weight is not None:
         model = copy.deepcopy(dict(kept["model"]))
         if (model.get("backbone") or {}).get("encoder", {}).get("kind") != "mobilenet_v2":
-            raise ValueError("--prior-weight needs a model with the mobilenet_v2 encoder (the prior reads its ImageNet classes)")
-        model["physics_head"] = {**model.get("physics_head", {}), "semantic_prior_weight": float(prior_weight)}
+            raise ValueError(
+                "--prior-weight needs a model with the mobilenet_v2 encoder (the prior reads its "
+                "ImageNet classes)"
+            )
+        model["physics_head"] = {
+            **model.get("physics_head", {}),
+            "semantic_prior_weight": float(prior_weight),
+        }
         kept["model"] = model
     kept.setdefault("format_version", physgm.CHECKPOINT_FORMAT_VERSION)
     return {
@@ -79,8 +91,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("ckpt", type=Path, help="Lightning checkpoint written by train.py")
     p.add_argument("out", type=Path, help="slim checkpoint to write")
     p.add_argument("--recipe", default=None, help="the command(s) that trained it, stored in the file")
-    p.add_argument("--metrics", type=Path, default=None, help="JSON of measured metrics to store (e.g. evaluate's)")
-    p.add_argument("--prior-weight", type=float, default=None, help="semantic prior weight w of the exported model")
+    p.add_argument(
+        "--metrics", type=Path, default=None, help="JSON of measured metrics to store (e.g. evaluate's)"
+    )
+    p.add_argument(
+        "--prior-weight", type=float, default=None, help="semantic prior weight w of the exported model"
+    )
     a = p.parse_args(argv)
     if not a.ckpt.is_file():
         raise SystemExit(f"checkpoint {a.ckpt} not found")
@@ -95,9 +111,17 @@ def main(argv: list[str] | None = None) -> int:
     torch.save(out, tmp)
     tmp.replace(a.out)  # atomic: never a half-written checkpoint under the final name
     size = a.out.stat().st_size / 2**20
-    print(json.dumps({"out": str(a.out), "megabytes": round(size, 2), "weights": len(out["state_dict"]),
-                      "parameters": sum(v.numel() for v in out["state_dict"].values()),
-                      "global_step": out["global_step"]}))
+    print(
+        json.dumps(
+            {
+                "out": str(a.out),
+                "megabytes": round(size, 2),
+                "weights": len(out["state_dict"]),
+                "parameters": sum(v.numel() for v in out["state_dict"].values()),
+                "global_step": out["global_step"],
+            }
+        )
+    )
     return 0
 
 

@@ -37,7 +37,9 @@ class PretrainLossConfig:
 
 def physics_nll(posterior: PhysicsPosterior, log10_E: Tensor, nu: Tensor) -> Tensor:  # [B]
     """Negative log density of the labelled (log10 E, nu) under the predicted Gaussians (normalised units)."""
-    labels = PhysicsSample(torch.zeros_like(log10_E, dtype=torch.long)[:, None], log10_E[:, None], nu[:, None])
+    labels = PhysicsSample(
+        torch.zeros_like(log10_E, dtype=torch.long)[:, None], log10_E[:, None], nu[:, None]
+    )
     _, log_E, log_nu = posterior.log_prob_terms(labels)
     return -(log_E + log_nu)[:, 0]
 

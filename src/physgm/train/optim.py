@@ -33,10 +33,10 @@ def build_optimizer(
     named: Iterable[tuple[str, nn.Parameter]], cfg: OptimConfig, total_steps: int
 ) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LambdaLR]:
     """AdamW plus a per-step LambdaLR: linear warmup, then cosine decay to ``min_lr_ratio``."""
-    # fused: one kernel over all parameters instead of a chain of foreach ops. A step over the
-    # tiny model's 4.19 M parameters on this CPU: 14.7 ms foreach, 4.7 ms fused (alternated,
-    # medians of 26).
-    opt = torch.optim.AdamW(param_groups(named, cfg.weight_decay), lr=cfg.lr, betas=tuple(cfg.betas), fused=True)
+    # fused: one kernel over all parameters instead of a chain of foreach ops, about 3x faster.
+    opt = torch.optim.AdamW(
+        param_groups(named, cfg.weight_decay), lr=cfg.lr, betas=tuple(cfg.betas), fused=True
+    )
     warmup, total = max(0, cfg.warmup_steps), max(1, total_steps)
 
     def factor(step: int) -> float:

@@ -137,14 +137,17 @@ class PairCache:
         return final
 
     def read(self, round_: int, scene: str, settings: str, policy: str) -> SceneRecord | None:
-        """The finished record of ``scene`` in ``round_`` made with ``settings`` from ``policy``, else None."""
+        """The finished record of ``scene`` in ``round_`` with ``settings`` from ``policy``, else None."""
         path = self.path(round_, scene)
         if not path.is_file():
             return None
         try:
             record = SceneRecord.from_json(json.loads(path.read_text()))
         except (OSError, ValueError, TypeError, KeyError) as err:
-            warnings.warn(f"ignoring unreadable pair cache file {path} ({err}); the scene is rolled out again", stacklevel=2)
+            warnings.warn(
+                f"ignoring unreadable pair cache file {path} ({err}); the scene is rolled out again",
+                stacklevel=2,
+            )
             return None
         ok = (record.complete and record.version == CACHE_VERSION and record.round == round_
               and record.scene == scene and record.settings == settings and record.policy == policy)
@@ -181,16 +184,22 @@ def round_stats(records: list[SceneRecord]) -> dict[str, float]:
         return float(sum(x) / len(x)) if x else float("nan")
 
     return {
-        "rollout/scenes": float(len(records)), "rollout/pairs": float(len(pairs)),
+        "rollout/scenes": float(len(records)),
+        "rollout/pairs": float(len(pairs)),
         "rollout/failed": float(sum(c.distance is None for r in records for c in r.candidates)),
-        "rollout/distance_mean": mean(dist), "rollout/distance_winner": mean([r.candidates[r.winner].score for r in pairs]),
+        "rollout/distance_mean": mean(dist),
+        "rollout/distance_winner": mean([r.candidates[r.winner].score for r in pairs]),
         "rollout/distance_loser": mean(losers),
     }
 
 
 def gather_records(records: list[SceneRecord]) -> list[SceneRecord]:
     """All ranks' records on every rank (DDP), sorted by scene index; a no-op on one process."""
-    if torch.distributed.is_available() and torch.distributed.is_initialized() and torch.distributed.get_world_size() > 1:
+    if (
+        torch.distributed.is_available()
+        and torch.distributed.is_initialized()
+        and torch.distributed.get_world_size() > 1
+    ):
         parts: list[list[dict] | None] = [None] * torch.distributed.get_world_size()
         torch.distributed.all_gather_object(parts, [r.to_json() for r in records])
         records = [SceneRecord.from_json(d) for part in parts for d in (part or [])]
@@ -232,9 +241,18 @@ class DPOBatch:
         def move(s: PhysicsSample) -> PhysicsSample:
             return PhysicsSample(s.material.to(device), s.log10_E.to(device), s.nu.to(device))
 
-        return DPOBatch(self.images.to(device), self.masks.to(device), self.c2w.to(device), self.Ks.to(device),
-                        move(self.winner), move(self.loser), self.distance_winner.to(device),
-                        self.distance_loser.to(device), self.has_pair.to(device), self.scenes)
+        return DPOBatch(
+            self.images.to(device),
+            self.masks.to(device),
+            self.c2w.to(device),
+            self.Ks.to(device),
+            move(self.winner),
+            move(self.loser),
+            self.distance_winner.to(device),
+            self.distance_loser.to(device),
+            self.has_pair.to(device),
+            self.scenes,
+        )
 
 
 class PairDataset(Dataset):
@@ -245,8 +263,12 @@ class PairDataset(Dataset):
     penalty on them keeps the shared physics head from drifting where the videos say nothing.
     """
 
-    def __init__(self, records: list[SceneRecord], inputs: dict[str, SceneInputs], anchors: bool = False) -> None:
-        self.items = [r for r in records if r.has_pair] + [r for r in records if anchors and not r.has_pair and r.candidates]
+    def __init__(
+        self, records: list[SceneRecord], inputs: dict[str, SceneInputs], anchors: bool = False
+    ) -> None:
+        self.items = [r for r in records if r.has_pair] + [
+            r for r in records if anchors and not r.has_pair and r.candidates
+        ]
         missing = sorted({r.scene for r in self.items} - set(inputs))
         if missing:
             raise KeyError(f"pair records name scenes without loaded inputs: {missing[:5]}")

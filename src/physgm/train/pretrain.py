@@ -11,7 +11,7 @@ from torch import Tensor
 
 from physgm import CHECKPOINT_FORMAT_VERSION
 from physgm.metrics.image import ImageMetrics, save_panel
-from physgm.metrics.physics import PhysicsMetrics
+from physgm.metrics.physics_metrics import PhysicsMetrics
 from physgm.model.config import PhysGMConfig
 from physgm.model.physgm import PhysGM, PhysGMOutput
 from physgm.render import rasterize
@@ -31,8 +31,19 @@ def render_targets(
     g = out.gaussians
     viewmats = torch.linalg.inv(target_c2w)
     background = torch.ones(3, dtype=g.means.dtype, device=g.means.device)
-    rgb, alpha, _ = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, viewmats, target_Ks, width, height,
-                              background=background, **renderer)
+    rgb, alpha, _ = rasterize(
+        g.means,
+        g.quats,
+        g.scales,
+        g.opacities,
+        g.colors,
+        viewmats,
+        target_Ks,
+        width,
+        height,
+        background=background,
+        **renderer,
+    )
     return rgb, alpha
 
 
@@ -113,13 +124,21 @@ class LitPretrain(L.LightningModule):
         bsz = batch.images.shape[0]
         self.log(f"val/{key}/loss", terms["loss"], batch_size=bsz, add_dataloader_idx=False)
         pred = rgb.permute(0, 1, 4, 2, 3).clamp(0, 1)
-        novel = slice(views, None)  # the first V targets are the inputs; score only views the model did not see
+        novel = slice(
+            views, None
+        )  # the first V targets are the inputs; score only views the model did not see
         if key in self.val_images and pred.shape[1] > views:
-            self.val_images[key].update(pred[:, novel].flatten(0, 1), batch.target_images[:, novel].flatten(0, 1))
+            self.val_images[key].update(
+                pred[:, novel].flatten(0, 1), batch.target_images[:, novel].flatten(0, 1)
+            )
         known = batch.true_known  # real assets have annotations only; score physics against the truth
         if key in self.val_physics and known.any():
-            self.val_physics[key].update(out.physics[known], batch.true_material[known], batch.true_log10_E[known],
-                                         batch.true_nu[known])
+            self.val_physics[key].update(
+                out.physics[known],
+                batch.true_material[known],
+                batch.true_log10_E[known],
+                batch.true_nu[known],
+            )
         if batch_idx == 0 and self.trainer.is_global_zero:
             save_panel(self, batch.images[0], pred[0], batch.target_images[0], tag=f"val_{key}")
 

@@ -105,19 +105,47 @@ def load_scenes(root: str | Path, split: str, video_name: str = "drop", num_view
             continue
         meta = json.loads(video.path.with_suffix(".json").read_text())
         known = {f.name for f in fields(VideoConfig)}
-        settings = {k: (tuple(v) if isinstance(v, list) else v) for k, v in meta.get("settings", {}).items() if k in known}
+        settings = {
+            k: (tuple(v) if isinstance(v, list) else v)
+            for k, v in meta.get("settings", {}).items()
+            if k in known
+        }
         ex = build_example(FolderRecord(asset), view_cfg, example_rng(aid, True, seed))
-        inputs = SceneInputs(ex.input_images[:num_views], ex.input_masks[:num_views], ex.input_c2w[:num_views], ex.input_Ks[:num_views])
+        inputs = SceneInputs(
+            ex.input_images[:num_views],
+            ex.input_masks[:num_views],
+            ex.input_c2w[:num_views],
+            ex.input_Ks[:num_views],
+        )
         phys = asset.physical
-        scenes.append(RolloutScene(aid, len(scenes), inputs, video.path, video.fps, video.cameras, VideoConfig(**settings),
-                                   phys.material, math.log10(phys.E), phys.nu, phys.true_known))
+        scenes.append(
+            RolloutScene(
+                aid,
+                len(scenes),
+                inputs,
+                video.path,
+                video.fps,
+                video.cameras,
+                VideoConfig(**settings),
+                phys.material,
+                math.log10(phys.E),
+                phys.nu,
+                phys.true_known,
+            )
+        )
         if max_scenes is not None and len(scenes) >= max_scenes:
             break
     if skipped:
-        warnings.warn(f"{len(skipped)} asset(s) of split {split!r} have no videos/{video_name}.mp4 and are left out: {skipped[:5]}", stacklevel=2)
+        warnings.warn(
+            f"{len(skipped)} asset(s) of split {split!r} have no videos/{video_name}.mp4 and are left out: "
+            f"{skipped[:5]}",
+            stacklevel=2,
+        )
     if not scenes:
-        raise ValueError(f"split {split!r} of {root} has no asset with a reference video videos/{video_name}.mp4; "
-                         "generate the data with --video-fraction > 0")
+        raise ValueError(
+            f"split {split!r} of {root} has no asset with a reference video videos/{video_name}.mp4; "
+            "generate the data with --video-fraction > 0"
+        )
     return scenes
 
 
@@ -150,7 +178,13 @@ def predict(model: torch.nn.Module, inputs: SceneInputs) -> tuple[Gaussians, Phy
         for m, mode in modes.items():
             m.training = mode
     g = out.gaussians.to_gaussians(0)
-    g = Gaussians(g.means.float().cpu(), g.quats.float().cpu(), g.scales.float().cpu(), g.opacities.float().cpu(), g.colors.float().cpu())
+    g = Gaussians(
+        g.means.float().cpu(),
+        g.quats.float().cpu(),
+        g.scales.float().cpu(),
+        g.opacities.float().cpu(),
+        g.colors.float().cpu(),
+    )
     return g, out.physics.detach()
 
 
@@ -160,16 +194,22 @@ def physics_dict(sample: PhysicsSample, k: int = 0) -> dict:
             "nu": float(sample.poisson_ratio()[0, k])}
 
 
-def simulate_clip(scene: RolloutScene, gaussians: Gaussians, physics: dict, settings: SimSettings, n_frames: int,
-                  device: str = "cpu") -> tuple[np.ndarray, dict]:
+def simulate_clip(
+    scene: RolloutScene,
+    gaussians: Gaussians,
+    physics: dict,
+    settings: SimSettings,
+    n_frames: int,
+    device: str = "cpu",
+) -> tuple[np.ndarray, dict]:
     """Simulate ``physics`` on ``gaussians`` (asset frame) like the reference video; returns (frames, info).
 
     The object is placed with the video's own settings (``place_object``), dropped in the
     video's scene at the video's frame rate and rendered from the video's camera over the same
     background: frames [n_frames, H, W, 3] uint8, info {mode, E_used} of the plan.
     """
+    from physgm.sim.gaussian_trajectory import simulate
     from physgm.sim.planner import PlannerConfig
-    from physgm.sim.run import simulate
     from physgm.sim.stepping import SolverConfig
 
     world, _ = place_object(gaussians, scene.video)
@@ -208,13 +248,20 @@ def widen(posterior: PhysicsPosterior, min_std_decades: float, min_std_nu: float
     z_per_nu = 2.0 / (NU_RANGE[1] - NU_RANGE[0])
     floor_E = 2.0 * math.log(max(min_std_decades * z_per_decade, 1e-12))
     floor_nu = 2.0 * math.log(max(min_std_nu * z_per_nu, 1e-12))
-    return PhysicsPosterior(posterior.material_logits, posterior.z_E_mean, posterior.z_E_logvar.clamp_min(floor_E),
-                            posterior.z_nu_mean, posterior.z_nu_logvar.clamp_min(floor_nu))
+    return PhysicsPosterior(
+        posterior.material_logits,
+        posterior.z_E_mean,
+        posterior.z_E_logvar.clamp_min(floor_E),
+        posterior.z_nu_mean,
+        posterior.z_nu_logvar.clamp_min(floor_nu),
+    )
 
 
 def scene_generator(seed: int, round_: int, scene: str) -> torch.Generator:
     """The same candidates for a scene and round whatever the rank count or restart."""
-    return torch.Generator().manual_seed((seed * 1_000_003 + round_ * 10_007 + zlib.crc32(scene.encode())) % 2**63)
+    return torch.Generator().manual_seed(
+        (seed * 1_000_003 + round_ * 10_007 + zlib.crc32(scene.encode())) % 2**63
+    )
 
 
 @dataclass
@@ -230,7 +277,9 @@ class RolloutConfig:
     seed: int = 0
     max_scenes: int | None = None  # use only the first N scenes of the split
     num_candidates: int = 3  # K physics samples per scene and round
-    material: str = "sample"  # "sample": candidates draw the material too; "mode": all use the most likely one
+    material: str = (
+        "sample"  # "sample": candidates draw the material too; "mode": all use the most likely one
+    )
     refresh_every_n_epochs: int = 4  # new rollouts (a new round) every N epochs
     min_std_decades: float = 0.3  # exploration floor: candidates' log10 E std is at least this
     min_std_nu: float = 0.03  # and nu's std at least this
@@ -248,9 +297,17 @@ class RolloutConfig:
             self.sim = SimSettings(**self.sim)
         if self.material not in ("sample", "mode"):
             raise ValueError(f"rollout.material must be 'sample' or 'mode', got {self.material!r}")
-        if self.num_candidates < 2 or self.refresh_every_n_epochs < 1 or self.batch_size < 1 or self.workers < 1:
-            raise ValueError(f"rollout needs num_candidates >= 2, refresh_every_n_epochs >= 1, batch_size >= 1 and "
-                             f"workers >= 1; got {self.num_candidates}, {self.refresh_every_n_epochs}, {self.batch_size}, {self.workers}")
+        if (
+            self.num_candidates < 2
+            or self.refresh_every_n_epochs < 1
+            or self.batch_size < 1
+            or self.workers < 1
+        ):
+            raise ValueError(
+                "rollout needs num_candidates >= 2, refresh_every_n_epochs >= 1, batch_size >= 1 and "
+                f"workers >= 1; got {self.num_candidates}, {self.refresh_every_n_epochs}, "
+                f"{self.batch_size}, {self.workers}"
+            )
 
 
 def rollout_scene(model: torch.nn.Module, scene: RolloutScene, cfg: RolloutConfig, round_: int, settings: str,
@@ -260,14 +317,23 @@ def rollout_scene(model: torch.nn.Module, scene: RolloutScene, cfg: RolloutConfi
     proposal = widen(_cpu(posterior), cfg.min_std_decades, cfg.min_std_nu)
     draws = proposal.sample(cfg.num_candidates, scene_generator(cfg.seed, round_, scene.id))
     if cfg.material == "mode":  # pairs then isolate E and nu: the material terms cancel in the DPO ratio
-        draws = PhysicsSample(proposal.material_logits.argmax(-1, keepdim=True).expand_as(draws.material).clone(),
-                              draws.log10_E, draws.nu)
+        draws = PhysicsSample(
+            proposal.material_logits.argmax(-1, keepdim=True).expand_as(draws.material).clone(),
+            draws.log10_E,
+            draws.nu,
+        )
     reference = reference_frames(scene, cfg.sim.n_frames)
     device = _warp_device(cfg.sim.device, next(model.parameters()).device)
 
     def run(k: int) -> Candidate:
         physics = physics_dict(draws, k)
-        cand = Candidate(int(draws.material[0, k]), physics["material"], float(draws.log10_E[0, k]), float(draws.nu[0, k]), None)
+        cand = Candidate(
+            int(draws.material[0, k]),
+            physics["material"],
+            float(draws.log10_E[0, k]),
+            float(draws.nu[0, k]),
+            None,
+        )
         start = time.perf_counter()
         try:
             distance, info = evaluate_physics(scene, gaussians, physics, reference, cfg.sim, device)
@@ -287,7 +353,9 @@ def rollout_scene(model: torch.nn.Module, scene: RolloutScene, cfg: RolloutConfi
     else:
         candidates = [run(k) for k in range(cfg.num_candidates)]
     winner, loser, note = select_pair(candidates, cfg.min_gap)
-    return SceneRecord(scene.id, scene.index, round_, settings, policy, candidates, winner, loser, global_step, note)
+    return SceneRecord(
+        scene.id, scene.index, round_, settings, policy, candidates, winner, loser, global_step, note
+    )
 
 
 def _cpu(p: PhysicsPosterior) -> PhysicsPosterior:
@@ -332,16 +400,34 @@ class RolloutCallback(L.Callback):
     def settings(self) -> str:
         """Hash of everything that changes a rollout (not batch sizes or worker counts)."""
         c = asdict(self.cfg)
-        for k in ("workers", "batch_size", "num_workers", "refresh_every_n_epochs", "max_failed_fraction", "cache_dir", "data_root"):
+        for k in (
+            "workers",
+            "batch_size",
+            "num_workers",
+            "refresh_every_n_epochs",
+            "max_failed_fraction",
+            "cache_dir",
+            "data_root",
+        ):
             c.pop(k)
         return settings_hash(c)
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         if stage == "fit" and not self.scenes:
             if not self.cfg.data_root:
-                raise ValueError("the rollout callback needs data_root (stage.rollout.data_root or data.root)")
-            self.scenes = load_scenes(self.cfg.data_root, self.cfg.split, self.cfg.video_name, self.cfg.num_views,
-                                      self.cfg.input_resolution, self.cfg.background, self.cfg.seed, self.cfg.max_scenes)
+                raise ValueError(
+                    "the rollout callback needs data_root (stage.rollout.data_root or data.root)"
+                )
+            self.scenes = load_scenes(
+                self.cfg.data_root,
+                self.cfg.split,
+                self.cfg.video_name,
+                self.cfg.num_views,
+                self.cfg.input_resolution,
+                self.cfg.background,
+                self.cfg.seed,
+                self.cfg.max_scenes,
+            )
 
     def train_dataloader(self, trainer: L.Trainer, pl_module: L.LightningModule) -> DataLoader:
         """Pairs of the round the current epoch belongs to, rolled out (or read back) on first use."""
@@ -351,11 +437,15 @@ class RolloutCallback(L.Callback):
             policy = restored or policy_fingerprint(pl_module.model)
             self.records = self.refresh(trainer, pl_module, round_, policy)
             self.round, self.policy = round_, policy
-        dataset = PairDataset(self.records, {s.id: s.inputs for s in self.scenes}, anchors=self.cfg.anchor_ties)
+        dataset = PairDataset(
+            self.records, {s.id: s.inputs for s in self.scenes}, anchors=self.cfg.anchor_ties
+        )
         if dataset.num_pairs == 0:
             notes = sorted({r.note for r in self.records})
-            raise RuntimeError(f"round {round_} gave no preference pair from {len(self.records)} scenes ({notes}); "
-                               "raise stage.rollout.min_std_decades or num_candidates, or lower min_gap")
+            raise RuntimeError(
+                f"round {round_} gave no preference pair from {len(self.records)} scenes ({notes}); raise "
+                "stage.rollout.min_std_decades or num_candidates, or lower min_gap"
+            )
         return DataLoader(dataset, batch_size=self.cfg.batch_size, shuffle=True, collate_fn=collate_pairs,
                           num_workers=self.cfg.num_workers, drop_last=False)
 
@@ -363,7 +453,9 @@ class RolloutCallback(L.Callback):
         root = Path(self.cfg.cache_dir)
         return PairCache(root if root.is_absolute() else Path(trainer.default_root_dir) / root)
 
-    def refresh(self, trainer: L.Trainer, pl_module: L.LightningModule, round_: int, policy: str) -> list[SceneRecord]:
+    def refresh(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, round_: int, policy: str
+    ) -> list[SceneRecord]:
         """Roll out this rank's scenes of ``round_`` (skipping cached ones) and gather every rank's."""
         rank, world = trainer.global_rank, trainer.world_size
         cache, settings = self.cache(trainer), self.settings
@@ -388,11 +480,20 @@ class RolloutCallback(L.Callback):
         failed = [c for c in cands if c.distance is None]
         if cands and len(failed) > self.cfg.max_failed_fraction * len(cands):
             examples = "; ".join(sorted({c.error or "" for c in failed})[:3])
-            raise RuntimeError(f"{len(failed)} of {len(cands)} rollouts failed in round {round_} (cache {cache.root}): {examples}")
+            raise RuntimeError(
+                f"{len(failed)} of {len(cands)} rollouts failed in round {round_} (cache {cache.root}): "
+                f"{examples}"
+            )
 
-    def _log(self, trainer: L.Trainer, records: list[SceneRecord], round_: int, simulated: int, seconds: float) -> None:
-        stats = {**round_stats(records), "rollout/round": float(round_), "rollout/simulated_scenes": float(simulated),
-                 "rollout/seconds": seconds}
+    def _log(
+        self, trainer: L.Trainer, records: list[SceneRecord], round_: int, simulated: int, seconds: float
+    ) -> None:
+        stats = {
+            **round_stats(records),
+            "rollout/round": float(round_),
+            "rollout/simulated_scenes": float(simulated),
+            "rollout/seconds": seconds,
+        }
         if trainer.is_global_zero:
             for logger in trainer.loggers:
                 logger.log_metrics(stats, step=trainer.global_step)

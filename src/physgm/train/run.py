@@ -30,13 +30,7 @@ def run(cfg: DictConfig) -> dict:
         raise ValueError(f"torch_threads must be >= 0 (0: torch's default), got {threads}")
     if threads:
         torch.set_num_threads(threads)
-    try:
-        module = importlib.import_module(STAGES[name])
-    except ModuleNotFoundError as err:
-        if err.name != STAGES[name]:
-            raise
-        raise SystemExit(f"stage {name!r} is not part of this version of physgm yet ({STAGES[name]} is missing)") from None
-    return module.fit(cfg)
+    return importlib.import_module(STAGES[name]).fit(cfg)
 
 
 def plain(node: Any) -> Any:
@@ -53,7 +47,9 @@ def build_trainer(cfg: DictConfig, extra_callbacks: list | None = None) -> L.Tra
     """The Lightning trainer with the configured loggers and callbacks."""
     callbacks = [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
     loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values() if c is not None]
-    return instantiate(cfg.trainer, callbacks=callbacks + list(extra_callbacks or []), logger=loggers or False)
+    return instantiate(
+        cfg.trainer, callbacks=callbacks + list(extra_callbacks or []), logger=loggers or False
+    )
 
 
 def ensure_data(cfg: DictConfig) -> None:
@@ -72,7 +68,9 @@ def ensure_data(cfg: DictConfig) -> None:
 
     options = plain(synth)
     workers = int(options.pop("workers", 1))
-    log.info("generating the synthetic data set %s (%s assets); later runs reuse it", root, options.get("count"))
+    log.info(
+        "generating the synthetic data set %s (%s assets); later runs reuse it", root, options.get("count")
+    )
     summary = generate(SynthConfig(**options), root, workers=workers, progress=True)
     if summary["failed"]:
         raise RuntimeError(f"data generation failed for {summary['failed']} assets: {summary['failures']}")

@@ -40,8 +40,14 @@ COLUMNS = [  # (key in the summary's flat row, header)
 ]
 
 
-def write_run_summary(output_dir: str | Path, model, metrics: dict[str, float], steps: int, overrides: list[str],
-                      repeats: int = 10) -> Path:
+def write_run_summary(
+    output_dir: str | Path,
+    model,
+    metrics: dict[str, float],
+    steps: int,
+    overrides: list[str],
+    repeats: int = 10,
+) -> Path:
     """Time the trained model's forward on one thread and write ``summary.json`` next to the run."""
     from physgm.model.timing import count_parameters, forward_milliseconds
 
@@ -111,8 +117,14 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), constrained_layout=True)
     ms = [r["forward_ms"] for r in rows]
-    for ax, metric, label in ((axes[0], "psnr", "novel-view PSNR (dB)"), (axes[1], "material_acc", "material accuracy")):
-        for views, style in ((4, dict(marker="o")), (1, dict(marker="o", facecolors="none", edgecolors="C0"))):
+    for ax, metric, label in (
+        (axes[0], "psnr", "novel-view PSNR (dB)"),
+        (axes[1], "material_acc", "material accuracy"),
+    ):
+        for views, style in (
+            (4, dict(marker="o")),
+            (1, dict(marker="o", facecolors="none", edgecolors="C0")),
+        ):
             ys = [r.get(f"val/v{views}/{metric}") for r in rows]
             pts = [(x, y) for x, y in zip(ms, ys, strict=True) if y is not None]
             if pts:

@@ -14,13 +14,9 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
 
 from physgm.sim.constitutive import common
 from physgm.sim.constitutive.common import MaterialStruct
-
-if TYPE_CHECKING:
-    from physgm.physics.materials import Material
 
 
 @dataclass(frozen=True)
@@ -77,19 +73,6 @@ class MaterialParams:
     def with_elasticity(self, E: float | None = None, nu: float | None = None) -> MaterialParams:
         """Copy with another E and/or nu (validated)."""
         return replace(self, E=self.E if E is None else float(E), nu=self.nu if nu is None else float(nu))
-
-    @classmethod
-    def from_material(
-        cls, material: Material, E: float | None = None, nu: float | None = None
-    ) -> MaterialParams:
-        """Solver parameters of a material-table entry, optionally with another E / nu."""
-        return cls(
-            model=material.model,
-            E=float(material.E if E is None else E),
-            nu=float(material.nu if nu is None else nu),
-            density=float(material.density),
-            **{k: float(v) for k, v in material.plasticity.items()},
-        )
 
     def pack(self) -> MaterialStruct:
         """The kernel-side struct of this material."""

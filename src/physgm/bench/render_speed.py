@@ -65,11 +65,20 @@ def make_scene(num: int, res: int, seed: int = 0) -> dict:
 def _forward(scene: dict, backend: str, grad: bool, **options):
     from physgm.render import rasterize  # late import, see main()
 
-    params = {k: v.clone().requires_grad_(grad) for k, v in scene.items()
-              if k in ("means", "quats", "scales", "opacities", "colors")}  # fmt: skip
-    rgb, alpha, _ = rasterize(**params, viewmats=scene["viewmats"], Ks=scene["Ks"],
-                              width=scene["width"], height=scene["height"], backend=backend,
-                              **options)  # fmt: skip
+    params = {
+        k: v.clone().requires_grad_(grad)
+        for k, v in scene.items()
+        if k in ("means", "quats", "scales", "opacities", "colors")
+    }
+    rgb, alpha, _ = rasterize(
+        **params,
+        viewmats=scene["viewmats"],
+        Ks=scene["Ks"],
+        width=scene["width"],
+        height=scene["height"],
+        backend=backend,
+        **options,
+    )
     return rgb, alpha
 
 

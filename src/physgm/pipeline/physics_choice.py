@@ -41,7 +41,7 @@ class PhysicsChoice:
     why: dict[str, str] = field(default_factory=dict)  # field -> reason
 
     def sim_physics(self) -> dict:
-        """The physics description ``physgm.sim.run.simulate`` takes."""
+        """The physics description ``physgm.sim.gaussian_trajectory.simulate`` takes."""
         out = {"material": self.material, "E": self.E, "nu": self.nu}
         if self.density is not None:
             out["density"] = self.density
@@ -76,8 +76,10 @@ def _choice(name: str, sample: PhysicsSample | None, over: PhysicsOverrides, wha
     elif sample is not None:
         material, why["material"] = MATERIAL_NAMES[int(sample.material[0, 0])], what
     else:
-        raise UserError("a .ply input has no predicted physics; give the material, e.g. physics.material=rubber "
-                        f"(one of: {', '.join(MATERIAL_NAMES)})")  # fmt: skip
+        raise UserError(
+            "a .ply input has no predicted physics; give the material, e.g. physics.material=rubber (one "
+            f"of: {', '.join(MATERIAL_NAMES)})"
+        )
     table = get_material(material)
     values = {}
     for key, predicted, (lo, hi), default in (
@@ -107,7 +109,8 @@ def choose_physics(post: PhysicsPosterior | None, over: PhysicsOverrides, seed: 
     """The runs to simulate: "mean" first, then ``over.samples`` posterior draws."""
     if post is None and over.samples:
         raise UserError(
-            "physics.samples needs the model's physics posterior; a .ply input has none (drop physics.samples)"
+            "physics.samples needs the model's physics posterior; a .ply input has none (drop "
+            "physics.samples)"
         )
     mean = _choice("mean", None if post is None else post.mean(), over, "posterior mean")
     runs = [mean]
@@ -126,8 +129,9 @@ def choose_physics(post: PhysicsPosterior | None, over: PhysicsOverrides, seed: 
     return runs
 
 
-def physics_json(post: PhysicsPosterior | None, over: PhysicsOverrides, runs: list[PhysicsChoice],
-                 videos: dict[str, str]) -> dict:  # fmt: skip
+def physics_json(
+    post: PhysicsPosterior | None, over: PhysicsOverrides, runs: list[PhysicsChoice], videos: dict[str, str]
+) -> dict:
     """Contents of physics.json."""
     return {
         "source": "model" if post is not None else "none (a .ply input has no prediction)",
@@ -136,5 +140,6 @@ def physics_json(post: PhysicsPosterior | None, over: PhysicsOverrides, runs: li
         "samples": over.samples,
         "runs": [{**asdict(r), "video": videos.get(r.name)} for r in runs],
         "rules": "explicit overrides win; otherwise the posterior mean (run 'mean') or a posterior draw "
-                 "(runs 'sample<k>'); predicted E and nu outside the chosen material's typical range are projected onto it",
-    }  # fmt: skip
+        "(runs 'sample<k>'); predicted E and nu outside the chosen material's typical range are projected "
+        "onto it",
+    }

@@ -106,16 +106,23 @@ def _prepare_photo(path: Path, size: int, mask: Path | None) -> PreparedInput:
         c2w=cams.c2w,
         Ks=cams.Ks,
         mask_image=obj,
-        info={"path": str(path), "size": list(photo.rgb.shape[1::-1]), "mask_source": source,
-              "mask_fraction": round(float(obj.mean()), 4), "views": 1, "fill": TRAINING_FILL},
-    )  # fmt: skip
+        info={
+            "path": str(path),
+            "size": list(photo.rgb.shape[1::-1]),
+            "mask_source": source,
+            "mask_fraction": round(float(obj.mean()), 4),
+            "views": 1,
+            "fill": TRAINING_FILL,
+        },
+    )
 
 
 def _read_cameras(folder: Path) -> tuple[list[Path], Cameras]:
     path = folder / "cameras.json"
     if not path.is_file():
         raise UserError(
-            f"{folder} is a folder but has no cameras.json; give a photo, a .ply, or 4 posed views (docs/data.md)"
+            f"{folder} is a folder but has no cameras.json; give a photo, a .ply, or 4 posed views "
+            "(docs/data.md)"
         )
     try:
         data = json.loads(path.read_text())
@@ -185,7 +192,8 @@ def _prepare_views(folder: Path, size: int) -> PreparedInput:
         photo, obj, source = _photo_and_mask(files[i], None)
         if photo.rgb.shape[:2] != (cams.height, cams.width):
             raise UserError(
-                f"{files[i]} is {photo.rgb.shape[1]} x {photo.rgb.shape[0]} px but cameras.json says {cams.width} x {cams.height}"
+                f"{files[i]} is {photo.rgb.shape[1]} x {photo.rgb.shape[0]} px but cameras.json says "
+                f"{cams.width} x {cams.height}"
             )
         # Keep soft alpha edges like the training views; segmentation masks are hard.
         soft = photo.alpha if source == "alpha" else obj.astype(np.float32)
@@ -204,10 +212,17 @@ def _prepare_views(folder: Path, size: int) -> PreparedInput:
         masks=torch.stack(masks).float(),
         c2w=cams.c2w[chosen],
         Ks=torch.stack(Ks),
-        mask_image=np.concatenate(mask_images, axis=1) if len({m.shape for m in mask_images}) == 1 else mask_images[0],
-        info={"path": str(folder), "views": len(chosen), "files": [files[i].name for i in chosen],
-              "mask_source": sorted(set(sources)), "size": [cams.width, cams.height]},
-    )  # fmt: skip
+        mask_image=np.concatenate(mask_images, axis=1)
+        if len({m.shape for m in mask_images}) == 1
+        else mask_images[0],
+        info={
+            "path": str(folder),
+            "views": len(chosen),
+            "files": [files[i].name for i in chosen],
+            "mask_source": sorted(set(sources)),
+            "size": [cams.width, cams.height],
+        },
+    )
 
 
 def rotate_gaussians(g: Gaussians, rot: np.ndarray) -> Gaussians:
@@ -233,5 +248,9 @@ def _prepare_ply(path: Path, up: str) -> PreparedInput:
         g.means.float(), g.quats.float(), g.scales.float(), g.opacities.float(), g.colors.float().clamp(0, 1)
     )
     g = rotate_gaussians(g, UP_ROTATIONS[up])
-    return PreparedInput(kind="ply", preview=np.ones((PREVIEW_SIZE, PREVIEW_SIZE, 3), np.float32), gaussians=g,
-                         info={"path": str(path), "gaussians": len(g), "up": up})  # fmt: skip
+    return PreparedInput(
+        kind="ply",
+        preview=np.ones((PREVIEW_SIZE, PREVIEW_SIZE, 3), np.float32),
+        gaussians=g,
+        info={"path": str(path), "gaussians": len(g), "up": up},
+    )

@@ -28,8 +28,9 @@ def render_gaussians(
     g = g.to(device)
     cam = camera.to(device)
     with torch.no_grad():
-        rgb, alpha, _ = renderer(g.means, g.quats, g.scales, g.opacities, g.colors, cam.viewmats, cam.Ks,
-                                 cam.width, cam.height)  # fmt: skip
+        rgb, alpha, _ = renderer(
+            g.means, g.quats, g.scales, g.opacities, g.colors, cam.viewmats, cam.Ks, cam.width, cam.height
+        )
     rgb, alpha = rgb[0].cpu().numpy(), alpha[0].cpu().numpy()
     return rgb + (1.0 - alpha) * background  # the renderer's rgb has no background (premultiplied)
 

@@ -58,10 +58,14 @@ def bench_config(name: str, views: int, max_px: int, repeats: int) -> dict[str, 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(prog="python -m physgm.bench model", description=__doc__.split("\n")[0])
-    parser.add_argument("--configs", default="physgm,physgm_small,physgm_paper", help="comma-separated conf/model names")
+    parser.add_argument(
+        "--configs", default="physgm,physgm_small,physgm_paper", help="comma-separated conf/model names"
+    )
     parser.add_argument("--views", type=int, default=4)
     parser.add_argument("--max-px", type=int, default=256, help="cap on the input resolution, px")
-    parser.add_argument("--repeats", type=int, default=5, help="timed forwards after one warm-up (0: time the only run)")
+    parser.add_argument(
+        "--repeats", type=int, default=5, help="timed forwards after one warm-up (0: time the only run)"
+    )
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: leave torch's default)")
     args = parser.parse_args(argv)
     if args.threads > 0:
@@ -69,7 +73,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     report = {
         "suite": "model",
         "torch_threads": torch.get_num_threads(),
-        "results": [bench_config(name, args.views, args.max_px, args.repeats) for name in args.configs.split(",")],
+        "results": [
+            bench_config(name, args.views, args.max_px, args.repeats) for name in args.configs.split(",")
+        ],
     }
     print(json.dumps(report, indent=2))
     return report

@@ -24,9 +24,9 @@ from physgm.cameras import Cameras, orbit_cameras
 from physgm.gaussians import Gaussians
 from physgm.physics.materials import MATERIAL_NAMES, get_material
 from physgm.sim.boundary import GroundPlane
+from physgm.sim.gaussian_trajectory import GaussianTrajectory, simulate
 from physgm.sim.grid import GridSpec
 from physgm.sim.planner import PlannerConfig
-from physgm.sim.run import GaussianTrajectory, simulate
 from physgm.sim.scenes import Scene
 from physgm.sim.solver import MPMSolver
 from physgm.sim.state import Particles

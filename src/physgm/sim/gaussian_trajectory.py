@@ -110,7 +110,7 @@ def resolve_material(physics) -> tuple[str, MaterialParams]:
         raise ValueError(f"physics must name a material (physics.material), got {physics!r}")
     from physgm.physics.materials import get_material
 
-    params = MaterialParams.from_material(get_material(str(name)), E=get("E"), nu=get("nu"))
+    params = get_material(str(name)).params(E=get("E"), nu=get("nu"))
     density = get("density")
     if density is not None:
         params = replace(params, density=float(density))
@@ -220,9 +220,19 @@ def simulate(
     sample = replace(rest, x=torch.from_numpy(setup.x).float().to(rest.x.device))
     x0, v0 = setup.x, np.asarray(setup.v, dtype=np.float64)
     plan = plan_simulation(
-        sample.x.cpu(), sample.volume, torch.from_numpy(v0), name, material, setup.scene, cameras,
-        n_frames, frame_dt, dx, spacing, cfg,
-    )  # fmt: skip
+        sample.x.cpu(),
+        sample.volume,
+        torch.from_numpy(v0),
+        name,
+        material,
+        setup.scene,
+        cameras,
+        n_frames,
+        frame_dt,
+        dx,
+        spacing,
+        cfg,
+    )
     plan_seconds = time.perf_counter() - start
     if plan.mode == "rigid":
         traj = _run_rigid(plan, setup.scene, x0, v0, sample, material.density, gaussians, cfg)
@@ -250,8 +260,16 @@ def simulate(
     )
 
 
-def _run_rigid(plan: Plan, scene: Scene, x0: np.ndarray, v0: np.ndarray, sample: ParticleSample, density: float,
-               gaussians: Gaussians, cfg: PlannerConfig) -> RigidTrajectory:  # fmt: skip
+def _run_rigid(
+    plan: Plan,
+    scene: Scene,
+    x0: np.ndarray,
+    v0: np.ndarray,
+    sample: ParticleSample,
+    density: float,
+    gaussians: Gaussians,
+    cfg: PlannerConfig,
+) -> RigidTrajectory:
     """Rigid path: mass and inertia from the particles, contacts on the visible Gaussians' hull."""
     mass = sample.volume.double().cpu().numpy() * density
     ground = scene.ground
@@ -280,7 +298,11 @@ def _run_mpm(
     device: str,
     ballistic: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, int, int | None, int]:
-    """MPM with a ballistic prefix and early stop; returns (x [T,P,3], F [T,P,3,3], substeps, rest_frame, k0)."""
+    """MPM with a ballistic prefix and early stop.
+
+    Returns:
+        (x [T,P,3], F [T,P,3,3], substeps, rest_frame, k0).
+    """
     T, frame_dt, n = plan.n_frames, plan.frame_dt, len(x0)
     xs = np.empty((T, n, 3), np.float32)
     Fs = np.empty((T, n, 3, 3), np.float32)
