@@ -286,6 +286,29 @@ def test_fit_trains_and_resumes_mid_round_from_the_cache(dpo_root, stage1_ckpt, 
     assert (tmp_path / "pairs" / "round_0001" / "_summary.json").is_file()
 
 
+@pytest.mark.parametrize("experiment", [None, "tiny_cpu_dpo"])
+def test_fast_dev_run_trains_one_batch_and_rolls_out_only_its_scenes(experiment, dpo_root, stage1_ckpt, tmp_path, monkeypatch):
+    """stage.optim.warmup_steps=5 against fast_dev_run's 1 step used to stop the run; and a dev run
+    rolled out every scene of the split (hours on the default data) before its one batch."""
+    from hydra import compose, initialize_config_dir
+
+    from physgm.train.run import run
+
+    stand_in = StandIn()
+    monkeypatch.setattr(rollout, "evaluate_physics", stand_in)
+    overrides = [
+        "stage=dpo", *([f"experiment={experiment}"] if experiment else []), f"stage.init_ckpt={stage1_ckpt}",
+        f"++data.root={dpo_root}", "++data.input_resolution=32", f"paths.output_dir={tmp_path}", "stage.rollout.batch_size=2",
+        "stage.rollout.num_views=2", "stage.rollout.workers=1", "callbacks.progress_bar=null", "+trainer.fast_dev_run=true",
+    ]
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose("train", overrides=overrides)
+    assert cfg.stage.optim.warmup_steps == 5
+    metrics = run(cfg)
+    assert len(stand_in.calls) == 2 * 3  # one batch of 2 scenes (of 4) x K = 3 candidates
+    assert math.isfinite(metrics["train/loss_epoch"])
+
+
 @pytest.mark.slow
 def test_real_rollout_on_a_generated_drop_scene(tmp_path):
     """One scene generated with a real reference video; K = 2 real MPM rollouts (slow: minutes on CPU)."""

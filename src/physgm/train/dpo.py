@@ -258,16 +258,19 @@ def fit(cfg) -> dict[str, float]:
     """Train stage 2 from a Hydra config and return the last logged metrics."""
     from physgm.data.format import read_split
     from physgm.train.rollout import RolloutCallback
-    from physgm.train.run import build_trainer, plain
+    from physgm.train.run import build_trainer, ensure_data, plain
 
     L.seed_everything(cfg.seed, workers=True)
     stage = cfg.stage
     init = str(stage.init_ckpt)
     if not Path(init).is_file():
-        raise FileNotFoundError(f"stage.init_ckpt={init} is not a file; pass the stage-1 checkpoint (e.g. outputs/<run>/checkpoints/last.ckpt)")
+        raise SystemExit(f"error: stage.init_ckpt={init} is not a file; pass a stage-1 checkpoint, e.g. "
+                         "stage.init_ckpt=outputs/<run>/checkpoints/last.ckpt (the default, the shipped "
+                         "checkpoints/physgm_tiny.ckpt, is found from the repository's root folder)")
     rollout = plain(stage.rollout)
     data = plain(cfg.get("data")) or {}
     rollout["data_root"] = rollout.get("data_root") or data.get("root")
+    ensure_data(cfg, rollout["data_root"], rollout["split"])
     rollout["input_resolution"] = rollout.get("input_resolution") or data.get("input_resolution")
     rollout["background"] = next(v for v in (rollout.get("background"), data.get("background"), 1.0) if v is not None)
     callback = RolloutCallback(**rollout)
@@ -282,7 +285,8 @@ def fit(cfg) -> dict[str, float]:
     per_epoch = math.ceil(math.ceil(scenes / trainer.world_size) / callback.cfg.batch_size)
     total = trainer.max_steps if trainer.max_steps > 0 else max(1, trainer.max_epochs) * per_epoch
     warmup = int(stage.optim.get("warmup_steps", 0))
-    if warmup >= total:
+    # A fast_dev_run trains a batch or a few by design: its learning rate does not matter, only that the code runs.
+    if warmup >= total and not trainer.fast_dev_run:
         raise ValueError(f"stage.optim.warmup_steps={warmup} is not below the {total} optimiser steps of this DPO run, so the "
                          "learning rate would never reach its peak (a stage-1 experiment's optimiser settings?); "
                          "lower stage.optim.warmup_steps or use experiment=tiny_cpu_dpo")

@@ -340,8 +340,12 @@ class RolloutCallback(L.Callback):
         if stage == "fit" and not self.scenes:
             if not self.cfg.data_root:
                 raise ValueError("the rollout callback needs data_root (stage.rollout.data_root or data.root)")
+            limit = self.cfg.max_scenes
+            if trainer.fast_dev_run:  # it trains int(fast_dev_run) batches: roll out only the scenes they hold
+                needed = int(trainer.fast_dev_run) * self.cfg.batch_size * trainer.world_size
+                limit = min(limit or needed, needed)
             self.scenes = load_scenes(self.cfg.data_root, self.cfg.split, self.cfg.video_name, self.cfg.num_views,
-                                      self.cfg.input_resolution, self.cfg.background, self.cfg.seed, self.cfg.max_scenes)
+                                      self.cfg.input_resolution, self.cfg.background, self.cfg.seed, limit)
 
     def train_dataloader(self, trainer: L.Trainer, pl_module: L.LightningModule) -> DataLoader:
         """Pairs of the round the current epoch belongs to, rolled out (or read back) on first use."""
@@ -352,7 +356,8 @@ class RolloutCallback(L.Callback):
             self.records = self.refresh(trainer, pl_module, round_, policy)
             self.round, self.policy = round_, policy
         dataset = PairDataset(self.records, {s.id: s.inputs for s in self.scenes}, anchors=self.cfg.anchor_ties)
-        if dataset.num_pairs == 0:
+        # a dev run's few scenes may all tie: it still trains on them as KL anchors (when enabled)
+        if dataset.num_pairs == 0 and not (trainer.fast_dev_run and len(dataset)):
             notes = sorted({r.note for r in self.records})
             raise RuntimeError(f"round {round_} gave no preference pair from {len(self.records)} scenes ({notes}); "
                                "raise stage.rollout.min_std_decades or num_candidates, or lower min_gap")
