@@ -97,3 +97,42 @@ def test_frame_object_centres_and_scales():
 
     outside = ~cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     assert np.allclose(rgb[outside], 1.0, atol=1e-5)  # white outside the object
+
+
+@pytest.mark.parametrize("profile", [None, "srgb"])
+def test_cmyk_jpeg_is_converted_not_read_as_rgba(tmp_path, profile):
+    """A CMYK JPEG (print workflows) has 4 channels; the 4th is K, not alpha.
+
+    Read raw, K = 0 on the white background and on the light object looked like alpha 0 everywhere:
+    "no object found (mask from alpha covers 0.00 %)". An sRGB profile attached to CMYK data is
+    a mismatched profile: the loader falls back to the plain conversion instead of failing.
+    """
+    img, truth = synthetic_photo(textured=False)
+    cmyk = Image.fromarray((img * 255).astype(np.uint8)).convert("CMYK")
+    extra = {}
+    if profile == "srgb":
+        from PIL import ImageCms
+
+        extra["icc_profile"] = ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB")).tobytes()
+    cmyk.save(tmp_path / "cmyk.jpg", quality=95, **extra)
+    with Image.open(tmp_path / "cmyk.jpg") as im:
+        assert im.mode == "CMYK" and (profile is None) == ("icc_profile" not in im.info)
+    photo = load_photo(tmp_path / "cmyk.jpg")
+    assert photo.alpha is None and photo.rgb.shape == img.shape
+    assert np.abs(photo.rgb - img).mean() < 0.02  # JPEG loss only: the colours come back
+    mask, source = object_mask(photo)
+    assert source == "segmentation" and iou(mask, truth) > 0.95
+
+
+def test_palette_images_read_as_colours_and_their_transparency_as_alpha(tmp_path):
+    img, truth = synthetic_photo(textured=False)
+    rgb = Image.fromarray((img * 255).astype(np.uint8)).quantize(64)
+    rgb.save(tmp_path / "palette.png")
+    photo = load_photo(tmp_path / "palette.png")
+    assert photo.alpha is None and np.abs(photo.rgb - img).mean() < 0.03  # not palette indices as grey
+    rgba = Image.fromarray((np.concatenate([img, truth[..., None]], -1) * 255).astype(np.uint8), "RGBA")
+    rgba.quantize(64, method=Image.Quantize.FASTOCTREE).save(tmp_path / "palette_alpha.png")
+    with Image.open(tmp_path / "palette_alpha.png") as im:
+        assert im.mode == "P" and "transparency" in im.info
+    mask, source = object_mask(load_photo(tmp_path / "palette_alpha.png"))
+    assert source == "alpha" and iou(mask, truth) > 0.99

@@ -32,7 +32,7 @@ class Photo:
 
 
 def load_photo(path: str | Path) -> Photo:
-    """Read a PNG or JPEG (RGB, RGBA, greyscale, 8 or 16 bit) with clear errors for bad files."""
+    """Read a PNG or JPEG (RGB, RGBA, greyscale, palette, CMYK; 8 or 16 bit); bad files are clear errors."""
     from PIL import Image, UnidentifiedImageError
 
     path = Path(path)
@@ -50,6 +50,7 @@ def load_photo(path: str | Path) -> Photo:
                     "first."
                 )
             im.load()
+            im = _to_plain_mode(im, path)
             mode = im.mode
             arr = np.asarray(im)
     except UnidentifiedImageError as err:
@@ -87,6 +88,50 @@ def load_photo(path: str | Path) -> Photo:
         None if alpha is None else np.ascontiguousarray(alpha, np.float32),
         path,
     )
+
+
+# Modes whose channels are not (grey | RGB) [+ alpha]: converted to RGB(A) before reading the array.
+# Read raw, CMYK's K channel looked like alpha, a palette image's indices like grey levels.
+_TO_RGB = {"CMYK", "YCbCr", "HSV", "RGBX"}
+_PREMULTIPLIED = {"RGBa": "RGBA", "La": "LA"}
+
+
+def _to_plain_mode(im, path: Path):
+    """The image in a mode ``load_photo`` reads channel by channel: 1, L, LA, I, I;16*, F, RGB, RGBA."""
+    if im.mode == "CMYK":
+        return _cmyk_to_rgb(im)
+    if im.mode in _TO_RGB:
+        return im.convert("RGB")
+    if im.mode in _PREMULTIPLIED:
+        return im.convert(_PREMULTIPLIED[im.mode])
+    if im.mode in ("P", "PA"):  # palette: transparency may sit in the palette or in a tRNS chunk
+        return im.convert("RGBA" if im.mode == "PA" or "transparency" in im.info else "RGB")
+    if im.mode not in ("1", "L", "LA", "I", "F", "RGB", "RGBA") and not im.mode.startswith("I;16"):
+        raise ValueError(
+            f"{path} has pixel mode {im.mode!r}, which physgm cannot read; "
+            "save it as an RGB or RGBA PNG or JPEG"
+        )
+    return im
+
+
+def _cmyk_to_rgb(im):
+    """CMYK -> sRGB through the embedded ICC profile when there is one, else PIL's plain formula.
+
+    Print CMYK files (the usual source) carry a profile, and only it says what the inks look like;
+    the plain R = (1 - C)(1 - K) formula is not colour-managed, but keeps a white background white.
+    """
+    icc = im.info.get("icc_profile")
+    if icc:
+        import io
+
+        from PIL import ImageCms
+
+        try:
+            source = ImageCms.ImageCmsProfile(io.BytesIO(icc))
+            return ImageCms.profileToProfile(im, source, ImageCms.createProfile("sRGB"), outputMode="RGB")
+        except (ImageCms.PyCMSError, OSError, ValueError):
+            pass  # an unreadable or mismatched profile: fall back to the plain conversion
+    return im.convert("RGB")
 
 
 def load_mask(path: str | Path, shape: tuple[int, int]) -> np.ndarray:

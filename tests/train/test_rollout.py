@@ -133,14 +133,28 @@ class StandIn:
 
 
 def make_callback(root: Path, **over) -> rollout.RolloutCallback:
-    cfg = dict(data_root=str(root), num_views=2, num_candidates=3, workers=1, batch_size=2, cache_dir="pairs",
-               sim={"resolution": 32, "n_frames": 8})
+    cfg = dict(
+        data_root=str(root),
+        num_views=2,
+        num_candidates=3,
+        workers=1,
+        batch_size=2,
+        cache_dir="pairs",
+        sim={"resolution": 32, "n_frames": 8},
+    )
     return rollout.RolloutCallback(**{**cfg, **over})
 
 
 def fake_trainer(tmp_path: Path, rank: int = 0, world: int = 1, epoch: int = 0) -> SimpleNamespace:
-    return SimpleNamespace(global_rank=rank, world_size=world, default_root_dir=str(tmp_path), global_step=0,
-                           current_epoch=epoch, is_global_zero=rank == 0, loggers=[])
+    return SimpleNamespace(
+        global_rank=rank,
+        world_size=world,
+        default_root_dir=str(tmp_path),
+        global_step=0,
+        current_epoch=epoch,
+        is_global_zero=rank == 0,
+        loggers=[],
+    )
 
 
 @pytest.fixture(scope="module")
@@ -297,8 +311,12 @@ def test_evaluate_physics_wiring(dpo_root, monkeypatch):
         scene.camera.Ks[0, 0, 0].item() / 2
     )
     d = PlannerConfig()
-    assert seen["planner"] == {"min_opacity": pytest.approx(0.05), "bound_px": pytest.approx(d.bound_px / 2),
-                               "rest_px": pytest.approx(d.rest_px / 2), "cells_across": 7}
+    assert seen["planner"] == {
+        "min_opacity": pytest.approx(0.05),
+        "bound_px": pytest.approx(d.bound_px / 2),
+        "rest_px": pytest.approx(d.rest_px / 2),
+        "cells_across": 7,
+    }
     torch.testing.assert_close(seen["cams"].c2w, scene.camera.c2w)
     assert dist == pytest.approx(0.0, abs=1e-6) and info["mode"] == "rigid"
 
@@ -366,6 +384,39 @@ def test_fit_trains_and_resumes_mid_round_from_the_cache(dpo_root, stage1_ckpt, 
     train("stage.trainer.max_epochs=3", "ckpt_path=last")
     assert len(again.calls) == COUNT * 3
     assert (tmp_path / "pairs" / "round_0001" / "_summary.json").is_file()
+
+
+@pytest.mark.parametrize("experiment", [None, "tiny_cpu_dpo"])
+def test_fast_dev_run_trains_one_batch_and_rolls_out_only_its_scenes(
+    experiment, dpo_root, stage1_ckpt, tmp_path, monkeypatch
+):
+    """stage.optim.warmup_steps=5 against fast_dev_run's 1 step used to stop the run; and a dev run
+    rolled out every scene of the split (hours on the default data) before its one batch."""
+    from hydra import compose, initialize_config_dir
+
+    from physgm.train.run import run
+
+    stand_in = StandIn()
+    monkeypatch.setattr(rollout, "evaluate_physics", stand_in)
+    overrides = [
+        "stage=dpo",
+        *([f"experiment={experiment}"] if experiment else []),
+        f"stage.init_ckpt={stage1_ckpt}",
+        f"++data.root={dpo_root}",
+        "++data.input_resolution=32",
+        f"paths.output_dir={tmp_path}",
+        "stage.rollout.batch_size=2",
+        "stage.rollout.num_views=2",
+        "stage.rollout.workers=1",
+        "callbacks.progress_bar=null",
+        "+trainer.fast_dev_run=true",
+    ]
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose("train", overrides=overrides)
+    assert cfg.stage.optim.warmup_steps == 5
+    metrics = run(cfg)
+    assert len(stand_in.calls) == 2 * 3  # one batch of 2 scenes (of 4) x K = 3 candidates
+    assert math.isfinite(metrics["train/loss_epoch"])
 
 
 @pytest.mark.slow

@@ -7,7 +7,9 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import Tensor, nn
-from torchmetrics.image import PeakSignalNoiseRatio, StructuralSimilarityIndexMeasure
+from torchmetrics import MeanMetric
+from torchmetrics.functional.image import peak_signal_noise_ratio
+from torchmetrics.image import StructuralSimilarityIndexMeasure
 
 
 class ImageMetrics(nn.Module):
@@ -15,13 +17,20 @@ class ImageMetrics(nn.Module):
 
     def __init__(self) -> None:
         super().__init__()
-        self.psnr = PeakSignalNoiseRatio(data_range=1.0, reduction="elementwise_mean", dim=(1, 2, 3))
+        # The mean of per-image PSNRs. Not PeakSignalNoiseRatio(dim=...): its per-image states are lists
+        # holding int64 pixel counts, and under DDP a rank without images adds an empty float32 one to the
+        # gather, which gloo cannot match (the run aborted). A mean has two float sums, zero when empty.
+        self.psnr = MeanMetric()
         self.ssim = StructuralSimilarityIndexMeasure(data_range=1.0)
         self.update_count = 0
 
     def update(self, pred: Tensor, target: Tensor) -> None:
         """Add images ``pred`` and ``target``, [N, 3, H, W]."""
-        self.psnr.update(pred.detach().float(), target.float())
+        self.psnr.update(
+            peak_signal_noise_ratio(
+                pred.detach().float(), target.float(), data_range=1.0, reduction="none", dim=(1, 2, 3)
+            )
+        )
         self.ssim.update(pred.detach().float(), target.float())
         self.update_count += 1
 

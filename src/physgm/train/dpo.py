@@ -80,8 +80,11 @@ def posterior_kl(p: PhysicsPosterior, q: PhysicsPosterior) -> Tensor:  # [B]
     def gaussian(m1: Tensor, lv1: Tensor, m2: Tensor, lv2: Tensor) -> Tensor:
         return 0.5 * (lv2 - lv1 + (lv1.exp() + (m1 - m2) ** 2) / lv2.exp() - 1.0)
 
-    return categorical + gaussian(p.z_E_mean, p.z_E_logvar, q.z_E_mean, q.z_E_logvar) + gaussian(
-        p.z_nu_mean, p.z_nu_logvar, q.z_nu_mean, q.z_nu_logvar)
+    return (
+        categorical
+        + gaussian(p.z_E_mean, p.z_E_logvar, q.z_E_mean, q.z_E_logvar)
+        + gaussian(p.z_nu_mean, p.z_nu_logvar, q.z_nu_mean, q.z_nu_logvar)
+    )
 
 
 def freeze(module: torch.nn.Module) -> torch.nn.Module:
@@ -244,12 +247,22 @@ class LitDPO(L.LightningModule):
         self._log_step(loss, terms, kl, pw[pair], pl[pair], policy, reference, batch)
         return loss
 
-    def _log_step(self, loss, terms: DPOTerms, kl: Tensor, pw: Tensor, pl: Tensor, policy: PhysicsPosterior,
-                  reference: PhysicsPosterior, batch: DPOBatch) -> None:
+    def _log_step(
+        self,
+        loss,
+        terms: DPOTerms,
+        kl: Tensor,
+        pw: Tensor,
+        pl: Tensor,
+        policy: PhysicsPosterior,
+        reference: PhysicsPosterior,
+        batch: DPOBatch,
+    ) -> None:
         margins = terms.chosen_rewards - terms.rejected_rewards
         decades = 0.5 * (LOG10_E_RANGE[1] - LOG10_E_RANGE[0])
         logs = {
-            "train/loss": loss.detach(), "train/kl": kl.detach().mean(),
+            "train/loss": loss.detach(),
+            "train/kl": kl.detach().mean(),
             "train/log10_E_shift": ((policy.z_E_mean.detach() - reference.z_E_mean) * decades).abs().mean(),
         }
         if len(margins):
@@ -295,19 +308,21 @@ def fit(cfg) -> dict[str, float]:
     """Train stage 2 from a Hydra config and return the last logged metrics."""
     from physgm.data.format import read_split
     from physgm.train.rollout import RolloutCallback
-    from physgm.train.run import build_trainer, plain
+    from physgm.train.run import build_trainer, ensure_data, plain
 
     L.seed_everything(cfg.seed, workers=True)
     stage = cfg.stage
     init = str(stage.init_ckpt)
     if not Path(init).is_file():
-        raise FileNotFoundError(
-            f"stage.init_ckpt={init} is not a file; pass the stage-1 checkpoint (e.g. "
-            "outputs/<run>/checkpoints/last.ckpt)"
+        raise SystemExit(
+            f"error: stage.init_ckpt={init} is not a file; pass a stage-1 checkpoint, e.g. "
+            "stage.init_ckpt=outputs/<run>/checkpoints/last.ckpt (the default, the shipped "
+            "checkpoints/physgm_tiny.ckpt, is found from the repository's root folder)"
         )
     rollout = plain(stage.rollout)
     data = plain(cfg.get("data")) or {}
     rollout["data_root"] = rollout.get("data_root") or data.get("root")
+    ensure_data(cfg, rollout["data_root"], rollout["split"])
     rollout["input_resolution"] = rollout.get("input_resolution") or data.get("input_resolution")
     rollout["background"] = next(
         v for v in (rollout.get("background"), data.get("background"), 1.0) if v is not None
@@ -326,10 +341,13 @@ def fit(cfg) -> dict[str, float]:
     per_epoch = math.ceil(math.ceil(scenes / trainer.world_size) / callback.cfg.batch_size)
     total = trainer.max_steps if trainer.max_steps > 0 else max(1, trainer.max_epochs) * per_epoch
     warmup = int(stage.optim.get("warmup_steps", 0))
-    if warmup >= total:
+    # A fast_dev_run trains a batch or a few by design: its learning rate does not matter, only that
+    # the code runs.
+    if warmup >= total and not trainer.fast_dev_run:
         raise ValueError(
-            f"stage.optim.warmup_steps={warmup} is not below the {total} optimiser steps of this DPO run, "
-            "so the learning rate would never reach its peak (a stage-1 experiment's optimiser settings?); "
+            f"stage.optim.warmup_steps={warmup} is not below the {total} optimiser steps of this DPO "
+            f"run, so the "
+            "learning rate would never reach its peak (a stage-1 experiment's optimiser settings?); "
             "lower stage.optim.warmup_steps or use experiment=tiny_cpu_dpo"
         )
     inputs = {k: getattr(callback.cfg, k) for k in ("num_views", "input_resolution", "background")}
@@ -342,5 +360,3 @@ def fit(cfg) -> dict[str, float]:
     )
     trainer.fit(module, ckpt_path=cfg.get("ckpt_path"))
     return {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
-
-

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import asdict
 from typing import Any
 
 import lightning as L
 import torch
 from torch import Tensor
+from torchmetrics import MeanMetric
 
 from physgm import CHECKPOINT_FORMAT_VERSION
 from physgm.metrics.image import ImageMetrics, save_panel
@@ -17,6 +19,8 @@ from physgm.model.physgm import PhysGM, PhysGMOutput
 from physgm.render import rasterize
 from physgm.train.losses import PretrainLossConfig, pretrain_losses
 from physgm.train.optim import OptimConfig, build_optimizer
+
+VIEW_KEYS = ("v1", "v4")  # validation metrics are kept apart for 1 and 4 input views
 
 
 def render_targets(
@@ -72,8 +76,9 @@ class LitPretrain(L.LightningModule):
         self.renderer = dict(renderer or {"backend": "warp"})
         self.total_steps = total_steps
         m = config.physics_head.num_materials
-        self.val_physics = torch.nn.ModuleDict({f"v{v}": PhysicsMetrics(m) for v in (1, 4)})
-        self.val_images = torch.nn.ModuleDict({f"v{v}": ImageMetrics() for v in (1, 4)})
+        self.val_physics = torch.nn.ModuleDict({key: PhysicsMetrics(m) for key in VIEW_KEYS})
+        self.val_images = torch.nn.ModuleDict({key: ImageMetrics() for key in VIEW_KEYS})
+        self.val_loss = torch.nn.ModuleDict({key: MeanMetric() for key in VIEW_KEYS})
         self._lpips: list[torch.nn.Module] = []  # a list, so the frozen LPIPS net is not a submodule
 
     # -- setup -------------------------------------------------------------------------------
@@ -103,9 +108,18 @@ class LitPretrain(L.LightningModule):
         h, w = batch.target_images.shape[-2:]
         rgb, alpha = render_targets(out, batch.target_c2w, batch.target_Ks, w, h, self.renderer)
         terms = pretrain_losses(
-            self.loss_cfg, rgb, alpha, batch.target_images, batch.target_masks, out.physics,
-            batch.material, batch.log10_E, batch.nu, self.lpips_model,
-            scales=out.gaussians.scales, valid=out.gaussians.valid,
+            self.loss_cfg,
+            rgb,
+            alpha,
+            batch.target_images,
+            batch.target_masks,
+            out.physics,
+            batch.material,
+            batch.log10_E,
+            batch.nu,
+            self.lpips_model,
+            scales=out.gaussians.scales,
+            valid=out.gaussians.valid,
         )
         return out, rgb, alpha, terms
 
@@ -122,7 +136,7 @@ class LitPretrain(L.LightningModule):
         views = batch.images.shape[1]
         key = f"v{views}"
         bsz = batch.images.shape[0]
-        self.log(f"val/{key}/loss", terms["loss"], batch_size=bsz, add_dataloader_idx=False)
+        self.val_loss[key].update(terms["loss"].detach(), bsz)
         pred = rgb.permute(0, 1, 4, 2, 3).clamp(0, 1)
         novel = slice(
             views, None
@@ -143,17 +157,28 @@ class LitPretrain(L.LightningModule):
             save_panel(self, batch.images[0], pred[0], batch.target_images[0], tag=f"val_{key}")
 
     def on_validation_epoch_end(self) -> None:
-        for key in ("v1", "v4"):
-            if self.val_images[key].update_count:
-                for name, value in self.val_images[key].compute().items():
-                    self.log(f"val/{key}/{name}", value)
-                self.val_images[key].reset()
-            if self.val_physics[key].update_count:
-                metrics = self.val_physics[key].compute()
-                metrics.pop("confusion")
-                for name, value in metrics.items():
-                    self.log(f"val/{key}/{name}", value)
-                self.val_physics[key].reset()
+        # compute() gathers a metric's state from every rank, so every rank must call it for the same
+        # metrics in the same order. A batch's view count follows from its asset ids, so under DDP one
+        # rank may have seen only 1-view batches and another only 4-view ones: deciding per rank hung
+        # (2 CPU processes, gloo). The decision is taken on the counts summed over ranks.
+        parts = {"loss": self.val_loss, "images": self.val_images, "physics": self.val_physics}
+        metrics = [(key, part, parts[part][key]) for key in VIEW_KEYS for part in parts]
+        seen = torch.tensor([float(m.update_count) for _, _, m in metrics], device=self.device)
+        seen = self.trainer.strategy.reduce(seen, reduce_op="sum")
+        for (key, part, metric), count in zip(metrics, seen.tolist(), strict=True):
+            if count > 0:
+                # a rank without such batches adds an empty state to the gather (torchmetrics warns)
+                with warnings.catch_warnings():
+                    warnings.filterwarnings("ignore", message=".*compute.*before.*update.*")
+                    values = metric.compute()
+                if part == "loss":
+                    values = {"loss": values}
+                values.pop("confusion", None)
+                for name, value in values.items():
+                    # the value is already the all-rank one; sync_dist keeps Lightning's epoch
+                    # reduction honest
+                    self.log(f"val/{key}/{name}", value, sync_dist=True)
+            metric.reset()
 
 
 def model_from_checkpoint(path: str, map_location: str = "cpu") -> PhysGM:

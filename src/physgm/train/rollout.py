@@ -86,9 +86,16 @@ class RolloutScene:
     true_known: bool
 
 
-def load_scenes(root: str | Path, split: str, video_name: str = "drop", num_views: int = 4,
-                input_resolution: int | None = None, background: float = 1.0, seed: int = 0,
-                max_scenes: int | None = None) -> list[RolloutScene]:
+def load_scenes(
+    root: str | Path,
+    split: str,
+    video_name: str = "drop",
+    num_views: int = 4,
+    input_resolution: int | None = None,
+    background: float = 1.0,
+    seed: int = 0,
+    max_scenes: int | None = None,
+) -> list[RolloutScene]:
     """Every asset of ``split`` that has the reference video ``videos/<video_name>.mp4``.
 
     Input views are the ones the datamodule serves for evaluation (fixed per asset).
@@ -172,8 +179,12 @@ def predict(model: torch.nn.Module, inputs: SceneInputs) -> tuple[Gaussians, Phy
     model.eval()
     try:
         with torch.no_grad():
-            out = model(inputs.images[None].to(device), inputs.masks[None].to(device),
-                        inputs.c2w[None].to(device), inputs.Ks[None].to(device))
+            out = model(
+                inputs.images[None].to(device),
+                inputs.masks[None].to(device),
+                inputs.c2w[None].to(device),
+                inputs.Ks[None].to(device),
+            )
     finally:
         for m, mode in modes.items():
             m.training = mode
@@ -190,8 +201,11 @@ def predict(model: torch.nn.Module, inputs: SceneInputs) -> tuple[Gaussians, Phy
 
 def physics_dict(sample: PhysicsSample, k: int = 0) -> dict:
     """Candidate ``k`` of a [1, K] sample as simulator input (E and nu clipped to simulable values)."""
-    return {"material": MATERIAL_NAMES[int(sample.material[0, k])], "E": float(sample.youngs_modulus()[0, k]),
-            "nu": float(sample.poisson_ratio()[0, k])}
+    return {
+        "material": MATERIAL_NAMES[int(sample.material[0, k])],
+        "E": float(sample.youngs_modulus()[0, k]),
+        "nu": float(sample.poisson_ratio()[0, k]),
+    }
 
 
 def simulate_clip(
@@ -224,14 +238,29 @@ def simulate_clip(
         defaults = PlannerConfig()
         planner.update(bound_px=defaults.bound_px * scale, rest_px=defaults.rest_px * scale)
     planner.update(settings.planner)
-    traj = simulate(world, physics, scene.video.scene, camera, n_frames=n_frames, planner=planner,
-                    solver=solver, scene_overrides={"height": scene.video.drop_height_m}, device=device)
+    traj = simulate(
+        world,
+        physics,
+        scene.video.scene,
+        camera,
+        n_frames=n_frames,
+        planner=planner,
+        solver=solver,
+        scene_overrides={"height": scene.video.drop_height_m},
+        device=device,
+    )
     frames = render_frames(traj, camera, settings.backend, scene.video.background)
     return frames, {"mode": str(traj.plan.mode), "E_used": float(traj.plan.E_used)}
 
 
-def evaluate_physics(scene: RolloutScene, gaussians: Gaussians, physics: dict, reference: np.ndarray,
-                     settings: SimSettings, device: str = "cpu") -> tuple[float, dict]:
+def evaluate_physics(
+    scene: RolloutScene,
+    gaussians: Gaussians,
+    physics: dict,
+    reference: np.ndarray,
+    settings: SimSettings,
+    device: str = "cpu",
+) -> tuple[float, dict]:
     """Simulate ``physics`` on ``gaussians`` like the reference video (``simulate_clip``) and score the
     clip against ``reference`` [T, H, W, 3] uint8; returns (distance, info)."""
     n_frames = settings.n_frames or len(reference)
@@ -310,8 +339,15 @@ class RolloutConfig:
             )
 
 
-def rollout_scene(model: torch.nn.Module, scene: RolloutScene, cfg: RolloutConfig, round_: int, settings: str,
-                  policy: str = "", global_step: int = 0) -> SceneRecord:
+def rollout_scene(
+    model: torch.nn.Module,
+    scene: RolloutScene,
+    cfg: RolloutConfig,
+    round_: int,
+    settings: str,
+    policy: str = "",
+    global_step: int = 0,
+) -> SceneRecord:
     """Sample K candidates for one scene, simulate and score each, pick the pair."""
     gaussians, posterior = predict(model, scene.inputs)
     proposal = widen(_cpu(posterior), cfg.min_std_decades, cfg.min_std_nu)
@@ -418,6 +454,12 @@ class RolloutCallback(L.Callback):
                 raise ValueError(
                     "the rollout callback needs data_root (stage.rollout.data_root or data.root)"
                 )
+            limit = self.cfg.max_scenes
+            if (
+                trainer.fast_dev_run
+            ):  # it trains int(fast_dev_run) batches: roll out only the scenes they hold
+                needed = int(trainer.fast_dev_run) * self.cfg.batch_size * trainer.world_size
+                limit = min(limit or needed, needed)
             self.scenes = load_scenes(
                 self.cfg.data_root,
                 self.cfg.split,
@@ -426,7 +468,7 @@ class RolloutCallback(L.Callback):
                 self.cfg.input_resolution,
                 self.cfg.background,
                 self.cfg.seed,
-                self.cfg.max_scenes,
+                limit,
             )
 
     def train_dataloader(self, trainer: L.Trainer, pl_module: L.LightningModule) -> DataLoader:
@@ -440,14 +482,21 @@ class RolloutCallback(L.Callback):
         dataset = PairDataset(
             self.records, {s.id: s.inputs for s in self.scenes}, anchors=self.cfg.anchor_ties
         )
-        if dataset.num_pairs == 0:
+        # a dev run's few scenes may all tie: it still trains on them as KL anchors (when enabled)
+        if dataset.num_pairs == 0 and not (trainer.fast_dev_run and len(dataset)):
             notes = sorted({r.note for r in self.records})
             raise RuntimeError(
                 f"round {round_} gave no preference pair from {len(self.records)} scenes ({notes}); raise "
                 "stage.rollout.min_std_decades or num_candidates, or lower min_gap"
             )
-        return DataLoader(dataset, batch_size=self.cfg.batch_size, shuffle=True, collate_fn=collate_pairs,
-                          num_workers=self.cfg.num_workers, drop_last=False)
+        return DataLoader(
+            dataset,
+            batch_size=self.cfg.batch_size,
+            shuffle=True,
+            collate_fn=collate_pairs,
+            num_workers=self.cfg.num_workers,
+            drop_last=False,
+        )
 
     def cache(self, trainer: L.Trainer) -> PairCache:
         root = Path(self.cfg.cache_dir)

@@ -52,21 +52,31 @@ def build_trainer(cfg: DictConfig, extra_callbacks: list | None = None) -> L.Tra
     )
 
 
-def ensure_data(cfg: DictConfig) -> None:
-    """Generate the synthetic data set named by ``cfg.data.root`` if the config asks for it and it is missing.
+def ensure_data(cfg: DictConfig, root: str | None = None, split: str | None = None) -> None:
+    """Make sure the data set ``root`` (default ``cfg.data.root``) has the split list ``split``.
 
-    ``cfg.synth`` holds ``physgm.data.synth.SynthConfig`` fields plus ``workers``. A finished set
-    (its split lists exist) is reused; a partly generated one is resumed.
+    A missing set is generated when it is the folder ``cfg.synth.out`` names (``cfg.synth`` holds
+    ``physgm.data.synth.SynthConfig`` fields plus ``out`` and ``workers``); a partly generated one
+    is resumed. Any other missing set stops with one sentence saying what to add.
     """
     from pathlib import Path
 
-    synth = cfg.get("synth")
-    root = Path(cfg.data.root)
-    if synth is None or (root / "splits" / "train.txt").is_file():
+    root = Path(root or cfg.data.root)
+    split = split or cfg.data.get("train_split", "train")
+    if (root / "splits" / f"{split}.txt").is_file() or cfg.data.get("backend", "folder") != "folder":
         return
+    synth = cfg.get("synth")
+    if synth is None or Path(str(synth.out)).absolute() != root.absolute():
+        raise SystemExit(
+            f"error: no data set at {root} ({root / 'splits' / f'{split}.txt'} is missing); make it with "
+            f"`python -m physgm.data.synth --out {root} --count 1000 --seed 0 --workers 2`, or add "
+            f"experiment=tiny_cpu "
+            "(stage 1) or experiment=tiny_cpu_dpo (stage 2) to train on a small set made on first use"
+        )
     from physgm.data.synth import SynthConfig, generate
 
     options = plain(synth)
+    options.pop("out")
     workers = int(options.pop("workers", 1))
     log.info(
         "generating the synthetic data set %s (%s assets); later runs reuse it", root, options.get("count")
