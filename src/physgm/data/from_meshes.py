@@ -10,11 +10,18 @@ casting (raycast.py) from the same 32 views as the synthetic assets: colour from
 vertex or face colours at the hit, Lambertian + ambient shading under the same light as the
 synthetic assets, supersampled for anti-aliased edges. Without --E/--nu/--density the material table's
 typical values are written and marked as such.
+
+Asset ids are the mesh's path relative to the folder it was found in, without the suffix
+(``chair/model.obj`` -> ``chair__model``; a file given directly -> its stem), so they are stable
+across runs. Files whose ids would coincide (``a/model.obj`` and ``a/model.glb``, the same
+relative path under two folders) get a hash suffix instead, and an id already on disk from a
+different mesh file stops the import: two objects never become one asset.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import re
 import sys
@@ -158,8 +165,83 @@ def render_mesh(obj: MeshObject, resolution: int, supersample: int = 2) -> np.nd
     return np.stack(out)
 
 
-def asset_id_for(path: Path) -> str:
-    return re.sub(r"[^A-Za-z0-9_.-]+", "_", path.stem)
+@dataclass(frozen=True)
+class MeshFile:
+    """A mesh file and the folder it was found under (ids are relative to that folder)."""
+
+    path: Path
+    root: Path
+
+    @property
+    def relative(self) -> str:
+        return self.path.relative_to(self.root).as_posix()
+
+
+def asset_id_for(path: Path, root: Path | None = None) -> str:
+    """The id of a mesh file: its path relative to ``root`` (default: its folder), suffix dropped."""
+    rel = path.relative_to(root if root is not None else path.parent).with_suffix("")
+    return "__".join(re.sub(r"[^A-Za-z0-9_.-]+", "_", part) for part in rel.parts)
+
+
+def _digest(text: str) -> str:
+    return hashlib.sha1(text.encode()).hexdigest()[:8]
+
+
+def assign_ids(meshes: list[MeshFile]) -> dict[Path, str]:
+    """Unique asset ids for ``meshes``; files whose plain ids coincide get a hash suffix.
+
+    The suffix hashes the relative path with its extension (stable when the folder moves); for
+    the same relative path under two folders, the folder name is hashed too, then the full path.
+    """
+    groups: dict[str, list[MeshFile]] = {}
+    for m in meshes:
+        groups.setdefault(asset_id_for(m.path, m.root), []).append(m)
+    ids: dict[Path, str] = {}
+    for base, members in groups.items():
+        if len(members) == 1:
+            ids[members[0].path] = base
+            continue
+        for key in (
+            lambda m: m.relative,
+            lambda m: f"{m.root.resolve().name}/{m.relative}",
+            lambda m: m.path.resolve().as_posix(),
+        ):
+            renamed = {m.path: f"{base}-{_digest(key(m))}" for m in members}
+            if len(set(renamed.values())) == len(members):
+                break
+        ids.update(renamed)
+    seen: dict[str, Path] = {}
+    for path, aid in ids.items():
+        if aid in seen:
+            raise ValueError(f"asset id {aid!r} would name both {seen[aid]} and {path}; rename one of the files")
+        seen[aid] = path
+    return ids
+
+
+def file_sha1(path: Path) -> str:
+    h = hashlib.sha1()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def existing_import(out: Path, aid: str, mesh: Path, digest: str) -> bool:
+    """True if ``out/aid`` already holds this mesh; raises if it holds a different one."""
+    folder = out / aid
+    if not folder.is_dir():
+        return False
+    try:
+        physical = json.loads((folder / "physical.json").read_text())
+    except (OSError, ValueError):
+        physical = {}
+    if physical.get("mesh_sha1") == digest:
+        return True
+    held = physical.get("mesh_file", "an unknown source")
+    raise ValueError(
+        f"asset id {aid!r} already exists in {out} and was imported from {held}, not from {mesh}; "
+        "import into another --out folder or remove the old asset"
+    )
 
 
 def default_physics(material: str) -> dict:
@@ -176,12 +258,19 @@ def import_mesh(
     supersample: int = 2,
     up: str = "auto",
     physics: dict | None = None,
+    asset_id: str | None = None,
+    mesh_name: str | None = None,
 ) -> str:
-    """Render one mesh file into ``out/<stem>``; returns the asset id ("" if it already exists)."""
+    """Render one mesh file into ``out/<asset_id>``; returns the id ("" if this mesh is already there).
+
+    ``asset_id`` defaults to the file's stem and ``mesh_name`` (recorded as ``mesh_file``) to its
+    name; an existing folder of that id made from another mesh raises ValueError.
+    """
     if material not in material_names():
         raise ValueError(f"unknown material {material!r}; choose one of {', '.join(material_names())}")
-    aid = asset_id_for(path)
-    if (out / aid).is_dir():
+    aid = asset_id or asset_id_for(path)
+    digest = file_sha1(path)
+    if existing_import(out, aid, path, digest):
         return ""
     given = {k: v for k, v in (physics or {}).items() if v is not None}
     values = {**default_physics(material), **given}
@@ -194,7 +283,8 @@ def import_mesh(
         **{k: float(v) for k, v in values.items()},
         "constitutive_model": constitutive_model(material),
         "source": "mesh",
-        "mesh_file": path.name,
+        "mesh_file": mesh_name or path.name,
+        "mesh_sha1": digest,  # tells a re-import of this mesh from a different mesh with the same id
         "physics_source": "user" if {"E", "nu"} <= set(given) else "material default",
     }
     with atomic_asset_dir(out, aid) as tmp:
@@ -202,27 +292,49 @@ def import_mesh(
     return aid
 
 
-def find_meshes(items: list[str]) -> list[Path]:
-    files: list[Path] = []
+def find_meshes(items: list[str]) -> list[MeshFile]:
+    """Mesh files of the given files and folders (searched recursively), each with its id root."""
+    files: list[MeshFile] = []
     for item in items:
         p = Path(item)
         if p.is_dir():
-            files += sorted(f for f in p.rglob("*") if f.suffix.lower() in MESH_SUFFIXES)
+            files += [MeshFile(f, p) for f in sorted(p.rglob("*")) if f.suffix.lower() in MESH_SUFFIXES]
         elif p.is_file():
-            files.append(p)
+            files.append(MeshFile(p, p.parent))
         else:
             raise FileNotFoundError(f"no mesh file or folder at {p}")
-    return files
+    first: dict[Path, MeshFile] = {}
+    for m in files:  # a file named twice (on its own and inside a folder) is imported once
+        first.setdefault(m.path.resolve(), m)
+    return list(first.values())
+
+
+def _split_ids(path: Path) -> list[str]:
+    return [ln.split("#")[0].strip() for ln in path.read_text().splitlines() if ln.split("#")[0].strip()]
 
 
 def add_to_split(out: Path, split: str, ids: list[str]) -> None:
-    """Append ids to ``splits/<split>.txt`` (kept unique) and make sure every split file exists."""
+    """Append ids to ``splits/<split>.txt`` (each id once) and make sure every split file exists.
+
+    Raises ValueError, writing nothing, if an id is already listed in another split.
+    """
     (out / SPLITS_DIR).mkdir(parents=True, exist_ok=True)
     for s in SPLITS:
         (out / SPLITS_DIR / f"{s}.txt").touch()
+    elsewhere = {
+        i: s for s in SPLITS if s != split for i in _split_ids(out / SPLITS_DIR / f"{s}.txt") if i in ids
+    }
+    if elsewhere:
+        listing = ", ".join(f"{i} ({s})" for i, s in sorted(elsewhere.items())[:5])
+        raise ValueError(f"already in another split: {listing}; an asset belongs to one split only")
     path = out / SPLITS_DIR / f"{split}.txt"
-    have = [ln.strip() for ln in path.read_text().splitlines() if ln.strip()]
-    path.write_text("".join(f"{a}\n" for a in have + [i for i in ids if i not in have]))
+    have = list(dict.fromkeys(_split_ids(path)))
+    path.write_text("".join(f"{a}\n" for a in have + [i for i in dict.fromkeys(ids) if i not in have]))
+
+
+def count_assets(out: Path) -> int:
+    """Asset folders in ``out`` (splits and unfinished temporary folders excluded)."""
+    return sum(1 for p in out.iterdir() if p.is_dir() and p.name != SPLITS_DIR and not p.name.startswith("."))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -252,24 +364,46 @@ def main(argv: list[str] | None = None) -> int:
     )
     a = p.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
-    done, failed = [], {}
-    for f in find_meshes(a.meshes):
+    meshes = find_meshes(a.meshes)
+    try:
+        ids = assign_ids(meshes)
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
+    imported, present, failed = [], [], {}
+    for m in meshes:
+        aid = ids[m.path]
         try:
-            aid = import_mesh(
-                f,
+            new = import_mesh(
+                m.path,
                 a.out,
                 a.material,
                 a.resolution,
                 a.supersample,
                 a.up,
                 {"E": a.E, "nu": a.nu, "density": a.density},
+                asset_id=aid,
+                mesh_name=m.relative,
             )
-            done.append(aid or asset_id_for(f))
+            (imported if new else present).append(aid)
         except (ValueError, OSError) as err:
-            failed[str(f)] = str(err)
-            print(f"could not import {f}: {err}", file=sys.stderr)
-    add_to_split(a.out, a.split, done)
-    print(json.dumps({"imported": len(done), "failed": failed, "out": str(a.out)}))
+            failed[str(m.path)] = str(err)
+            print(f"could not import {m.path}: {err}", file=sys.stderr)
+    try:
+        add_to_split(a.out, a.split, imported + present)
+    except ValueError as err:
+        failed["splits"] = str(err)
+        print(f"split list {a.split}: {err}", file=sys.stderr)
+    renamed = {str(m.path): ids[m.path] for m in meshes if ids[m.path] != asset_id_for(m.path, m.root)}
+    report = {
+        "imported": len(imported),  # new asset folders written by this run
+        "already_present": len(present),  # this run's meshes found imported before
+        "assets_on_disk": count_assets(a.out),
+        "renamed": renamed,  # mesh file -> id with a hash suffix (names that would collide)
+        "failed": failed,
+        "out": str(a.out),
+    }
+    print(json.dumps(report))
     return 1 if failed else 0
 
 
