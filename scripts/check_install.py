@@ -60,7 +60,9 @@ def _run(cmd: list[str], cwd: Path, env: dict[str, str] | None = None) -> tuple[
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True)
     if proc.returncode != 0:
-        raise RuntimeError(f"`{' '.join(cmd)}` failed ({proc.returncode}):\n{proc.stdout[-2000:]}\n{proc.stderr[-4000:]}")
+        raise RuntimeError(
+            f"`{' '.join(cmd)}` failed ({proc.returncode}):\n{proc.stdout[-2000:]}\n{proc.stderr[-4000:]}"
+        )
     return time.perf_counter() - t0, proc.stdout
 
 
@@ -117,7 +119,9 @@ def check_install(work: Path) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python scripts/check_install.py", description=__doc__.splitlines()[0])
-    p.add_argument("--work", type=Path, default=None, help="empty folder to work in (default: a temporary one)")
+    p.add_argument(
+        "--work", type=Path, default=None, help="empty folder to work in (default: a temporary one)"
+    )
     p.add_argument("--keep", action="store_true", help="keep the work folder")
     a = p.parse_args(argv)
     work = a.work or Path(tempfile.mkdtemp(prefix="physgm-install-"))

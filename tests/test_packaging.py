@@ -64,9 +64,10 @@ def test_config_tree_and_checkpoint_are_package_resources():
     assert (conf_dir() / "simulate.yaml").is_file() and (conf_dir() / "sim" / "scene" / "drop.yaml").is_file()
     # In the checkout the package's conf/ is the repository's (one copy of every file).
     assert conf_dir().resolve() == (REPO / "conf").resolve()
-    assert packaged_checkpoint("checkpoints/physgm_tiny.ckpt").resolve() == (
-        REPO / "checkpoints" / "physgm_tiny.ckpt"
-    ).resolve()
+    assert (
+        packaged_checkpoint("checkpoints/physgm_tiny.ckpt").resolve()
+        == (REPO / "checkpoints" / "physgm_tiny.ckpt").resolve()
+    )
     assert packaged_checkpoint("elsewhere/physgm_tiny.ckpt") is None
 
 
