@@ -5,7 +5,7 @@
 Prints one JSON object (timings, where physgm was imported from, what the run wrote) and exits
 1 if any step failed. What it proves and what it does not:
 
-* The wheel is built from the checkout (``pip wheel --no-deps --no-build-isolation``, with the
+* The wheel is built from a copy of the checkout (``pip wheel --no-deps --no-build-isolation``, with the
   setuptools of the running interpreter) and installed with ``pip install --no-deps`` into a
   venv created with ``python -m venv`` (no ``--system-site-packages``): physgm, its console
   scripts, the config tree and the tiny checkpoint come from the wheel alone.
@@ -36,6 +36,14 @@ REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "examples" / "jelly_cube.png"
 # Small enough to take seconds: the point is that the installed package runs, not the video.
 SIM_OVERRIDES = ["output.resolution=64", "output.frames=8", "output.progress=false"]
+# Top-level folders that are not part of a build: version control, environments, data, outputs.
+TOP_IGNORE = {".git", ".venv", "data", "outputs", "build", ".pytest_cache", ".ruff_cache", "wandb",
+              "lightning_logs", "logs", "multirun"}  # fmt: skip
+
+
+def _ignore(folder: str, names: list[str]) -> list[str]:
+    top = Path(folder) == REPO
+    return [n for n in names if (top and n in TOP_IGNORE) or n == "__pycache__" or n.endswith(".egg-info")]
 
 CHECK_REQUIREMENTS = """
 import importlib.metadata as md, json, physgm
@@ -74,7 +82,10 @@ def check_install(work: Path) -> dict:
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
     env.setdefault("OMP_NUM_THREADS", "1")
 
-    t, _ = _run([sys.executable, "-m", "pip", "wheel", str(REPO), "--no-deps", "--no-build-isolation",
+    # Build from a copy of the checkout: an in-tree build leaves build/ and *.egg-info behind.
+    source = work / "source"
+    shutil.copytree(REPO, source, symlinks=True, ignore=_ignore)
+    t, _ = _run([sys.executable, "-m", "pip", "wheel", str(source), "--no-deps", "--no-build-isolation",
                  "-q", "-w", str(wheels)], cwd=elsewhere, env=env)  # fmt: skip
     report["build_s"] = round(t, 1)
     (wheel,) = wheels.glob("physgm-*.whl")

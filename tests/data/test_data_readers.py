@@ -197,3 +197,13 @@ def test_unknown_release_material_names_the_value_and_the_choices(tmp_path):
     (tmp_path / "physical.json").write_text(json.dumps({"material": "Concrete", "E": 3e10, "nu": 0.2}))
     with pytest.raises(AssetError, match=r"unknown material 'Concrete' \(known, any case: plastic, wood"):
         load_asset(tmp_path)
+
+
+def test_shard_samples_store_the_converted_cameras(tmp_path):
+    from physgm.data.shards import ShardRecord, asset_to_sample
+
+    _cameras_json(tmp_path, "opengl", GL_C2W)
+    (tmp_path / "physical.json").write_text(json.dumps({"material": "Jelly", "E": 1e4, "nu": 0.45}))
+    record = ShardRecord({**asset_to_sample(str(tmp_path)), "id": "a"})
+    np.testing.assert_allclose(record.c2w[0].numpy(), CV_C2W, atol=1e-7)
+    assert record.physical.material == "jelly"
