@@ -46,6 +46,7 @@ MATERIALS = {
 # PhysGaussian's defaults (utils/decode_param.py) for keys a config may leave out.
 DEFAULTS = {"material": "jelly", "E": 1e5, "nu": 0.4, "density": 200.0, "frame_dt": 1e-2, "frame_num": 100,
             "opacity_threshold": 0.02, "scale": 1.0, "grid_lim": 2.0, "n_grid": 50,
+            "grid_v_damping_scale": 1.1, "rpic_damping": 0.0, "pic_damping": 0.0,
             "mpm_space_vertical_upward_axis": [0, 0, 1]}  # fmt: skip
 BOX_PADDING_CELLS = 3  # its bounding_box stops particles this many cells inside the grid
 IGNORED = {
@@ -199,7 +200,7 @@ def read_physgaussian(cfg: dict, means: np.ndarray, opacities: np.ndarray) -> Ph
         PhysGaussianConfigError: a key has no counterpart; the message names it.
     """
     known = set(DEFAULTS) | set(IGNORED) | set(PLASTICITY) | {"g", "boundary_conditions", "rotation_degree",
-             "rotation_axis", "grid_v_damping_scale", "rpic_damping", "pic_damping", "particle_filling",
+             "rotation_axis", "particle_filling",
              "additional_material_params", "sim_area"}  # fmt: skip
     for key in cfg:
         if key not in known:
@@ -226,10 +227,10 @@ def read_physgaussian(cfg: dict, means: np.ndarray, opacities: np.ndarray) -> Ph
         )
     if cfg.get("sim_area") is not None:
         _fail("sim_area", "simulating a cropped region has no counterpart; crop the .ply instead")
-    if float(cfg.get("grid_v_damping_scale", 1.1)) < 1.0:
+    if _num(cfg, "grid_v_damping_scale") < 1.0:
         _fail("grid_v_damping_scale", "grid velocity damping has no counterpart in physgm's scenes")
     for key in ("rpic_damping", "pic_damping"):
-        if float(cfg.get(key, 0.0)) != 0.0:
+        if _num(cfg, key) != 0.0:
             _fail(key, "physgm's solver blends PIC and FLIP itself (conf/sim/solver/default.yaml: flip)")
     if "g" not in cfg:
         _fail("g", "missing; give gravity as [gx, gy, gz] in m/s^2 in PhysGaussian's MPM space")
