@@ -21,8 +21,9 @@ import torch
 from physgm.model.config import PhysGMConfig
 from physgm.model.physgm import PhysGM
 from physgm.model.timing import count_parameters, forward_milliseconds
+from physgm.resources import conf_dir
 
-CONF_DIR = Path(__file__).resolve().parents[3] / "conf"
+CONF_DIR = conf_dir()
 
 
 def load_config(name: str, conf_dir: Path = CONF_DIR) -> PhysGMConfig:

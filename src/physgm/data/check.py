@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from physgm.data.format import SPLITS, SPLITS_DIR, _load_json, _parse_cameras, read_asset
+from physgm.data.format import SPLITS, SPLITS_DIR, read_asset, read_cameras
 from physgm.data.writer import TMP_PREFIX
 
 
@@ -94,8 +94,7 @@ def check_asset(path: str | Path, deep: bool = True) -> list[str]:
         return problems
     # Views are checked even when physical.json is broken, so one pass shows everything.
     cam_problems: list[str] = []
-    cam_json = _load_json(path / "cameras.json", cam_problems)
-    cams = _parse_cameras(cam_json, path, cam_problems) if cam_json is not None else None
+    cams = read_cameras(path, cam_problems)
     if cams is not None:
         cameras, files = cams[0], cams[1]
         for f in files:

@@ -9,12 +9,12 @@
 
 ``read_asset`` parses an asset and collects every problem it finds; ``load_asset`` raises
 ``AssetError`` listing them. Pixel-level checks (decoding every PNG) live in ``check.py``.
+Folders laid out by other tools (nerfstudio/Blender ``transforms.json``, the PhysGM authors'
+``pose.json`` and capitalised material names) load in place through ``physgm.data.readers``.
 """
 
 from __future__ import annotations
 
-import json
-import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +26,10 @@ from PIL import Image
 from physgm.cameras import Cameras
 from physgm.data.annotation import E_CATEGORIES, NU_CATEGORIES, e_class, nu_class
 from physgm.data.priors import material_names
+from physgm.data.readers import read_camera_dict
+from physgm.data.readers.common import load_json as _load_json
+from physgm.data.readers.common import number as _number
+from physgm.data.readers.physgm_release import canonical_material
 
 # The synthetic view grid: 4 elevations x 8 azimuths, elevation-major (view = 8 * e + a).
 VIEW_ELEVATIONS_DEG: tuple[float, ...] = (0.0, 20.0, 40.0, 60.0)
@@ -131,34 +135,6 @@ def view_grid() -> tuple[list[float], list[float]]:
 # Parsing with problem collection.
 
 
-def _load_json(path: Path, problems: list[str]) -> dict | None:
-    if not path.is_file():
-        problems.append(f"missing {path.name}")
-        return None
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        problems.append(f"{path.name} is not valid JSON ({err})")
-        return None
-    if not isinstance(data, dict):
-        problems.append(f"{path.name} must hold a JSON object, got {type(data).__name__}")
-        return None
-    return data
-
-
-def _number(d: dict, key: str, where: str, problems: list[str]) -> float | None:
-    value = d.get(key)
-    try:
-        out = float(value)
-    except (TypeError, ValueError):
-        problems.append(f"{where}: '{key}' must be a number, got {value!r}")
-        return None
-    if not math.isfinite(out):
-        problems.append(f"{where}: '{key}' is not finite ({value!r})")
-        return None
-    return out
-
-
 def parse_camera(d: dict, where: str, problems: list[str]) -> tuple[np.ndarray, np.ndarray, int, int] | None:
     """One camera entry -> (c2w [4, 4], K [3, 3], width, height), or None with problems noted."""
     n0 = len(problems)
@@ -195,9 +171,10 @@ def parse_camera(d: dict, where: str, problems: list[str]) -> tuple[np.ndarray, 
 def parse_physical(d: dict, problems: list[str]) -> PhysicalLabels | None:
     n0 = len(problems)
     names = material_names()
-    material = d.get("material")
-    if material not in names:
-        problems.append(f"physical.json: unknown material {material!r} (known: {', '.join(names)})")
+    written = d.get("material")
+    material = canonical_material(written)  # "Wood" (the PhysGM release) is wood
+    if material is None:
+        problems.append(f"physical.json: unknown material {written!r} (known, any case: {', '.join(names)})")
     E = _number(d, "E", "physical.json", problems)
     nu = _number(d, "nu", "physical.json", problems)
     if E is not None and E <= 0:
@@ -212,9 +189,9 @@ def parse_physical(d: dict, problems: list[str]) -> PhysicalLabels | None:
     ann = d.get("annotation")
     annotated = None
     if isinstance(ann, dict):
-        a_mat = ann.get("material")
-        if a_mat not in names:
-            problems.append(f"physical.json: annotation has unknown material {a_mat!r}")
+        a_mat = canonical_material(ann.get("material"))
+        if a_mat is None:
+            problems.append(f"physical.json: annotation has unknown material {ann.get('material')!r}")
         a_E = _number(ann, "E", "physical.json annotation", problems)
         a_nu = _number(ann, "nu", "physical.json annotation", problems)
         if a_E is not None and a_E not in E_CATEGORIES:
@@ -234,6 +211,9 @@ def parse_physical(d: dict, problems: list[str]) -> PhysicalLabels | None:
         ec, nc = int(e_class(E)), int(nu_class(nu))
         annotated = Annotated(material, E_CATEGORIES[ec], NU_CATEGORIES[nc], ec, nc)
     known = {"material", "E", "nu", "density", "constitutive_model", "annotation"}
+    extra = {k: v for k, v in d.items() if k not in known}
+    if written != material:
+        extra["material_as_written"] = written
     return PhysicalLabels(
         material,
         E,
@@ -242,7 +222,7 @@ def parse_physical(d: dict, problems: list[str]) -> PhysicalLabels | None:
         d.get("constitutive_model"),
         annotated,
         true_known,
-        {k: v for k, v in d.items() if k not in known},
+        extra,
     )
 
 
@@ -282,6 +262,15 @@ def _parse_cameras(d: dict, path: Path, problems: list[str]):
         isinstance(a, (int, float)) and isinstance(e, (int, float)) for a, e in zip(az, el, strict=True)
     )
     return cams, files, (np.asarray(az, float) if known else None), (np.asarray(el, float) if known else None)
+
+
+def read_cameras(path: Path, problems: list[str]):
+    """The views of a folder: (Cameras, view files, azimuths, elevations), or None with problems noted.
+
+    Reads cameras.json, or a nerfstudio/Blender transforms.json or a PhysGM pose.json in its place.
+    """
+    cam_json = read_camera_dict(Path(path), problems)
+    return _parse_cameras(cam_json, Path(path), problems) if cam_json is not None else None
 
 
 def _parse_videos(path: Path, problems: list[str]) -> list[VideoInfo]:
@@ -326,9 +315,8 @@ def read_asset(path: str | os.PathLike) -> tuple[Asset | None, list[str]]:
     problems: list[str] = []
     if not path.is_dir():
         return None, [f"{path} is not a directory"]
-    cam_json = _load_json(path / "cameras.json", problems)
+    cams = read_cameras(path, problems)
     phys_json = _load_json(path / "physical.json", problems)
-    cams = _parse_cameras(cam_json, path, problems) if cam_json is not None else None
     physical = parse_physical(phys_json, problems) if phys_json is not None else None
     videos = _parse_videos(path, problems)
     ply = path / "gaussians.ply"

@@ -10,13 +10,18 @@ casting (raycast.py) from the same 32 views as the synthetic assets: colour from
 vertex or face colours at the hit, Lambertian + ambient shading under the same light as the
 synthetic assets, supersampled for anti-aliased edges. Without --E/--nu/--density the material table's
 typical values are written and marked as such.
+
+Asset ids are the mesh's path relative to the folder it was found in, without the suffix
+(``chair/model.obj`` -> ``chair__model``; a file given directly -> its stem), so they are stable
+across runs. Files whose ids would coincide (``a/model.obj`` and ``a/model.glb``, the same
+relative path under two folders) get a hash suffix instead, and an id already on disk from a
+different mesh file stops the import: two objects never become one asset (mesh_ids.py).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import re
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,14 +30,22 @@ import numpy as np
 import trimesh
 
 from physgm.data.appearance import AMBIENT, LIGHT_DIR
-from physgm.data.format import SPLITS, SPLITS_DIR
+from physgm.data.format import SPLITS
+from physgm.data.mesh_ids import (
+    add_to_split,
+    asset_id_for,
+    assign_ids,
+    count_assets,
+    existing_import,
+    file_sha1,
+    find_meshes,
+)
 from physgm.data.priors import constitutive_model, material_names
 from physgm.data.raycast import cast_rays
 from physgm.data.synth import view_cameras
 from physgm.data.writer import atomic_asset_dir, write_views_cameras_physics
 from physgm.physics.materials import get_material
 
-MESH_SUFFIXES = (".obj", ".glb", ".gltf", ".ply", ".stl", ".off")
 DEFAULT_GREY = 0.7  # albedo of meshes without colours
 
 
@@ -158,10 +171,6 @@ def render_mesh(obj: MeshObject, resolution: int, supersample: int = 2) -> np.nd
     return np.stack(out)
 
 
-def asset_id_for(path: Path) -> str:
-    return re.sub(r"[^A-Za-z0-9_.-]+", "_", path.stem)
-
-
 def default_physics(material: str) -> dict:
     """Typical values of a material from the material table."""
     m = get_material(material)
@@ -176,12 +185,19 @@ def import_mesh(
     supersample: int = 2,
     up: str = "auto",
     physics: dict | None = None,
+    asset_id: str | None = None,
+    mesh_name: str | None = None,
 ) -> str:
-    """Render one mesh file into ``out/<stem>``; returns the asset id ("" if it already exists)."""
+    """Render one mesh file into ``out/<asset_id>``; returns the id ("" if this mesh is already there).
+
+    ``asset_id`` defaults to the file's stem and ``mesh_name`` (recorded as ``mesh_file``) to its
+    name; an existing folder of that id made from another mesh raises ValueError.
+    """
     if material not in material_names():
         raise ValueError(f"unknown material {material!r}; choose one of {', '.join(material_names())}")
-    aid = asset_id_for(path)
-    if (out / aid).is_dir():
+    aid = asset_id or asset_id_for(path)
+    digest = file_sha1(path)
+    if existing_import(out, aid, path, digest):
         return ""
     given = {k: v for k, v in (physics or {}).items() if v is not None}
     values = {**default_physics(material), **given}
@@ -194,35 +210,13 @@ def import_mesh(
         **{k: float(v) for k, v in values.items()},
         "constitutive_model": constitutive_model(material),
         "source": "mesh",
-        "mesh_file": path.name,
+        "mesh_file": mesh_name or path.name,
+        "mesh_sha1": digest,  # tells a re-import of this mesh from a different mesh with the same id
         "physics_source": "user" if {"E", "nu"} <= set(given) else "material default",
     }
     with atomic_asset_dir(out, aid) as tmp:
         write_views_cameras_physics(tmp, rgba, cams, az, el, physical)
     return aid
-
-
-def find_meshes(items: list[str]) -> list[Path]:
-    files: list[Path] = []
-    for item in items:
-        p = Path(item)
-        if p.is_dir():
-            files += sorted(f for f in p.rglob("*") if f.suffix.lower() in MESH_SUFFIXES)
-        elif p.is_file():
-            files.append(p)
-        else:
-            raise FileNotFoundError(f"no mesh file or folder at {p}")
-    return files
-
-
-def add_to_split(out: Path, split: str, ids: list[str]) -> None:
-    """Append ids to ``splits/<split>.txt`` (kept unique) and make sure every split file exists."""
-    (out / SPLITS_DIR).mkdir(parents=True, exist_ok=True)
-    for s in SPLITS:
-        (out / SPLITS_DIR / f"{s}.txt").touch()
-    path = out / SPLITS_DIR / f"{split}.txt"
-    have = [ln.strip() for ln in path.read_text().splitlines() if ln.strip()]
-    path.write_text("".join(f"{a}\n" for a in have + [i for i in ids if i not in have]))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -252,24 +246,46 @@ def main(argv: list[str] | None = None) -> int:
     )
     a = p.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
-    done, failed = [], {}
-    for f in find_meshes(a.meshes):
+    meshes = find_meshes(a.meshes)
+    try:
+        ids = assign_ids(meshes)
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
+    imported, present, failed = [], [], {}
+    for m in meshes:
+        aid = ids[m.path]
         try:
-            aid = import_mesh(
-                f,
+            new = import_mesh(
+                m.path,
                 a.out,
                 a.material,
                 a.resolution,
                 a.supersample,
                 a.up,
                 {"E": a.E, "nu": a.nu, "density": a.density},
+                asset_id=aid,
+                mesh_name=m.relative,
             )
-            done.append(aid or asset_id_for(f))
+            (imported if new else present).append(aid)
         except (ValueError, OSError) as err:
-            failed[str(f)] = str(err)
-            print(f"could not import {f}: {err}", file=sys.stderr)
-    add_to_split(a.out, a.split, done)
-    print(json.dumps({"imported": len(done), "failed": failed, "out": str(a.out)}))
+            failed[str(m.path)] = str(err)
+            print(f"could not import {m.path}: {err}", file=sys.stderr)
+    try:
+        add_to_split(a.out, a.split, imported + present)
+    except ValueError as err:
+        failed["splits"] = str(err)
+        print(f"split list {a.split}: {err}", file=sys.stderr)
+    renamed = {str(m.path): ids[m.path] for m in meshes if ids[m.path] != asset_id_for(m.path, m.root)}
+    report = {
+        "imported": len(imported),  # new asset folders written by this run
+        "already_present": len(present),  # this run's meshes found imported before
+        "assets_on_disk": count_assets(a.out),
+        "renamed": renamed,  # mesh file -> id with a hash suffix (names that would collide)
+        "failed": failed,
+        "out": str(a.out),
+    }
+    print(json.dumps(report))
     return 1 if failed else 0
 
 

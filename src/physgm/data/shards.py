@@ -22,6 +22,7 @@ from litdata import StreamingDataset
 from PIL import Image
 
 from physgm.data.format import SPLITS, AssetError, load_asset, parse_camera, parse_physical, read_split
+from physgm.data.readers import read_camera_dict
 from physgm.data.views import LOAD_ERRORS, Example, ViewConfig, build_example, example_rng
 
 
@@ -31,7 +32,8 @@ def asset_to_sample(path: str) -> dict:
     pngs = [f.read_bytes() for f in asset.view_files]
     offsets = np.cumsum([0] + [len(b) for b in pngs]).astype(np.int64)
     meta = {
-        "cameras": json.loads((asset.path / "cameras.json").read_text()),
+        # The cameras as the project's cameras.json object (OpenCV), whatever file the folder holds.
+        "cameras": read_camera_dict(asset.path, []),
         "physical": json.loads((asset.path / "physical.json").read_text()),
     }
     return {

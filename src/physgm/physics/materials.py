@@ -1,5 +1,8 @@
 """The material table: one YAML per material under conf/sim/material/, loaded into a registry.
 
+The YAML files ship inside the package (``physgm.resources``), so an installed wheel reads the
+same table as the checkout.
+
 ``MATERIAL_NAMES`` fixes the class order of the model's material head (15 classes). Each entry
 names its constitutive model (``physgm.sim.constitutive.MODELS``), density, default E and nu,
 the typical E and nu ranges, the plasticity extras of its model and a ``source`` for every
@@ -12,9 +15,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from functools import cache
+from importlib.resources.abc import Traversable
 from pathlib import Path
 
 import yaml
+
+from physgm.resources import package_file
 
 MATERIAL_NAMES: tuple[str, ...] = (
     "plastic",
@@ -34,7 +40,7 @@ MATERIAL_NAMES: tuple[str, ...] = (
     "plasticine",
 )
 
-MATERIAL_DIR = Path(__file__).resolve().parents[3] / "conf" / "sim" / "material"
+MATERIAL_DIR = package_file("conf", "sim", "material")
 PLASTICITY_KEYS = ("yield_stress", "hardening", "friction_angle", "cohesion", "viscosity")
 
 
@@ -71,11 +77,11 @@ class Material:
         )
 
 
-def _fail(path: Path, message: str) -> None:
+def _fail(path: Path | Traversable, message: str) -> None:
     raise ValueError(f"material file {path}: {message}")
 
 
-def _validate(m: Material, path: Path) -> None:
+def _validate(m: Material, path: Path | Traversable) -> None:
     from physgm.sim.constitutive import MODELS
 
     if m.model not in MODELS:
@@ -100,10 +106,9 @@ def _validate(m: Material, path: Path) -> None:
     m.params()  # the solver's own validation (e.g. yield stress > 0 for von Mises)
 
 
-def load_material(path: Path) -> Material:
-    """Read and validate one material YAML file."""
-    with open(path) as f:
-        raw = yaml.safe_load(f)
+def load_material(path: Path | Traversable) -> Material:
+    """Read and validate one material YAML file (a path, or a file inside the package)."""
+    raw = yaml.safe_load(path.read_text())
     required = ("name", "model", "density", "E", "nu", "E_range", "nu_range", "source")
     absent = [k for k in required if k not in raw]
     if absent:
@@ -119,8 +124,9 @@ def load_material(path: Path) -> Material:
         plasticity={str(k): float(v) for k, v in (raw.get("plasticity") or {}).items()},
         source={str(k): str(v) for k, v in raw["source"].items()},
     )
-    if material.name != path.stem:
-        _fail(path, f"name {material.name!r} must match the file name {path.stem!r}")
+    stem = path.name.removesuffix(".yaml")
+    if material.name != stem:
+        _fail(path, f"name {material.name!r} must match the file name {stem!r}")
     _validate(material, path)
     return material
 
@@ -135,7 +141,7 @@ def material_table() -> dict[str, Material]:
     table = {}
     for name in MATERIAL_NAMES:
         path = MATERIAL_DIR / f"{name}.yaml"
-        if not path.exists():
+        if not path.is_file():
             raise FileNotFoundError(f"material {name!r} has no file {path}")
         table[name] = load_material(path)
     return table

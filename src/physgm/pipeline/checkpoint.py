@@ -19,6 +19,7 @@ from physgm import CHECKPOINT_FORMAT_VERSION
 from physgm.model.config import PhysGMConfig
 from physgm.model.physgm import PhysGM
 from physgm.pipeline.errors import UserError
+from physgm.resources import packaged_checkpoint
 
 PREFIX = "model."
 REPO_ROOT = Path(__file__).resolve().parents[3]  # relative checkpoint paths also resolve here
@@ -26,11 +27,14 @@ REPO_ROOT = Path(__file__).resolve().parents[3]  # relative checkpoint paths als
 
 def resolve_checkpoint(path: Path) -> Path:
     """``path`` itself if it exists, else (for a relative path) the same path under the repo root,
-    so the default ``checkpoints/physgm_tiny.ckpt`` is found from any working directory."""
+    else the copy shipped in the package (``checkpoints/physgm_tiny.ckpt``), so the default is
+    found from any working directory, in a checkout or an installed wheel."""
     path = Path(path)
-    if not path.is_file() and not path.is_absolute() and (REPO_ROOT / path).is_file():
+    if path.is_file() or path.is_absolute():
+        return path
+    if (REPO_ROOT / path).is_file():
         return REPO_ROOT / path
-    return path
+    return packaged_checkpoint(path) or path
 
 
 def missing_checkpoint_message(path: Path) -> str:

@@ -6,6 +6,8 @@ with one line saying which key was wrong and what it accepts.
 
 from __future__ import annotations
 
+import json
+import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,6 +18,7 @@ from omegaconf.errors import MissingMandatoryValue
 
 from physgm.pipeline.errors import UserError
 
+log = logging.getLogger(__name__)
 DEFAULT_CKPT = "checkpoints/physgm_tiny.ckpt"
 UP_AXES = ("z", "y", "-y")
 
@@ -155,6 +158,43 @@ def _number(value: Any, key: str, kind=float) -> Any:
     return out
 
 
+def _with_physgaussian(raw: dict) -> dict:
+    """``raw`` with a PhysGaussian simulation config's settings in place (docs/interop.md).
+
+    The file's values replace simulate.yaml's; a ``physics.*`` override given on the command line
+    that disagrees with the file is an error rather than a silent choice.
+    """
+    from physgm.data.readers.physgaussian import PhysGaussianConfigError, read_physgaussian
+    from physgm.gaussians import read_ply
+
+    path = Path(str(raw["physgaussian_config"])).expanduser()
+    source = Path(str(raw.get("input") or ""))
+    if source.suffix.lower() != ".ply":
+        raise UserError(f"physgaussian_config={path} goes with a 3DGS .ply input (PhysGaussian's), got input={source}")
+    try:
+        pg = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise UserError(f"physgaussian_config={path} is not a readable JSON file ({err})") from None
+    if not isinstance(pg, dict):
+        raise UserError(f"physgaussian_config={path} must hold a JSON object")
+    try:
+        g = read_ply(source, keep_sh=False)
+    except (OSError, ValueError, KeyError) as err:
+        raise UserError(f"input={source} is not a readable 3DGS .ply ({err})") from None
+    try:
+        run = read_physgaussian(pg, g.means.double().numpy(), g.opacities.double().numpy())
+    except PhysGaussianConfigError as err:
+        raise UserError(f"{path}: {err}") from None
+    given = raw.get("physics") or {}
+    for key in ("material", "E", "nu", "density"):
+        mine, theirs = given.get(key), getattr(run, key)
+        if mine is not None and mine != theirs:
+            raise UserError(f"physics.{key}={mine!r} disagrees with {path} ({key} = {theirs!r}); change one of them")
+    for key, why in run.ignored.items():
+        log.info("physgaussian_config: %s has no effect here: %s", key, why)
+    return run.apply(raw)
+
+
 def from_hydra(cfg: DictConfig) -> RunConfig:
     """The typed run settings of a composed ``conf/simulate.yaml``."""
     try:
@@ -162,6 +202,8 @@ def from_hydra(cfg: DictConfig) -> RunConfig:
     except MissingMandatoryValue as err:
         key = getattr(err, "full_key", "input")
         raise UserError(f"{key} is required, e.g. `python simulate.py input=photo.png`") from None
+    if raw.get("physgaussian_config") not in (None, ""):
+        raw = _with_physgaussian(raw)
     phys, obj, cam, out = (
         raw.get("physics") or {},
         raw.get("object") or {},

@@ -9,7 +9,6 @@ training input set when it holds more.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,7 +18,8 @@ import torch
 from torch import Tensor
 
 from physgm.cameras import Cameras, orbit_cameras
-from physgm.data.format import CAMERA_RADIUS, FOV_DEG, parse_camera
+from physgm.data.format import CAMERA_RADIUS, FOV_DEG, read_cameras
+from physgm.data.readers import camera_file
 from physgm.gaussians import Gaussians, quat_to_rotmat, read_ply, rotmat_to_quat
 from physgm.inputs import Photo, frame_object, load_photo, object_mask
 from physgm.pipeline.errors import UserError
@@ -118,38 +118,22 @@ def _prepare_photo(path: Path, size: int, mask: Path | None) -> PreparedInput:
 
 
 def _read_cameras(folder: Path) -> tuple[list[Path], Cameras]:
-    path = folder / "cameras.json"
-    if not path.is_file():
+    """The folder's views and cameras: cameras.json, or a transforms.json / pose.json (docs/interop.md)."""
+    if camera_file(folder) is None:
         raise UserError(
-            f"{folder} is a folder but has no cameras.json; give a photo, a .ply, or 4 posed views "
-            "(docs/data.md)"
+            f"{folder} is a folder but has no cameras.json (nor transforms.json or pose.json); "
+            "give a photo, a .ply, or 4 posed views (docs/data.md)"
         )
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise UserError(f"{path} is not valid JSON ({err})") from None
-    frames = data.get("frames") if isinstance(data, dict) else None
-    if not isinstance(frames, list) or not frames:
-        raise UserError(f"{path} needs a non-empty 'frames' list (see docs/data.md)")
     problems: list[str] = []
-    files, c2ws, Ks, sizes = [], [], [], set()
-    for i, fr in enumerate(frames):
-        cam = parse_camera(fr, f"frame {i}", problems) if isinstance(fr, dict) else None
-        name = fr.get("file") if isinstance(fr, dict) else None
-        if not isinstance(name, str) or not (folder / name).is_file():
-            problems.append(f"frame {i}: view image {name!r} not found in {folder}")
-        if cam is not None:
-            c2ws.append(cam[0]), Ks.append(cam[1]), sizes.add(cam[2:]), files.append(folder / str(name))
-    if len(sizes) > 1:
-        problems.append(f"views must share one image size, got {sorted(sizes)}")
-    if problems:
+    parsed = read_cameras(folder, problems)
+    if problems or parsed is None:
         raise UserError(
-            f"{path}: "
+            f"{camera_file(folder)}: "
             + "; ".join(problems[:3])
             + (f" (+{len(problems) - 3} more)" if len(problems) > 3 else "")
         )
-    ((w, h),) = sizes
-    return files, Cameras(torch.tensor(np.stack(c2ws)).float(), torch.tensor(np.stack(Ks)).float(), w, h)
+    cams, files, _, _ = parsed
+    return files, cams
 
 
 def _square(rgb: np.ndarray, mask: np.ndarray, K: Tensor, size: int) -> tuple[Tensor, Tensor, Tensor]:

@@ -17,14 +17,14 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 import yaml
 
+from physgm.resources import package_file
 from physgm.sim.boundary import GroundPlane, VelocityBox
 
-SCENE_DIR = Path(__file__).resolve().parents[3] / "conf" / "sim" / "scene"
+SCENE_DIR = package_file("conf", "sim", "scene")  # ships inside the package (physgm.resources)
 
 
 @dataclass(frozen=True)
@@ -181,8 +181,7 @@ def load_scene_config(name: str) -> dict:
     """The YAML settings of scene ``name`` (conf/sim/scene/<name>.yaml)."""
     if name not in SCENES:
         raise ValueError(f"unknown scene {name!r}; known scenes: {', '.join(SCENES)}")
-    with open(SCENE_DIR / f"{name}.yaml") as f:
-        return yaml.safe_load(f)
+    return yaml.safe_load((SCENE_DIR / f"{name}.yaml").read_text())
 
 
 def build_scene(name: str, x: np.ndarray, material: np.ndarray | None = None, **overrides) -> SceneSetup:

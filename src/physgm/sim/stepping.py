@@ -5,11 +5,11 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
-from pathlib import Path
 
+from physgm.resources import package_file
 from physgm.sim.constitutive import MaterialParams
 
-CONF_DIR = Path(__file__).resolve().parents[3] / "conf" / "sim"
+CONF_DIR = package_file("conf", "sim")  # ships inside the package (physgm.resources)
 
 
 class SimulationDiverged(RuntimeError):
@@ -74,10 +74,9 @@ class SolverConfig:
         import yaml
 
         path = CONF_DIR / "solver" / f"{name}.yaml"
-        if not path.exists():
+        if not path.is_file():
             raise ValueError(f"no solver config {name!r} at {path}")
-        with open(path) as f:
-            return cls.from_dict(yaml.safe_load(f) or {})
+        return cls.from_dict(yaml.safe_load(path.read_text()) or {})
 
 
 def wave_speed(materials: Sequence[MaterialParams]) -> float:
