@@ -8,5 +8,5 @@ if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
 .venv/bin/python -m pip install --quiet --upgrade "pip>=24"
-.venv/bin/python -m pip install --quiet -e ".[dev]"
+.venv/bin/python -m pip install --quiet -e ".[dev,view]"
 .venv/bin/python -c "import torch, torchvision, warp, lightning, hydra, lpips, timm; print('setup: ok, torch', torch.__version__, 'warp', warp.__version__)"

@@ -18,10 +18,10 @@ import pytest
 from physgm.view.browser import find_chromium
 
 pytest.importorskip(
-    "viser", reason="the viewer's extra is not installed (pip install -e '.[view]'; scripts/setup.sh does)"
+    "viser", reason="the viewer's extra is not installed (pip install -e '.[view]'; scripts/setup.sh installs it)"
 )
 if find_chromium() is None:
-    pytest.skip("no Chromium (scripts/setup.sh installs Debian's chromium when run as root, as in CI)",
+    pytest.skip("no Chromium (apt-get install chromium; .ci/run installs it in CI)",
                 allow_module_level=True)  # fmt: skip
 
 WIDTH, HEIGHT = 1000, 500  # wide: viser's control panel sits on the right, the ball in the middle
