@@ -18,7 +18,8 @@ import pytest
 from physgm.view.browser import find_chromium
 
 pytest.importorskip(
-    "viser", reason="the viewer's extra is not installed (pip install -e '.[view]'; scripts/setup.sh installs it)"
+    "viser",
+    reason="the viewer's extra is not installed (pip install -e '.[view]'; scripts/setup.sh installs it)",
 )
 if find_chromium() is None:
     pytest.skip("no Chromium (apt-get install chromium; .ci/run installs it in CI)",

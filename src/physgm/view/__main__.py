@@ -20,12 +20,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--port", type=int, default=8080, help="port (the next free one if taken)")
     parser.add_argument("--frame", type=int, default=0, help="frame shown first")
     parser.add_argument("--paused", action="store_true", help="start paused instead of playing")
+    parser.add_argument(
+        "--screenshot", metavar="PNG", help="instead of serving: save the viewer at --frame as seen in headless "
+        "Chromium (needs chromium installed) and exit",
+    )  # fmt: skip
+    parser.add_argument(
+        "--size", type=int, nargs=2, default=(960, 540), metavar=("W", "H"), help="--screenshot size, px"
+    )
     args = parser.parse_args(argv)
     try:
-        from physgm.view.server import serve
+        from physgm.view.server import save_screenshot, serve
 
-        serve(args.run_dir, args.run, args.host, args.port, args.frame, not args.paused)
-    except (ImportError, FileNotFoundError, ValueError) as err:
+        if args.screenshot:
+            out = save_screenshot(
+                args.run_dir, args.screenshot, args.run, args.frame, *args.size, port=args.port
+            )
+            print(out)
+        else:
+            serve(args.run_dir, args.run, args.host, args.port, args.frame, not args.paused)
+    except (ImportError, FileNotFoundError, ValueError, TimeoutError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     return 0

@@ -136,18 +136,18 @@ class HeadlessBrowser:
         self.close()
 
 
-def wait_until_still(browser: HeadlessBrowser, settle: float = 0.5, timeout: float = 30.0,
-                     background: tuple[int, int, int] = (255, 255, 255)) -> np.ndarray:  # fmt: skip
-    """The first screenshot equal to the one ``settle`` s before that is not all ``background``.
+def wait_until_still(browser: HeadlessBrowser, settle: float = 0.5, timeout: float = 60.0) -> np.ndarray:
+    """The first screenshot equal to the one taken ``settle`` s before it (notices closed first).
 
-    The viewer fades splats in when they arrive; a still, non-empty page means the scene is drawn.
+    Call it once the scene has reached the page: the viewer fades splats in as they arrive, so
+    a page that stopped changing shows the whole scene.
     """
     deadline = time.monotonic() + timeout
     previous = None
     while time.monotonic() < deadline:
+        dismiss_notifications(browser)
         shot = browser.screenshot()
-        drawn = bool((np.abs(shot.astype(np.int16) - np.array(background)).max(-1) > 30).mean() > 0.001)
-        if drawn and previous is not None and np.array_equal(shot, previous):
+        if previous is not None and np.array_equal(shot, previous):
             return shot
         previous = shot
         time.sleep(settle)

@@ -166,6 +166,34 @@ def find_sequence(path: str | Path, run: str = "mean") -> Path:
     return target
 
 
+def save_screenshot(path: str | Path, out: str | Path, run: str = "mean", frame: int = 0,
+                    width: int = 960, height: int = 540, port: int = 8080) -> Path:  # fmt: skip
+    """Open the viewer on a run folder in headless Chromium at ``frame`` and save what it shows as a PNG."""
+    from PIL import Image
+
+    from physgm.view.browser import HeadlessBrowser, wait_until_still
+
+    file = find_sequence(path, run)
+    viewer = SequenceViewer(GaussianSequence.load(file), "127.0.0.1", port, f"{file.parent.name}/{file.name}",
+                            frame, playing=False)  # fmt: skip
+    try:
+        with HeadlessBrowser(width, height) as browser:
+            browser.open(viewer.url)
+            deadline = time.monotonic() + browser.timeout
+            while not viewer.server.get_clients():  # the page has not opened its websocket yet
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f"the page did not connect to the viewer within {browser.timeout:g} s")
+                time.sleep(0.1)
+            time.sleep(1.0)  # the scene's messages follow the connection
+            img = wait_until_still(browser)
+    finally:
+        viewer.close()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(img).save(out)
+    return out
+
+
 def serve(path: str | Path, run: str = "mean", host: str = "127.0.0.1", port: int = 8080,
           frame: int = 0, playing: bool = True) -> None:  # fmt: skip
     """Serve a run folder's moving Gaussians until Ctrl-C."""
