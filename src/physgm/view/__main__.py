@@ -17,7 +17,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--host", default="127.0.0.1", help="address to listen on (0.0.0.0: the whole network)"
     )
-    parser.add_argument("--port", type=int, default=8080, help="port (the next free one if taken)")
+    parser.add_argument(
+        "--port",
+        type=int,
+        default=None,
+        help="port (default 8080, the next free one if taken; --screenshot: any free one)",
+    )
     parser.add_argument("--frame", type=int, default=0, help="frame shown first")
     parser.add_argument("--paused", action="store_true", help="start paused instead of playing")
     parser.add_argument(
@@ -33,11 +38,11 @@ def main(argv: list[str] | None = None) -> int:
 
         if args.screenshot:
             out = save_screenshot(
-                args.run_dir, args.screenshot, args.run, args.frame, *args.size, port=args.port
+                args.run_dir, args.screenshot, args.run, args.frame, *args.size, port=args.port or 0
             )
             print(out)
         else:
-            serve(args.run_dir, args.run, args.host, args.port, args.frame, not args.paused)
+            serve(args.run_dir, args.run, args.host, args.port or 8080, args.frame, not args.paused)
     except (ImportError, FileNotFoundError, ValueError, TimeoutError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -136,18 +136,20 @@ class HeadlessBrowser:
         self.close()
 
 
-def wait_until_still(browser: HeadlessBrowser, settle: float = 0.5, timeout: float = 60.0) -> np.ndarray:
-    """The first screenshot equal to the one taken ``settle`` s before it (notices closed first).
+def wait_until_still(browser: HeadlessBrowser, settle: float = 0.5, repeats: int = 3,
+                     timeout: float = 90.0) -> np.ndarray:  # fmt: skip
+    """The first screenshot equal to the ``repeats`` taken before it, ``settle`` s apart (notices closed).
 
-    Call it once the scene has reached the page: the viewer fades splats in as they arrive, so
-    a page that stopped changing shows the whole scene.
+    Call it once the scene has reached the page. The page fades the scene in, and a loaded
+    machine may not draw a new frame between two screenshots: one repeat is not enough.
     """
     deadline = time.monotonic() + timeout
-    previous = None
+    previous, same = None, 0
     while time.monotonic() < deadline:
         dismiss_notifications(browser)
         shot = browser.screenshot()
-        if previous is not None and np.array_equal(shot, previous):
+        same = same + 1 if previous is not None and np.array_equal(shot, previous) else 0
+        if same >= repeats:
             return shot
         previous = shot
         time.sleep(settle)

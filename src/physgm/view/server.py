@@ -47,7 +47,7 @@ class SequenceViewer:
 
     Args:
         sequence: the moving Gaussians.
-        host, port: where the server listens (viser moves to the next port if it is taken).
+        host, port: where the server listens (viser moves to the next port if it is taken; 0: any free port).
         title: shown at the top of the control panel.
         frame: frame shown first.
         playing: start playing.
@@ -78,7 +78,7 @@ class SequenceViewer:
             center = 0.5 * (lo + hi)
             scene.add_grid("/ground", width=size, height=size, cell_size=self.unit / 4, section_size=self.unit,
                            position=(float(center[0]), float(center[1]), sequence.ground))  # fmt: skip
-        eye, look_at, up = camera_view(sequence.camera_c2w, centers0.mean(0))
+        eye, look_at, up = camera_view(sequence.camera_c2w, sequence.means.mean((0, 1)))  # orbit the motion
         self.server.initial_camera.position = eye
         self.server.initial_camera.look_at = look_at
         self.server.initial_camera.up = up
@@ -167,7 +167,7 @@ def find_sequence(path: str | Path, run: str = "mean") -> Path:
 
 
 def save_screenshot(path: str | Path, out: str | Path, run: str = "mean", frame: int = 0,
-                    width: int = 960, height: int = 540, port: int = 8080) -> Path:  # fmt: skip
+                    width: int = 960, height: int = 540, port: int = 0) -> Path:  # fmt: skip
     """Open the viewer on a run folder in headless Chromium at ``frame`` and save what it shows as a PNG."""
     from PIL import Image
 
@@ -184,7 +184,7 @@ def save_screenshot(path: str | Path, out: str | Path, run: str = "mean", frame:
                 if time.monotonic() > deadline:
                     raise TimeoutError(f"the page did not connect to the viewer within {browser.timeout:g} s")
                 time.sleep(0.1)
-            time.sleep(1.0)  # the scene's messages follow the connection
+            time.sleep(2.0)  # the scene's messages follow the connection
             img = wait_until_still(browser)
     finally:
         viewer.close()
