@@ -5,8 +5,9 @@ to pan, scroll to zoom); this module only picks the frame to show. The camera op
 clip's camera was, so the first view matches video.mp4.
 
 viser packs covariances as float16, whose normal range starts at 6e-5: a 1 mm Gaussian (variance
-1e-6 m^2) would lose most of its digits. The splats are therefore sent in units of the object's
-size and the scene node scales them back to metres.
+1e-6 m^2) would keep 2 or 3 significant bits. The splats are therefore sent in units of the
+median Gaussian's size, where variances sit around 1 (unless that would overflow the largest one),
+and the scene node scales them back to metres.
 """
 
 from __future__ import annotations
@@ -65,7 +66,10 @@ class SequenceViewer:
         scene = self.server.scene
         scene.set_up_direction("+z")  # physgm's world is +z up
         centers0 = sequence.means[0]
-        self.unit = float(np.ptp(centers0, axis=0).max()) or 1.0  # m per display unit (see module doc)
+        variances = sequence.covs[..., [0, 3, 5]]  # [S, N, 3] m^2
+        # m per display unit (see module doc); the largest variance stays below float16's 65504
+        self.unit = max(float(np.sqrt(np.median(variances[0]))), float(np.sqrt(variances.max() / 1e4))) or 1.0
+        size = float(np.ptp(centers0, axis=0).max()) or 1.0  # m, the object's extent
         self._rgbs = sequence.colors.astype(np.float32)
         self._opacities = sequence.opacities.astype(np.float32)[:, None]
         self.splats = scene.add_gaussian_splats(
@@ -74,9 +78,9 @@ class SequenceViewer:
         )  # fmt: skip
         if sequence.ground is not None:
             lo, hi = sequence.means[..., :2].min((0, 1)), sequence.means[..., :2].max((0, 1))
-            size = 4.0 * float(max(hi - lo)) + 2.0 * self.unit
+            width = 4.0 * float(max(hi - lo)) + 2.0 * size
             center = 0.5 * (lo + hi)
-            scene.add_grid("/ground", width=size, height=size, cell_size=self.unit / 4, section_size=self.unit,
+            scene.add_grid("/ground", width=width, height=width, cell_size=size / 4, section_size=size,
                            position=(float(center[0]), float(center[1]), sequence.ground))  # fmt: skip
         eye, look_at, up = camera_view(sequence.camera_c2w, sequence.means.mean((0, 1)))  # orbit the motion
         self.server.initial_camera.position = eye
