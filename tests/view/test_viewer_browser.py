@@ -122,3 +122,19 @@ def test_viewer_shows_the_object_and_it_moves_with_the_slider(tmp_path):
             assert abs(red_pixels(back)[:, 0].mean() - row0) < 3
     finally:
         viewer.close()
+
+
+def test_screenshot_command_saves_the_frame_asked_for(tmp_path):
+    """``python -m physgm.view RUN --frame 9 --screenshot out.png``: the ball where frame 9 has it."""
+    from PIL import Image
+
+    from physgm.view.__main__ import main
+
+    out = tmp_path / "shot.png"
+    assert main([str(falling_ball(tmp_path)), "--frame", str(FRAMES - 1), "--screenshot", str(out),
+                 "--size", str(WIDTH), str(HEIGHT)]) == 0  # fmt: skip
+    img = np.asarray(Image.open(out).convert("RGB"))
+    assert img.shape == (HEIGHT, WIDTH, 3)
+    ball = red_pixels(img)
+    assert len(ball) > 300, f"the ball is not in the screenshot: {len(ball)} red pixels"
+    assert abs(ball[:, 0].mean() - projected_row(START_Z - DROP)) < 12
