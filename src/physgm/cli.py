@@ -1,4 +1,4 @@
-"""Console scripts ``physgm-simulate`` and ``physgm-train`` (pyproject.toml ``[project.scripts]``).
+"""Console scripts ``physgm-simulate``, ``physgm-train`` and ``physgm-view`` (``[project.scripts]``).
 
 They take the same Hydra overrides as ``python simulate.py`` / ``python train.py`` in the
 checkout, but compose the config tree shipped inside the package, so they work from any folder
@@ -8,6 +8,7 @@ folder they are launched from.
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 
 from omegaconf import DictConfig
@@ -43,3 +44,10 @@ def simulate() -> None:
 def train() -> None:
     """``physgm-train stage=pretrain [experiment=tiny_cpu ...]``: training."""
     _hydra_entry("train", _train)
+
+
+def view() -> None:
+    """``physgm-view RUN_DIR``: the browser viewer of a simulate.py run (``python -m physgm.view``)."""
+    from physgm.view.__main__ import main
+
+    sys.exit(main())

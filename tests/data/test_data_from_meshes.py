@@ -111,7 +111,11 @@ def test_same_file_name_in_two_folders_gives_two_assets(tmp_path, capsys):
     assert green[..., 3].sum() < 0.6 * red[..., 3].sum()
     # Importing again is stable: same ids, nothing new, each id once in the split list.
     code, report = _import(capsys, "--meshes", str(meshes), "--out", str(out))
-    assert code == 0 and (report["imported"], report["already_present"], report["assets_on_disk"]) == (0, 2, 2)
+    assert code == 0 and (report["imported"], report["already_present"], report["assets_on_disk"]) == (
+        0,
+        2,
+        2,
+    )
     assert read_split(out, "train") == ["chair__model", "table__model"]
 
 

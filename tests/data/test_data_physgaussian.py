@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from physgm.pipeline.inputs import UP_ROTATIONS as PIPELINE_UP_ROTATIONS
 
 from physgm.data.readers.physgaussian import UP_ROTATIONS, PhysGaussianConfigError, read_physgaussian
 from physgm.gaussians import Gaussians, write_ply
 from physgm.pipeline.config import from_hydra
 from physgm.pipeline.errors import UserError
-from physgm.pipeline.inputs import UP_ROTATIONS as PIPELINE_UP_ROTATIONS
 from physgm.resources import conf_dir
 
 
@@ -206,7 +206,7 @@ def test_simulate_runs_a_ply_with_its_physgaussian_config(tmp_path):
     _ply(tmp_path / "blob.ply", pts * [1.0, 1.0, 0.5] + [0.3, -0.2, 2.0], np.full(1500, 0.8))
     (tmp_path / "cfg.json").write_text(json.dumps({**JELLY, "E": 2e5, "density": 1000, "frame_num": 5}))
     run(_compose([f"input={tmp_path / 'blob.ply'}", f"physgaussian_config={tmp_path / 'cfg.json'}",
-                  f"paths.output_dir={tmp_path / 'run'}", "output.resolution=32", "output.progress=false"]))  # fmt: skip
+                  f"paths.output_dir={tmp_path / 'run'}", "output.resolution=32", "output.progress=false"]))  # fmt: skip  # noqa: E501
     report = json.loads((tmp_path / "run" / "report.json").read_text())
     physics = json.loads((tmp_path / "run" / "physics.json").read_text())["runs"][0]
     assert (physics["material"], physics["E"], physics["nu"], physics["density"]) == ("jelly", 2e5, 0.4, 1000)

@@ -11,6 +11,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from physgm.pipeline.inputs import _read_cameras
 from PIL import Image
 
 from physgm.data.check import check_asset
@@ -18,7 +19,6 @@ from physgm.data.format import AssetError, load_asset
 from physgm.data.readers.physgm_release import RELEASE_MATERIALS, canonical_material
 from physgm.physics.materials import MATERIAL_NAMES, get_material
 from physgm.pipeline.errors import UserError
-from physgm.pipeline.inputs import _read_cameras
 
 
 def _png(path, w, h) -> None:
@@ -111,7 +111,7 @@ def test_blender_transforms_with_camera_angle_x_and_extensionless_paths(tmp_path
     # The NeRF Blender scenes: camera_angle_x in radians, "./train/r_0" meaning r_0.png, no w/h.
     _png(tmp_path / "train" / "r_0.png", 40, 40)
     transforms = {"camera_angle_x": 0.6911112070083618,
-                  "frames": [{"file_path": "./train/r_0", "rotation": 0.0126, "transform_matrix": GL_C2W}]}  # fmt: skip
+                  "frames": [{"file_path": "./train/r_0", "rotation": 0.0126, "transform_matrix": GL_C2W}]}  # fmt: skip  # noqa: E501
     (tmp_path / "transforms.json").write_text(json.dumps(transforms))
     _physical(tmp_path)
     asset = load_asset(tmp_path)
@@ -192,8 +192,8 @@ def test_every_release_material_name_maps_onto_the_table_in_any_case():
 
 def test_unknown_release_material_names_the_value_and_the_choices(tmp_path):
     _png(tmp_path / "000.png", 64, 64)
-    (tmp_path / "pose.json").write_text(json.dumps({"frames": [{"file_path": "000.png", "w2c": CAKE_W2C, "h": 64,
-                                                               "w": 64, "fx": 64, "fy": 64, "cx": 32, "cy": 32}]}))  # fmt: skip
+    (tmp_path / "pose.json").write_text(json.dumps({"frames": [{"file_path": "000.png", "w2c": CAKE_W2C, "h": 64,  # noqa: E501
+                                                               "w": 64, "fx": 64, "fy": 64, "cx": 32, "cy": 32}]}))  # fmt: skip  # noqa: E501
     (tmp_path / "physical.json").write_text(json.dumps({"material": "Concrete", "E": 3e10, "nu": 0.2}))
     with pytest.raises(AssetError, match=r"unknown material 'Concrete' \(known, any case: plastic, wood"):
         load_asset(tmp_path)

@@ -170,7 +170,9 @@ def _with_physgaussian(raw: dict) -> dict:
     path = Path(str(raw["physgaussian_config"])).expanduser()
     source = Path(str(raw.get("input") or ""))
     if source.suffix.lower() != ".ply":
-        raise UserError(f"physgaussian_config={path} goes with a 3DGS .ply input (PhysGaussian's), got input={source}")
+        raise UserError(
+            f"physgaussian_config={path} goes with a 3DGS .ply input (PhysGaussian's), got input={source}"
+        )
     try:
         pg = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
@@ -189,7 +191,9 @@ def _with_physgaussian(raw: dict) -> dict:
     for key in ("material", "E", "nu", "density"):
         mine, theirs = given.get(key), getattr(run, key)
         if mine is not None and mine != theirs:
-            raise UserError(f"physics.{key}={mine!r} disagrees with {path} ({key} = {theirs!r}); change one of them")
+            raise UserError(
+                f"physics.{key}={mine!r} disagrees with {path} ({key} = {theirs!r}); change one of them"
+            )
     for key, why in run.ignored.items():
         log.info("physgaussian_config: %s has no effect here: %s", key, why)
     return run.apply(raw)

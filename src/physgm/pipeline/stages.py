@@ -2,8 +2,8 @@
 
 Stages, each timed in report.json: load (input + checkpoint), model (forward pass, physics
 choice, placement), plan and simulate (``physgm.sim.gaussian_trajectory.simulate``), render
-(deforming the Gaussians per frame + rasterising), write (videos, PLYs, contact sheet, JSON,
-rename).
+(deforming the Gaussians per frame + rasterising), write (videos, Gaussians over time, PLYs, contact
+sheet, JSON, rename).
 """
 
 from __future__ import annotations
@@ -178,6 +178,7 @@ def _execute(cfg: RunConfig) -> dict:
     from physgm.pipeline.physics_choice import choose_physics, physics_json
     from physgm.pipeline.prepared_input import input_kind, prepare_input
     from physgm.pipeline.staging import direction, floor_image, framing_camera, motion_region, place_object
+    from physgm.view.sequence import sequence_file, sequence_from_trajectory
 
     start = time.perf_counter()
     sec = dict.fromkeys(STAGES, 0.0)
@@ -237,6 +238,10 @@ def _execute(cfg: RunConfig) -> dict:
             t0 = time.perf_counter()
             video = "video.mp4" if choice.name == "mean" else f"video_{choice.name}.mp4"
             write_mp4(tmp / video, frames, cfg.output.fps)
+            # what ``python -m physgm.view RUN_DIR`` shows: the moving Gaussians, beside the video
+            sequence_from_trajectory(traj, camera, cfg.output.fps, ground).save(
+                tmp / sequence_file(choice.name)
+            )
             if cfg.output.gif:
                 write_gif(tmp / video.replace(".mp4", ".gif"), frames, cfg.output.fps)
             write_s = time.perf_counter() - t0
@@ -328,5 +333,5 @@ def _report(cfg, inp, ckpt_info, scene_cfg, placement, camera, az, el, sec, resu
         "runs": results,
         "stage_notes": "load = input + checkpoint; model = forward pass, physics choice, placement; "
         "plan/simulate = physgm.sim.gaussian_trajectory.simulate; render = deforming + rasterising per "
-        "frame; write = videos, PLYs, images, JSON",
+        "frame; write = videos, Gaussians over time, PLYs, images, JSON",
     }

@@ -1,4 +1,4 @@
-"""PhysGaussian's simulation config JSON (github.com/XPandora/PhysGaussian, config/*.json) for ``simulate.py``.
+"""PhysGaussian's simulation config JSON (XPandora/PhysGaussian, config/*.json) for ``simulate.py``.
 
     python simulate.py input=model.ply physgaussian_config=ficus_config.json
 
@@ -185,7 +185,7 @@ def _floors(cfg: dict, u: np.ndarray, duration: float) -> list[tuple[float, dict
                            {"height": 0.0, "friction": friction, "mode": mode}, key))  # fmt: skip
         else:
             _fail(f"{key}.type", f"{kind!r} has no counterpart in physgm's scenes (drop onto a ground "
-                  "under gravity); remove it, or use scene=push / scene=stretch without this file")  # fmt: skip
+                  "under gravity); remove it, or use scene=push / scene=stretch without this file")  # fmt: skip  # noqa: E501
     return floors
 
 
@@ -212,7 +212,8 @@ def read_physgaussian(cfg: dict, means: np.ndarray, opacities: np.ndarray) -> Ph
     ignored = {k: why for k, why in IGNORED.items() if k in cfg}
     for key in PLASTICITY:
         if key in cfg:
-            _fail(key, f"physgm takes plasticity from its material table (conf/sim/material/{ours.name}.yaml, "
+            _fail(key, f"physgm takes plasticity from its material table "
+                       f"(conf/sim/material/{ours.name}.yaml, "
                   f"model {ours.model}); remove the key or edit that file")  # fmt: skip
     if material == "sand" and "friction_angle" in cfg:
         ignored.pop("friction_angle")
@@ -268,6 +269,6 @@ def read_physgaussian(cfg: dict, means: np.ndarray, opacities: np.ndarray) -> Ph
         gap = max(bottom - height, 0.0)
     return PhysGaussianRun(
         material=ours.name, E=_num(cfg, "E"), nu=_num(cfg, "nu"), density=_num(cfg, "density"), size_m=scale,
-        up=up, gravity=gravity, ground=ground, drop_height_m=gap, fps=1.0 / frame_dt, frames=int(frame_num) + 1,
+        up=up, gravity=gravity, ground=ground, drop_height_m=gap, fps=1.0 / frame_dt, frames=int(frame_num) + 1,  # noqa: E501
         min_opacity=threshold, fill_interior=cfg.get("particle_filling") is not None, ignored=ignored,
     )  # fmt: skip
