@@ -391,8 +391,9 @@ def plan_simulation(
     # E 20 % lower moved it 1.3 px on average, the capped 2.4e7 Pa 3.2 px, while the deformation
     # estimate promised 0.25 px. So an elastic impact is never capped; quasi-static loading
     # (grips) and impacts that end in a plastic dent (the rebound is small) are.
-    # (A body resting on the ground, its lowest particles half a spacing up, does not impact.)
-    falls = ground is not None and float(lo[2]) - ground > particle_spacing
+    # (A body resting on the ground, its lowest particles half a spacing up, does not impact; nor
+    # does one a cell up: the grid does not resolve the gap, and sqrt(2 g dx) is a tap.)
+    falls = ground is not None and float(lo[2]) - ground > dx
     elastic_impact = (falls or v_throw > 0.0) and deform.plastic * px_per_m <= cfg.bound_px
     E_used, n_steps, note, cap_px = material.E, steps["mpm"], "", 0.0
     if cfg.allow_stiffness_cap and elastic_impact and not cfg.cap_elastic_impacts:
