@@ -115,8 +115,11 @@ def elastic_cube(
     lo, hi = static_sag(density, side, E, nu, floor)
     target_lo, target_hi = side - hi, side - lo  # static heights, m
     error = max(target_lo - settled, settled - target_hi, 0.0) / target_lo
-    contact = int(np.argmax(h < side - 1e-3)) if (h < side - 1e-3).any() else len(h)
-    rebound = float(h[contact:].max()) if contact < len(h) else math.nan
+    # Rebound: the highest the cube stretches back after its first squash (first local minimum).
+    first = int(np.argmax(h < side - 1e-3)) if (h < side - 1e-3).any() else len(h) - 1
+    while first + 1 < len(h) and h[first + 1] <= h[first]:
+        first += 1
+    rebound = float(h[first + 1 :].max()) if first + 1 < len(h) else math.nan
     name = f"elastic_cube_{floor}" + (f"_drop{drop:g}m" if drop > 0 else "")
     return {
         "name": name,
