@@ -99,6 +99,9 @@ def test_reference_stress_is_the_energy_gradient(model):
     F = random_F(20, seed=2)
     if model == "fluid":  # the fluid clamps J below J_MIN_FLUID, where it is not hyperelastic
         F = F[np.linalg.det(F) > 2 * ref.J_MIN_FLUID]
+    if model == "fixed_corotated":  # its volume barrier is defined for J > 0 only
+        F = F[np.linalg.det(F) > 0.01]
+        assert (np.linalg.det(F) < ref.FC_J_B).sum() >= 3  # the barrier branch is exercised
     _, tau, _ = ref.update(p, F, np.zeros(len(F)), DT)
     h = 1e-6
     P = np.zeros_like(F)
@@ -183,3 +186,15 @@ def test_fluid_resets_F_to_isotropic():
     got = run_warp(PARAMS["fluid"], F, np.zeros(len(F)))
     J = np.maximum(np.linalg.det(F), ref.J_MIN_FLUID)
     np.testing.assert_allclose(got["F"], np.cbrt(J)[:, None, None] * np.eye(3), rtol=2e-5, atol=2e-6)
+
+
+def test_fixed_corotated_volume_barrier_pushes_back_and_is_c1():
+    """Below J = 1/2 the pressure keeps growing in compression (Stomakhin's returns to 0 at J = 0)."""
+    lam = 1.0
+    J = np.array([0.9, 0.5 + 1e-7, 0.5 - 1e-7, 0.3, 0.1, 0.01, 1e-4])
+    p = ref.fc_volume_pressure(J, lam)
+    assert p[1] == pytest.approx(p[2], abs=1e-6) and p[1] == pytest.approx(-0.25, abs=1e-6)
+    assert np.all(np.diff(p[2:]) < 0)  # more compression, more (negative) pressure
+    assert p[-2] < -4 * lam  # J = 1 % pushes back with over 4 lam (Stomakhin: -0.0099 lam)
+    e = ref.fc_volume_energy(J, lam)
+    assert np.all(np.diff(e[2:]) > 0) and e[-1] > 10 * lam  # a barrier: unbounded as J -> 0

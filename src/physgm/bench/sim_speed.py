@@ -5,7 +5,8 @@ Prints one JSON object:
     scenes:         a 50-frame drop of a ~20k-Gaussian hollow cube per material, through the planner;
     speed_vs_error: wall time against the visual error (mean Gaussian-centre distance in pixels at
                     the output camera, averaged over frames) relative to a fine reference run, for
-                    the grid resolution, the CFL number and the planner on / off.
+                    the grid resolution, the particle density (particles per cell), the CFL
+                    number and the planner on / off; every row names its particles_per_cell.
 Wall-clock numbers are noisy when other jobs share the CPU; nothing here asserts on them.
 """
 
@@ -176,6 +177,9 @@ def _row(
     row.update(
         {
             "particles": len(run.particles),
+            "particles_per_cell_measured": len(run.particles)
+            * plan.dx**3
+            / float(run.particles.volume.sum()),
             "grid_cells": plan.summary()["grid_cells"],
             "substeps": run.substeps,
         }
@@ -191,7 +195,8 @@ def _row(
 def speed_vs_error(n_frames: int, n_gaussians: int, side: float, bottom: float, quick: bool) -> list[dict]:
     """Error of cheaper settings against a finer reference run, and their wall time.
 
-    Grid and CFL: a soft jelly drop against a run with a finer grid and half the CFL number.
+    Grid, density and CFL: a soft jelly drop against a run with a finer grid and half the CFL
+    number at the default density.
     Planner on / off: "off" simulates everything at full stiffness with no rigid path, no
     ballistic prefix and no early stop (for the jelly also in a fixed 1 m cube instead of the
     fitted grid); "on" is the default planner, and its error is measured against "off".
@@ -210,22 +215,41 @@ def speed_vs_error(n_frames: int, n_gaussians: int, side: float, bottom: float, 
     jelly = {"material": "jelly", "E": 2e4}
     ref_cells = 20 if quick else 24
     ref = run(jelly, cfl=0.2, cells_across=ref_cells)
-    out = [_row("reference", jelly, ref, None, cameras, cells_across=ref_cells, cfl=0.2)]
+    ppc = base.particles_per_cell
+    out = [
+        _row("reference", jelly, ref, None, cameras, cells_across=ref_cells, cfl=0.2, particles_per_cell=ppc)
+    ]
     for cells in [8, 12, 16]:
+        traj = run(jelly, cells_across=cells)
         out.append(
-            _row("grid", jelly, run(jelly, cells_across=cells), ref, cameras, cells_across=cells, cfl=0.4)
+            _row("grid", jelly, traj, ref, cameras, cells_across=cells, cfl=0.4, particles_per_cell=ppc)
         )
+    for density in [1.0, 8.0] if quick else [1.0, 4.0, 8.0, 27.0]:
+        traj = run(jelly, particles_per_cell=density)
+        out.append(_row("density", jelly, traj, ref, cameras, cells_across=base.cells_across, cfl=0.4,
+                        particles_per_cell=density))  # fmt: skip
     for cfl in [0.2, 0.4, 0.8]:
         traj = run(jelly, cfl=cfl)
-        out.append(_row("cfl", jelly, traj, ref, cameras, cells_across=base.cells_across, cfl=cfl))
+        out.append(
+            _row(
+                "cfl",
+                jelly,
+                traj,
+                ref,
+                cameras,
+                cells_across=base.cells_across,
+                cfl=cfl,
+                particles_per_cell=ppc,
+            )
+        )
     naive = dict(allow_rigid=False, allow_stiffness_cap=False, ballistic=False, rest_frames=10**6)
     cases = [(jelly, {**naive, "fit_grid": False}), ({"material": "rubber"}, naive)]
     if not quick:
         cases.append(({"material": "plastic", "E": 5e7}, naive))
     for physics, off_cfg in cases:
         off = run(physics, **off_cfg)
-        out.append(_row("planner", physics, off, None, cameras, planner="off"))
-        out.append(_row("planner", physics, run(physics), off, cameras, planner="on"))
+        out.append(_row("planner", physics, off, None, cameras, planner="off", particles_per_cell=ppc))
+        out.append(_row("planner", physics, run(physics), off, cameras, planner="on", particles_per_cell=ppc))
     return out
 
 

@@ -1,11 +1,14 @@
 """``python -m physgm.bench sim-stability``: the MPM solver over the whole stiffness range.
 
-Every constitutive model x E in {1e3 .. 4e11} Pa x nu in {0.01, 0.3, 0.45, 0.49} x two scenes:
-``drop`` (a 0.1 m cube hits the ground at 5 m/s) and ``stretch`` (grips pull it to twice its
-length). Cells are small (512 particles, 4 cells across) and short: each runs for
+Every constitutive model x E in {1e3 .. 4e11} Pa x nu in {0.01, 0.3, 0.45, 0.49} x three scenes:
+``drop`` (a 0.1 m cube hits the ground at 5 m/s), ``impact`` (the same at twice the material's
+P-wave speed, ``--impact-factor``: faster than any stress wave can stop it) and ``stretch``
+(grips pull it to twice its length). Cells are small (512 particles, 4 cells across) and short: each runs for
 min(duration, ``--budget`` CFL sub-steps), so a 4e11 Pa cell covers ~0.5 ms, many wave transits.
 
-Per cell: ``finite`` (no divergence error, no NaN), ``escaped`` particles, and ``energy_ratio``
+Per cell: ``finite`` (no divergence error, no NaN), ``escaped`` particles, ``min_J`` (smallest
+det F over every sub-step), ``crushed_fraction`` (share of particles with det F < 0.1 at the end:
+crushed and not recovered), and ``energy_ratio``
 = 1 + max over frames of (E(t) - E(0) - W(t)) / max(E(0), max W), with E kinetic +
 gravitational (above the ground) + elastic and W the work of the scene's velocity boxes (grips);
 the target is <= 1.05. Models' extra parameters scale with E so every cell exercises its
@@ -25,7 +28,8 @@ import numpy as np
 
 E_VALUES = (1e3, 1e5, 1e7, 1e9, 1e11, 4e11)
 NU_VALUES = (0.01, 0.3, 0.45, 0.49)
-SCENES = ("drop", "stretch")
+SCENES = ("drop", "stretch", "impact")
+CRUSHED_J = 0.1  # det F below which a particle counts as crushed
 
 
 def model_params(model: str, E: float, nu: float):
@@ -49,6 +53,7 @@ def run_cell(
     size: float = 0.1,
     cells_across: int = 4,
     max_time: float = 0.3,
+    impact_factor: float = 2.0,  # impact scene: speed / P-wave speed
     **solver_settings,
 ) -> dict:
     """Simulate one cell and return its report row."""
@@ -59,10 +64,10 @@ def run_cell(
     mat = model_params(model, E, nu)
     dx = size / cells_across
     particles = Particles.lattice((0.0, 0.0, 0.0), (size, size, size), dx / 2)
-    speed = 5.0 if scene_name == "drop" else 0.0
+    speed = {"drop": 5.0, "impact": impact_factor * mat.wave_speed()}.get(scene_name, 0.0)
     dt = cfl_dt(dx, [mat], vmax=speed, cfl=SolverConfig().cfl)
     duration = min(max_time, budget * dt)
-    if scene_name == "drop":
+    if scene_name in ("drop", "impact"):
         setup = build_scene(
             "drop", particles.x, height=0.25 * dx, velocity=[0.0, 0.0, -speed], duration=duration
         )
@@ -85,6 +90,9 @@ def run_cell(
         "finite": False,
         "escaped": 0,
         "energy_ratio": math.nan,
+        "min_J": math.nan,
+        "crushed_fraction": math.nan,
+        "impact_speed": speed,
         "mode": "mpm",
         "seconds": 0.0,
         "simulated_s": duration,
@@ -118,6 +126,8 @@ def run_cell(
             substeps=substeps,
             j_range=j_range,
             energy_ratio=1.0 + max(excess, 0.0) / max(abs(e0), max_work, 1e-30),
+            min_J=j_range[0],
+            crushed_fraction=float((np.linalg.det(solver.state().F.astype(np.float64)) < CRUSHED_J).mean()),
         )
     except SimulationDiverged as err:
         row.update(error=str(err)[:200], escaped=solver.escaped)
@@ -136,6 +146,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--nu", nargs="*", type=float, default=list(NU_VALUES))
     parser.add_argument("--scenes", nargs="*", default=list(SCENES))
     parser.add_argument("--budget", type=int, default=4000, help="largest number of CFL sub-steps per cell")
+    parser.add_argument("--impact-factor", type=float, default=2.0, help="impact scene: speed / P-wave speed")
     args = parser.parse_args(argv)
     import warp as wp
 
@@ -146,11 +157,12 @@ def main(argv: list[str] | None = None) -> dict:
         for E in args.E:
             for nu in args.nu:
                 for s in args.scenes:
-                    cells.append(run_cell(m, E, nu, s, budget=args.budget))
+                    cells.append(run_cell(m, E, nu, s, budget=args.budget, impact_factor=args.impact_factor))
                     c = cells[-1]
                     print(
                         f"{len(cells):3d} {m} E={E:.0e} nu={nu} {s}: finite={c['finite']} "
-                        f"escaped={c['escaped']} energy_ratio={c['energy_ratio']:.3f} {c['seconds']:.1f}s",
+                        f"escaped={c['escaped']} energy_ratio={c['energy_ratio']:.3f} min_J={c['min_J']:.3g} "
+                        f"crushed={c['crushed_fraction']:.3g} {c['seconds']:.1f}s",
                         file=sys.stderr,
                         flush=True,
                     )
@@ -162,6 +174,11 @@ def main(argv: list[str] | None = None) -> dict:
             "escaped_total": int(sum(c["escaped"] for c in cells)),
             "max_energy_ratio": max((c["energy_ratio"] for c in cells if c["finite"]), default=math.nan),
             "energy_ratio_above_1.05": sum(1 for c in cells if not c["energy_ratio"] <= 1.05),
+            "min_J": min((c["min_J"] for c in cells if c["finite"]), default=math.nan),
+            "cells_min_J_at_or_below_0": sum(1 for c in cells if not c["min_J"] > 0),
+            "max_crushed_fraction": max(
+                (c["crushed_fraction"] for c in cells if c["finite"]), default=math.nan
+            ),
             "seconds": round(time.perf_counter() - start, 1),
         },
     }

@@ -48,9 +48,12 @@ class PlannerConfig:
     bound_px: float = 0.5  # largest visual error allowed, pixels at the output resolution
     cells_across: int = 12  # grid cells across the object's largest extent
     max_cells: int = 96  # cap on grid cells per axis (dx grows to respect it)
-    particles_per_cell: float = 4.0  # MPM particles per grid cell (sets the particle spacing)
+    # MPM particles per grid cell: 8 (2 per axis) is MPM practice; at 1 per cell or fewer a soft
+    # body loses its shape. Sets the particle spacing dx / ppc^(1/3); the lattice through the
+    # object's bounding box then holds at most (cells_across ppc^(1/3))^3 particles (13,824).
+    particles_per_cell: float = 8.0
     min_opacity: float = 0.05  # Gaussians fainter than this carry no mass
-    fill_interior: bool = True  # fill the inside of closed Gaussian shells with particles
+    fill_interior: bool = True  # fill the inside of closed Gaussian shells with particles (sampling.py)
     follower_k: int = 8  # nearest particles each Gaussian follows
     allow_rigid: bool = True  # rigid-body path for objects that would not deform visibly
     allow_stiffness_cap: bool = True  # lower E while the extra deformation stays under the bound
@@ -411,8 +414,9 @@ def plan_simulation(
     # E 20 % lower moved it 1.3 px on average, the capped 2.4e7 Pa 3.2 px, while the deformation
     # estimate promised 0.25 px. So an elastic impact is never capped; quasi-static loading
     # (grips) and impacts that end in a plastic dent (the rebound is small) are.
-    # (A body resting on the ground, its lowest particles half a spacing up, does not impact.)
-    falls = ground is not None and float(lo[2]) - ground > particle_spacing
+    # (A body resting on the ground, its lowest particles half a spacing up, does not impact; nor
+    # does one a cell up: the grid does not resolve the gap, and sqrt(2 g dx) is a tap.)
+    falls = ground is not None and float(lo[2]) - ground > dx
     elastic_impact = (falls or v_throw > 0.0) and deform.plastic * px_per_m <= cfg.bound_px
     E_used, n_steps, note, cap_px = material.E, steps["mpm"], "", 0.0
     if cfg.allow_stiffness_cap and elastic_impact and not cfg.cap_elastic_impacts:

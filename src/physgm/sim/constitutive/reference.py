@@ -32,11 +32,25 @@ def _diag_sandwich(U: np.ndarray, d: np.ndarray, Vt: np.ndarray) -> np.ndarray:
     return np.einsum("nij,nj,njk->nik", U, d, Vt)
 
 
+FC_J_B, FC_J_FLOOR = 0.5, 1.0e-6  # fixed_corotated's volume barrier (see its Warp module)
+
+
+def fc_volume_pressure(J, lam):
+    """p(J) = J psi_vol'(J): lam (J - 1) J above J_B, -lam/4 - lam/2 log(J / J_B)^2 below."""
+    L = np.log(np.maximum(J, FC_J_FLOOR) / FC_J_B)
+    return np.where(J >= FC_J_B, lam * (J - 1) * J, -0.25 * lam - 0.5 * lam * L**2)
+
+
+def fc_volume_energy(J, lam):
+    L = np.log(np.maximum(J, FC_J_FLOOR) / FC_J_B)
+    return np.where(J >= FC_J_B, 0.5 * lam * (J - 1) ** 2, lam / 8 - lam * L / 4 - lam * L**3 / 6)
+
+
 def fixed_corotated(F, mu, lam, plastic=None, dt=0.0):
     U, s, Vt = rv_svd(F)
     R = U @ Vt
     J = np.linalg.det(F)
-    tau = 2 * mu * (F - R) @ np.swapaxes(F, 1, 2) + (lam * (J - 1) * J)[:, None, None] * np.eye(3)
+    tau = 2 * mu * (F - R) @ np.swapaxes(F, 1, 2) + fc_volume_pressure(J, lam)[:, None, None] * np.eye(3)
     return F.copy(), tau, plastic
 
 
@@ -133,7 +147,7 @@ def energy_density(model: str, F: np.ndarray, mu: float, lam: float, bulk: float
     J = np.linalg.det(F)
     if model == "fixed_corotated":
         s = rv_svd(F)[1]
-        return mu * ((s - 1) ** 2).sum(1) + 0.5 * lam * (J - 1) ** 2
+        return mu * ((s - 1) ** 2).sum(1) + fc_volume_energy(J, lam)
     if model == "neo_hookean":
         g = _g(J)
         return 0.5 * mu * ((F**2).sum((1, 2)) - 3) - mu * g + 0.5 * lam * g**2
