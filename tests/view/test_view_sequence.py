@@ -105,7 +105,7 @@ def test_cli_without_viser_says_how_to_install(tmp_path, monkeypatch, capsys):
 
 
 def test_simulate_writes_the_frames_it_renders(tmp_path):
-    """A .ply run (no checkpoint): gaussians_t.npz holds the clip's frames, the same Gaussians as the frame PLYs."""  # noqa: E501
+    """A .ply run (no checkpoint): gaussians_t.npz holds the clip's frames, the frame PLYs' Gaussians."""
     from physgm.gaussians import Gaussians, read_ply, write_ply
     from physgm.pipeline import execute
     from physgm.pipeline.config import OutputSettings, RunConfig

@@ -109,7 +109,7 @@ class GaussianSequence:
         return self.means[s], triu_to_matrix(self.covs[s])
 
     def save(self, path: str | os.PathLike) -> Path:
-        """Write the .npz atomically: a temporary sibling renamed into place, so a file that exists is whole."""  # noqa: E501
+        """Write the .npz atomically: a temporary sibling renamed into place, so an existing file is whole."""
         path = Path(path)
         tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
         arrays = {
