@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
-from physgm.pipeline.inputs import UP_ROTATIONS as PIPELINE_UP_ROTATIONS
 
 from physgm.data.readers.physgaussian import UP_ROTATIONS, PhysGaussianConfigError, read_physgaussian
 from physgm.gaussians import Gaussians, write_ply
 from physgm.pipeline.config import from_hydra
 from physgm.pipeline.errors import UserError
+from physgm.pipeline.prepared_input import UP_ROTATIONS as PIPELINE_UP_ROTATIONS
 from physgm.resources import conf_dir
 
 

@@ -11,7 +11,6 @@ import json
 import numpy as np
 import pytest
 import torch
-from physgm.pipeline.inputs import _read_cameras
 from PIL import Image
 
 from physgm.data.check import check_asset
@@ -19,6 +18,7 @@ from physgm.data.format import AssetError, load_asset
 from physgm.data.readers.physgm_release import RELEASE_MATERIALS, canonical_material
 from physgm.physics.materials import MATERIAL_NAMES, get_material
 from physgm.pipeline.errors import UserError
+from physgm.pipeline.prepared_input import _read_cameras
 
 
 def _png(path, w, h) -> None:

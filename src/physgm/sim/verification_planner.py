@@ -33,8 +33,8 @@ from physgm.cameras import Cameras, orbit_cameras
 from physgm.gaussians import Gaussians
 from physgm.sim.boundary import GroundPlane
 from physgm.sim.constitutive import MaterialParams
+from physgm.sim.gaussian_trajectory import GaussianTrajectory, simulate
 from physgm.sim.planner import PlannerConfig
-from physgm.sim.run import GaussianTrajectory, simulate
 from physgm.sim.scenes import Scene
 from physgm.sim.stepping import SolverConfig
 

@@ -176,7 +176,7 @@ def triu_to_matrix(triu: np.ndarray) -> np.ndarray:
 
 
 def sequence_from_trajectory(trajectory, camera, fps: float, ground: float | None = None) -> GaussianSequence:
-    """The moving Gaussians of a ``physgm.sim.run.GaussianTrajectory`` as seen in its clip.
+    """The moving Gaussians of a ``physgm.sim.gaussian_trajectory.GaussianTrajectory`` as seen in its clip.
 
     Args:
         trajectory: the simulation (T frames, rest frame and deformed Gaussians per frame).

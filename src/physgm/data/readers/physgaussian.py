@@ -60,7 +60,7 @@ IGNORED = {
 }  # fmt: skip
 PLASTICITY = ("yield_stress", "hardening", "xi", "plastic_viscosity", "softening")
 UP_AXES = {"z": (0.0, 0.0, 1.0), "y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0)}  # file axis -> object.up
-# The turn the pipeline gives a .ply with that object.up (physgm.pipeline.inputs.UP_ROTATIONS,
+# The turn the pipeline gives a .ply with that object.up (physgm.pipeline.prepared_input.UP_ROTATIONS,
 # repeated so that data does not import the pipeline; a test keeps them equal).
 UP_ROTATIONS = {
     "z": np.eye(3),
