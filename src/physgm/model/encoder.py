@@ -85,6 +85,27 @@ def build_vit(cfg: EncoderConfig, load_pretrained: bool = True) -> ImageEncoder:
     return ImageEncoder(vit, cfg.patch_size, cfg.embed_dim, cfg.freeze)
 
 
+def build_timm(cfg: EncoderConfig, load_pretrained: bool = True) -> ImageEncoder:
+    """Any timm ViT named by ``cfg.arch``; ``cfg.pretrained`` lets timm fetch its weights (needs a network).
+
+    physgm never downloads anything itself: this is for a user who has the network (or timm's
+    cache filled). ``load_pretrained=False`` (a checkpoint supplies the weights) never fetches.
+    """
+    if not cfg.arch:
+    """Any timm ViT named by ``cfg.arch``; ``cfg.pretrained``: timm fetches its weights (needs a network).
+    vit = timm.create_model(
+        cfg.arch, pretrained=cfg.pretrained and load_pretrained, num_classes=0, img_size=cfg.img_size,
+        dynamic_img_size=True,
+    )  # fmt: skip
+    actual = (vit.patch_embed.patch_size[0], vit.embed_dim)
+    if actual != (cfg.patch_size, cfg.embed_dim):
+        raise ValueError(
+            f"{cfg.arch} has patch_size={actual[0]}, embed_dim={actual[1]}, but the config says "
+            f"patch_size={cfg.patch_size}, embed_dim={cfg.embed_dim}; fix model.backbone.encoder"
+        )
+    return ImageEncoder(vit, cfg.patch_size, cfg.embed_dim, cfg.freeze)
+
+
 def build_dinov3(cfg: EncoderConfig, load_pretrained: bool = True) -> ImageEncoder:
     """The timm DINOv3 architecture named by ``cfg.arch`` with weights from the local file ``cfg.weights``.
 
@@ -177,6 +198,7 @@ def build_mobilenet_v2(cfg: EncoderConfig, load_pretrained: bool = True) -> Mobi
 # Registry: EncoderConfig.kind -> builder. Adding an encoder is one entry here.
 ENCODERS: dict[str, Callable[[EncoderConfig, bool], nn.Module]] = {
     "vit": build_vit,
+    "timm": build_timm,
     "dinov3": build_dinov3,
     "mobilenet_v2": build_mobilenet_v2,
 }
