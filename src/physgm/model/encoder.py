@@ -86,13 +86,13 @@ def build_vit(cfg: EncoderConfig, load_pretrained: bool = True) -> ImageEncoder:
 
 
 def build_timm(cfg: EncoderConfig, load_pretrained: bool = True) -> ImageEncoder:
-    """Any timm ViT named by ``cfg.arch``; ``cfg.pretrained`` lets timm fetch its weights (needs a network).
+    """Any timm ViT named by ``cfg.arch``; ``cfg.pretrained``: timm fetches its weights (needs a network).
 
     physgm never downloads anything itself: this is for a user who has the network (or timm's
     cache filled). ``load_pretrained=False`` (a checkpoint supplies the weights) never fetches.
     """
     if not cfg.arch:
-    """Any timm ViT named by ``cfg.arch``; ``cfg.pretrained``: timm fetches its weights (needs a network).
+        raise ValueError("encoder.kind=timm needs encoder.arch, a timm ViT name such as vit_small_patch16_224")
     vit = timm.create_model(
         cfg.arch, pretrained=cfg.pretrained and load_pretrained, num_classes=0, img_size=cfg.img_size,
         dynamic_img_size=True,
