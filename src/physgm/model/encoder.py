@@ -92,7 +92,7 @@ def build_timm(cfg: EncoderConfig, load_pretrained: bool = True) -> ImageEncoder
     cache filled). ``load_pretrained=False`` (a checkpoint supplies the weights) never fetches.
     """
     if not cfg.arch:
-        raise ValueError("encoder.kind=timm needs encoder.arch, a timm ViT name such as vit_small_patch16_224")
+        raise ValueError("encoder.kind=timm needs encoder.arch, a timm ViT name (e.g. vit_small_patch16_224)")
     vit = timm.create_model(
         cfg.arch, pretrained=cfg.pretrained and load_pretrained, num_classes=0, img_size=cfg.img_size,
         dynamic_img_size=True,
