@@ -213,12 +213,14 @@ def test_shipped_checkpoint_runs_every_shipped_photo(make_cfg):
     assert path.stat().st_size <= 25 * 2**20
     raw = torch.load(path, map_location="cpu", weights_only=False)
     assert raw["hyper_parameters"]["format_version"] == CHECKPOINT_FORMAT_VERSION
-    assert "experiment=tiny_cpu" in raw["physgm"]["recipe"]
-    _, info = load_model(path)
-    assert info["input_size"] == 64
-    for photo in ("jelly_cube.png", "metal_can.png", "rubber_blob_plain.jpg", "wood_toy_cluttered.jpg"):
+    assert "experiment=cpu_frozen" in raw["physgm"]["recipe"]
+    model, info = load_model(path)
+    assert info["input_size"] == 128 and model.config.physics_head.semantic_prior_weight > 0
+    synthetic = ("jelly_cube.png", "metal_can.png", "rubber_blob_plain.jpg", "wood_toy_cluttered.jpg")
+    photos = synthetic + ("ceramic_mug.png", "basketball.png", "soda_can.png")
+    for photo in photos:
         cfg = make_cfg(EXAMPLES / photo, ckpt=path)
         cfg.output_dir = cfg.output_dir.with_name(f"run_{Path(photo).stem}")
         report = execute(cfg)
         check_run_folder(cfg.output_dir, report)
-        assert report["checkpoint"]["input_size"] == 64
+        assert report["checkpoint"]["input_size"] == 128

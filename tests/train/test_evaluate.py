@@ -14,14 +14,14 @@ from physgm.train.pretrain import LitPretrain, model_from_checkpoint, render_tar
 from physgm.train.run import plain
 
 
-def save_random_checkpoint(tmp_path: Path) -> Path:
+def save_random_checkpoint(tmp_path: Path, model: str = "physgm") -> Path:
     """An untrained 32 px model saved like Lightning saves it (hyper-parameters + state dict)."""
     GlobalHydra.instance().clear()
     with initialize_config_dir(str(Path(__file__).resolve().parents[2] / "conf"), version_base="1.3"):
-        cfg = compose("train", overrides=["model.backbone.encoder.img_size=32"])
+        cfg = compose("train", overrides=[f"model={model}", "model.backbone.encoder.img_size=32"])
     torch.manual_seed(0)
     module = LitPretrain(model=plain(cfg.model), renderer={"backend": "warp", "num_threads": 1})
-    path = tmp_path / "random.ckpt"
+    path = tmp_path / f"random_{model}.ckpt"
     torch.save({"hyper_parameters": dict(module.hparams), "state_dict": module.state_dict()}, path)
     return path
 
@@ -123,31 +123,9 @@ def test_evaluate_scores_labelled_real_assets_and_sweeps_the_prior(tiny_dataset,
         data = json.loads(phys.read_text())
         data.pop("annotation")  # what a hand-labelled real asset looks like
         phys.write_text(json.dumps(data))
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(str(Path(__file__).resolve().parents[2] / "conf"), version_base="1.3"):
-        cfg = compose("train", overrides=["model=physgm_mobilenet", "model.backbone.encoder.img_size=32"])
-    torch.manual_seed(0)
-    module = LitPretrain(model=plain(cfg.model), renderer={"backend": "warp", "num_threads": 1})
-    ckpt = tmp_path / "mobilenet.ckpt"
-    torch.save({"hyper_parameters": dict(module.hparams), "state_dict": module.state_dict()}, ckpt)
-    assert (
-        main(
-            [
-                str(ckpt),
-                "--data",
-                str(root),
-                "--split",
-                "train",
-                "--views",
-                "1",
-                "--num-targets",
-                "4",
-                "--prior-sweep",
-                "0,2",
-            ]
-        )
-        == 0
-    )
+    ckpt = save_random_checkpoint(tmp_path, model="physgm_mobilenet")
+    args = ["--data", str(root), "--split", "train", "--views", "1", "--num-targets", "4", "--prior-sweep", "0,2"]
+    assert main([str(ckpt), *args]) == 0
     r = json.loads(capsys.readouterr().out)["views1"]
     ids = read_split(root, "train")
     assert r["labelled_assets"] == len(ids) and "material_acc" not in r  # no true physics to score
