@@ -124,7 +124,8 @@ def test_evaluate_scores_labelled_real_assets_and_sweeps_the_prior(tiny_dataset,
         data.pop("annotation")  # what a hand-labelled real asset looks like
         phys.write_text(json.dumps(data))
     ckpt = save_random_checkpoint(tmp_path, model="physgm_mobilenet")
-    args = ["--data", str(root), "--split", "train", "--views", "1", "--num-targets", "4", "--prior-sweep", "0,2"]
+    args = ["--data", str(root), "--split", "train", "--views", "1", "--num-targets", "4"]
+    args += ["--prior-sweep", "0,2"]
     assert main([str(ckpt), *args]) == 0
     r = json.loads(capsys.readouterr().out)["views1"]
     ids = read_split(root, "train")
