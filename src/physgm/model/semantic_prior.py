@@ -31,6 +31,7 @@ from torch import Tensor, nn
 
 from physgm.model.encoder import IMAGENET_MEAN, IMAGENET_STD
 from physgm.physics.materials import MATERIAL_NAMES
+from physgm.resources import conf_dir
 
 NONE = "none"  # the table's name for "no material of the table"
 NUM_CLASSES = 1000
@@ -38,12 +39,9 @@ CLASSIFIER_SIZE = 224  # px: the resolution torchvision's ImageNet classifiers w
 
 
 def semantic_table_path() -> Path:
-    """Where the class -> material table lives.
-
-    The one place to change when ``conf/`` ships as package data (then ``importlib.resources``).
-    Located like ``physgm.physics.materials.MATERIAL_DIR``: the repository's ``conf/``.
-    """
-    return Path(__file__).resolve().parents[3] / "conf" / "semantic" / "imagenet_materials.yaml"
+    """Where the class -> material table lives: ``conf/semantic/`` of the package's config tree
+    (``physgm.resources``, so an installed wheel finds it too)."""
+    return conf_dir() / "semantic" / "imagenet_materials.yaml"
 
 
 @dataclass(frozen=True)
