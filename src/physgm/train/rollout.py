@@ -455,10 +455,9 @@ class RolloutCallback(L.Callback):
                     "the rollout callback needs data_root (stage.rollout.data_root or data.root)"
                 )
             limit = self.cfg.max_scenes
-            if (
-                trainer.fast_dev_run
-            ):  # it trains int(fast_dev_run) batches: roll out only the scenes they hold
-                needed = int(trainer.fast_dev_run) * self.cfg.batch_size * trainer.world_size
+            dev_run = getattr(trainer, "fast_dev_run", False)  # no trainer when called outside a fit
+            if dev_run:  # it trains int(fast_dev_run) batches: roll out only the scenes they hold
+                needed = int(dev_run) * self.cfg.batch_size * trainer.world_size
                 limit = min(limit or needed, needed)
             self.scenes = load_scenes(
                 self.cfg.data_root,
