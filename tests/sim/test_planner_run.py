@@ -95,7 +95,9 @@ def test_early_stop_holds_frames_once_still():
     # A block pushed along the ground: friction stops it within a few frames, then it is held.
     gs = _shell_cube(bottom=0.0)
     # One particle per cell is enough to test early stopping, and 8x cheaper than the default 8.
-    cfg = PlannerConfig(cells_across=8, particles_per_cell=1, allow_rigid=False, allow_stiffness_cap=False, rest_frames=3)
+    cfg = PlannerConfig(
+        cells_across=8, particles_per_cell=1, allow_rigid=False, allow_stiffness_cap=False, rest_frames=3
+    )
     physics = {"material": "rubber", "E": 1e6, "nu": 0.3}
     traj = simulate(gs, physics, (GROUND, [0.3, 0.0, 0.0]), CAMERAS, n_frames=30, planner=cfg)
     assert traj.plan.mode == "mpm"

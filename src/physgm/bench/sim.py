@@ -177,7 +177,9 @@ def _row(
     row.update(
         {
             "particles": len(run.particles),
-            "particles_per_cell_measured": len(run.particles) * plan.dx**3 / float(run.particles.volume.sum()),
+            "particles_per_cell_measured": len(run.particles)
+            * plan.dx**3
+            / float(run.particles.volume.sum()),
             "grid_cells": plan.summary()["grid_cells"],
             "substeps": run.substeps,
         }
@@ -214,17 +216,32 @@ def speed_vs_error(n_frames: int, n_gaussians: int, side: float, bottom: float, 
     ref_cells = 20 if quick else 24
     ref = run(jelly, cfl=0.2, cells_across=ref_cells)
     ppc = base.particles_per_cell
-    out = [_row("reference", jelly, ref, None, cameras, cells_across=ref_cells, cfl=0.2, particles_per_cell=ppc)]
+    out = [
+        _row("reference", jelly, ref, None, cameras, cells_across=ref_cells, cfl=0.2, particles_per_cell=ppc)
+    ]
     for cells in [8, 12, 16]:
         traj = run(jelly, cells_across=cells)
-        out.append(_row("grid", jelly, traj, ref, cameras, cells_across=cells, cfl=0.4, particles_per_cell=ppc))
+        out.append(
+            _row("grid", jelly, traj, ref, cameras, cells_across=cells, cfl=0.4, particles_per_cell=ppc)
+        )
     for density in [1.0, 8.0] if quick else [1.0, 4.0, 8.0, 27.0]:
         traj = run(jelly, particles_per_cell=density)
         out.append(_row("density", jelly, traj, ref, cameras, cells_across=base.cells_across, cfl=0.4,
                         particles_per_cell=density))  # fmt: skip
     for cfl in [0.2, 0.4, 0.8]:
         traj = run(jelly, cfl=cfl)
-        out.append(_row("cfl", jelly, traj, ref, cameras, cells_across=base.cells_across, cfl=cfl, particles_per_cell=ppc))
+        out.append(
+            _row(
+                "cfl",
+                jelly,
+                traj,
+                ref,
+                cameras,
+                cells_across=base.cells_across,
+                cfl=cfl,
+                particles_per_cell=ppc,
+            )
+        )
     naive = dict(allow_rigid=False, allow_stiffness_cap=False, ballistic=False, rest_frames=10**6)
     cases = [(jelly, {**naive, "fit_grid": False}), ({"material": "rubber"}, naive)]
     if not quick:

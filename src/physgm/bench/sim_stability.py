@@ -176,7 +176,9 @@ def main(argv: list[str] | None = None) -> dict:
             "energy_ratio_above_1.05": sum(1 for c in cells if not c["energy_ratio"] <= 1.05),
             "min_J": min((c["min_J"] for c in cells if c["finite"]), default=math.nan),
             "cells_min_J_at_or_below_0": sum(1 for c in cells if not c["min_J"] > 0),
-            "max_crushed_fraction": max((c["crushed_fraction"] for c in cells if c["finite"]), default=math.nan),
+            "max_crushed_fraction": max(
+                (c["crushed_fraction"] for c in cells if c["finite"]), default=math.nan
+            ),
             "seconds": round(time.perf_counter() - start, 1),
         },
     }

@@ -195,7 +195,8 @@ def _inner_side(
     solid[tuple((inner + 1).T)] = True
     has_inner = solid.copy()
     solid[tuple((shell + 1).T)] = True
-    outside_near = ndimage.binary_dilation(~solid, np.ones((3, 3, 3), bool))[tuple((shell + 1).T)]  # [Q] face of the body
+    near_outside = ndimage.binary_dilation(~solid, np.ones((3, 3, 3), bool))
+    outside_near = near_outside[tuple((shell + 1).T)]  # [Q] shell voxels on the body's face
     smooth = ndimage.gaussian_filter(has_inner.astype(np.float64), sigma=1.0, mode="constant")
     grads = np.stack(np.gradient(smooth), -1)[tuple((shell + 1).T)]  # [Q, 3] points inwards
     centre = origin + (shell + 0.5) * spacing

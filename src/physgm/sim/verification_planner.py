@@ -41,7 +41,9 @@ from physgm.sim.stepping import SolverConfig
 G = 9.81
 
 
-def static_sag(density: float, height: float, E: float, nu: float, floor: str, gravity: float = G) -> tuple[float, float]:
+def static_sag(
+    density: float, height: float, E: float, nu: float, floor: str, gravity: float = G
+) -> tuple[float, float]:
     """(smallest, largest) static sag rho g H^2 / (2 E') of a block on a floor, m (module docstring).
 
     ``floor``: "slip" (E' = E, one value) or "sticky" / "friction" (E' between E and the
