@@ -174,6 +174,5 @@ def test_wide_splats_mark_the_voxels_they_cover():
     g.scales = torch.tensor([[0.015, 0.015, 1e-4]]).repeat(len(xy), 1)
     assert len(sample_particles(g, spacing, fill=False)) == 19 * 19
     g.scales = torch.full((len(xy), 3), 1e-4)
-    assert (
-        len(sample_particles(g, spacing, fill=False)) == 100
-    )  # the extra Gaussian shares (0.18, 0.18)'s voxel
+    # The extra Gaussian shares the voxel of (0.18, 0.18).
+    assert len(sample_particles(g, spacing, fill=False)) == 100

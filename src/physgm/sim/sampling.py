@@ -1,11 +1,11 @@
 """Simulation particles from Gaussians, and Gaussians that follow the particles.
 
-A reconstruction holds Gaussians packed on the surface and nothing inside a hollow shell, while
-MPM needs its particles spread through the volume at a steady density: about 8 per grid cell
-(2 per axis) is the usual practice, and at 0.3-1 per cell a soft body loses its shape (issue 24:
-a 20 cm jelly cube sampled at the surface sank to 55 % of its height). So, like PhysGaussian's
-particle filling, we (1) drop near-transparent Gaussians, (2) voxelise what is left on a lattice of
-side ``spacing`` (the particle spacing, dx / 2 at the planner's default) that exactly spans the
+A reconstruction holds Gaussians packed on the surface and nothing inside a hollow shell, while MPM
+needs its particles spread through the volume at a steady density: about 8 per grid cell (2 per
+axis) is the usual practice, and at 0.3-1 per cell a soft body loses its shape (issue 24: a 20 cm
+jelly cube sampled at the surface sank to 55 % of its height). So, like PhysGaussian's particle
+filling, we (1) drop near-transparent Gaussians, (2) voxelise what is left on a lattice of side
+``spacing`` (the particle spacing, dx / 2 at the planner's default) that exactly spans the
 Gaussians' bounding box: a voxel is occupied when a Gaussian's centre or a corner of its sigma box
 (at most a voxel away) lies in it, (3) fill the voxels the occupied shell encloses (a flood fill
 from outside after a morphological closing seals pinholes, or PhysGaussian's test that rays along
@@ -113,8 +113,8 @@ def fill_interior(
     if int(np.prod(dims)) > MAX_FILL_VOXELS:
         raise ValueError(
             f"interior filling needs a {dims.tolist()} voxel grid (> {MAX_FILL_VOXELS} voxels): the "
-            "Gaussians span far more than the object; prune floaters (raise min_opacity) or set "
-            "fill_interior: false"
+            f"Gaussians span "
+            "far more than the object; prune floaters (raise min_opacity) or set fill_interior: false"
         )
     grid = np.zeros(dims, dtype=bool)
     shift = occupied + close_gaps
@@ -197,9 +197,8 @@ def _inner_side(
     solid[tuple((inner + 1).T)] = True
     has_inner = solid.copy()
     solid[tuple((shell + 1).T)] = True
-    outside_near = ndimage.binary_dilation(~solid, np.ones((3, 3, 3), bool))[
-        tuple((shell + 1).T)
-    ]  # [Q] face of the body
+    near_outside = ndimage.binary_dilation(~solid, np.ones((3, 3, 3), bool))
+    outside_near = near_outside[tuple((shell + 1).T)]  # [Q] shell voxels on the body's face
     smooth = ndimage.gaussian_filter(has_inner.astype(np.float64), sigma=1.0, mode="constant")
     grads = np.stack(np.gradient(smooth), -1)[tuple((shell + 1).T)]  # [Q, 3] points inwards
     centre = origin + (shell + 0.5) * spacing
@@ -216,8 +215,8 @@ def sample_particles(
     keep = gaussians.opacities >= min_opacity
     if int(keep.sum()) == 0:
         raise ValueError(
-            f"no Gaussian has opacity >= {min_opacity}; lower min_opacity or check that the opacities are "
-            "in [0, 1], not logits"
+            f"no Gaussian has opacity >= {min_opacity}; lower min_opacity or check that the opacities "
+            f"are in [0, 1], not logits"
         )
     opaque = gaussians[keep]
     pts = opaque.means.detach().double().cpu().numpy()
