@@ -273,6 +273,7 @@ class PhysAssetsDataModule(L.LightningDataModule):
         self.save_hyperparameters()
         self.hp = self.hparams
         self.datasets: dict[str, Dataset] = {}
+        self._features: FeatureStore | None = None  # built on first use (feature_store)
 
     def view_config(self, train: bool) -> ViewConfig:
         return ViewConfig(
@@ -314,7 +315,7 @@ class PhysAssetsDataModule(L.LightningDataModule):
         """The frozen encoder's cache of this data set, built (once) if it is incomplete."""
         if not self.hp.feature_cache:
             return None
-        if getattr(self, "_features", None) is None:
+        if self._features is None:
             key = mobilenet_key(self.hp.input_resolution, self.hp.background)
             self._features = FeatureStore(build_feature_cache(self.hp.root, key))
         return self._features
