@@ -93,7 +93,7 @@ def test_export_refuses_a_file_that_is_not_a_training_checkpoint(tmp_path):
 
 def test_export_sets_the_semantic_prior_weight(tmp_path, capsys):
     """The exported model multiplies the head's material distribution by the prior to the power w."""
-    from physgm.model.physgm import semantic_log_prior
+    from physgm.model.semantic_prior import semantic_log_prior
 
     torch.manual_seed(0)
     mobilenet = {

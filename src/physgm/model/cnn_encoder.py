@@ -22,11 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from physgm.model.pretrained import load_mobilenet_v2
-
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
-CLASSIFIER_SIZE = 224  # px: the resolution the ImageNet classifier was trained at
+from physgm.model.pretrained import CLASSIFIER_SIZE, IMAGENET_MEAN, IMAGENET_STD, load_mobilenet_v2
 
 # torchvision's mobilenet_v2.features: the block after which each stride ends, and its channels.
 _LEVEL_END = {"s4": 3, "s8": 6, "s16": 13, "s32": 17}

@@ -17,11 +17,10 @@ from torch import Tensor, nn
 
 from physgm.model.cnn_encoder import MobileNetEncoder
 from physgm.model.config import EncoderConfig
+from physgm.model.pretrained import IMAGENET_MEAN, IMAGENET_STD
 
-# DINOv3 was trained on ImageNet-normalised inputs; the scratch ViT uses the same so that the two
-# encoders are interchangeable behind one interface.
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
+# DINOv3 was trained on ImageNet-normalised inputs (IMAGENET_MEAN, IMAGENET_STD); the scratch ViT
+# uses the same so that the encoders are interchangeable behind one interface.
 
 # DINOv3 architectures the paper uses (timm names); any other timm "*dinov3*" model also builds.
 DINOV3_ARCHS = {"vits16": "vit_small_patch16_dinov3", "vitl16": "vit_large_patch16_dinov3"}

