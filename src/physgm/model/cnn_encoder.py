@@ -22,7 +22,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from physgm.model.pretrained import CLASSIFIER_SIZE, IMAGENET_MEAN, IMAGENET_STD, load_mobilenet_v2
+from physgm.model.pretrained import IMAGENET_MEAN, IMAGENET_STD, load_mobilenet_v2
+from physgm.model.semantic_prior import classifier_input
 
 # torchvision's mobilenet_v2.features: the block after which each stride ends, and its channels.
 _LEVEL_END = {"s4": 3, "s8": 6, "s16": 13, "s32": 17}
@@ -120,17 +121,10 @@ class MobileNetEncoder(nn.Module):
     @torch.no_grad()
     def classify(
         self,
-        images: Tensor,  # [B', 3, H, W] RGB in [0, 1]
+        images: Tensor,  # [B', 3, H, W] RGB in [0, 1], composited over white
     ) -> Tensor:  # [B', 1000]
-        """ImageNet logits of each view, resized to the classifier's 224 px."""
-        x = F.interpolate(
-            images,
-            size=(CLASSIFIER_SIZE, CLASSIFIER_SIZE),
-            mode="bilinear",
-            antialias=True,
-            align_corners=False,
-        )
-        x = self.head_conv(self.features((x - self.mean) / self.std))
+        """ImageNet logits of each view, brought to the classifier's 224 px as the annotator does."""
+        x = self.head_conv(self.features(classifier_input(images, background=1.0)))
         return self.classifier(x.mean(dim=(2, 3)))
 
     @staticmethod
