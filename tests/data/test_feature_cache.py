@@ -2,11 +2,21 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
+from dataclasses import asdict
+
 import pytest
 import torch
 
 from physgm.data.datamodule import PhysAssetsDataModule
-from physgm.data.feature_cache import FeatureStore, build_feature_cache, cache_dir, mobilenet_key
+from physgm.data.feature_cache import (
+    FeatureStore,
+    build_feature_cache,
+    cache_dir,
+    mobilenet_key,
+    stored_view_size,
+)
 from physgm.data.format import load_asset, read_split
 from physgm.data.views import composite_views, ring_views
 from physgm.model.cnn_encoder import MobileNetEncoder
@@ -15,9 +25,9 @@ from physgm.model.cnn_encoder import MobileNetEncoder
 class CountingEncoder(MobileNetEncoder):
     calls = 0
 
-    def encode(self, images):
+    def encode(self, images, classifier_images=None):
         CountingEncoder.calls += 1
-        return super().encode(images)
+        return super().encode(images, classifier_images)
 
 
 def test_cache_is_reused_and_rebuilt_when_its_key_changes(tiny_copy):
@@ -55,6 +65,33 @@ def test_cached_features_are_the_encoder_outputs(tiny_copy):
         torch.testing.assert_close(a.float(), b, rtol=2e-3, atol=2e-3)  # stored as float16
     with pytest.raises(ValueError, match="not cached"):
         store.load(aid, [len(asset.cameras.c2w) - 1])  # a view above the input ring
+
+
+def test_classifier_reads_the_stored_views_when_they_are_larger_than_the_input(tiny_copy):
+    stored = stored_view_size(tiny_copy)
+    same = mobilenet_key(stored, 1.0, stored_resolution=stored)
+    assert same.classifier_resolution is None
+    # keys from before the field existed keep their folder
+    old_fields = {k: v for k, v in asdict(same).items() if k != "classifier_resolution"}
+    digest = hashlib.sha256(json.dumps(old_fields, sort_keys=True).encode()).hexdigest()[:12]
+    assert same.name == f"mobilenet_v2-{stored}px-{digest}"
+    small, big = 32, 64  # whatever the set stores, the cache composites views at the key's sizes
+    key = mobilenet_key(small, 1.0, stored_resolution=big)
+    assert key.classifier_resolution == big and key.name != mobilenet_key(small, 1.0).name
+    enc = MobileNetEncoder()
+    store = FeatureStore(build_feature_cache(tiny_copy, key, encoder=enc, log=lambda *_: None))
+    aid = read_split(tiny_copy, "train")[0]
+    asset = load_asset(tiny_copy / aid)
+    views = ring_views(asset.cameras.c2w, 0.0)[:2]
+    rgba, Ks = asset.load_rgba(views), asset.cameras.Ks[views]
+    full, _, _ = composite_views(rgba, Ks, big, 1.0)
+    reduced, _, _ = composite_views(rgba, Ks, small, 1.0)
+    got = store.load(aid, views)
+    assert got.s16.shape[-1] == small // 16  # the pyramid is the input's
+    torch.testing.assert_close(got.imagenet_logits.float(), enc.classify(full), rtol=2e-3, atol=2e-2)
+    assert (got.imagenet_logits.float() - enc.classify(reduced)).abs().max() > 0.1
+    with pytest.raises(ValueError, match="same views"):
+        enc.encode(reduced, full[:1])
 
 
 def test_datamodule_batches_carry_cached_features(tiny_copy):

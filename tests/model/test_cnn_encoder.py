@@ -100,6 +100,23 @@ def test_cached_features_give_the_same_prediction():
     assert direct.semantic_log_prior.shape == (b, 15)
 
 
+def test_encode_views_reads_the_classifier_views():
+    torch.manual_seed(0)
+    model = PhysGM(PhysGMConfig.from_dict({"backbone": {"encoder": MOBILENET}})).eval()
+    cams = orbit_cameras([0, 90], [0, 0], 1.8, 34.0, 64, 64)
+    images, sharp = torch.rand(2, 3, 64, 64), torch.rand(2, 3, 224, 224)
+    feats = model.encode_views(images, sharp)
+    assert feats.s16.shape == (1, 2, 96, 4, 4)
+    torch.testing.assert_close(feats.imagenet_logits[0], model.backbone.encoder.classify(sharp))
+    scene = (images[None], torch.ones(1, 2, 1, 64, 64), cams.c2w[None].float(), cams.Ks[None].float())
+    with torch.no_grad():
+        out, plain = model(*scene, feats), model(*scene)
+    torch.testing.assert_close(out.gaussians.means, plain.gaussians.means)  # geometry from the input
+    assert not torch.allclose(out.semantic_log_prior, plain.semantic_log_prior)  # prior from the sharp views
+    vit = PhysGM(PhysGMConfig.from_dict({}))
+    assert vit.encode_views(images, sharp) is None
+
+
 def test_timm_encoder_by_name_without_fetching():
     """kind=timm builds any timm ViT by name; pretrained=False (or a checkpoint load) never fetches."""
     from physgm.model.config import EncoderConfig

@@ -49,6 +49,37 @@ def test_photo_input_uses_the_canonical_camera(examples):
     assert float(inp.images[0][:, frame].min()) > 0.99  # white background like the training inputs
 
 
+def _object_box(images: torch.Tensor) -> torch.Tensor:  # [V, 3, S, S] on white -> [V, 4] in [0, 1]
+    boxes = []
+    for m in images.min(dim=1).values < 0.9:
+        ys, xs = torch.nonzero(m, as_tuple=True)
+        boxes.append(torch.stack([ys.min(), ys.max() + 1, xs.min(), xs.max() + 1]).float() / m.shape[-1])
+    return torch.stack(boxes)
+
+
+def _detail(images: torch.Tensor) -> float:  # [V, 3, 224, 224]: what a 64 px copy cannot hold
+    import torch.nn.functional as F
+
+    small = F.interpolate(images, size=(64, 64), mode="bilinear", antialias=True)
+    return float((images - F.interpolate(small, size=(224, 224), mode="bilinear")).abs().mean())
+
+
+@pytest.mark.parametrize("name", ["basketball.png", "plasticine_views"])
+def test_classifier_views_have_the_input_framing_at_224_px(examples, name):
+    import torch.nn.functional as F
+
+    from physgm.pipeline.prepared_input import prepare_input
+
+    inp = prepare_input(examples / name, 64)
+    v = inp.images.shape[0]
+    assert inp.classifier_images.shape == (v, 3, 224, 224)
+    # the same crop, to a pixel of the 64 px input
+    assert float((_object_box(inp.classifier_images) - _object_box(inp.images)).abs().max()) < 1.5 / 64
+    # with detail the input lost (measured 1.7-1.8x that of the input brought to 224 px)
+    upsampled = F.interpolate(inp.images, size=(224, 224), mode="bilinear")
+    assert _detail(inp.classifier_images) > 1.4 * _detail(upsampled)
+
+
 @pytest.mark.parametrize(("az", "el", "margin"), [(0.0, 0.0, 1.15), (35.0, 20.0, 1.0), (-120.0, -10.0, 1.5)])
 def test_framing_camera_fits_the_box(az, el, margin):
     from physgm.pipeline.staging import framing_camera

@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
-from physgm.data.feature_cache import FeatureStore, build_feature_cache, mobilenet_key
+from physgm.data.feature_cache import FeatureStore, build_feature_cache, mobilenet_key, stored_view_size
 from physgm.data.format import SPLITS, Asset, AssetError, load_asset, read_split
 from physgm.data.views import LOAD_ERRORS, Example, ViewConfig, build_example, example_rng
 from physgm.model.cnn_encoder import ImageFeatures
@@ -316,7 +316,8 @@ class PhysAssetsDataModule(L.LightningDataModule):
         if not self.hp.feature_cache:
             return None
         if self._features is None:
-            key = mobilenet_key(self.hp.input_resolution, self.hp.background)
+            stored = stored_view_size(self.hp.root)
+            key = mobilenet_key(self.hp.input_resolution, self.hp.background, stored_resolution=stored)
             self._features = FeatureStore(build_feature_cache(self.hp.root, key))
         return self._features
 

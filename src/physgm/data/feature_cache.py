@@ -8,7 +8,9 @@ from disk skips the encoder. The input views of every asset are the ring at the 
 
 Layout: ``<root>/features/<name>/meta.json`` + one ``<asset_id>.npz`` per asset, where
 ``<name>`` encodes a ``CacheKey``: the encoder, the sha256 of its weights file, the input
-resolution and the background the views are composited over. Change any of them and a new
+resolution and the background the views are composited over, and, when the data set stores its
+views larger than the input, the resolution the ImageNet classifier reads them at (it sees more
+of an object's identity there; ``physgm.model.cnn_encoder``). Change any of them and a new
 folder is built; the old one is left for the user to delete. Pixel augmentations would make a
 cache wrong: physgm's training has none (its only randomness is which views and targets are
 drawn), so none is dropped.
@@ -51,10 +53,13 @@ class CacheKey:
     background: float  # grey level the RGBA views are composited over
     input_elevation_deg: float = 0.0  # the ring of views that is cached
     version: int = CACHE_VERSION
+    classifier_resolution: int | None = None  # px the classifier reads the views at; None: the input's
 
     @property
     def name(self) -> str:
-        digest = hashlib.sha256(json.dumps(asdict(self), sort_keys=True).encode()).hexdigest()[:12]
+        # A field at None is left out, so keys from before it existed keep their folder.
+        fields = {k: v for k, v in asdict(self).items() if v is not None}
+        digest = hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:12]
         return f"{self.encoder}-{self.resolution}px-{digest}"
 
 
@@ -68,13 +73,41 @@ def file_sha256(path: str) -> str:
 
 
 def mobilenet_key(
-    resolution: int, background: float, weights: str | None = None, input_elevation_deg: float = 0.0
+    resolution: int,
+    background: float,
+    weights: str | None = None,
+    input_elevation_deg: float = 0.0,
+    stored_resolution: int | None = None,
 ) -> CacheKey:
-    """The key of MobileNetV2 features (``weights``: default the packaged file)."""
+    """The key of MobileNetV2 features (``weights``: default the packaged file).
+
+    ``stored_resolution``: the side of the data set's stored views (``stored_view_size``); when
+    it exceeds ``resolution`` the classifier reads the views at that size.
+    """
     path = str(weights) if weights else str(mobilenet_v2_weights_path())
+    classifier = int(stored_resolution) if stored_resolution and stored_resolution > resolution else None
     return CacheKey(
-        "mobilenet_v2", file_sha256(path), int(resolution), float(background), float(input_elevation_deg)
+        "mobilenet_v2",
+        file_sha256(path),
+        int(resolution),
+        float(background),
+        float(input_elevation_deg),
+        classifier_resolution=classifier,
     )
+
+
+def stored_view_size(root: str | Path, splits: tuple[str, ...] = SPLITS) -> int | None:
+    """The larger side of the first view of the first asset in ``splits`` (None: no asset)."""
+    root = Path(root)
+    for s in splits:
+        if (root / "splits" / f"{s}.txt").exists():
+            for aid in read_split(root, s):
+                try:
+                    cams = load_asset(root / aid).cameras
+                except AssetError:
+                    continue
+                return int(max(cams.width, cams.height))
+    return None
 
 
 def cache_dir(root: str | Path, key: CacheKey) -> Path:
@@ -120,10 +153,14 @@ def build_feature_cache(
             log(f"feature cache: skipping malformed asset {aid}: {err}")
             continue
         views = ring_views(asset.cameras.c2w, key.input_elevation_deg)
-        images, _, _ = composite_views(
-            asset.load_rgba(views), asset.cameras.Ks[views], key.resolution, key.background
-        )
-        feats = encoder.encode(images)
+        rgba = asset.load_rgba(views)
+        images, _, _ = composite_views(rgba, asset.cameras.Ks[views], key.resolution, key.background)
+        classifier_images = None
+        if key.classifier_resolution is not None:
+            classifier_images, _, _ = composite_views(
+                rgba, asset.cameras.Ks[views], key.classifier_resolution, key.background
+            )
+        feats = encoder.encode(images, classifier_images)
         arrays = {name: getattr(feats, name).numpy().astype(np.float16) for name in _FIELDS}
         _save_atomic(out / f"{aid}.npz", {"views": np.asarray(views, dtype=np.int64), **arrays})
         if n % 100 == 0 or n == len(todo):
@@ -170,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     if not (args.root / "splits").is_dir():
         print(f"error: {args.root} has no splits/ folder; is it a PhysAssets data set?", file=sys.stderr)
         return 2
-    key = mobilenet_key(args.resolution, args.background)
+    key = mobilenet_key(args.resolution, args.background, stored_resolution=stored_view_size(args.root))
     out = build_feature_cache(args.root, key, tuple(s for s in args.splits.split(",") if s))
     print(json.dumps({"cache": str(out), "key": asdict(key), "assets": len(list(out.glob("*.npz")))}))
     return 0

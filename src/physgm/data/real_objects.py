@@ -1,6 +1,6 @@
 """physgm's own real-object evaluation set: ``python -m physgm.data.real_objects``.
 
-    python -m physgm.data.real_objects --out data/real_objects [--resolution 128] [--only ID,ID]
+    python -m physgm.data.real_objects --out data/real_objects [--resolution 256] [--only ID,ID]
 
 Builds PhysAssets from artist-made, textured objects that two pip packages ship (robosuite
 1.5.2 and metaworld 3.1.1, installed ``--no-deps`` by scripts/setup.sh; only their asset files
@@ -248,7 +248,7 @@ def select(only: list[str] | None) -> list[RealObject]:
     return [known[i] for i in only]
 
 
-def build(out: Path, resolution: int = 128, supersample: int = 2, only: list[str] | None = None) -> dict:
+def build(out: Path, resolution: int = 256, supersample: int = 2, only: list[str] | None = None) -> dict:
     """Build the set (or the ``only`` objects) into ``out``; finished objects are kept.
 
     Returns a summary: objects built and skipped, seconds, and the count per split and material.
@@ -291,7 +291,7 @@ def main(argv: list[str] | None = None) -> int:
         prog="python -m physgm.data.real_objects", description=__doc__.splitlines()[0]
     )
     p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--resolution", type=int, default=128)
+    p.add_argument("--resolution", type=int, default=256, help="px; the ImageNet classifier reads it all")
     p.add_argument("--supersample", type=int, default=2, help="rays per pixel side, for anti-aliased edges")
     p.add_argument("--only", default="", help="comma-separated object ids (default: all)")
     a = p.parse_args(argv)

@@ -89,6 +89,18 @@ class PhysGM(nn.Module):
         physics = dataclasses.replace(head, material_logits=fused)
         return PhysGMOutput(gaussians, physics, log_prior, head.material_logits)
 
+    def encode_views(
+        self,
+        images: Tensor,  # [V, 3, H, W] one scene's input views in [0, 1]
+        classifier_images: Tensor | None = None,  # [V, 3, h, w] the same views at a higher resolution
+    ) -> ImageFeatures | None:  # [1, V, ...], or None for a ViT encoder
+        """The frozen CNN encoder's features of one scene, its ImageNet classifier reading
+        ``classifier_images`` when given; pass the result to ``forward`` as ``features``."""
+        encoder = self.backbone.encoder
+        if not isinstance(encoder, MobileNetEncoder):
+            return None
+        return encoder.encode(images, classifier_images).map(lambda t: t[None])
+
     def physics_parameters(self) -> Iterator[nn.Parameter]:
         """Parameters of the physics head: the only ones the DPO stage trains."""
         return self.physics_head.parameters()

@@ -22,6 +22,7 @@ from physgm.data.format import CAMERA_RADIUS, FOV_DEG, read_cameras
 from physgm.data.readers import camera_file
 from physgm.gaussians import Gaussians, quat_to_rotmat, read_ply, rotmat_to_quat
 from physgm.inputs import Photo, frame_object, load_photo, object_mask
+from physgm.model.pretrained import CLASSIFIER_SIZE
 from physgm.pipeline.errors import UserError
 
 # Median side of the object's bounding square over the side of the canonical view (view 000) in
@@ -48,6 +49,7 @@ class PreparedInput:
     masks: Tensor | None = None  # [V, 1, S, S] in [0, 1]
     c2w: Tensor | None = None  # [V, 4, 4] OpenCV camera-to-world
     Ks: Tensor | None = None  # [V, 3, 3]
+    classifier_images: Tensor | None = None  # [V, 3, C, C] the same framing at the ImageNet classifier's size
     gaussians: Gaussians | None = None  # ply input
     mask_image: np.ndarray | None = None  # [H, W] bool, the mask used (views side by side)
     info: dict = field(default_factory=dict)
@@ -97,6 +99,7 @@ def _prepare_photo(path: Path, size: int, mask: Path | None) -> PreparedInput:
             f"the object in {path} vanished when framed at {size} px; give a larger or tighter photo"
         )
     preview, _ = frame_object(photo.rgb, obj, PREVIEW_SIZE, TRAINING_FILL)
+    classifier_view, _ = frame_object(photo.rgb, obj, CLASSIFIER_SIZE, TRAINING_FILL)
     cams = orbit_cameras([0.0], [0.0], CAMERA_RADIUS, FOV_DEG, size, size)
     return PreparedInput(
         kind="photo",
@@ -105,6 +108,7 @@ def _prepare_photo(path: Path, size: int, mask: Path | None) -> PreparedInput:
         masks=torch.from_numpy(m.astype(np.float32))[None, None],
         c2w=cams.c2w,
         Ks=cams.Ks,
+        classifier_images=torch.from_numpy(classifier_view).permute(2, 0, 1)[None].float(),
         mask_image=obj,
         info={
             "path": str(path),
@@ -171,7 +175,7 @@ def _prepare_views(folder: Path, size: int) -> PreparedInput:
         if len(files) in (1, 4)
         else select_views(cams.c2w, ViewConfig(num_targets=4), None)[0]
     )
-    images, masks, Ks, mask_images, sources = [], [], [], [], []
+    images, masks, Ks, mask_images, sources, classifier_images = [], [], [], [], [], []
     for i in chosen:
         photo, obj, source = _photo_and_mask(files[i], None)
         if photo.rgb.shape[:2] != (cams.height, cams.width):
@@ -183,6 +187,7 @@ def _prepare_views(folder: Path, size: int) -> PreparedInput:
         soft = photo.alpha if source == "alpha" else obj.astype(np.float32)
         img, m, K = _square(photo.rgb, soft, cams.Ks[i], size)
         images.append(img), masks.append(m), Ks.append(K), mask_images.append(obj), sources.append(source)
+        classifier_images.append(_square(photo.rgb, soft, cams.Ks[i], CLASSIFIER_SIZE)[0])
     centre = cams.c2w[chosen[0], :3, 3].double()
     azimuth = math.degrees(math.atan2(float(centre[1]), float(centre[0])))
     elevation = math.degrees(math.asin(max(-1.0, min(1.0, float(centre[2] / centre.norm().clamp_min(1e-9))))))
@@ -196,6 +201,7 @@ def _prepare_views(folder: Path, size: int) -> PreparedInput:
         masks=torch.stack(masks).float(),
         c2w=cams.c2w[chosen],
         Ks=torch.stack(Ks),
+        classifier_images=torch.stack(classifier_images).float(),
         mask_image=np.concatenate(mask_images, axis=1)
         if len({m.shape for m in mask_images}) == 1
         else mask_images[0],

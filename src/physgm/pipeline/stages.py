@@ -81,6 +81,10 @@ def _load_model(cfg: RunConfig):
     return load_model(cfg.ckpt, cfg.device)
 
 
+def _on(t, device: str):
+    return None if t is None else t.to(device)
+
+
 def _predict(model, inp, device: str):
     """The model's Gaussians (valid pixels only, CPU) and physics posterior (CPU) for one scene."""
     import torch
@@ -91,6 +95,7 @@ def _predict(model, inp, device: str):
             inp.masks[None].to(device),
             inp.c2w[None].to(device),
             inp.Ks[None].to(device),
+            model.encode_views(inp.images.to(device), _on(inp.classifier_images, device)),
         )
     g = out.gaussians.to_gaussians(0).to("cpu")
     post = out.physics.detach()
