@@ -75,9 +75,10 @@ def asset_folders(root: Path) -> list[Path]:
     if (root / "physical.json").is_file():
         return [root]
     found = sorted(
-        p for p in root.iterdir()
+        p
+        for p in root.iterdir()
         if p.is_dir() and not p.name.startswith(".") and (p / "physical.json").is_file()
-    )  # fmt: skip
+    )
     if not found:
         raise FileNotFoundError(
             f"no assets under {root}: expected folders <asset_id>/ with physical.json, cameras.json and "
@@ -183,8 +184,12 @@ def annotate_root(
             summary["failed"] += 1
             summary["failures"][folder.name] = str(err)
             continue
-        label = {"material": ann.material, "p": round(ann.material_probability, 3),
-                 "mass": round(ann.mass, 3), "top": ann.top[0][1]}  # fmt: skip
+        label = {
+            "material": ann.material,
+            "p": round(ann.material_probability, 3),
+            "mass": round(ann.mass, 3),
+            "top": ann.top[0][1],
+        }
         if ann.mass < min_mass:
             summary["below_min_mass"] += 1
             summary["labels"][folder.name] = {**label, "written": False}

@@ -49,7 +49,7 @@ PHOTO_TEXTURES: dict[str, list[tuple[str, str]]] = {
             "wood4",
             "wood_light",
         )
-    ],  # fmt: skip
+    ],
     "metal": [
         ("robosuite", f"models/assets/textures/{n}.png")
         for n in ("steel-brushed", "steel-scratched", "metal", "brass-ambra")

@@ -93,9 +93,12 @@ def build_timm(cfg: EncoderConfig, load_pretrained: bool = True) -> ImageEncoder
     if not cfg.arch:
         raise ValueError("encoder.kind=timm needs encoder.arch, a timm ViT name (e.g. vit_small_patch16_224)")
     vit = timm.create_model(
-        cfg.arch, pretrained=cfg.pretrained and load_pretrained, num_classes=0, img_size=cfg.img_size,
+        cfg.arch,
+        pretrained=cfg.pretrained and load_pretrained,
+        num_classes=0,
+        img_size=cfg.img_size,
         dynamic_img_size=True,
-    )  # fmt: skip
+    )
     actual = (vit.patch_embed.patch_size[0], vit.embed_dim)
     if actual != (cfg.patch_size, cfg.embed_dim):
         raise ValueError(

@@ -276,15 +276,17 @@ def main(argv: list[str] | None = None) -> int:
         logits = imagenet_logits(net, rgb)[0]
         probs, mass = material_prior(logits)
         m = int(probs.argmax())
-        report.append({
-            "image": str(path),
-            "material": MATERIAL_NAMES[m],
-            "material_probability": round(float(probs[m]), 4),
-            "mass": round(float(mass), 4),
-            "top_classes": [
-                {"index": i, "name": n, "p": round(q, 4)} for i, n, q in top_classes(logits, a.top)
-            ],
-        })  # fmt: skip
+        report.append(
+            {
+                "image": str(path),
+                "material": MATERIAL_NAMES[m],
+                "material_probability": round(float(probs[m]), 4),
+                "mass": round(float(mass), 4),
+                "top_classes": [
+                    {"index": i, "name": n, "p": round(q, 4)} for i, n, q in top_classes(logits, a.top)
+                ],
+            }
+        )
     print(json.dumps(report, indent=1))
     return 0
 

@@ -16,22 +16,26 @@ from physgm.physics.materials import MATERIAL_NAMES
 
 BEHAVIOURS: tuple[str, ...] = ("rigid", "soft elastic", "plastic", "granular", "fluid", "foam")
 
-# material -> behaviour class; every name of MATERIAL_NAMES exactly once (checked on import)
-MATERIAL_BEHAVIOUR: dict[str, str] = {
+# behaviour class -> its materials; every name of MATERIAL_NAMES exactly once (checked on import)
+_MATERIALS_OF: dict[str, tuple[str, ...]] = {
     # stiff enough that a drop or push leaves no visible deformation: rigid bodies
-    "plastic": "rigid", "wood": "rigid", "metal": "rigid", "ceramic": "rigid", "stone": "rigid",
-    "paper": "rigid", "glass": "rigid",
+    "rigid": ("plastic", "wood", "metal", "ceramic", "stone", "paper", "glass"),
     # deform visibly and spring back
-    "rubber": "soft elastic", "jelly": "soft elastic", "fabric": "soft elastic", "leather": "soft elastic",
+    "soft elastic": ("rubber", "jelly", "fabric", "leather"),
     # keep their deformation (von Mises plasticity at a low yield stress)
-    "plasticine": "plastic",
+    "plastic": ("plasticine",),
     # flow as grains (Drucker-Prager)
-    "sand": "granular", "snow": "granular",
+    "granular": ("sand", "snow"),
     # crush and partly recover
-    "foam": "foam",
-}  # fmt: skip
+    "foam": ("foam",),
+}
+MATERIAL_BEHAVIOUR: dict[str, str] = {m: b for b, names in _MATERIALS_OF.items() for m in names}
 
-if set(MATERIAL_BEHAVIOUR) != set(MATERIAL_NAMES) or not set(MATERIAL_BEHAVIOUR.values()) <= set(BEHAVIOURS):
+if (
+    sum(map(len, _MATERIALS_OF.values())) != len(MATERIAL_NAMES)
+    or set(MATERIAL_BEHAVIOUR) != set(MATERIAL_NAMES)
+    or not set(MATERIAL_BEHAVIOUR.values()) <= set(BEHAVIOURS)
+):
     raise ValueError("MATERIAL_BEHAVIOUR must give every material of MATERIAL_NAMES one class of BEHAVIOURS")
 
 

@@ -26,10 +26,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frame", type=int, default=0, help="frame shown first")
     parser.add_argument("--paused", action="store_true", help="start paused instead of playing")
     parser.add_argument(
-        "--screenshot", metavar="PNG", help="instead of serving: save the viewer at --frame as seen in "
-                                            "headless "
+        "--screenshot",
+        metavar="PNG",
+        help="instead of serving: save the viewer at --frame as seen in "
+        "headless "
         "Chromium (needs chromium installed) and exit",
-    )  # fmt: skip
+    )
     parser.add_argument(
         "--size", type=int, nargs=2, default=(960, 540), metavar=("W", "H"), help="--screenshot size, px"
     )

@@ -26,10 +26,18 @@ import numpy as np
 # first-run UI). WebGL has no GPU here: Chromium draws it with SwiftShader, which it now does only
 # when asked (--enable-unsafe-swiftshader; the viewer is a trusted local page).
 CHROMIUM_FLAGS = (
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync",
-    "--enable-unsafe-swiftshader", "--hide-scrollbars", "--mute-audio",
-)  # fmt: skip
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--enable-unsafe-swiftshader",
+    "--hide-scrollbars",
+    "--mute-audio",
+)
 CHROMIUM_NAMES = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
 
 
@@ -48,8 +56,9 @@ def find_chromium() -> str | None:
 class HeadlessBrowser:
     """One headless Chromium page of ``width`` x ``height`` CSS pixels; use as a context manager."""
 
-    def __init__(self, width: int = 800, height: int = 600, executable: str | None = None,
-                 timeout: float = 30.0) -> None:  # fmt: skip
+    def __init__(
+        self, width: int = 800, height: int = 600, executable: str | None = None, timeout: float = 30.0
+    ) -> None:
         exe = executable or find_chromium()
         if exe is None:
             raise FileNotFoundError(
@@ -60,10 +69,19 @@ class HeadlessBrowser:
         self.profile = Path(tempfile.mkdtemp(prefix="physgm-chromium-"))
         self._log = open(self.profile / "chromium.log", "wb")  # noqa: SIM115 (closed in close())
         self.proc = subprocess.Popen(
-            [exe, *CHROMIUM_FLAGS, f"--user-data-dir={self.profile}", f"--window-size={width},{height}",
-             "--remote-debugging-address=127.0.0.1", "--remote-debugging-port=0", "about:blank"],
-            stdin=subprocess.DEVNULL, stdout=self._log, stderr=subprocess.STDOUT,
-        )  # fmt: skip
+            [
+                exe,
+                *CHROMIUM_FLAGS,
+                f"--user-data-dir={self.profile}",
+                f"--window-size={width},{height}",
+                "--remote-debugging-address=127.0.0.1",
+                "--remote-debugging-port=0",
+                "about:blank",
+            ],
+            stdin=subprocess.DEVNULL,
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+        )
         self._ws = None
         self._next_id = 0
         try:
@@ -90,8 +108,13 @@ class HeadlessBrowser:
             targets = json.load(resp)
         page = next(t for t in targets if t.get("type") == "page")
         self._ws = connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=self.timeout)
-        self.call("Emulation.setDeviceMetricsOverride", width=self.width, height=self.height,
-                  deviceScaleFactor=1, mobile=False)  # fmt: skip
+        self.call(
+            "Emulation.setDeviceMetricsOverride",
+            width=self.width,
+            height=self.height,
+            deviceScaleFactor=1,
+            mobile=False,
+        )
 
     def call(self, method: str, **params) -> dict:
         """One DevTools command; returns its result (events in between are skipped)."""
@@ -136,8 +159,9 @@ class HeadlessBrowser:
         self.close()
 
 
-def wait_until_still(browser: HeadlessBrowser, settle: float = 0.5, repeats: int = 3,
-                     timeout: float = 90.0) -> np.ndarray:  # fmt: skip
+def wait_until_still(
+    browser: HeadlessBrowser, settle: float = 0.5, repeats: int = 3, timeout: float = 90.0
+) -> np.ndarray:
     """The first screenshot equal to the ``repeats`` taken before it, ``settle`` s apart (notices closed).
 
     Call it once the scene has reached the page. The page fades the scene in, and a loaded
@@ -158,8 +182,10 @@ def wait_until_still(browser: HeadlessBrowser, settle: float = 0.5, repeats: int
 
 def dismiss_notifications(browser: HeadlessBrowser) -> int:
     """Close viser's pop-up notices (e.g. "Software WebGL rendering detected"); returns how many."""
-    script = ("(() => { const b = document.querySelectorAll('.mantine-Notification-closeButton');"
-              " b.forEach(x => x.click()); return b.length; })()")  # fmt: skip
+    script = (
+        "(() => { const b = document.querySelectorAll('.mantine-Notification-closeButton');"
+        " b.forEach(x => x.click()); return b.length; })()"
+    )
     return int(
         browser.call("Runtime.evaluate", expression=script, returnByValue=True)["result"].get("value", 0)
     )

@@ -148,18 +148,36 @@ class GaussianSequence:
                 f"{path} has Gaussian sequence format {version}; this physgm reads format {FORMAT_VERSION}. "
                 "Re-run simulate.py with this version to rewrite it"
             )
-        missing = sorted({"colors", "opacities", "means", "covs", "n_frames", "fps", "camera_c2w",
-                          "camera_fov_y", "ground"} - set(arrays))  # fmt: skip
+        missing = sorted(
+            {
+                "colors",
+                "opacities",
+                "means",
+                "covs",
+                "n_frames",
+                "fps",
+                "camera_c2w",
+                "camera_fov_y",
+                "ground",
+            }
+            - set(arrays)
+        )
         if missing:
             raise ValueError(
                 f"{path} lacks the array(s) {missing}; it was not written by physgm's simulate.py"
             )
         ground = float(arrays["ground"])
         return GaussianSequence(
-            colors=arrays["colors"], opacities=arrays["opacities"], means=arrays["means"], covs=arrays["covs"],  # noqa: E501
-            n_frames=int(arrays["n_frames"]), fps=float(arrays["fps"]), camera_c2w=arrays["camera_c2w"],
-            camera_fov_y=float(arrays["camera_fov_y"]), ground=None if math.isnan(ground) else ground,
-        )  # fmt: skip
+            colors=arrays["colors"],
+            opacities=arrays["opacities"],
+            means=arrays["means"],
+            covs=arrays["covs"],  # noqa: E501
+            n_frames=int(arrays["n_frames"]),
+            fps=float(arrays["fps"]),
+            camera_c2w=arrays["camera_c2w"],
+            camera_fov_y=float(arrays["camera_fov_y"]),
+            ground=None if math.isnan(ground) else ground,
+        )
 
 
 def matrix_to_triu(covs: np.ndarray) -> np.ndarray:

@@ -54,8 +54,15 @@ class SequenceViewer:
         playing: start playing.
     """
 
-    def __init__(self, sequence: GaussianSequence, host: str = "127.0.0.1", port: int = 8080,
-                 title: str = "physgm", frame: int = 0, playing: bool = True) -> None:  # fmt: skip
+    def __init__(
+        self,
+        sequence: GaussianSequence,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        title: str = "physgm",
+        frame: int = 0,
+        playing: bool = True,
+    ) -> None:
         viser = import_viser()
         if not 0 <= frame < len(sequence):
             raise ValueError(
@@ -73,15 +80,25 @@ class SequenceViewer:
         self._rgbs = sequence.colors.astype(np.float32)
         self._opacities = sequence.opacities.astype(np.float32)[:, None]
         self.splats = scene.add_gaussian_splats(
-            "/object", centers=centers0 / self.unit, covariances=sequence.frame(0)[1] / self.unit**2,
-            rgbs=self._rgbs, opacities=self._opacities, scale=self.unit,
-        )  # fmt: skip
+            "/object",
+            centers=centers0 / self.unit,
+            covariances=sequence.frame(0)[1] / self.unit**2,
+            rgbs=self._rgbs,
+            opacities=self._opacities,
+            scale=self.unit,
+        )
         if sequence.ground is not None:
             lo, hi = sequence.means[..., :2].min((0, 1)), sequence.means[..., :2].max((0, 1))
             width = 4.0 * float(max(hi - lo)) + 2.0 * size
             center = 0.5 * (lo + hi)
-            scene.add_grid("/ground", width=width, height=width, cell_size=size / 4, section_size=size,
-                           position=(float(center[0]), float(center[1]), sequence.ground))  # fmt: skip
+            scene.add_grid(
+                "/ground",
+                width=width,
+                height=width,
+                cell_size=size / 4,
+                section_size=size,
+                position=(float(center[0]), float(center[1]), sequence.ground),
+            )
         eye, look_at, up = camera_view(sequence.camera_c2w, sequence.means.mean((0, 1)))  # orbit the motion
         self.server.initial_camera.position = eye
         self.server.initial_camera.look_at = look_at
@@ -96,8 +113,14 @@ class SequenceViewer:
         self.slider = gui.add_slider("frame", min=0, max=n - 1, step=1, initial_value=frame)
         self.time_text = gui.add_text("time (s)", initial_value=self._time_label(frame), disabled=True)
         self.play_box = gui.add_checkbox("play", initial_value=playing)
-        self.speed = gui.add_slider("speed", min=0.05, max=2.0, step=0.05, initial_value=1.0,
-                                    hint="1 = real time; the simulation's time step is 1 / fps")  # fmt: skip
+        self.speed = gui.add_slider(
+            "speed",
+            min=0.05,
+            max=2.0,
+            step=0.05,
+            initial_value=1.0,
+            hint="1 = real time; the simulation's time step is 1 / fps",
+        )
         self.frame = -1
         self._lock = threading.Lock()
         self.slider.on_update(lambda _: self._show(int(self.slider.value)))
@@ -170,16 +193,29 @@ def find_sequence(path: str | Path, run: str = "mean") -> Path:
     return target
 
 
-def save_screenshot(path: str | Path, out: str | Path, run: str = "mean", frame: int = 0,
-                    width: int = 960, height: int = 540, port: int = 0) -> Path:  # fmt: skip
+def save_screenshot(
+    path: str | Path,
+    out: str | Path,
+    run: str = "mean",
+    frame: int = 0,
+    width: int = 960,
+    height: int = 540,
+    port: int = 0,
+) -> Path:
     """Open the viewer on a run folder in headless Chromium at ``frame`` and save what it shows as a PNG."""
     from PIL import Image
 
     from physgm.view.browser import HeadlessBrowser, wait_until_still
 
     file = find_sequence(path, run)
-    viewer = SequenceViewer(GaussianSequence.load(file), "127.0.0.1", port, f"{file.parent.name}/{file.name}",
-                            frame, playing=False)  # fmt: skip
+    viewer = SequenceViewer(
+        GaussianSequence.load(file),
+        "127.0.0.1",
+        port,
+        f"{file.parent.name}/{file.name}",
+        frame,
+        playing=False,
+    )
     try:
         with HeadlessBrowser(width, height) as browser:
             browser.open(viewer.url)
@@ -198,15 +234,24 @@ def save_screenshot(path: str | Path, out: str | Path, run: str = "mean", frame:
     return out
 
 
-def serve(path: str | Path, run: str = "mean", host: str = "127.0.0.1", port: int = 8080,
-          frame: int = 0, playing: bool = True) -> None:  # fmt: skip
+def serve(
+    path: str | Path,
+    run: str = "mean",
+    host: str = "127.0.0.1",
+    port: int = 8080,
+    frame: int = 0,
+    playing: bool = True,
+) -> None:
     """Serve a run folder's moving Gaussians until Ctrl-C."""
     file = find_sequence(path, run)
     sequence = GaussianSequence.load(file)
     title = f"{file.parent.name}/{file.name}"
     viewer = SequenceViewer(sequence, host, port, title, frame, playing)
-    print(f"physgm viewer: {viewer.url}  ({len(sequence.colors)} Gaussians, {len(sequence)} frames, "
-          f"{len(sequence) / sequence.fps:.2f} s); Ctrl-C stops", flush=True)  # fmt: skip
+    print(
+        f"physgm viewer: {viewer.url}  ({len(sequence.colors)} Gaussians, {len(sequence)} frames, "
+        f"{len(sequence) / sequence.fps:.2f} s); Ctrl-C stops",
+        flush=True,
+    )
     try:
         while True:
             time.sleep(3600.0)

@@ -29,8 +29,18 @@ from physgm.data.readers.common import GL_TO_CV, matrix4, number
 
 PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
-INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y", "camera_model",
-                  *DISTORTION_KEYS)  # fmt: skip
+INTRINSIC_KEYS = (
+    "fl_x",
+    "fl_y",
+    "cx",
+    "cy",
+    "w",
+    "h",
+    "camera_angle_x",
+    "camera_angle_y",
+    "camera_model",
+    *DISTORTION_KEYS,
+)
 
 
 def image_file(folder: Path, file_path: str) -> str:
@@ -45,12 +55,16 @@ def _frame_camera(merged: dict, folder: Path, file: str, where: str, problems: l
     n0 = len(problems)
     model = merged.get("camera_model")
     if model is not None and str(model).upper() not in PINHOLE_MODELS:
-        problems.append(f"{where}: camera_model {model!r} is not a pinhole camera; undistort the images "
-                        f"to a pinhole model ({', '.join(PINHOLE_MODELS)}) first")  # fmt: skip
+        problems.append(
+            f"{where}: camera_model {model!r} is not a pinhole camera; undistort the images "
+            f"to a pinhole model ({', '.join(PINHOLE_MODELS)}) first"
+        )
     for k in DISTORTION_KEYS:
         if merged.get(k) not in (None, 0, 0.0):
-            problems.append(f"{where}: lens distortion {k}={merged[k]!r} is not supported; undistort the "
-                            "images first (ns-process-data writes undistorted ones)")  # fmt: skip
+            problems.append(
+                f"{where}: lens distortion {k}={merged[k]!r} is not supported; undistort the "
+                "images first (ns-process-data writes undistorted ones)"
+            )
     w = number(merged, "w", where, problems) if "w" in merged else None
     h = number(merged, "h", where, problems) if "h" in merged else None
     if (w is None or h is None) and (folder / file).is_file():

@@ -44,20 +44,44 @@ MATERIALS = {
     "plasticine": "plasticine",
 }
 # PhysGaussian's defaults (utils/decode_param.py) for keys a config may leave out.
-DEFAULTS = {"material": "jelly", "E": 1e5, "nu": 0.4, "density": 200.0, "frame_dt": 1e-2, "frame_num": 100,
-            "opacity_threshold": 0.02, "scale": 1.0, "grid_lim": 2.0, "n_grid": 50,
-            "grid_v_damping_scale": 1.1, "rpic_damping": 0.0, "pic_damping": 0.0,
-            "mpm_space_vertical_upward_axis": [0, 0, 1]}  # fmt: skip
+DEFAULTS = {
+    "material": "jelly",
+    "E": 1e5,
+    "nu": 0.4,
+    "density": 200.0,
+    "frame_dt": 1e-2,
+    "frame_num": 100,
+    "opacity_threshold": 0.02,
+    "scale": 1.0,
+    "grid_lim": 2.0,
+    "n_grid": 50,
+    "grid_v_damping_scale": 1.1,
+    "rpic_damping": 0.0,
+    "pic_damping": 0.0,
+    "mpm_space_vertical_upward_axis": [0, 0, 1],
+}
 BOX_PADDING_CELLS = 3  # its bounding_box stops particles this many cells inside the grid
 IGNORED = {
     "substep_dt": "physgm's CFL stepping chooses the sub-step",
     "n_grid": "physgm's planner fits its grid to the object and the motion",
     "grid_lim": "physgm's planner fits its grid to the object and the motion",
     "friction_angle": "used only by PhysGaussian's sand",
-    **{k: "the viewer's camera; set camera.azimuth_deg / camera.elevation_deg instead"
-       for k in ("mpm_space_viewpoint_center", "default_camera_index", "show_hint", "init_azimuthm",
-                 "init_elevation", "init_radius", "move_camera", "delta_a", "delta_e", "delta_r")},
-}  # fmt: skip
+    **{
+        k: "the viewer's camera; set camera.azimuth_deg / camera.elevation_deg instead"
+        for k in (
+            "mpm_space_viewpoint_center",
+            "default_camera_index",
+            "show_hint",
+            "init_azimuthm",
+            "init_elevation",
+            "init_radius",
+            "move_camera",
+            "delta_a",
+            "delta_e",
+            "delta_r",
+        )
+    },
+}
 PLASTICITY = ("yield_stress", "hardening", "xi", "plastic_viscosity", "softening")
 UP_AXES = {"z": (0.0, 0.0, 1.0), "y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0)}  # file axis -> object.up
 # The turn the pipeline gives a .ply with that object.up (physgm.pipeline.prepared_input.UP_ROTATIONS,
@@ -95,16 +119,31 @@ class PhysGaussianRun:
     def apply(self, raw: dict) -> dict:
         """``raw`` (simulate.yaml as a plain dict) with this run's settings in place (a copy)."""
         out = {**raw}
-        out["physics"] = {**(raw.get("physics") or {}), "material": self.material, "E": self.E, "nu": self.nu,
-                          "density": self.density}  # fmt: skip
-        out["object"] = {**(raw.get("object") or {}), "size": self.size_m, "up": self.up,
-                         "drop_height": self.drop_height_m}  # fmt: skip
+        out["physics"] = {
+            **(raw.get("physics") or {}),
+            "material": self.material,
+            "E": self.E,
+            "nu": self.nu,
+            "density": self.density,
+        }
+        out["object"] = {
+            **(raw.get("object") or {}),
+            "size": self.size_m,
+            "up": self.up,
+            "drop_height": self.drop_height_m,
+        }
         out["scene"] = "drop"
-        out["scene_overrides"] = {**(raw.get("scene_overrides") or {}), "gravity": list(self.gravity),
-                                  "ground": self.ground}  # fmt: skip
+        out["scene_overrides"] = {
+            **(raw.get("scene_overrides") or {}),
+            "gravity": list(self.gravity),
+            "ground": self.ground,
+        }
         out["output"] = {**(raw.get("output") or {}), "fps": self.fps, "frames": self.frames}
-        out["planner"] = {**(raw.get("planner") or {}), "min_opacity": self.min_opacity,
-                          "fill_interior": self.fill_interior}  # fmt: skip
+        out["planner"] = {
+            **(raw.get("planner") or {}),
+            "min_opacity": self.min_opacity,
+            "fill_interior": self.fill_interior,
+        }
         return out
 
 
@@ -148,9 +187,12 @@ def _up_axis(u_mpm: np.ndarray, rot: np.ndarray) -> str:
     for name, axis in UP_AXES.items():
         if np.allclose(u_file, axis, atol=1e-6):
             return name
-    _fail("mpm_space_vertical_upward_axis", f"after rotation_degree/rotation_axis, up is the file direction "
-          f"{np.round(u_file, 4).tolist()}; physgm's object.up takes the file's z, y or -y axis: rotate the "
-          "rotations so that one of these points up")  # fmt: skip
+    _fail(
+        "mpm_space_vertical_upward_axis",
+        f"after rotation_degree/rotation_axis, up is the file direction "
+        f"{np.round(u_file, 4).tolist()}; physgm's object.up takes the file's z, y or -y axis: rotate the "
+        "rotations so that one of these points up",
+    )
 
 
 def _floors(cfg: dict, u: np.ndarray, duration: float) -> list[tuple[float, dict, str]]:
@@ -172,8 +214,11 @@ def _floors(cfg: dict, u: np.ndarray, duration: float) -> list[tuple[float, dict
         elif kind == "surface_collider":
             n = _vec(bc.get("normal"), f"{key}.normal")
             if not np.allclose(n / max(np.linalg.norm(n), 1e-12), u, atol=1e-6):
-                _fail(f"{key}.normal", f"{n.tolist()} is not the up axis {u.tolist()}; only a ground plane "
-                      "facing up maps onto physgm's scenes")  # fmt: skip
+                _fail(
+                    f"{key}.normal",
+                    f"{n.tolist()} is not the up axis {u.tolist()}; only a ground plane "
+                    "facing up maps onto physgm's scenes",
+                )
             if float(bc.get("start_time", 0.0)) > 0.0 or float(bc.get("end_time", 1e3)) < duration:
                 _fail(f"{key}.start_time", "a ground that exists only part of the time has no counterpart")
             surface, friction = bc.get("surface", "sticky"), float(bc.get("friction", 0.0))
@@ -181,11 +226,19 @@ def _floors(cfg: dict, u: np.ndarray, duration: float) -> list[tuple[float, dict
                 _fail(f"{key}.surface", "'cut' has no counterpart in physgm")
             # sticky: nodes below stop; slip and others: Coulomb friction on the tangential velocity.
             mode = "sticky" if surface == "sticky" else ("slip" if friction == 0.0 else "separate")
-            floors.append((float(_vec(bc.get("point"), f"{key}.point") @ u),
-                           {"height": 0.0, "friction": friction, "mode": mode}, key))  # fmt: skip
+            floors.append(
+                (
+                    float(_vec(bc.get("point"), f"{key}.point") @ u),
+                    {"height": 0.0, "friction": friction, "mode": mode},
+                    key,
+                )
+            )
         else:
-            _fail(f"{key}.type", f"{kind!r} has no counterpart in physgm's scenes (drop onto a ground "
-                  "under gravity); remove it, or use scene=push / scene=stretch without this file")  # fmt: skip  # noqa: E501
+            _fail(
+                f"{key}.type",
+                f"{kind!r} has no counterpart in physgm's scenes (drop onto a ground "
+                "under gravity); remove it, or use scene=push / scene=stretch without this file",
+            )
     return floors
 
 
@@ -199,9 +252,20 @@ def read_physgaussian(cfg: dict, means: np.ndarray, opacities: np.ndarray) -> Ph
     Raises:
         PhysGaussianConfigError: a key has no counterpart; the message names it.
     """
-    known = set(DEFAULTS) | set(IGNORED) | set(PLASTICITY) | {"g", "boundary_conditions", "rotation_degree",
-             "rotation_axis", "particle_filling",
-             "additional_material_params", "sim_area"}  # fmt: skip
+    known = (
+        set(DEFAULTS)
+        | set(IGNORED)
+        | set(PLASTICITY)
+        | {
+            "g",
+            "boundary_conditions",
+            "rotation_degree",
+            "rotation_axis",
+            "particle_filling",
+            "additional_material_params",
+            "sim_area",
+        }
+    )
     for key in cfg:
         if key not in known:
             _fail(key, "unknown key (not in PhysGaussian's utils/decode_param.py)")
@@ -212,15 +276,21 @@ def read_physgaussian(cfg: dict, means: np.ndarray, opacities: np.ndarray) -> Ph
     ignored = {k: why for k, why in IGNORED.items() if k in cfg}
     for key in PLASTICITY:
         if key in cfg:
-            _fail(key, f"physgm takes plasticity from its material table "
-                       f"(conf/sim/material/{ours.name}.yaml, "
-                  f"model {ours.model}); remove the key or edit that file")  # fmt: skip
+            _fail(
+                key,
+                f"physgm takes plasticity from its material table "
+                f"(conf/sim/material/{ours.name}.yaml, "
+                f"model {ours.model}); remove the key or edit that file",
+            )
     if material == "sand" and "friction_angle" in cfg:
         ignored.pop("friction_angle")
         if not math.isclose(_num(cfg, "friction_angle"), ours.plasticity.get("friction_angle", math.nan)):
-            _fail("friction_angle", f"{cfg['friction_angle']} degrees differs from physgm's sand "
-                  f"({ours.plasticity.get('friction_angle')} degrees, conf/sim/material/sand.yaml); "
-                  "remove the key or edit that file")  # fmt: skip
+            _fail(
+                "friction_angle",
+                f"{cfg['friction_angle']} degrees differs from physgm's sand "
+                f"({ours.plasticity.get('friction_angle')} degrees, conf/sim/material/sand.yaml); "
+                "remove the key or edit that file",
+            )
     if cfg.get("additional_material_params"):
         _fail(
             "additional_material_params",
@@ -237,8 +307,10 @@ def read_physgaussian(cfg: dict, means: np.ndarray, opacities: np.ndarray) -> Ph
         _fail("g", "missing; give gravity as [gx, gy, gz] in m/s^2 in PhysGaussian's MPM space")
 
     rot = _rotation(cfg)
-    u = _vec(cfg.get("mpm_space_vertical_upward_axis", DEFAULTS["mpm_space_vertical_upward_axis"]),
-             "mpm_space_vertical_upward_axis")  # fmt: skip
+    u = _vec(
+        cfg.get("mpm_space_vertical_upward_axis", DEFAULTS["mpm_space_vertical_upward_axis"]),
+        "mpm_space_vertical_upward_axis",
+    )
     u = u / max(float(np.linalg.norm(u)), 1e-12)
     up = _up_axis(u, rot)
     to_world = UP_ROTATIONS[up] @ rot.T  # PhysGaussian's MPM axes -> the project's world axes
@@ -261,14 +333,28 @@ def read_physgaussian(cfg: dict, means: np.ndarray, opacities: np.ndarray) -> Ph
     floors = _floors(cfg, u, frame_dt * frame_num)
     for height, _, key in floors:
         if height > bottom + 1e-6 * scale:
-            _fail(key, f"its plane (height {height:.4g} m along up) cuts through the object, whose lowest "
-                  f"point is at {bottom:.4g} m in PhysGaussian's MPM space")  # fmt: skip
+            _fail(
+                key,
+                f"its plane (height {height:.4g} m along up) cuts through the object, whose lowest "
+                f"point is at {bottom:.4g} m in PhysGaussian's MPM space",
+            )
     ground, gap = None, 0.0
     if floors:
         height, ground, _ = max(floors, key=lambda f: f[0])  # the first plane the object meets
         gap = max(bottom - height, 0.0)
     return PhysGaussianRun(
-        material=ours.name, E=_num(cfg, "E"), nu=_num(cfg, "nu"), density=_num(cfg, "density"), size_m=scale,
-        up=up, gravity=gravity, ground=ground, drop_height_m=gap, fps=1.0 / frame_dt, frames=int(frame_num) + 1,  # noqa: E501
-        min_opacity=threshold, fill_interior=cfg.get("particle_filling") is not None, ignored=ignored,
-    )  # fmt: skip
+        material=ours.name,
+        E=_num(cfg, "E"),
+        nu=_num(cfg, "nu"),
+        density=_num(cfg, "density"),
+        size_m=scale,
+        up=up,
+        gravity=gravity,
+        ground=ground,
+        drop_height_m=gap,
+        fps=1.0 / frame_dt,
+        frames=int(frame_num) + 1,  # noqa: E501
+        min_opacity=threshold,
+        fill_interior=cfg.get("particle_filling") is not None,
+        ignored=ignored,
+    )

@@ -73,8 +73,18 @@ def translate_pose(d: dict, folder: Path, problems: list[str]) -> dict | None:
         if missing:
             problems.append(f"{where}: missing {', '.join(missing)}")
             continue
-        out.append({"file": Path(fr["file_path"]).as_posix().removeprefix("./"), "c2w": np.linalg.inv(w2c).tolist(),  # noqa: E501
-                    "fx": fr["fx"], "fy": fr["fy"], "cx": fr["cx"], "cy": fr["cy"], "width": fr["w"], "height": fr["h"]})  # fmt: skip  # noqa: E501
+        out.append(
+            {
+                "file": Path(fr["file_path"]).as_posix().removeprefix("./"),
+                "c2w": np.linalg.inv(w2c).tolist(),
+                "fx": fr["fx"],
+                "fy": fr["fy"],
+                "cx": fr["cx"],
+                "cy": fr["cy"],
+                "width": fr["w"],
+                "height": fr["h"],
+            }
+        )
     if len(problems) > n0:
         return None
     return {"convention": "opencv", "frames": out, "converted_from": "pose.json (w2c)"}
