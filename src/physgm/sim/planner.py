@@ -38,7 +38,8 @@ from physgm.sim.scenes import Scene
 from physgm.sim.stepping import substeps_per_frame
 
 # Constitutive models whose material flows instead of springing back: never rigid.
-FLOWING_MODELS = frozenset({"drucker_prager", "fluid"})
+FLOWING_MODELS = frozenset({"drucker_prager", "mohr_coulomb", "fluid"})
+GRANULAR_MODELS = frozenset({"drucker_prager", "mohr_coulomb"})  # pour into a heap at their friction angle
 
 
 @dataclass
@@ -465,7 +466,7 @@ def _grid_region(
         return g_lo, g_lo + cfg.domain_size, dx
     size = float((hi - lo).max())
     spread = cfg.spread_factor * size
-    if material.model == "drucker_prager":  # pours into a heap at its angle of repose
+    if material.model in GRANULAR_MODELS:  # pours into a heap at its angle of repose
         spread = max(spread, heap_radius(float(volume.sum()), material.friction_angle) - 0.5 * size)
     elif material.model == "fluid":
         spread = 2.0 * size

@@ -23,6 +23,7 @@ import yaml
 
 from physgm.resources import package_file
 from physgm.sim.boundary import GroundPlane, VelocityBox
+from physgm.sim.walls import PeriodicAxis, SideWall
 
 SCENE_DIR = package_file("conf", "sim", "scene")  # ships inside the package (physgm.resources)
 
@@ -35,6 +36,8 @@ class Scene:
     ground: GroundPlane | None = None
     boxes: tuple[VelocityBox, ...] = field(default_factory=tuple)
     damping: float = 0.0  # 1/s, mass-proportional drag on grid velocities (0: none)
+    walls: tuple[SideWall, ...] = field(default_factory=tuple)  # side walls (walls.py)
+    periodic: tuple[PeriodicAxis, ...] = field(default_factory=tuple)  # periodic axes (walls.py)
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.damping) and self.damping >= 0.0):
@@ -44,6 +47,8 @@ class Scene:
             raise ValueError(f"gravity={self.gravity!r} must be three finite numbers (m/s^2)")
         object.__setattr__(self, "gravity", tuple(float(c) for c in g))
         object.__setattr__(self, "boxes", tuple(self.boxes))
+        object.__setattr__(self, "walls", tuple(self.walls))
+        object.__setattr__(self, "periodic", tuple(self.periodic))
 
 
 @dataclass
