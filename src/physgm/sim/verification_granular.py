@@ -1,7 +1,7 @@
 """Planar granular column collapse against the experimental runout laws (verification case).
 
-A column of the project's sand (material table ``sand``: Drucker-Prager, friction angle from
-conf/sim/material/sand.yaml), L0 long and H0 = a L0 high, rests against a wall at x = 0 on a
+A column of the project's sand (material table ``sand``: Mohr-Coulomb on Hencky strain, friction
+angle 35 degrees from conf/sim/material/sand.yaml), L0 long and H0 = a L0 high, rests against a wall at x = 0 on a
 rough (sticky) floor and is released at t = 0. The deposit's runout Δ = (L∞ - L0) / L0 is
 compared with the laws measured in channels:
 
@@ -34,6 +34,7 @@ from physgm.sim.stepping import SolverConfig
 from physgm.sim.walls import PeriodicAxis, SideWall
 
 G = 9.81
+ASPECTS = (0.5, 1.0, 2.0, 4.0)  # a = H0 / L0 of the verification cases
 WIDEN = 0.2  # the laws' band is widened by this fraction on each side
 
 

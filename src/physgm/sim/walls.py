@@ -59,6 +59,13 @@ class SideWall:
             raise ValueError(f"side wall mode={self.mode!r} unknown; use one of {', '.join(_WALL_MODES)}")
         object.__setattr__(self, "position", float(self.position))
 
+    def plane(self) -> tuple[tuple[float, float, float], float]:
+        """(n, d) with n . p >= d on the free side: the wall as a contact plane of the rigid path."""
+        sign = 1.0 if self.solid == "below" else -1.0
+        normal = [0.0, 0.0, 0.0]
+        normal[self.axis] = sign
+        return tuple(normal), sign * self.position
+
     def holds(self, x: np.ndarray) -> np.ndarray:  # x: [P, 3] m -> [P] bool
         """Which points lie on the free side of the wall."""
         c = x[:, self.axis]
