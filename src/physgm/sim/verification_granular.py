@@ -79,6 +79,7 @@ def column_collapse(
     plane: str = "slip",
     friction_angle: float | None = None,
     max_seconds: float | None = None,
+    model: str | None = None,
 ) -> dict:
     """Collapse one column; returns the runout, final height, the band and the pass flag.
 
@@ -90,12 +91,13 @@ def column_collapse(
         floor: ground mode ("sticky" = the experiments' rough base, "separate", "slip").
         plane: "slip" (slip walls one cell apart in y) or "periodic" (period of six cells).
         friction_angle: degrees; default the material table's value for sand.
+        model: constitutive model; default the table's (mohr_coulomb; drucker_prager to compare).
         max_seconds: simulated-time cap; default 4 sqrt(H0 / g) + 0.3 s (the flow stops after
             about 3 sqrt(H0 / g), Lajeunesse et al. 2005).
     """
     sand = get_material("sand")
     phi = sand.plasticity["friction_angle"] if friction_angle is None else friction_angle
-    mat = replace(sand.params(), friction_angle=float(phi))
+    mat = replace(sand.params(), friction_angle=float(phi), model=model or sand.model)
     dx = length / cells
     sp = dx / 2
     height = aspect * length
@@ -156,6 +158,7 @@ def column_collapse(
         "cells_across": cells,
         "particles": len(p),
         "friction_angle_deg": phi,
+        "model": mat.model,
         "wall": wall,
         "floor": floor,
         "plane": plane,
