@@ -499,7 +499,8 @@ def _grid_region(
         mu = {"slip": None, "sticky": math.inf}.get(g_ground.mode, g_ground.friction)
         footprint = float((hi[:2] - lo[:2]).max())
         g = float(np.linalg.norm(scene.gravity))
-        spread = max(spread, granular_runout(footprint, hi[2] - ground, material.friction_angle, mu, duration, g))
+        runout = granular_runout(footprint, hi[2] - ground, material.friction_angle, mu, duration, g)
+        spread = max(spread, runout)
     elif material.model in GRANULAR_MODELS:  # no ground: it falls as a cloud
         spread = max(spread, heap_radius(float(volume.sum()), material.friction_angle) - 0.5 * size)
     elif material.model == "fluid":

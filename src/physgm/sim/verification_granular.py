@@ -1,8 +1,8 @@
 """Planar granular column collapse against the experimental runout laws (verification case).
 
 A column of the project's sand (material table ``sand``: Mohr-Coulomb on Hencky strain, friction
-angle 35 degrees from conf/sim/material/sand.yaml), L0 long and H0 = a L0 high, rests against a wall at x = 0 on a
-rough (sticky) floor and is released at t = 0. The deposit's runout Δ = (L∞ - L0) / L0 is
+angle 35 degrees from conf/sim/material/sand.yaml), L0 long and H0 = a L0 high, rests against a
+wall at x = 0 on a rough (sticky) floor and is released at t = 0. The deposit's runout Δ = (L∞ - L0) / L0 is
 compared with the laws measured in channels:
 
     Lube et al. 2005 (Phys. Rev. E 72, 041301):         Δ = 1.2 a (a < 2.3),  1.9 a^(2/3) (a > 2.3)
