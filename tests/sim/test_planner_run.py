@@ -122,6 +122,7 @@ def test_early_stop_holds_frames_once_still():
         np.testing.assert_array_equal(traj.x[k], traj.x[traj.rest_frame - 1])
     # The held frames cost nothing: fewer sub-steps than planned for the whole clip.
     assert traj.substeps < traj.plan.substeps_per_frame * 29 * 0.8
+    assert traj.face_contacts == 0  # the slide stayed inside the planned grid
 
 
 def test_resolve_material_reads_table_and_overrides():
