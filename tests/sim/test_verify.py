@@ -48,8 +48,9 @@ def test_sand_pile_slope_is_the_friction_angle():
 
 @pytest.mark.parametrize("aspect", VG.ASPECTS)
 def test_column_collapse_runout_inside_the_experimental_band(aspect):
-    """8 cells across L0 here; 20 in the bench (python -m physgm.bench sim-verify) and -m slow."""
-    _check(VG.column_collapse(aspect, cells=8))
+    """8-20 cells across L0 here (FAST_CELLS); 20 in the bench (python -m physgm.bench sim-verify)
+    and under -m slow."""
+    _check(VG.column_collapse(aspect, cells=VG.FAST_CELLS[aspect]))
 
 
 def test_runout_band_and_deposit_front():

@@ -2,7 +2,7 @@
 
 Prints ``{"cases": [{"name", "error", "tolerance", "passed", ...}], "summary": {...}}``. The
 cases live in ``physgm.sim.verification`` (the granular column collapse at a = 0.5, 1, 2, 4 in
-``verification_granular``); ``--fast`` runs the coarse versions the default tests use (8 cells
+``verification_granular``); ``--fast`` runs the coarse versions the default tests use (8-20 cells
 across the column), the default the finer ones (20 cells across; the column at a = 4 alone
 holds 12,800 particles for ~0.8 s of flow, most of the run's time).
 """

@@ -19,7 +19,7 @@ from physgm.sim.scenes import Scene
 from physgm.sim.solver import MPMSolver
 from physgm.sim.state import Particles
 from physgm.sim.stepping import SolverConfig
-from physgm.sim.verification_granular import ASPECTS, column_collapse
+from physgm.sim.verification_granular import ASPECTS, FAST_CELLS, FULL_CELLS, column_collapse
 
 G = 9.81
 
@@ -381,5 +381,5 @@ def all_cases(fast: bool = True) -> list[Callable[[], dict | list[dict]]]:
         lambda: ball_restitution(fast, E=1e5),
         *([] if fast else [lambda: ball_restitution(fast, E=1e7)]),
         lambda: sand_pile(fast),
-        *[lambda a=a: column_collapse(a, cells=8 if fast else 20) for a in ASPECTS],
+        *[lambda a=a: column_collapse(a, cells=FAST_CELLS[a] if fast else FULL_CELLS) for a in ASPECTS],
     ]
