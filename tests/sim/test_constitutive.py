@@ -16,6 +16,7 @@ PARAMS = {
     "drucker_prager": MaterialParams(
         "drucker_prager", 1.0e6, 0.3, 1600.0, friction_angle=30.0, cohesion=2.0e3
     ),
+    "mohr_coulomb": MaterialParams("mohr_coulomb", 1.0e6, 0.3, 1600.0, friction_angle=30.0, cohesion=2.0e3),
     "von_mises": MaterialParams("von_mises", 1.0e6, 0.3, 1500.0, yield_stress=2.0e4, hardening=1.0e5),
     "foam": MaterialParams("foam", 1.0e6, 0.2, 100.0, yield_stress=2.0e4, hardening=1.0e4, viscosity=10.0),
     "fluid": MaterialParams("fluid", 1.0e6, 0.3, 1000.0),
@@ -198,3 +199,43 @@ def test_fixed_corotated_volume_barrier_pushes_back_and_is_c1():
     assert p[-2] < -4 * lam  # J = 1 % pushes back with over 4 lam (Stomakhin: -0.0099 lam)
     e = ref.fc_volume_energy(J, lam)
     assert np.all(np.diff(e[2:]) > 0) and e[-1] > 10 * lam  # a barrier: unbounded as J -> 0
+
+
+def principal_stress(tau: np.ndarray) -> np.ndarray:  # [N, 3, 3] -> [N, 3] descending
+    return np.linalg.eigvalsh(0.5 * (tau + np.swapaxes(tau, 1, 2)))[:, ::-1]
+
+
+def test_mohr_coulomb_states_lie_on_or_inside_the_hexagon_at_their_volume():
+    p = PARAMS["mohr_coulomb"]
+    F = random_F(200, seed=4)
+    got = run_warp(p, F, np.zeros(len(F)))
+    t1, _, t3 = principal_stress(got["tau"]).T
+    s, c = np.sin(np.radians(30.0)), 2.0e3
+    f = (t1 - t3) + (t1 + t3) * s - 2 * c * np.cos(np.radians(30.0))
+    assert np.all(f <= 1e-4 * p.E)
+    assert (got["plastic"] > 0).sum() > len(F) // 4  # the test F really do yield
+    # The flow is deviatoric: J is kept below the apex (non-inverted states).
+    yielded = (got["plastic"] > 0) & (np.linalg.det(F) > 0.2)
+    J0, J1 = np.linalg.det(F[yielded]), np.linalg.det(got["F"][yielded])
+    below_apex = np.log(J0) < 3 * c / np.tan(np.radians(30.0)) / (3 * p.lam + 2 * p.mu)
+    np.testing.assert_allclose(J1[below_apex], J0[below_apex], rtol=2e-4)
+
+
+@pytest.mark.parametrize("model", ["mohr_coulomb", "drucker_prager"])
+def test_plane_shear_strength_of_the_granular_models(model):
+    """Pure shear in the xz plane at fixed volume (plane strain): the friction a flow feels.
+
+    Mohr-Coulomb holds max shear / pressure = sin(phi); the Drucker-Prager cone matched at
+    triaxial compression holds 6 sin(phi) / (sqrt(3) (3 - sin(phi))), 0.82 instead of 0.57 at
+    phi = 35 degrees (the reason sand uses mohr_coulomb).
+    """
+    p = MaterialParams(model, 1.0e6, 0.3, 1600.0, friction_angle=35.0)
+    press = 0.01  # compressive volumetric log strain / 3 on each axis
+    gammas = np.linspace(0.0, 0.05, 11)
+    F = np.stack([np.diag([np.exp(-press + g), np.exp(-press), np.exp(-press - g)]) for g in gammas])
+    got = run_warp(p, F, np.zeros(len(F)))
+    t = principal_stress(got["tau"])
+    ratio = ((t[:, 0] - t[:, 2]) / 2 / (-t.mean(1)))[-1]
+    s = np.sin(np.radians(35.0))
+    expected = s if model == "mohr_coulomb" else 6 * s / (np.sqrt(3) * (3 - s))
+    assert ratio == pytest.approx(expected, rel=2e-3)

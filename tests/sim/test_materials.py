@@ -47,7 +47,7 @@ def test_every_material_is_physical_and_cited(name):
 
 
 def test_expected_models_for_key_materials():
-    assert get_material("sand").model == "drucker_prager" and get_material("sand").plasticity["cohesion"] == 0
+    assert get_material("sand").model == "mohr_coulomb" and get_material("sand").plasticity["cohesion"] == 0
     assert get_material("snow").model == "drucker_prager" and get_material("snow").plasticity["cohesion"] > 0
     assert get_material("metal").model == "von_mises" and get_material("plasticine").model == "von_mises"
     assert get_material("foam").model == "foam" and get_material("rubber").model == "neo_hookean"

@@ -89,6 +89,18 @@ def test_jelly_drop_runs_mpm_and_gaussians_follow_particles():
     assert torch.isfinite(last.means).all() and torch.isfinite(last.quats).all()
     assert (last.means[:, 2] - traj.x[-1][:, 2].min()).min() > -plan.dx
     assert float(last.means[:, 2].mean()) < float(gs.means[:, 2].mean()) - 0.02
+    assert traj.face_contacts == 0  # the planned grid held the motion
+
+
+def test_planned_grid_holds_a_sand_collapse():
+    """Sand dropped onto the floor runs out; the planner's grid must hold it off the grid faces."""
+    gs = _shell_cube(bottom=0.1)
+    cfg = PlannerConfig(cells_across=8, particles_per_cell=1)  # coarse: the extent is the point
+    traj = simulate(gs, {"material": "sand"}, GROUND, CAMERAS, n_frames=30, planner=cfg)
+    assert traj.plan.mode == "mpm"
+    spread = np.abs(traj.x[-1, :, :2] - traj.x[0, :, :2].mean(0)).max()
+    assert spread > 0.1  # it did collapse and run out (the cube's half size is 0.05 m)
+    assert traj.face_contacts == 0
 
 
 def test_early_stop_holds_frames_once_still():
@@ -110,6 +122,7 @@ def test_early_stop_holds_frames_once_still():
         np.testing.assert_array_equal(traj.x[k], traj.x[traj.rest_frame - 1])
     # The held frames cost nothing: fewer sub-steps than planned for the whole clip.
     assert traj.substeps < traj.plan.substeps_per_frame * 29 * 0.8
+    assert traj.face_contacts == 0  # the slide stayed inside the planned grid
 
 
 def test_resolve_material_reads_table_and_overrides():

@@ -113,8 +113,8 @@ def test_fused_scatter_equals_a_fresh_p2g():
     for _ in range(5):
         solver.substep(1e-4)
     fused = solver.acc[0].numpy() + solver.acc[1].numpy()
-    solver._launches.invalidate()
-    for launch in solver._launches.p2g:
+    solver.launches.invalidate()
+    for launch in solver.launches.p2g:
         launch.launch()
     fresh = solver.acc[0].numpy() + solver.acc[1].numpy()
     assert fused[..., 3].sum() > 0

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 from physgm.sim import verification as V
+from physgm.sim import verification_granular as VG
 
 
 def _check(result):
@@ -43,6 +44,24 @@ def test_elastic_ball_restitution():
 
 def test_sand_pile_slope_is_the_friction_angle():
     _check(V.sand_pile(fast=True))
+
+
+@pytest.mark.parametrize("aspect", VG.ASPECTS)
+def test_column_collapse_runout_inside_the_experimental_band(aspect):
+    """8-20 cells across L0 here (FAST_CELLS); 20 in the bench (python -m physgm.bench sim-verify)
+    and under -m slow."""
+    _check(VG.column_collapse(aspect, cells=VG.FAST_CELLS[aspect]))
+
+
+def test_runout_band_and_deposit_front():
+    import numpy as np
+
+    assert VG.runout_band(1.0) == pytest.approx((0.8 * 1.2, 1.2 * 1.8))
+    assert VG.runout_band(4.0) == pytest.approx((0.8 * 1.9 * 4 ** (2 / 3), 1.2 * 2.3 * 4 ** (2 / 3)))
+    # A deposit of particles 1 cm apart out to x = 0.295 m, and one grain torn off at 0.5 m.
+    x = np.array([[0.005 + 0.01 * i, 0.0, 0.005] for i in range(30)] + [[0.5, 0.0, 0.005]])
+    front, top = VG.deposit_front(x, 0.01)
+    assert front == pytest.approx(0.30) and top == pytest.approx(0.01)
 
 
 def test_pile_slope_measures_a_known_cone():

@@ -37,6 +37,7 @@ def model_params(model: str, E: float, nu: float):
 
     extras = {
         "drucker_prager": dict(friction_angle=35.0),
+        "mohr_coulomb": dict(friction_angle=35.0),
         "von_mises": dict(yield_stress=1e-3 * E),
         "foam": dict(yield_stress=5e-2 * E, viscosity=1e-3 * E),
     }.get(model, {})

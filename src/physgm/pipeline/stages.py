@@ -156,6 +156,7 @@ def _run_summary(choice, traj, seconds: dict, finite: bool, video: str) -> dict:
         "dx_m": plan.dx,
         "substeps": int(traj.substeps),
         "rest_frame": traj.rest_frame,
+        "face_contacts": int(traj.face_contacts),  # grid-face safety walls touched (0: the grid held)
         "ballistic_frames": traj.ballistic_frames,
         "reason": plan.reason,
         "finite": finite,

@@ -18,7 +18,7 @@ cohesion=0, viscosity=0)``                          (constitutive/__init__.py)
     builds one from the material table (``physgm.physics.materials``). ``.mu``, ``.lam``, ``.bulk``,
     ``.wave_speed()`` (P-wave speed, m/s). ``constitutive.MODELS``: the registry
     name -> ``ConstitutiveModel(id, stiffness, validate, plastic)``; models: fixed_corotated,
-    neo_hookean, drucker_prager, von_mises, foam, fluid.
+    neo_hookean, drucker_prager, mohr_coulomb (the table's sand), von_mises, foam, fluid.
 
 ``Particles(x [P, 3], volume [P] m^3, material [P] int, v=None [P, 3], F=None [P, 3, 3])``
     Input particle set (state.py), validated (P > 0, finite x, volume > 0). ``Particles.lattice
@@ -26,14 +26,20 @@ cohesion=0, viscosity=0)``                          (constitutive/__init__.py)
     ``ParticleState`` (x, v, F, C, plastic, escaped) is what ``solver.state()`` returns: numpy,
     in the caller's particle order (the solver sorts particles by cell internally).
 
-``Scene(gravity=(0, 0, -9.81), ground=None, boxes=(), damping=0.0)`` (scenes.py, boundary.py)
+``Scene(gravity=(0, 0, -9.81), ground=None, boxes=(), damping=0.0, walls=(), periodic=())``
+(scenes.py, boundary.py, walls.py)
     ``GroundPlane(height=0.0, friction=0.3, mode="separate"|"slip"|"sticky")`` acts on grid
     nodes at or below the plane. ``VelocityBox(lo, hi, velocity, start=0, stop=inf, hold=True)``
     prescribes the velocity of grid nodes and particles inside a box that moves with it (grips,
     clamps with velocity 0, pushers); after ``stop`` a held box fixes its contents.
-    ``damping`` (1/s) is a mass-proportional drag. The domain walls (``boundary_cells`` cells
-    inside each grid face) always stop particles; a particle the final clamp has to hold is
-    counted once in ``solver.escaped``, and no grid index can ever leave its array.
+    ``damping`` (1/s) is a mass-proportional drag. ``SideWall(axis, position, solid="below"|
+    "above", mode="slip"|"sticky")`` is a wall plane on x or y (or z); ``PeriodicAxis(axis, lo,
+    hi)`` makes an axis periodic (lo, hi on grid nodes; plane-strain set-ups). The grid faces
+    carry separating safety walls (``boundary_cells`` cells inside each face): every node update
+    in which they stop mass is counted (``solver.face_contacts``, ``FrameStats.face_contacts``,
+    the run report), a particle the final clamp has to hold is counted once in
+    ``solver.escaped``, and no grid index can ever leave its array. A grid that holds the
+    motion keeps both at 0 (the planner's grids do for its scenes).
     ``SCENES`` registry and ``build_scene(name, x, material=None, **overrides) -> SceneSetup
     (scene, x, v, duration, reach_lo, reach_hi, driver_work)`` apply conf/sim/scene/<name>.yaml
     (drop, stretch, push, two_objects) to rest particles.
@@ -55,6 +61,10 @@ cohesion=0, viscosity=0)``                          (constitutive/__init__.py)
     ``.stable_dt()``, ``.state()``, ``.set_velocities(v [P, 3])``, ``.energy() -> Energy``
     (kinetic incl. APIC affine part, gravitational, elastic; J), ``.driver_work`` (J put in by
     velocity boxes), ``.time``, ``.frame``, ``.escaped``, ``.threads``, ``.close()``.
+    ``.observers``: list of ``SubstepObserver``; ``observer.observe(SubstepObservables)`` runs
+    after every sub-step with its time, dt, mass, momentum, centre-of-mass velocity and the
+    forces of the ground, the side walls and the grid faces (observables.py;
+    ``ObservableRecorder`` keeps them, dropping retried attempts). ``.face_contacts``.
     ``.hooks``: list of ``GridHook``; ``hook.apply(solver, dt)`` runs after each grid update.
     ``solver.grid_v`` is a wp.array3d [nx, ny, nz] of ``kernels.vec8`` = (vx, vy, vz, mass,
     dvx, dvy, dvz, 0); a hook that changes a node velocity must add the same change to

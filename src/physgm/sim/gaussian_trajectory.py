@@ -50,6 +50,8 @@ class GaussianTrajectory:
         substeps: MPM sub-steps (or rigid steps) actually taken.
         seconds: wall-clock time of planning + simulation, s.
         plan_seconds: the part of ``seconds`` spent sampling particles and planning, s.
+        face_contacts: grid-node updates in which the grid faces' safety walls stopped mass
+            (``MPMSolver.face_contacts``); 0 when the planned grid held the motion.
     """
 
     plan: Plan
@@ -64,6 +66,7 @@ class GaussianTrajectory:
     substeps: int
     seconds: float
     plan_seconds: float = 0.0
+    face_contacts: int = 0
 
     def __len__(self) -> int:
         return self.x.shape[0]
@@ -243,7 +246,7 @@ def simulate(
             plan, gaussians, sample, None, xs, Fs, traj, traj.rest_frame, 1, traj.steps, seconds, plan_seconds
         )
     followers = build_followers(gaussians.means, sample.x, k=cfg.follower_k)
-    xs, Fs, substeps, rest_frame, k0 = _run_mpm(
+    xs, Fs, substeps, rest_frame, k0, faces = _run_mpm(
         plan,
         material.with_elasticity(E=plan.E_used),
         setup.scene,
@@ -256,7 +259,19 @@ def simulate(
     )
     seconds = time.perf_counter() - start
     return GaussianTrajectory(
-        plan, gaussians, sample, followers, xs, Fs, None, rest_frame, k0, substeps, seconds, plan_seconds
+        plan,
+        gaussians,
+        sample,
+        followers,
+        xs,
+        Fs,
+        None,
+        rest_frame,
+        k0,
+        substeps,
+        seconds,
+        plan_seconds,
+        faces,
     )
 
 
@@ -297,11 +312,11 @@ def _run_mpm(
     solver_cfg: SolverConfig,
     device: str,
     ballistic: bool = True,
-) -> tuple[np.ndarray, np.ndarray, int, int | None, int]:
+) -> tuple[np.ndarray, np.ndarray, int, int | None, int, int]:
     """MPM with a ballistic prefix and early stop.
 
     Returns:
-        (x [T,P,3], F [T,P,3,3], substeps, rest_frame, k0).
+        (x [T,P,3], F [T,P,3,3], substeps, rest_frame, k0, face contacts).
     """
     T, frame_dt, n = plan.n_frames, plan.frame_dt, len(x0)
     xs = np.empty((T, n, 3), np.float32)
@@ -313,7 +328,7 @@ def _run_mpm(
         xs[k] = x0 + v0 * t + 0.5 * g * t * t
         Fs[k] = np.eye(3, dtype=np.float32)
     if k0 == T:
-        return xs, Fs, 0, None, k0
+        return xs, Fs, 0, None, k0, 0
     t0 = (k0 - 1) * frame_dt
     grid = GridSpec.fit(plan.grid_lo, plan.grid_hi, plan.dx, margin_cells=solver_cfg.boundary_cells)
     particles = Particles(x=xs[k0 - 1], volume=sample.volume.cpu().numpy(), material=0, v=v0 + g * t0)
@@ -338,6 +353,7 @@ def _run_mpm(
                 rest_frame = k + 1
                 xs[k + 1 :], Fs[k + 1 :] = xs[k], Fs[k]
                 break
+        faces = solver.face_contacts
     finally:
         solver.close()
-    return xs, Fs, substeps, rest_frame, k0
+    return xs, Fs, substeps, rest_frame, k0, faces

@@ -52,6 +52,11 @@ NUM_STATS = 6
 # their row for every particle, never write the same line.
 STATS_ROW = 16  # floats
 WORK_ROW = 8  # float64
+# Columns of ``work`` (running sums over the run, restored with the particles on a frame retry).
+WORK_DRIVER = wp.constant(0)  # energy put in by the velocity boxes, J
+WORK_GROUND = wp.constant(1)  # 1-3: impulse of the ground plane on the nodes, N s
+WORK_FACE = wp.constant(4)  # 4-6: impulse of the separating walls at the grid faces, N s
+WORK_FACE_CONTACTS = wp.constant(7)  # node updates in which a grid-face wall stopped mass
 # Grid_update skips 4^3-node blocks that no particle stencil reached this sub-step.
 BLOCK = wp.constant(4)
 
@@ -183,6 +188,13 @@ def p2g(
 
 
 @wp.func
+def add_impulse(work: wp.array2d(dtype=wp.float64), slot: int, col: int, impulse: wp.vec3):
+    """Add an impulse (N s) to columns col .. col + 2 of ``work``."""
+    for a in range(3):
+        wp.atomic_add(work, slot, col + a, wp.float64(impulse[a]))
+
+
+@wp.func
 def update_node(
     acc0: wp.array3d(dtype=vec8),
     acc1: wp.array3d(dtype=vec8),
@@ -221,15 +233,23 @@ def update_node(
         for b in range(num_boxes):
             vel = box_velocity(boxes[b], pos, t, vel)
         # Mechanical work of the imposed impulse m (v_box - v_free) moving at v_box.
-        wp.atomic_add(work, slot, 0, wp.float64(m * wp.dot(vel - v_free, vel)))
+        wp.atomic_add(work, slot, WORK_DRIVER, wp.float64(m * wp.dot(vel - v_free, vel)))
+    v_free = vel
     vel = ground_velocity(ground, pos, vel)
-    # Separating walls in the margin keep particles off the grid edge.
+    if wp.length_sq(vel - v_free) > 0.0:
+        add_impulse(work, slot, WORK_GROUND, m * (vel - v_free))
+    # Separating walls in the margin keep particles off the grid edge. A scene whose grid holds
+    # what it can reach never needs them, so each time they act it is counted (face contacts).
+    v_free = vel
     if (i < bound and vel[0] < 0.0) or (i >= grid_v.shape[0] - bound and vel[0] > 0.0):
         vel[0] = 0.0
     if (j < bound and vel[1] < 0.0) or (j >= grid_v.shape[1] - bound and vel[1] > 0.0):
         vel[1] = 0.0
     if (k < bound and vel[2] < 0.0) or (k >= grid_v.shape[2] - bound and vel[2] > 0.0):
         vel[2] = 0.0
+    if wp.length_sq(vel - v_free) > 0.0:
+        add_impulse(work, slot, WORK_FACE, m * (vel - v_free))
+        wp.atomic_add(work, slot, WORK_FACE_CONTACTS, wp.float64(1.0))
     dv = vel - v_transfer
     grid_v[i, j, k] = vec8(vel[0], vel[1], vel[2], m, dv[0], dv[1], dv[2], 0.0)
 
@@ -269,7 +289,7 @@ def grid_update(
     slot: int,
     work: wp.array2d(
         dtype=wp.float64
-    ),  # [threads, WORK_ROW] energy put in by the velocity boxes (column 0), J
+    ),  # [threads, WORK_ROW] running sums: box work, ground and face impulse, face contacts (WORK_*)
     grid_v: wp.array3d(dtype=vec8),  # [nx, ny, nz] out: velocity, mass, velocity change
 ):
     """One thread per 4^3-node block; blocks no stencil reached are left as they are (no particle
@@ -388,7 +408,7 @@ def g2p(
         v_free = v_new
         for b in range(num_boxes):
             v_new = box_velocity(boxes[b], xp, t, v_new)
-        wp.atomic_add(work, slot, 0, wp.float64(mass[p] * wp.dot(v_new - v_free, v_new)))
+        wp.atomic_add(work, slot, WORK_DRIVER, wp.float64(mass[p] * wp.dot(v_new - v_free, v_new)))
     # The state is H = F - I: stiff materials take steps with strain increments below float32's
     # resolution of numbers near 1, and accumulating F itself would round them away (creep).
     H_trial = H[p] + dt * c_grid * (EYE + H[p])

@@ -179,18 +179,23 @@ class SubstepLaunches:
         for launch in self.g2p:
             launch.set_param_by_name("stamp", self.stamp + 1)
 
-    def run(self, worker, between) -> None:
-        """One sub-step: [p2g,] grid_update, ``between()`` (grid hooks), g2p (which scatters)."""
+    def run(self, worker, between, before=None) -> None:
+        """One sub-step: [p2g,] ``before()`` (periodic folds), grid_update, ``between()`` (grid
+        hooks), g2p (which scatters)."""
         self._set_stamp()
         if worker is None:
             if not self.scattered:
                 self.p2g[0].launch()
+            if before is not None:
+                before()
             self.grid_update.launch()
             between()
             self.g2p[0].launch()
         else:
             if not self.scattered:
                 worker.run(self.p2g[1].launch, self.p2g[0].launch)
+            if before is not None:
+                before()
             self.grid_update.launch()
             between()
             worker.run(self.g2p[1].launch, self.g2p[0].launch)

@@ -38,7 +38,8 @@ from physgm.sim.scenes import Scene
 from physgm.sim.stepping import substeps_per_frame
 
 # Constitutive models whose material flows instead of springing back: never rigid.
-FLOWING_MODELS = frozenset({"drucker_prager", "fluid"})
+FLOWING_MODELS = frozenset({"drucker_prager", "mohr_coulomb", "fluid"})
+GRANULAR_MODELS = frozenset({"drucker_prager", "mohr_coulomb"})  # pour into a heap at their friction angle
 
 
 @dataclass
@@ -288,6 +289,32 @@ def heap_radius(volume: float, friction_angle_deg: float) -> float:
     return (3 * volume / (math.pi * tan)) ** (1 / 3)
 
 
+def granular_runout(
+    size: float,  # object's largest horizontal extent, m
+    top: float,  # height of the object's top above the ground, m (the fall adds to the column)
+    friction_angle_deg: float,
+    ground_friction: float | None,  # Coulomb coefficient of a "separate" ground; None: slip; inf: sticky
+    duration: float,  # s
+    gravity: float,  # m/s^2
+) -> float:
+    """How far (m) a granular object spreads past its own footprint radius on the ground.
+
+    Lube et al. 2004 (J. Fluid Mech. 508) measured the runout of axisymmetric columns of radius
+    R0 and height H on a rough base: (R - R0) / R0 = 1.24 a (a = H / R0 < 1.7), 1.6 a^(1/2)
+    above. The released height counts the fall too (a dropped object is a taller column), and
+    20 % is added for the experiments' scatter. A ground smoother than the material's friction
+    lets the base slide further, by tan(phi) / mu; a frictionless one holds nothing back, so
+    then the bound is the fall speed sqrt(2 g top) kept for the whole ``duration``.
+    """
+    r0 = 0.5 * size
+    a = max(top, 0.0) / r0
+    runout = 1.2 * r0 * (1.24 * a if a < 1.7 else 1.6 * math.sqrt(a))
+    tan_phi = math.tan(math.radians(max(friction_angle_deg, 5.0)))
+    if ground_friction is None:
+        return runout + math.sqrt(2.0 * gravity * max(top, 0.0)) * duration
+    return runout * max(1.0, tan_phi / max(ground_friction, 1e-3))
+
+
 # Materials that never go rigid whatever their stiffness (granular: they pour and heap).
 NEVER_RIGID_MATERIALS = frozenset({"sand", "snow"})
 
@@ -381,6 +408,8 @@ def plan_simulation(
     )
     rigid_px = deform.total * px_per_m
     walls = static_walls(scene.boxes, lo, hi)  # still walls are contact planes of the rigid path
+    if walls is not None:  # side walls too; a periodic axis has no rigid counterpart
+        walls = None if scene.periodic else walls + [w.plane() for w in scene.walls]
     if cfg.allow_rigid and walls is not None and rigid_px <= cfg.bound_px:
         parts = ", ".join(f"{k[:-3]} {v:.2g}" for k, v in terms.items())
         reason = (
@@ -465,7 +494,14 @@ def _grid_region(
         return g_lo, g_lo + cfg.domain_size, dx
     size = float((hi - lo).max())
     spread = cfg.spread_factor * size
-    if material.model == "drucker_prager":  # pours into a heap at its angle of repose
+    if material.model in GRANULAR_MODELS and ground is not None:  # collapses and runs out
+        g_ground = scene.ground
+        mu = {"slip": None, "sticky": math.inf}.get(g_ground.mode, g_ground.friction)
+        footprint = float((hi[:2] - lo[:2]).max())
+        g = float(np.linalg.norm(scene.gravity))
+        runout = granular_runout(footprint, hi[2] - ground, material.friction_angle, mu, duration, g)
+        spread = max(spread, runout)
+    elif material.model in GRANULAR_MODELS:  # no ground: it falls as a cloud
         spread = max(spread, heap_radius(float(volume.sum()), material.friction_angle) - 0.5 * size)
     elif material.model == "fluid":
         spread = 2.0 * size

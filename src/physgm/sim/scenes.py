@@ -23,6 +23,7 @@ import yaml
 
 from physgm.resources import package_file
 from physgm.sim.boundary import GroundPlane, VelocityBox
+from physgm.sim.walls import PeriodicAxis, SideWall
 
 SCENE_DIR = package_file("conf", "sim", "scene")  # ships inside the package (physgm.resources)
 
@@ -35,6 +36,8 @@ class Scene:
     ground: GroundPlane | None = None
     boxes: tuple[VelocityBox, ...] = field(default_factory=tuple)
     damping: float = 0.0  # 1/s, mass-proportional drag on grid velocities (0: none)
+    walls: tuple[SideWall, ...] = field(default_factory=tuple)  # side walls (walls.py)
+    periodic: tuple[PeriodicAxis, ...] = field(default_factory=tuple)  # periodic axes (walls.py)
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.damping) and self.damping >= 0.0):
@@ -44,6 +47,8 @@ class Scene:
             raise ValueError(f"gravity={self.gravity!r} must be three finite numbers (m/s^2)")
         object.__setattr__(self, "gravity", tuple(float(c) for c in g))
         object.__setattr__(self, "boxes", tuple(self.boxes))
+        object.__setattr__(self, "walls", tuple(self.walls))
+        object.__setattr__(self, "periodic", tuple(self.periodic))
 
 
 @dataclass
@@ -62,6 +67,20 @@ class SceneSetup:
 def _ground(cfg: dict) -> GroundPlane | None:
     g = cfg.get("ground")
     return None if g is None else GroundPlane(**g)
+
+
+def _boundaries(cfg: dict) -> dict:
+    """Side walls and periodic axes of a scene config (``walls: [{axis, position, solid, mode}]``,
+    ``periodic: [{axis, lo, hi}]``), as Scene keyword arguments."""
+    try:
+        walls = tuple(SideWall(**w) for w in cfg.get("walls") or ())
+        periodic = tuple(PeriodicAxis(**p) for p in cfg.get("periodic") or ())
+    except TypeError as e:
+        raise ValueError(
+            f"scene walls / periodic entries must be mappings with keys (axis, position, solid, mode) / "
+            f"(axis, lo, hi): {e}"
+        ) from None
+    return {"walls": walls, "periodic": periodic}
 
 
 def _vec(value, name: str) -> np.ndarray:
@@ -93,7 +112,7 @@ def drop(x: np.ndarray, material: np.ndarray, cfg: dict) -> SceneSetup:
     gravity = _vec(cfg["gravity"], "gravity")
     duration = float(cfg["duration"])
     lo, hi = _fall_reach(x, v, gravity, duration, floor if ground is not None else None)
-    scene = Scene(gravity=tuple(gravity), ground=ground)
+    scene = Scene(gravity=tuple(gravity), ground=ground, **_boundaries(cfg))
     return SceneSetup(scene, x, v, duration, lo, hi)
 
 
@@ -125,7 +144,7 @@ def stretch(x: np.ndarray, material: np.ndarray, cfg: dict) -> SceneSetup:
     grow[a] = 0.5 * (ratio - 1.0) * length
     reach_lo = lo - grow - 0.25 * pad - 0.5 * np.abs(gravity) * duration**2
     reach_hi = hi + grow + 0.25 * pad
-    scene = Scene(gravity=tuple(gravity), ground=_ground(cfg), boxes=tuple(boxes))
+    scene = Scene(gravity=tuple(gravity), ground=_ground(cfg), boxes=tuple(boxes), **_boundaries(cfg))
     return SceneSetup(scene, x.copy(), np.zeros_like(x), duration, reach_lo, reach_hi, driver_work=True)
 
 
@@ -148,7 +167,7 @@ def push(x: np.ndarray, material: np.ndarray, cfg: dict) -> SceneSetup:
     reach_lo, reach_hi = _fall_reach(x, v, gravity, duration, floor if ground is not None else None)
     reach_hi[a] = min(reach_hi[a], w_hi[a])
     reach_lo[a] = min(reach_lo[a], lo[a] - abs(float(cfg["speed"])) * duration)
-    scene = Scene(gravity=tuple(gravity), ground=ground, boxes=(wall,))
+    scene = Scene(gravity=tuple(gravity), ground=ground, boxes=(wall,), **_boundaries(cfg))
     return SceneSetup(scene, x, v, duration, reach_lo, reach_hi)
 
 
@@ -169,7 +188,7 @@ def two_objects(x: np.ndarray, material: np.ndarray, cfg: dict) -> SceneSetup:
     gravity = _vec(cfg["gravity"], "gravity")
     duration = float(cfg["duration"])
     lo, hi = _fall_reach(x, v, gravity, duration, floor if ground is not None else None)
-    scene = Scene(gravity=tuple(gravity), ground=ground)
+    scene = Scene(gravity=tuple(gravity), ground=ground, **_boundaries(cfg))
     return SceneSetup(scene, x, v, duration, lo, hi)
 
 

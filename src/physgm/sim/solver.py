@@ -17,10 +17,12 @@ from physgm.sim.boundary import BoxStruct
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.grid import GridSpec
 from physgm.sim.launches import SubstepLaunches
+from physgm.sim.observables import SubstepObservables, SubstepObserver, particle_momentum
 from physgm.sim.particle_store import ParticleStore
 from physgm.sim.scenes import Scene
 from physgm.sim.state import Energy, FrameStats, Particles, ParticleState, Trajectory
 from physgm.sim.stepping import SimulationDiverged, SolverConfig, wave_speed
+from physgm.sim.walls import SceneWalls
 
 # Two threads pay off from about 2k particles; below that the hand-off costs more than the split
 # saves.
@@ -68,6 +70,7 @@ class MPMSolver:
         self.config = config or SolverConfig()
         self.materials = list(materials)
         self.hooks: list[GridHook] = []
+        self.observers: list[SubstepObserver] = []  # called after every sub-step (observables.py)
         self._check_inputs(particles)
         n = self.num_particles = len(particles)
         self.time, self.frame, self.escaped = 0.0, 0, 0
@@ -77,6 +80,7 @@ class MPMSolver:
         self.threads = min(self.config.threads or auto, 2) if self.device.is_cpu else 1
         self._c_max = wave_speed(self.materials)
         self.particles = ParticleStore(particles, self.materials, self.device)
+        self._walls = SceneWalls(self, self.scene.walls, self.scene.periodic)
         self._alloc_grid()
         self._launches = SubstepLaunches(self)
         self._worker = PairWorker() if self.threads == 2 else None
@@ -130,7 +134,8 @@ class MPMSolver:
         self.work = wp.zeros((2, K.WORK_ROW), dtype=wp.float64, device=dev)  # per-thread driver work, J
         self._energy = wp.zeros(3, dtype=wp.float64, device=dev)
         self._bounds = wp.zeros(2, dtype=wp.vec3, device=dev)
-        self._dynamic = [*self.particles.dynamic, self.work]
+        self._observed = wp.zeros(4, dtype=wp.float64, device=dev)
+        self._dynamic = [*self.particles.dynamic, self.work, self._walls.impulse]
         self._backup = [wp.empty_like(a) for a in self._dynamic]
         self.active_box = (np.zeros(3, int), np.array(res) - 1)  # node index range grid_update covers
 
@@ -147,6 +152,7 @@ class MPMSolver:
         origin, res = np.asarray(g.origin), np.asarray(g.res)
         lo = np.clip(np.floor((b[0] - reach - origin) / g.dx).astype(int), 0, res - 1)
         hi = np.clip(np.ceil((b[1] + reach - origin) / g.dx).astype(int), 0, res - 1)
+        lo, hi = self._walls.widen_active(lo, hi)
         self.active_box = (lo, hi)
         inner_lo = origin + lo * g.dx + 1.5 * g.dx
         inner_hi = origin + hi * g.dx - 1.5 * g.dx
@@ -169,12 +175,56 @@ class MPMSolver:
         if self._launches.timed:
             self._launches.set_time(self.time)
 
+        before = self._impulses() if self.observers else None
+        stamp = self._launches.stamp + 1  # the number _launches.run gives this sub-step
+
         def hooks() -> None:
+            self._walls.after_grid_update(stamp)
             for hook in self.hooks:
                 hook.apply(self, dt)
 
-        self._launches.run(self._worker, hooks)
+        fold = (lambda: self._walls.before_grid_update(stamp)) if self._walls.periodic else None
+        self._launches.run(self._worker, hooks, fold)
+        if self._walls.periodic:
+            self._walls.after_g2p()
         self.time += dt
+        if before is not None:
+            self._observe(dt, before)
+
+    # ----------------------------------------------------------------------------- observables
+    def _impulses(self) -> np.ndarray:
+        """Running sums: ground impulse [0:3], face impulse [3:6], face contacts [6], wall impulse [7:10]."""
+        w = self.work.numpy().sum(0)
+        return np.concatenate([w[K.WORK_GROUND : K.WORK_FACE_CONTACTS + 1], self._walls.impulse.numpy()])
+
+    def _observe(self, dt: float, before: np.ndarray) -> None:
+        d = self._impulses() - before
+        self._observed.zero_()
+        ps = self.particles
+        wp.launch(particle_momentum, self.num_particles, [ps.v, ps.mass, self._observed], device=self.device)
+        q = self._observed.numpy()
+        obs = SubstepObservables(
+            time=self.time,
+            dt=dt,
+            mass=float(q[3]),
+            momentum=q[:3].copy(),
+            com_velocity=q[:3] / q[3],
+            ground_force=d[0:3] / dt,
+            wall_force=d[7:10] / dt,
+            face_force=d[3:6] / dt,
+            face_contacts=int(round(d[6])),
+        )
+        for observer in self.observers:
+            observer.observe(obs)
+
+    @property
+    def face_contacts(self) -> int:
+        """Grid-node updates in which the separating walls at the grid faces stopped mass, so far.
+
+        The faces are a safety net, not a boundary condition a scene asks for: a grid that holds
+        everywhere the particles go keeps this at 0 (the planner's grids do).
+        """
+        return int(round(float(self.work.numpy()[:, K.WORK_FACE_CONTACTS].sum())))
 
     def stable_dt(self, cfl: float | None = None) -> float:
         """CFL step cfl dx / (c_p + |v|max) for the current |v|max, s."""
@@ -240,6 +290,7 @@ class MPMSolver:
                 self.escaped += int(s[4])
                 self._vmax = float(s[0])
                 self.frame += 1
+                face_contacts = self.face_contacts
                 return FrameStats(
                     self.frame,
                     self.time,
@@ -252,6 +303,7 @@ class MPMSolver:
                     float(s[1]),
                     float(s[2]),
                     self.escaped,
+                    face_contacts,
                 )
             for src, dst in zip(self._backup, self._dynamic, strict=True):
                 wp.copy(dst, src)
@@ -301,9 +353,14 @@ class MPMSolver:
         self._fit_active(self.stable_dt())
 
     @property
+    def launches(self) -> SubstepLaunches:
+        """The recorded kernel launches of one sub-step (tests replay them to check the fused scatter)."""
+        return self._launches
+
+    @property
     def driver_work(self) -> float:
         """Energy the velocity boxes (grips, pushers) have put into the system so far, J."""
-        return float(self.work.numpy().sum())
+        return float(self.work.numpy()[:, K.WORK_DRIVER].sum())
 
     def energy(self) -> Energy:
         """Kinetic (with the APIC affine part), gravitational and elastic energy, J."""

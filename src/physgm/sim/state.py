@@ -123,6 +123,7 @@ class FrameStats:
     j_min: float
     j_max: float
     escaped: int  # particles stopped by the domain clamp so far
+    face_contacts: int = 0  # grid-node updates in which a grid-face wall stopped mass, so far
 
 
 @dataclass

@@ -19,6 +19,7 @@ from physgm.sim.scenes import Scene
 from physgm.sim.solver import MPMSolver
 from physgm.sim.state import Particles
 from physgm.sim.stepping import SolverConfig
+from physgm.sim.verification_granular import ASPECTS, FAST_CELLS, FULL_CELLS, column_collapse
 
 G = 9.81
 
@@ -331,8 +332,11 @@ def sand_pile(
     radius: float | None = None,
     height: float | None = None,
     seconds: float | None = None,
+    model: str = "mohr_coulomb",
 ) -> dict:
     """A steep cone of cohesionless sand slumps into a heap whose slope is the friction angle.
+
+    ``model``: the granular constitutive model (the material table's sand is mohr_coulomb).
 
     The heap is formed quasi-statically: a mass-proportional drag (20 1/s) removes the inertia
     that would otherwise carry the avalanche past the angle of repose, so the measured slope is
@@ -348,7 +352,7 @@ def sand_pile(
         sp,
         inside=lambda x: np.hypot(x[:, 0], x[:, 1]) < radius * (1 - x[:, 2] / height),
     )
-    mat = MaterialParams("drucker_prager", 3.5e5, 0.3, 1600.0, friction_angle=friction_angle)
+    mat = MaterialParams(model, 3.5e5, 0.3, 1600.0, friction_angle=friction_angle)
     reach = radius + 2 * height
     scene = Scene(ground=GroundPlane(0.0, mode="sticky"), damping=20.0)
     solver = _solver(p, mat, (-reach, -reach, 0.0), (reach, reach, height), 2 * sp, scene)
@@ -356,7 +360,7 @@ def sand_pile(
         solver.step_frame()
     angle = pile_slope(solver.state().x.astype(np.float64), 2 * sp)
     return _result(
-        "sand_pile_slope",
+        f"sand_pile_slope_{model}",
         abs(angle - friction_angle),
         5.0,
         slope_deg=angle,
@@ -377,4 +381,5 @@ def all_cases(fast: bool = True) -> list[Callable[[], dict | list[dict]]]:
         lambda: ball_restitution(fast, E=1e5),
         *([] if fast else [lambda: ball_restitution(fast, E=1e7)]),
         lambda: sand_pile(fast),
+        *[lambda a=a: column_collapse(a, cells=FAST_CELLS[a] if fast else FULL_CELLS) for a in ASPECTS],
     ]

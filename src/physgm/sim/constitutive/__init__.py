@@ -4,6 +4,7 @@ Models (one module each; numpy twins in ``reference.py``):
     fixed_corotated  elastic, Stomakhin et al. 2012
     neo_hookean      elastic, inversion-safe log extension below J = 0.1
     drucker_prager   Klar et al. 2016 sand plasticity on Hencky strain, with cohesion
+    mohr_coulomb     the same with the Mohr-Coulomb hexagon for the cone (sand, snow; see its module)
     von_mises        J2 plasticity with linear hardening on Hencky strain
     foam             Perzyna viscoplastic von Mises (rate-dependent yield)
     fluid            weakly compressible fluid, J-based pressure, F reset to J^(1/3) I
@@ -29,8 +30,8 @@ class MaterialParams:
     density: float  # rest density, kg/m^3
     yield_stress: float = 0.0  # von_mises / foam initial yield stress, Pa
     hardening: float = 0.0  # linear isotropic hardening modulus, Pa
-    friction_angle: float = 0.0  # drucker_prager friction angle phi, degrees
-    cohesion: float = 0.0  # drucker_prager cohesion c, Pa
+    friction_angle: float = 0.0  # drucker_prager / mohr_coulomb friction angle phi, degrees
+    cohesion: float = 0.0  # drucker_prager / mohr_coulomb cohesion c, Pa
     viscosity: float = 0.0  # foam Perzyna viscosity, Pa s
 
     def __post_init__(self) -> None:
@@ -84,9 +85,10 @@ class MaterialParams:
         s.hardening = self.hardening
         s.viscosity = self.viscosity
         s.bulk = self.bulk
-        if self.model == "drucker_prager":
+        if self.model in ("drucker_prager", "mohr_coulomb"):
             sin_phi = math.sin(math.radians(self.friction_angle))
             s.alpha = math.sqrt(2.0 / 3.0) * 2.0 * sin_phi / (3.0 - sin_phi)
+            s.sin_phi = sin_phi
             cot_phi = 1.0 / math.tan(math.radians(self.friction_angle))
             s.tension_strain = 3.0 * self.cohesion * cot_phi / (3.0 * self.lam + 2.0 * self.mu)
         return s
@@ -123,7 +125,7 @@ def _needs_yield(p: MaterialParams) -> None:
 def _needs_friction(p: MaterialParams) -> None:
     _check(
         0.0 < p.friction_angle < 90.0,
-        f"drucker_prager needs 0 < friction_angle < 90 degrees, got {p.friction_angle!r}",
+        f"{p.model} needs 0 < friction_angle < 90 degrees, got {p.friction_angle!r}",
     )
 
 
@@ -133,6 +135,7 @@ MODELS: dict[str, ConstitutiveModel] = {
         ConstitutiveModel("fixed_corotated", int(common.FIXED_COROTATED), _p_modulus, _no_extra, False),
         ConstitutiveModel("neo_hookean", int(common.NEO_HOOKEAN), _p_modulus, _no_extra, False),
         ConstitutiveModel("drucker_prager", int(common.DRUCKER_PRAGER), _p_modulus, _needs_friction, True),
+        ConstitutiveModel("mohr_coulomb", int(common.MOHR_COULOMB), _p_modulus, _needs_friction, True),
         ConstitutiveModel("von_mises", int(common.VON_MISES), _p_modulus, _needs_yield, True),
         ConstitutiveModel("foam", int(common.FOAM), _p_modulus, _needs_yield, True),
         # A fluid has no shear stiffness: its sound speed is sqrt(K / rho).

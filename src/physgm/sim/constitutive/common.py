@@ -29,6 +29,7 @@ DRUCKER_PRAGER = wp.constant(2)
 VON_MISES = wp.constant(3)
 FOAM = wp.constant(4)
 FLUID = wp.constant(5)
+MOHR_COULOMB = wp.constant(6)
 
 # Smallest principal stretch the Hencky models keep (log strain -6.9): inverted or collapsed
 # trial states are projected to this barely-positive stretch instead of producing log(<=0).
@@ -45,9 +46,10 @@ class MaterialStruct:
     yield_stress: float  # von Mises / foam initial yield stress sigma_y, Pa
     hardening: float  # linear isotropic hardening modulus H, Pa
     alpha: float  # Drucker-Prager cone slope sqrt(2/3) 2 sin(phi) / (3 - sin(phi))
-    tension_strain: float  # Drucker-Prager apex in log volumetric strain (cohesion), >= 0
+    tension_strain: float  # Drucker-Prager / Mohr-Coulomb apex in log volumetric strain (cohesion), >= 0
     viscosity: float  # foam Perzyna viscosity, Pa s
     bulk: float  # fluid bulk modulus, Pa
+    sin_phi: float  # Mohr-Coulomb sin(friction angle)
 
 
 @wp.func

@@ -9,6 +9,7 @@ from physgm.sim.constitutive.common import (
     FIXED_COROTATED,
     FLUID,
     FOAM,
+    MOHR_COULOMB,
     NEO_HOOKEAN,
     VON_MISES,
     MaterialStruct,
@@ -17,6 +18,7 @@ from physgm.sim.constitutive.drucker_prager import drucker_prager_energy, drucke
 from physgm.sim.constitutive.fixed_corotated import fixed_corotated_energy, fixed_corotated_update
 from physgm.sim.constitutive.fluid import fluid_energy, fluid_update
 from physgm.sim.constitutive.foam import foam_energy, foam_update
+from physgm.sim.constitutive.mohr_coulomb import mohr_coulomb_energy, mohr_coulomb_update
 from physgm.sim.constitutive.neo_hookean import neo_hookean_energy, neo_hookean_update
 from physgm.sim.constitutive.von_mises import von_mises_energy, von_mises_update
 
@@ -30,6 +32,8 @@ def constitutive_update(H: wp.mat33, mat: MaterialStruct, plastic: float, dt: fl
         return neo_hookean_update(H, mat, plastic, dt)
     if mat.model == DRUCKER_PRAGER:
         return drucker_prager_update(H, mat, plastic, dt)
+    if mat.model == MOHR_COULOMB:
+        return mohr_coulomb_update(H, mat, plastic, dt)
     if mat.model == VON_MISES:
         return von_mises_update(H, mat, plastic, dt)
     if mat.model == FOAM:
@@ -46,6 +50,8 @@ def energy_density(H: wp.mat33, mat: MaterialStruct) -> float:
         return neo_hookean_energy(H, mat)
     if mat.model == DRUCKER_PRAGER:
         return drucker_prager_energy(H, mat)
+    if mat.model == MOHR_COULOMB:
+        return mohr_coulomb_energy(H, mat)
     if mat.model == VON_MISES:
         return von_mises_energy(H, mat)
     if mat.model == FOAM:

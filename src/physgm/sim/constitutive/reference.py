@@ -118,6 +118,48 @@ def drucker_prager(F, mu, lam, friction_angle, cohesion, plastic, dt=0.0):
     return F_new, tau, plastic + dgamma
 
 
+def mohr_coulomb(F, mu, lam, friction_angle, cohesion, plastic, dt=0.0):
+    """Mohr-Coulomb return at fixed volume (main plane, then the two edges; ``mohr_coulomb.py``)."""
+    U, Vt, eps = _hencky(F)
+    s = math.sin(math.radians(friction_angle))
+    eps_t = 3 * cohesion / math.tan(math.radians(friction_angle)) / (3 * lam + 2 * mu)
+    shift = 2 / 3 * (3 * lam + 2 * mu) * eps_t
+
+    def f(hi, lo, tr):
+        return 2 * mu * (hi - lo) + s * (2 * mu * (hi + lo) + 2 * lam * tr - shift)
+
+    out = eps.copy()
+    dgamma = np.zeros(len(F))
+    for n in range(len(F)):
+        e, tr = eps[n], eps[n].sum()
+        if tr >= eps_t:
+            out[n] = eps_t / 3
+            dgamma[n] = np.linalg.norm(e - tr / 3) + tr - eps_t
+            continue
+        i3, i2, i1 = np.argsort(e, kind="stable")
+        e1, e2, e3 = e[i1], e[i2], e[i3]
+        f13 = f(e1, e3, tr)
+        if e1 == e3 or f13 <= 0:
+            continue
+        dg = f13 / (4 * mu)
+        new = np.array([e1 - dg, e2, e3 + dg])
+        total = dg
+        if new[0] < e2:
+            c = 2 * mu * (1 - s)
+            a, b = np.linalg.solve([[4 * mu, c], [c, 4 * mu]], [f13, f(e2, e3, tr)])
+            new, total = np.array([e1 - a, e2 - b, e3 + a + b]), a + b
+        elif new[2] > e2:
+            c = 2 * mu * (1 + s)
+            a, b = np.linalg.solve([[4 * mu, c], [c, 4 * mu]], [f13, f(e1, e2, tr)])
+            new, total = np.array([e1 - a - b, e2 + b, e3 + a]), a + b
+        if new[0] < new[2]:
+            new = np.full(3, tr / 3)
+        out[n, [i1, i2, i3]] = new
+        dgamma[n] = total
+    F_new, tau = _hencky_out(U, Vt, out, mu, lam)
+    return F_new, tau, plastic + dgamma
+
+
 def von_mises(F, mu, lam, yield_stress, hardening, plastic, dt=0.0, viscosity=0.0):
     """Radial return with linear hardening; viscosity > 0 gives the Perzyna (foam) update."""
     U, Vt, eps = _hencky(F)
@@ -166,6 +208,8 @@ def update(params, F: np.ndarray, plastic: np.ndarray, dt: float):
         return neo_hookean(F, mu, lam, plastic)
     if params.model == "drucker_prager":
         return drucker_prager(F, mu, lam, params.friction_angle, params.cohesion, plastic)
+    if params.model == "mohr_coulomb":
+        return mohr_coulomb(F, mu, lam, params.friction_angle, params.cohesion, plastic)
     if params.model == "von_mises":
         return von_mises(F, mu, lam, params.yield_stress, params.hardening, plastic)
     if params.model == "foam":
