@@ -6,7 +6,10 @@ Prints one JSON object:
     speed_vs_error: wall time against the visual error (mean Gaussian-centre distance in pixels at
                     the output camera, averaged over frames) relative to a fine reference run, for
                     the grid resolution, the particle density (particles per cell), the CFL
-                    number and the planner on / off; every row names its particles_per_cell.
+                    number and the planner on / off; every row names its particles_per_cell;
+    options:        per material, seconds and pixel error (mean, worst frame, largest) of each
+                    planner option against the explicit full-stiffness reference for the same
+                    drop as ``scenes`` (bench/sim_options.py).
 Wall-clock numbers are noisy when other jobs share the CPU; nothing here asserts on them.
 """
 
@@ -258,7 +261,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--quick", action="store_true", help="smaller sizes and fewer frames (a smoke run)")
     parser.add_argument(
         "--only",
-        choices=["throughput", "scenes", "speed_vs_error"],
+        choices=["throughput", "scenes", "speed_vs_error", "options"],
         action="append",
         help="run only these parts (repeatable)",
     )
@@ -266,7 +269,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--frames", type=int, default=50)
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
-    parts = set(args.only or ["throughput", "scenes", "speed_vs_error"])
+    parts = set(args.only or ["throughput", "scenes", "speed_vs_error", "options"])
     torch.set_num_threads(2)
     wp.config.log_level = wp.LOG_WARNING  # Warp's banner would break the one-JSON-object output
     side, bottom = 0.15, 0.5
@@ -280,6 +283,11 @@ def main(argv: list[str] | None = None) -> dict:
         frames = 10 if args.quick else args.frames
         # The jelly drop of the performance target uses E = 1e5 Pa (the table default is 1e4).
         result["scenes"] = drop_scenes(args.materials, frames, 20_000, side, bottom, {"jelly": 1e5})
+    if "options" in parts:
+        from physgm.bench.sim_options import option_table  # imports this module: not at the top
+
+        frames = 10 if args.quick else args.frames
+        result["options"] = option_table(args.materials, frames, 20_000, side, bottom, {"jelly": 1e5})
     if "speed_vs_error" in parts:
         frames = 10 if args.quick else 25
         result["speed_vs_error"] = speed_vs_error(frames, 20_000, side, 0.3, args.quick)
