@@ -7,26 +7,35 @@ of a fraction of a percent. The cap keeps mu (the shape response: bending, shear
 a jelly) and lowers nu until c_p / c_s equals a ratio r, nu_r = (r^2 - 2) / (2 (r^2 - 1)); the
 step then grows by the ratio of the P-wave speeds (rubber at r = 2.6: 1.96x).
 
-What the eye can see of it: Young's modulus E = 2 mu (1 + nu) drops with nu (rubber: 2.96 mu ->
-2.83 mu at r = 2.6), so a free body sags and squashes a little more, and an elastic impact's
-rebound changes the way it does for a lower E (``rebound_px``). The predicted error is the
-planner's deformation estimate at the capped E minus that at the true E, plus the rebound term
-after an elastic impact; the cap takes the smallest r >= ``min_ratio`` whose predicted error
-stays within the budget.
+What the eye can see of it, measured (docs/measurements_sim.md, "Fewer sub-steps"): the
+constrained (P-wave) modulus M = lam + 2 mu falls with nu (rubber: 26 mu -> 4 mu at r = 2), and
+a body whose base is held by friction, or hit flat, responds with M more than with E:
+- a block resting on the ground sags more and oscillates with a larger amplitude after gravity
+  is switched on (8 cm rubber, E = 2e4 Pa: CoM moved up to 1.4 mm at r = 2, 0.33 mm at r = 3);
+  the deformation term is the planner's sag + impact estimate with M in place of E (M bounds
+  the held base from above: 2.2 / 0.74 mm predicted);
+- an elastic impact rebounds differently, in proportion to the change of c_p (the contact of a
+  flat face lasts ~2 L / c_p): a 15 cm rubber cube dropped 0.5 m moved 8.6 px on average at
+  r = 2. ``rebound_px`` scales that with the relative change of c_p and the object's size in
+  pixels; the same factor fits the stiffness cap's rebound (plastic, E -2 % / -20 %: 0.12 /
+  1.3 px). With the default 0.5 px bound an impact therefore never pays for a cap of a 15 cm
+  object at 256 px: the bulk cap is for resting, gripped and slowly loaded bodies.
+The cap takes the smallest r >= ``min_ratio`` whose predicted error stays within the budget.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from physgm.sim.constitutive import MaterialParams
 
 # Rebound sensitivity of an elastic impact: a bounce moves by about this many object sizes per
-# unit relative change of the bar wave speed sqrt(E / rho) (the contact time ~ L / c_0). Fitted to
-# drops of 15 cm blocks at 256 px (docs/measurements_sim.md, "Fewer sub-steps"): plastic E -2 % /
-# -20 %: 0.12 / 1.3 px; rubber's bulk cap at r = 2 and 3 (see there).
-REBOUND_GAIN = 0.27
+# unit relative change of the P-wave speed (mean over frames and Gaussians). Fitted to drops of
+# 15 cm blocks at 256 px (docs/measurements_sim.md, "Fewer sub-steps"): plastic E -2 % / -20 %
+# 0.12 / 1.3 px (0.26-0.27), rubber's bulk cap at r = 2 8.6 px (0.31): the largest is taken.
+REBOUND_GAIN = 0.31
 
 # Constitutive models whose pressure enters the yield or flow law: a capped bulk modulus would
 # change how they flow, not only how much they compress.
@@ -47,6 +56,11 @@ def nu_for_wave_ratio(ratio: float) -> float:
     return (ratio * ratio - 2.0) / (2.0 * (ratio * ratio - 1.0))
 
 
+def p_modulus(material: MaterialParams) -> float:
+    """Constrained (P-wave) modulus lam + 2 mu, Pa."""
+    return material.lam + 2.0 * material.mu
+
+
 def capped_material(material: MaterialParams, ratio: float) -> MaterialParams:
     """``material`` with the same shear modulus and c_p / c_s at most ``ratio``."""
     if wave_ratio(material.nu) <= ratio:
@@ -55,9 +69,9 @@ def capped_material(material: MaterialParams, ratio: float) -> MaterialParams:
     return material.with_elasticity(E=2.0 * material.mu * (1.0 + nu), nu=nu)
 
 
-def rebound_px(E: float, E_capped: float, size_px: float) -> float:
-    """Predicted shift of an elastic rebound when E drops to E_capped, pixels (object size_px)."""
-    return REBOUND_GAIN * (1.0 - math.sqrt(E_capped / E)) * size_px
+def rebound_px(material: MaterialParams, capped: MaterialParams, size_px: float) -> float:
+    """Predicted shift of an elastic rebound when ``material`` is simulated as ``capped``, pixels."""
+    return REBOUND_GAIN * max(1.0 - capped.wave_speed() / material.wave_speed(), 0.0) * size_px
 
 
 @dataclass(frozen=True)
@@ -66,7 +80,7 @@ class BulkCap:
 
     material: MaterialParams  # capped E and nu, same mu
     ratio: float  # c_p / c_s after the cap
-    deformation_px: float  # extra sag + impact compression, pixels
+    deformation_px: float  # extra sag + impact compression at the P-wave modulus, pixels
     rebound_px: float  # change of an elastic rebound, pixels (0 without an elastic impact)
 
     @property
@@ -76,7 +90,7 @@ class BulkCap:
 
 def choose_bulk_cap(
     material: MaterialParams,
-    deformation_px,  # callable E -> predicted sag + impact deformation at E, pixels
+    deformation_px: Callable[[float], float],  # modulus (Pa) -> sag + impact deformation, pixels
     size_px: float,  # object's largest extent in pixels
     elastic_impact: bool,
     budget_px: float,
@@ -91,12 +105,12 @@ def choose_bulk_cap(
     """
     if material.model in PRESSURE_SENSITIVE or wave_ratio(material.nu) <= min_ratio:
         return None
-    base = deformation_px(material.E)
+    base = deformation_px(p_modulus(material))
 
     def option(ratio: float) -> BulkCap:
         capped = capped_material(material, ratio)
-        rebound = rebound_px(material.E, capped.E, size_px) if elastic_impact else 0.0
-        return BulkCap(capped, ratio, max(deformation_px(capped.E) - base, 0.0), rebound)
+        rebound = rebound_px(material, capped, size_px) if elastic_impact else 0.0
+        return BulkCap(capped, ratio, max(deformation_px(p_modulus(capped)) - base, 0.0), rebound)
 
     strongest = option(min_ratio)
     if force or strongest.predicted_px <= budget_px:
