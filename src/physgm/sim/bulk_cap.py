@@ -16,10 +16,11 @@ a body whose base is held by friction, or hit flat, responds with M more than wi
   the held base from above: 2.2 / 0.74 mm predicted);
 - an elastic impact rebounds differently, in proportion to the change of c_p (the contact of a
   flat face lasts ~2 L / c_p): a 15 cm rubber cube dropped 0.5 m moved 8.6 px on average at
-  r = 2. ``rebound_px`` scales that with the relative change of c_p and the object's size in
-  pixels; the same factor fits the stiffness cap's rebound (plastic, E -2 % / -20 %: 0.12 /
-  1.3 px). With the default 0.5 px bound an impact therefore never pays for a cap of a 15 cm
-  object at 256 px: the bulk cap is for resting, gripped and slowly loaded bodies.
+  r = 2 and 4.2 px at r = 3. ``rebound_px`` scales that with the relative change of c_p and
+  the object's size in pixels; the same factor fits the stiffness cap's rebound (plastic,
+  E -2 % / -20 %: 0.12 / 1.3 px). With the default 0.5 px bound an impact therefore never
+  pays for a cap of a 15 cm object at 256 px: the bulk cap is for resting, gripped and slowly
+  loaded bodies.
 The cap takes the smallest r >= ``min_ratio`` whose predicted error stays within the budget.
 """
 
@@ -32,10 +33,11 @@ from dataclasses import dataclass
 from physgm.sim.constitutive import MaterialParams
 
 # Rebound sensitivity of an elastic impact: a bounce moves by about this many object sizes per
-# unit relative change of the P-wave speed (mean over frames and Gaussians). Fitted to drops of
-# 15 cm blocks at 256 px (docs/measurements_sim.md, "Fewer sub-steps"): plastic E -2 % / -20 %
-# 0.12 / 1.3 px (0.26-0.27), rubber's bulk cap at r = 2 8.6 px (0.31): the largest is taken.
-REBOUND_GAIN = 0.31
+# unit relative change of the P-wave speed (mean over frames and Gaussians). Fitted to drops of a
+# 15 cm cube at 256 px (51.6 px across; docs/measurements_sim.md, "Fewer sub-steps"): plastic,
+# E -2 % / -20 %: 0.12 / 1.3 px (0.23-0.24); rubber's bulk cap at r = 3 / 2: 4.2 / 8.6 px (0.20 /
+# 0.27). The largest is taken.
+REBOUND_GAIN = 0.27
 
 # Constitutive models whose pressure enters the yield or flow law: a capped bulk modulus would
 # change how they flow, not only how much they compress.
