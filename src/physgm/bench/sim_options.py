@@ -5,7 +5,8 @@ in one process, and every option's Gaussian centres are compared with the explic
 in the bench camera (256 px):
 
     explicit       MPM at the full E and nu (no rigid path, no caps): the reference;
-    bulk_cap       shear modulus kept, nu lowered to c_p = bulk_wave_ratio c_s (sim/bulk_cap.py);
+    bulk_cap       shear modulus kept, nu lowered to c_p = r c_s (sim/bulk_cap.py; r = 2, or one
+                   row bulk_cap_r<r> per ratio given);
     stiffness_cap  E lowered within cap_budget of the bound, also after elastic impacts;
     planner        what the default planner chooses (rigid, caps or none) under its bound.
 
@@ -27,12 +28,17 @@ from physgm.sim.gaussian_trajectory import GaussianTrajectory, plan_for, simulat
 from physgm.sim.planner import PlannerConfig
 
 OFF = dict(allow_rigid=False, allow_bulk_cap=False, allow_stiffness_cap=False)
-OPTIONS: dict[str, dict] = {
-    "explicit": OFF,
-    "bulk_cap": {**OFF, "allow_bulk_cap": True, "force_caps": True},
-    "stiffness_cap": {**OFF, "allow_stiffness_cap": True, "force_caps": True},
-    "planner": {},
-}
+
+
+def options(bulk_ratios: tuple[float, ...] = (2.0,)) -> dict[str, dict]:
+    """Option name -> planner overrides; one bulk-cap row per c_p / c_s ratio."""
+    out: dict[str, dict] = {"explicit": OFF}
+    for r in bulk_ratios:
+        name = "bulk_cap" if len(bulk_ratios) == 1 else f"bulk_cap_r{r:g}"
+        out[name] = {**OFF, "allow_bulk_cap": True, "force_caps": True, "bulk_wave_ratio": r}
+    out["stiffness_cap"] = {**OFF, "allow_stiffness_cap": True, "force_caps": True}
+    out["planner"] = {}
+    return out
 
 
 def errors_px(cameras, run: GaussianTrajectory, ref: GaussianTrajectory) -> dict[str, float]:
@@ -53,8 +59,16 @@ def option_table(
     bottom: float,
     E_override: dict[str, float],
     max_reference_cost: float = 3e9,
+    cells_across: int | None = None,
+    bulk_ratios: tuple[float, ...] = (2.0,),
 ) -> list[dict]:
-    """One row per (material, option); see the module docstring."""
+    """One row per (material, option); see the module docstring.
+
+    Args:
+        cells_across: grid cells across the object for every option (None: the planner default).
+        bulk_ratios: c_p / c_s of the bulk-cap rows (one row each).
+    """
+    grid = {} if cells_across is None else {"cells_across": cells_across}
     gaussians = hollow_cube_gaussians(n_gaussians, side, bottom)
     cameras = bench_camera(side, bottom)
     out = []
@@ -62,11 +76,11 @@ def option_table(
         physics = {"material": name, "E": E_override.get(name, get_material(name).E)}
 
         ref, seen = None, {}
-        for option in OPTIONS:
-            cfg = PlannerConfig(**OPTIONS[option])
+        for option, overrides in options(tuple(bulk_ratios)).items():
+            cfg = PlannerConfig(**overrides, **grid)
             probe = plan_for(gaussians, physics, "drop", cameras, n_frames, cfg, {"height": bottom})
             key = (probe.mode, probe.E_used, probe.nu_used)
-            row = {"material": name, "option": option, **physics, "mode": probe.mode}
+            row = {"material": name, "option": option, **physics, **grid, "mode": probe.mode}
             row.update(E_used=probe.E_used, nu_used=probe.nu_used)
             row.update(
                 substeps_per_frame=probe.substeps_per_frame, predicted_error_px=probe.predicted_error_px

@@ -268,6 +268,10 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--materials", nargs="*", default=list(MATERIAL_NAMES))
     parser.add_argument("--frames", type=int, default=50)
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--cells", type=int, default=None, help="options: grid cells across the object")
+    parser.add_argument(
+        "--bulk-ratios", type=float, nargs="+", default=[2.0], help="options: c_p / c_s of the bulk-cap rows"
+    )
     args = parser.parse_args(argv)
     parts = set(args.only or ["throughput", "scenes", "speed_vs_error", "options"])
     torch.set_num_threads(2)
@@ -287,7 +291,17 @@ def main(argv: list[str] | None = None) -> dict:
         from physgm.bench.sim_options import option_table  # imports this module: not at the top
 
         frames = 10 if args.quick else args.frames
-        result["options"] = option_table(args.materials, frames, 20_000, side, bottom, {"jelly": 1e5})
+        result["options"] = option_table(
+            args.materials,
+            frames,
+            20_000,
+            side,
+            bottom,
+            {"jelly": 1e5},
+            3e9,
+            args.cells,
+            tuple(args.bulk_ratios),
+        )
     if "speed_vs_error" in parts:
         frames = 10 if args.quick else 25
         result["speed_vs_error"] = speed_vs_error(frames, 20_000, side, 0.3, args.quick)
