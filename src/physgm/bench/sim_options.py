@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import sys
 
-from physgm.bench.sim_speed import bench_camera, hollow_cube_gaussians, project
+from physgm.bench.drop_scene import bench_camera, hollow_cube_gaussians, project
 from physgm.physics.materials import get_material
 from physgm.sim.gaussian_trajectory import GaussianTrajectory, plan_for, simulate
 from physgm.sim.planner import PlannerConfig
