@@ -171,21 +171,26 @@ def test_reachable_region_includes_velocity_drift_and_grips():
 
 def test_cap_spends_its_budget_and_keeps_nu():
     # Stiff rubber (nu = 0.48 makes it costly) on the ground, its top pulled up by a grip:
-    # quasi-static loading, so capped.
+    # quasi-static loading, so capped. (The bulk cap, off here, has its own tests.)
     rubber = MaterialParams("neo_hookean", E=5e7, nu=0.48, density=1100.0)
     grip = VelocityBox(lo=(-0.1, -0.1, 0.08), hi=(0.1, 0.1, 0.2), velocity=(0.0, 0.0, 0.5))
     pulled = Scene(ground=GroundPlane(), boxes=(grip,))
-    plan = _plan(rubber, "rubber", scene=pulled, bottom=0.0)
+    plan = _plan(rubber, "rubber", scene=pulled, bottom=0.0, allow_bulk_cap=False)
     assert plan.mode == "mpm" and plan.E_used < rubber.E
     # The cap spends only cap_budget of the bound; the extra deformation equals that share.
     assert plan.predicted_error_px == pytest.approx(PlannerConfig().cap_budget * 0.5, rel=1e-6)
     assert plan.predicted_cost < plan.alternatives["mpm"] / 1.25
-    assert _plan(rubber, "rubber", scene=pulled, bottom=0.0, allow_stiffness_cap=False).E_used == rubber.E
+    assert (
+        _plan(
+            rubber, "rubber", scene=pulled, bottom=0.0, allow_stiffness_cap=False, allow_bulk_cap=False
+        ).E_used
+        == rubber.E
+    )
     # Dropped from 1 m it bounces: the rebound depends on E, so no cap (and nothing promised).
-    dropped = _plan(rubber, "rubber", bottom=1.0)
+    dropped = _plan(rubber, "rubber", bottom=1.0, allow_bulk_cap=False)
     assert dropped.mode == "mpm" and dropped.E_used == rubber.E and dropped.predicted_error_px == 0.0
     assert "not capped" in dropped.reason
-    fast = _plan(rubber, "rubber", bottom=1.0, cap_elastic_impacts=True)  # the opt-in
+    fast = _plan(rubber, "rubber", bottom=1.0, cap_elastic_impacts=True, allow_bulk_cap=False)  # the opt-in
     assert fast.E_used < rubber.E and fast.predicted_cost < dropped.predicted_cost / 1.25
     # Yield is checked with the impact stress rho c_p v (P-wave speed, the larger one).
     c_p = rubber.wave_speed()

@@ -59,8 +59,16 @@ class LandscapePoint:
     error: str | None = None
 
 
-def sweep(scene, gaussians: Gaussians, physics: dict, decades: list[float], reference: np.ndarray, settings,
-          device: str = "cpu", log=None) -> list[LandscapePoint]:
+def sweep(
+    scene,
+    gaussians: Gaussians,
+    physics: dict,
+    decades: list[float],
+    reference: np.ndarray,
+    settings,
+    device: str = "cpu",
+    log=None,
+) -> list[LandscapePoint]:
     """Simulate ``physics`` with E = physics["E"] x 10^d for each d; score each clip against ``reference``."""
     from physgm.data.video import codec_round_trip
     from physgm.metrics.trajectory import score_videos
@@ -90,8 +98,7 @@ def sweep(scene, gaussians: Gaussians, physics: dict, decades: list[float], refe
         if log:
             log(
                 f"  d={d:+.2f} distance={point.distance} encoded={point.distance_encoded} {point.mode} "
-                f"{point.seconds}s"
-                + (f" error={point.error}" if point.error else "")
+                f"{point.seconds}s" + (f" error={point.error}" if point.error else "")
             )
     return points
 
@@ -311,8 +318,10 @@ def main(argv: list[str] | None = None) -> dict:
         for source in sources:
             gaussians, default_density, policy_d = source_gaussians(source, scene, a.data, model)
             physics = physics_for(scene, a.data, default_density if a.density == "auto" else a.density)
-            log(f"[{i + 1}/{len(scenes)}] {scene.id} {scene.material} log10E={scene.log10_E:.2f} {source} "
-                f"({len(gaussians)} Gaussians, density {physics['density']:.0f} kg/m^3, policy_d={policy_d})")
+            log(
+                f"[{i + 1}/{len(scenes)}] {scene.id} {scene.material} log10E={scene.log10_E:.2f} {source} "
+                f"({len(gaussians)} Gaussians, density {physics['density']:.0f} kg/m^3, policy_d={policy_d})"
+            )
             points = sweep(scene, gaussians, physics, a.decades, reference, settings, log=log)
             row["sources"][source] = {
                 "gaussians": len(gaussians),

@@ -6,7 +6,10 @@ Prints one JSON object:
     speed_vs_error: wall time against the visual error (mean Gaussian-centre distance in pixels at
                     the output camera, averaged over frames) relative to a fine reference run, for
                     the grid resolution, the particle density (particles per cell), the CFL
-                    number and the planner on / off; every row names its particles_per_cell.
+                    number and the planner on / off; every row names its particles_per_cell;
+    options:        per material, seconds and pixel error (mean, worst frame, largest) of each
+                    planner option against the explicit full-stiffness reference for the same
+                    drop as ``scenes`` (bench/sim_options.py).
 Wall-clock numbers are noisy when other jobs share the CPU; nothing here asserts on them.
 """
 
@@ -21,8 +24,9 @@ import time
 import torch
 import warp as wp
 
-from physgm.cameras import Cameras, orbit_cameras
-from physgm.gaussians import Gaussians
+from physgm.bench.drop_scene import bench_camera, hollow_cube_gaussians, project
+from physgm.bench.sim_options import option_table
+from physgm.cameras import Cameras
 from physgm.physics.materials import MATERIAL_NAMES, get_material
 from physgm.sim.boundary import GroundPlane
 from physgm.sim.gaussian_trajectory import GaussianTrajectory, simulate
@@ -32,48 +36,6 @@ from physgm.sim.scenes import Scene
 from physgm.sim.solver import MPMSolver
 from physgm.sim.state import Particles
 from physgm.sim.stepping import SolverConfig
-
-
-def hollow_cube_gaussians(n: int, side: float, bottom: float, seed: int = 0) -> Gaussians:
-    """n Gaussians on the surface of a cube (like a 3DGS reconstruction: nothing inside)."""
-    g = torch.Generator().manual_seed(seed)
-    face = torch.randint(0, 6, (n,), generator=g)
-    uv = torch.rand(n, 2, generator=g) - 0.5
-    pts = torch.zeros(n, 3)
-    axis, sign = face // 2, (face % 2) * 2 - 1.0
-    for a in range(3):
-        m = axis == a
-        others = [b for b in range(3) if b != a]
-        pts[m, a] = 0.5 * sign[m]
-        pts[m, others[0]], pts[m, others[1]] = uv[m, 0], uv[m, 1]
-    return Gaussians(
-        means=pts * side + torch.tensor([0.0, 0.0, bottom + side / 2]),
-        quats=torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(n, 1),
-        scales=torch.full((n, 3), side / 150),
-        opacities=torch.full((n,), 0.9),
-        colors=torch.rand(n, 3, generator=g),
-    )
-
-
-def bench_camera(side: float, bottom: float, width: int = 256) -> Cameras:
-    """One 256 px camera framing the drop (object and ground)."""
-    return orbit_cameras(
-        [30.0],
-        [15.0],
-        radius=8 * side,
-        fov_deg=40.0,
-        width=width,
-        height=width,
-        target=(0.0, 0.0, 0.5 * (bottom + side)),
-    )
-
-
-def project(cameras: Cameras, x: torch.Tensor) -> torch.Tensor:
-    """Pixel coordinates [..., 2] of world points [..., 3] in the first camera."""
-    view = cameras.viewmats[0].to(x)
-    cam = x @ view[:3, :3].T + view[:3, 3]
-    uvw = cam @ cameras.Ks[0].to(x).T
-    return uvw[..., :2] / uvw[..., 2:3]
 
 
 def pixel_error(cameras: Cameras, a: GaussianTrajectory, b: GaussianTrajectory) -> dict[str, float]:
@@ -258,15 +220,19 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--quick", action="store_true", help="smaller sizes and fewer frames (a smoke run)")
     parser.add_argument(
         "--only",
-        choices=["throughput", "scenes", "speed_vs_error"],
+        choices=["throughput", "scenes", "speed_vs_error", "options"],
         action="append",
         help="run only these parts (repeatable)",
     )
     parser.add_argument("--materials", nargs="*", default=list(MATERIAL_NAMES))
     parser.add_argument("--frames", type=int, default=50)
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--cells", type=int, default=None, help="options: grid cells across the object")
+    parser.add_argument(
+        "--bulk-ratios", type=float, nargs="+", default=[2.0], help="options: c_p / c_s of the bulk-cap rows"
+    )
     args = parser.parse_args(argv)
-    parts = set(args.only or ["throughput", "scenes", "speed_vs_error"])
+    parts = set(args.only or ["throughput", "scenes", "speed_vs_error", "options"])
     torch.set_num_threads(2)
     wp.config.log_level = wp.LOG_WARNING  # Warp's banner would break the one-JSON-object output
     side, bottom = 0.15, 0.5
@@ -280,6 +246,19 @@ def main(argv: list[str] | None = None) -> dict:
         frames = 10 if args.quick else args.frames
         # The jelly drop of the performance target uses E = 1e5 Pa (the table default is 1e4).
         result["scenes"] = drop_scenes(args.materials, frames, 20_000, side, bottom, {"jelly": 1e5})
+    if "options" in parts:
+        frames = 10 if args.quick else args.frames
+        result["options"] = option_table(
+            args.materials,
+            frames,
+            20_000,
+            side,
+            bottom,
+            {"jelly": 1e5},
+            3e9,
+            args.cells,
+            tuple(args.bulk_ratios),
+        )
     if "speed_vs_error" in parts:
         frames = 10 if args.quick else 25
         result["speed_vs_error"] = speed_vs_error(frames, 20_000, side, 0.3, args.quick)

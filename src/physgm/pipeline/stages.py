@@ -151,6 +151,7 @@ def _run_summary(choice, traj, seconds: dict, finite: bool, video: str) -> dict:
         "mode": plan.mode,
         "predicted_error_px": plan.predicted_error_px,
         "E_used": plan.E_used,
+        "nu_used": plan.nu_used,
         "particles": int(len(traj.particles.x)),
         "grid_cells": summary["grid_cells"],
         "dx_m": plan.dx,

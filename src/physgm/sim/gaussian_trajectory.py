@@ -178,6 +178,75 @@ def ballistic_frames(
     return int(min(n_frames, max(1, math.floor(t_hit / frame_dt) + 1)))
 
 
+@dataclass
+class _Prepared:
+    """Everything ``simulate`` decides before it runs: particles, scene, material and plan."""
+
+    cfg: PlannerConfig
+    material: MaterialParams
+    gaussians: Gaussians  # placed by the scene
+    sample: ParticleSample  # placed particles
+    setup: SceneSetup
+    plan: Plan
+
+
+def _prepare(
+    gaussians: Gaussians,
+    physics,
+    scene,
+    cameras: Cameras,
+    n_frames: int,
+    cfg: PlannerConfig,
+    frame_dt: float,
+    scene_overrides: dict | None,
+) -> _Prepared:
+    name, material = resolve_material(physics)
+    restitution = (
+        physics.get("restitution") if isinstance(physics, dict) else getattr(physics, "restitution", None)
+    )
+    if restitution is not None:  # the material table has none; a physics description may
+        cfg = replace(cfg, restitution=float(restitution))
+    opaque = gaussians.opacities >= cfg.min_opacity
+    if not opaque.any():
+        raise ValueError(f"no Gaussian has opacity >= {cfg.min_opacity}; nothing to simulate")
+    extent = gaussians.means[opaque].detach().amax(0) - gaussians.means[opaque].detach().amin(0)
+    dx, spacing = choose_spacing(float(extent.max()), cfg)
+    rest = sample_particles(gaussians, spacing, cfg.min_opacity, cfg.fill_interior)
+    setup = apply_scene(scene, rest.x.detach().cpu().double().numpy(), scene_overrides)
+    gaussians = _place_gaussians(gaussians, rest.x.detach().cpu(), setup.x)
+    sample = replace(rest, x=torch.from_numpy(setup.x).float().to(rest.x.device))
+    plan = plan_simulation(
+        sample.x.cpu(),
+        sample.volume,
+        torch.from_numpy(np.asarray(setup.v, dtype=np.float64)),
+        name,
+        material,
+        setup.scene,
+        cameras,
+        n_frames,
+        frame_dt,
+        dx,
+        spacing,
+        cfg,
+    )
+    return _Prepared(cfg, material, gaussians, sample, setup, plan)
+
+
+def plan_for(
+    gaussians: Gaussians,
+    physics,
+    scene: str | Scene | tuple,
+    cameras: Cameras,
+    n_frames: int = 50,
+    planner: PlannerConfig | None = None,
+    scene_overrides: dict | None = None,
+    frame_dt: float = SolverConfig.frame_dt,
+) -> Plan:
+    """The plan ``simulate`` would run with these arguments, without simulating."""
+    cfg = planner or PlannerConfig()
+    return _prepare(gaussians, physics, scene, cameras, n_frames, cfg, frame_dt, scene_overrides).plan
+
+
 def simulate(
     gaussians: Gaussians,
     physics,
@@ -205,40 +274,12 @@ def simulate(
     start = time.perf_counter()
     cfg = PlannerConfig(**planner) if isinstance(planner, dict) else planner or PlannerConfig()
     solver_cfg = solver or SolverConfig()
-    frame_dt = solver_cfg.frame_dt
-    name, material = resolve_material(physics)
-    restitution = (
-        physics.get("restitution") if isinstance(physics, dict) else getattr(physics, "restitution", None)
-    )
-    if restitution is not None:  # the material table has none; a physics description may
-        cfg = replace(cfg, restitution=float(restitution))
-    opaque = gaussians.opacities >= cfg.min_opacity
-    if not opaque.any():
-        raise ValueError(f"no Gaussian has opacity >= {cfg.min_opacity}; nothing to simulate")
-    extent = gaussians.means[opaque].detach().amax(0) - gaussians.means[opaque].detach().amin(0)
-    dx, spacing = choose_spacing(float(extent.max()), cfg)
-    rest = sample_particles(gaussians, spacing, cfg.min_opacity, cfg.fill_interior)
-    setup = apply_scene(scene, rest.x.detach().cpu().double().numpy(), scene_overrides)
-    gaussians = _place_gaussians(gaussians, rest.x.detach().cpu(), setup.x)
-    sample = replace(rest, x=torch.from_numpy(setup.x).float().to(rest.x.device))
-    x0, v0 = setup.x, np.asarray(setup.v, dtype=np.float64)
-    plan = plan_simulation(
-        sample.x.cpu(),
-        sample.volume,
-        torch.from_numpy(v0),
-        name,
-        material,
-        setup.scene,
-        cameras,
-        n_frames,
-        frame_dt,
-        dx,
-        spacing,
-        cfg,
-    )
+    prep = _prepare(gaussians, physics, scene, cameras, n_frames, cfg, solver_cfg.frame_dt, scene_overrides)
+    plan, material, sample, gaussians, cfg = prep.plan, prep.material, prep.sample, prep.gaussians, prep.cfg
+    x0, v0 = prep.setup.x, np.asarray(prep.setup.v, dtype=np.float64)
     plan_seconds = time.perf_counter() - start
     if plan.mode == "rigid":
-        traj = _run_rigid(plan, setup.scene, x0, v0, sample, material.density, gaussians, cfg)
+        traj = _run_rigid(plan, prep.setup.scene, x0, v0, sample, material.density, gaussians, cfg)
         xs = np.stack([traj.transform(x0, t) for t in range(n_frames)]).astype(np.float32)
         Fs = np.broadcast_to(traj.rotations[:, None].astype(np.float32), (n_frames, len(x0), 3, 3))
         seconds = time.perf_counter() - start
@@ -248,8 +289,8 @@ def simulate(
     followers = build_followers(gaussians.means, sample.x, k=cfg.follower_k)
     xs, Fs, substeps, rest_frame, k0, faces = _run_mpm(
         plan,
-        material.with_elasticity(E=plan.E_used),
-        setup.scene,
+        material.with_elasticity(E=plan.E_used, nu=plan.nu_used),
+        prep.setup.scene,
         x0,
         v0,
         sample,

@@ -304,8 +304,24 @@ def grid_update(
         for j in range(bj * BLOCK, wp.min((bj + 1) * BLOCK, grid_v.shape[1])):
             for k in range(bk * BLOCK, wp.min((bk + 1) * BLOCK, grid_v.shape[2])):
                 update_node(
-                    acc0, acc1, i, j, k, origin, dx, dt, t, gravity, damping, bound, ground, boxes,
-                    num_boxes, slot, work, grid_v,
+                    acc0,
+                    acc1,
+                    i,
+                    j,
+                    k,
+                    origin,
+                    dx,
+                    dt,
+                    t,
+                    gravity,
+                    damping,
+                    bound,
+                    ground,
+                    boxes,
+                    num_boxes,
+                    slot,
+                    work,
+                    grid_v,
                 )
 
 
@@ -331,9 +347,7 @@ def gather_plane(grid_v: wp.array(dtype=vec8), row: int, nz: int, wy: wp.vec3, w
 @wp.func
 def moment_matrix(bi: vec8, bj: vec8, bk: vec8, c: int) -> wp.mat33:
     """Columns (bi, bj, bk) of node components c, c+1, c+2."""
-    return wp.mat33(
-        bi[c], bj[c], bk[c], bi[c + 1], bj[c + 1], bk[c + 1], bi[c + 2], bj[c + 2], bk[c + 2]
-    )
+    return wp.mat33(bi[c], bj[c], bk[c], bi[c + 1], bj[c + 1], bk[c + 1], bi[c + 2], bj[c + 2], bk[c + 2])
 
 
 @wp.kernel
@@ -437,9 +451,7 @@ def g2p(
         wp.atomic_max(stats, slot, STAT_VMAX, wp.dot(v_new, v_new))  # squared; the solver takes the root
         wp.atomic_min(stats, slot, STAT_JMIN, J)
         wp.atomic_max(stats, slot, STAT_JMAX, J)
-        scatter_particle(
-            acc, x_new, v_new, c_new, vol0[p] * tau, mass[p], origin, dx, shape, touched, stamp
-        )
+        scatter_particle(acc, x_new, v_new, c_new, vol0[p] * tau, mass[p], origin, dx, shape, touched, stamp)
     x[p] = x_new
     v[p] = v_new
     C[p] = c_new

@@ -13,6 +13,9 @@ chooses, in order of cost:
    *extra* deformation over the true E stays under (a share of) the bound; E' = min(E, cap) is
    simulated and reported. Not after an elastic impact, whose rebound depends on E (see the
    comment in ``plan_simulation``).
+   Before it, a **bulk cap** (``physgm.sim.bulk_cap``) lowers only the bulk modulus of a nearly
+   incompressible solid (rubber, jelly) so its P-wave is at most ``bulk_wave_ratio`` times its
+   shear wave, within its own share of the bound (that one also counts the rebound).
 3. **MPM at full stiffness** (the reference).
 
 Deformation model (object size L, density rho, impact speed v, P-wave speed c_p):
@@ -32,6 +35,7 @@ import torch
 from torch import Tensor
 
 from physgm.cameras import Cameras
+from physgm.sim.bulk_cap import choose_bulk_cap, rebound_px
 from physgm.sim.constitutive import MODELS, MaterialParams
 from physgm.sim.rigid import static_walls
 from physgm.sim.scenes import Scene
@@ -60,8 +64,14 @@ class PlannerConfig:
     allow_stiffness_cap: bool = True  # lower E while the extra deformation stays under the bound
     min_cap_gain: float = 1.25  # cap only if it saves at least this factor of sub-steps
     cap_budget: float = 0.5  # fraction of bound_px the stiffness cap may use (rebound changes too)
+    # Bulk cap (sim/bulk_cap.py): keep the shear modulus, lower nu until c_p <= ratio c_s. It may
+    # use bound_px minus the stiffness cap's share, and counts the rebound of an elastic impact.
+    allow_bulk_cap: bool = True
+    bulk_wave_ratio: float = 2.0  # smallest c_p / c_s the bulk cap may reach (2: nu = 1/3)
+    force_caps: bool = False  # benchmarks: take each allowed cap whatever its predicted error
     # Cap E after an elastic impact too: far fewer sub-steps for stiff objects thrown at a wall,
-    # but the rebound then differs by pixels that predicted_error_px does not count (measured 3 px).
+    # but the rebound then differs by pixels (measured 3 px) beyond the bound: predicted_error_px
+    # counts them (bulk_cap.rebound_px), the bound does not limit them.
     cap_elastic_impacts: bool = False
     cfl: float = 0.4  # CFL number for predicting sub-steps (the solver's config runs)
     rigid_dt: float = 1e-3  # rigid-body step, s
@@ -78,6 +88,8 @@ class PlannerConfig:
         for name in (*positive, "domain_size"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"planner setting {name}={getattr(self, name)!r} must be > 0")
+        if not self.bulk_wave_ratio > 1.0:
+            raise ValueError(f"planner bulk_wave_ratio={self.bulk_wave_ratio!r} must be > 1 (c_p > c_s)")
         if not 0.0 <= self.cap_budget <= 1.0:
             raise ValueError(f"planner cap_budget={self.cap_budget!r} must be in [0, 1]")
         if not 0.0 <= self.restitution <= 1.0:
@@ -104,7 +116,8 @@ class Plan:
 
     Attributes:
         mode: "rigid" or "mpm".
-        E_requested, E_used: Young's modulus asked for and simulated (after the cap), Pa.
+        E_requested, E_used: Young's modulus asked for and simulated (after the caps), Pa.
+        nu_requested, nu_used: Poisson ratio asked for and simulated (after the bulk cap).
         predicted_error_px: visual error of this plan relative to full-stiffness MPM, pixels.
         error_terms: named parts of the estimate, pixels.
         px_per_m: pixels per metre at the object for the closest output camera.
@@ -122,6 +135,8 @@ class Plan:
     material: str
     E_requested: float
     E_used: float
+    nu_requested: float
+    nu_used: float
     predicted_error_px: float
     error_terms: dict[str, float]
     px_per_m: float
@@ -393,6 +408,7 @@ def plan_simulation(
     common = dict(
         material=name,
         E_requested=material.E,
+        nu_requested=material.nu,
         px_per_m=px_per_m,
         grid_lo=g_lo,
         grid_hi=g_hi,
@@ -419,6 +435,7 @@ def plan_simulation(
         return Plan(
             "rigid",
             E_used=material.E,
+            nu_used=material.nu,
             predicted_error_px=rigid_px,
             error_terms=terms,
             substeps_per_frame=steps["rigid"],
@@ -447,25 +464,56 @@ def plan_simulation(
     # does one a cell up: the grid does not resolve the gap, and sqrt(2 g dx) is a tap.)
     falls = ground is not None and float(lo[2]) - ground > dx
     elastic_impact = (falls or v_throw > 0.0) and deform.plastic * px_per_m <= cfg.bound_px
-    E_used, n_steps, note, cap_px = material.E, steps["mpm"], "", 0.0
-    if cfg.allow_stiffness_cap and elastic_impact and not cfg.cap_elastic_impacts:
-        note = "; E not capped (an elastic impact: the rebound depends on E; planner.cap_elastic_impacts)"
-    elif cfg.allow_stiffness_cap:
+    simulated, n_steps, notes, cap_px, bulk_px = material, steps["mpm"], [], 0.0, 0.0
+    cap_impacts = cfg.cap_elastic_impacts or cfg.force_caps
+    caps_E = cfg.allow_stiffness_cap and (cap_impacts or not elastic_impact)
+    if cfg.allow_bulk_cap and not flows:
+
+        def deformation_px(modulus: float) -> float:
+            d = deformation_estimate(modulus, material.density, size, v_load, g)
+            return (d.sag + d.impact) * px_per_m
+
+        share = cfg.bound_px * (1.0 - (cfg.cap_budget if caps_E else 0.0))
+        bulk = choose_bulk_cap(
+            material, deformation_px, size * px_per_m, elastic_impact, share, cfg.bulk_wave_ratio,
+            cfg.force_caps,
+        )  # fmt: skip
+        bulk_steps = bulk and substeps_per_frame(grid_dx, [bulk.material], v_max, cfg.cfl, frame_dt)
+        if bulk is not None and (cfg.force_caps or n_steps >= cfg.min_cap_gain * bulk_steps):
+            notes.append(
+                f"bulk capped to nu={bulk.material.nu:.3g} (c_p = {bulk.ratio:.3g} c_s; {n_steps} -> "
+                f"{bulk_steps} sub-steps/frame, ~{bulk.predicted_px:.2g} px)"
+            )
+            simulated, n_steps, bulk_px = bulk.material, bulk_steps, bulk.predicted_px
+            terms["bulk_cap_rebound_px"] = bulk.rebound_px
+    terms["bulk_cap_px"] = bulk_px
+    if cfg.allow_stiffness_cap and not caps_E:
+        notes.append(
+            "E not capped (an elastic impact: the rebound depends on E; planner.cap_elastic_impacts)"
+        )
+    elif caps_E:
         bound = cfg.cap_budget * cfg.bound_px / px_per_m
-        cap = stiffness_cap(material.E, material.density, size, v_load, bound, g)
-        cap_steps = substeps_per_frame(grid_dx, [material.with_elasticity(E=cap)], v_max, cfg.cfl, frame_dt)
-        if steps["mpm"] >= cfg.min_cap_gain * cap_steps:
-            E_used, n_steps = cap, cap_steps
-            note = f"; E capped to {cap:.3g} Pa ({steps['mpm']} -> {cap_steps} sub-steps/frame)"
+        cap = stiffness_cap(simulated.E, material.density, size, v_load, bound, g)
+        cap_steps = substeps_per_frame(grid_dx, [simulated.with_elasticity(E=cap)], v_max, cfg.cfl, frame_dt)
+        if n_steps >= cfg.min_cap_gain * cap_steps:
+            notes.append(f"E capped to {cap:.3g} Pa ({n_steps} -> {cap_steps} sub-steps/frame)")
             soft = deformation_estimate(cap, material.density, size, v_load, g)
-            cap_px = (soft.sag + soft.impact - deform.sag - deform.impact) * px_per_m
+            hard = deformation_estimate(simulated.E, material.density, size, v_load, g)
+            cap_px = (soft.sag + soft.impact - hard.sag - hard.impact) * px_per_m
+            softer = simulated.with_elasticity(E=cap)
+            if elastic_impact:  # opted in: the rebound error is predicted, not bounded
+                terms["stiffness_cap_rebound_px"] = rebound_px(simulated, softer, size * px_per_m)
+                cap_px += terms["stiffness_cap_rebound_px"]
+            simulated, n_steps = softer, cap_steps
     terms["stiffness_cap_px"] = cap_px
     cost["mpm_capped"] = float((n_frames - 1) * n_steps * P)
+    note = "".join(f"; {n}" for n in notes)
     reason = f"MPM because {why}{note}; grid {n_nodes} nodes, dx={grid_dx:.3g} m"
     return Plan(
         "mpm",
-        E_used=E_used,
-        predicted_error_px=cap_px,
+        E_used=simulated.E,
+        nu_used=simulated.nu,
+        predicted_error_px=cap_px + bulk_px,
         error_terms=terms,
         substeps_per_frame=n_steps,
         predicted_cost=cost["mpm_capped"],

@@ -1,0 +1,108 @@
+"""Speed against error per planner option: the ``options`` part of ``python -m physgm.bench sim``.
+
+For each material, the 50-frame drop of the 15 cm hollow cube runs once per planner option, all
+in one process, and every option's Gaussian centres are compared with the explicit reference's
+in the bench camera (256 px):
+
+    explicit       MPM at the full E and nu (no rigid path, no caps): the reference;
+    bulk_cap       shear modulus kept, nu lowered to c_p = r c_s (sim/bulk_cap.py; r = 2, or one
+                   row bulk_cap_r<r> per ratio given);
+    stiffness_cap  E lowered within cap_budget of the bound, also after elastic impacts;
+    planner        what the default planner chooses (rigid, caps or none) under its bound.
+
+A row gives seconds, sub-steps, the planner's predicted error and the measured error: mean over
+frames and Gaussians, the worst frame's mean, and the largest single Gaussian's distance.
+Options that leave the material unchanged (nu already below the cap's, a cap that saves nothing)
+are listed with ``same_as`` instead of being run again. A reference whose predicted cost exceeds
+``max_reference_cost`` particle-substeps is not run (the stiff materials the planner makes rigid
+would take hours): its row gives the predicted cost instead.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from physgm.bench.drop_scene import bench_camera, hollow_cube_gaussians, project
+from physgm.physics.materials import get_material
+from physgm.sim.gaussian_trajectory import GaussianTrajectory, plan_for, simulate
+from physgm.sim.planner import PlannerConfig
+
+OFF = dict(allow_rigid=False, allow_bulk_cap=False, allow_stiffness_cap=False)
+
+
+def options(bulk_ratios: tuple[float, ...] = (2.0,)) -> dict[str, dict]:
+    """Option name -> planner overrides; one bulk-cap row per c_p / c_s ratio."""
+    out: dict[str, dict] = {"explicit": OFF}
+    for r in bulk_ratios:
+        name = "bulk_cap" if len(bulk_ratios) == 1 else f"bulk_cap_r{r:g}"
+        out[name] = {**OFF, "allow_bulk_cap": True, "force_caps": True, "bulk_wave_ratio": r}
+    out["stiffness_cap"] = {**OFF, "allow_stiffness_cap": True, "force_caps": True}
+    out["planner"] = {}
+    return out
+
+
+def errors_px(cameras, run: GaussianTrajectory, ref: GaussianTrajectory) -> dict[str, float]:
+    """Projected Gaussian-centre distances to the reference, pixels: mean, worst frame, largest."""
+    d = (project(cameras, run.means()) - project(cameras, ref.means())).norm(dim=-1)  # [T, N]
+    return {
+        "error_px": float(d.mean()),
+        "error_px_worst_frame": float(d.mean(-1).max()),
+        "error_px_max": float(d.max()),
+    }
+
+
+def option_table(
+    materials: list[str],
+    n_frames: int,
+    n_gaussians: int,
+    side: float,
+    bottom: float,
+    E_override: dict[str, float],
+    max_reference_cost: float = 3e9,
+    cells_across: int | None = None,
+    bulk_ratios: tuple[float, ...] = (2.0,),
+) -> list[dict]:
+    """One row per (material, option); see the module docstring.
+
+    Args:
+        cells_across: grid cells across the object for every option (None: the planner default).
+        bulk_ratios: c_p / c_s of the bulk-cap rows (one row each).
+    """
+    grid = {} if cells_across is None else {"cells_across": cells_across}
+    gaussians = hollow_cube_gaussians(n_gaussians, side, bottom)
+    cameras = bench_camera(side, bottom)
+    out = []
+    for name in materials:
+        physics = {"material": name, "E": E_override.get(name, get_material(name).E)}
+
+        ref, seen = None, {}
+        for option, overrides in options(tuple(bulk_ratios)).items():
+            cfg = PlannerConfig(**overrides, **grid)
+            probe = plan_for(gaussians, physics, "drop", cameras, n_frames, cfg, {"height": bottom})
+            key = (probe.mode, probe.E_used, probe.nu_used)
+            row = {"material": name, "option": option, **physics, **grid, "mode": probe.mode}
+            row.update(E_used=probe.E_used, nu_used=probe.nu_used)
+            row.update(
+                substeps_per_frame=probe.substeps_per_frame, predicted_error_px=probe.predicted_error_px
+            )
+            if key in seen:
+                out.append({**row, "same_as": seen[key]})
+                continue
+            seen[key] = option
+            if option == "explicit" and probe.predicted_cost > max_reference_cost:
+                out.append({**row, "skipped": f"predicted cost {probe.predicted_cost:.3g} particle-substeps"})
+                print(f"[bench sim options] {name}: reference too costly, skipped", file=sys.stderr)
+                break
+            traj = simulate(
+                gaussians, physics, "drop", cameras, n_frames, cfg, scene_overrides={"height": bottom}
+            )
+            row.update(seconds=traj.seconds, substeps=traj.substeps, rest_frame=traj.rest_frame)
+            if option == "explicit":
+                ref = traj
+            row.update(errors_px(cameras, traj, ref))
+            out.append(row)
+            print(
+                f"[bench sim options] {name} {option}: {traj.seconds:.1f} s, {row['error_px']:.3g} px",
+                file=sys.stderr,
+            )
+    return out
