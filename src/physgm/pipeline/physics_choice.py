@@ -19,9 +19,9 @@ import math
 from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING
 
+from physgm.errors import UserError
 from physgm.physics.materials import MATERIAL_NAMES, get_material
 from physgm.pipeline.config import PhysicsOverrides
-from physgm.pipeline.errors import UserError
 
 if TYPE_CHECKING:  # importing physgm.model pulls in timm; a .ply run never needs it
     from physgm.model.posterior import PhysicsPosterior, PhysicsSample
