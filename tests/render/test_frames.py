@@ -10,7 +10,7 @@ import torch
 from physgm.cameras import orbit_cameras
 from physgm.gaussians import Gaussians
 from physgm.render import Renderer
-from physgm.render.frames import render_trajectory
+from physgm.render.frames import Shot, render_trajectory
 
 
 @dataclass
@@ -46,7 +46,7 @@ def _blob() -> Gaussians:
 def test_frames_move_until_rest_then_repeat_over_the_background():
     cam = orbit_cameras([0.0], [0.0], 1.0, 40.0, 24, 24)
     traj = Falling(_blob(), n=5, rest_frame=3)
-    frames, finite = render_trajectory(traj, cam, Renderer(backend="torch"), np.array([1.0, 1.0, 1.0]))
+    frames, finite = render_trajectory(traj, Shot(cam, Renderer(backend="torch"), np.array([1.0, 1.0, 1.0])))
     assert finite and frames.shape == (5, 24, 24, 3) and frames.dtype == np.uint8
     assert not np.array_equal(frames[1], frames[2])  # still moving
     assert np.array_equal(frames[3], frames[2]) and np.array_equal(frames[4], frames[2])  # held
@@ -59,5 +59,7 @@ def test_non_finite_gaussians_give_a_black_frame_and_say_so():
     cam = orbit_cameras([0.0], [0.0], 1.0, 40.0, 16, 16)
     blob = _blob()
     blob.means[0, 0] = float("nan")
-    frames, finite = render_trajectory(Falling(blob, 2, None), cam, Renderer(backend="torch"), np.ones(3))
+    frames, finite = render_trajectory(
+        Falling(blob, 2, None), Shot(cam, Renderer(backend="torch"), np.ones(3))
+    )
     assert not finite and (frames == 0).all()

@@ -70,9 +70,11 @@ def render_frames(trajectory, camera: Cameras, backend: str, background: float) 
         ValueError: the trajectory holds non-finite Gaussians (a reference must not be a black clip).
     """
     from physgm.render import Renderer
-    from physgm.render.frames import render_trajectory
+    from physgm.render.frames import Shot, render_trajectory
 
-    frames, finite = render_trajectory(trajectory, camera, Renderer(backend=backend), np.full(3, background))
+    frames, finite = render_trajectory(
+        trajectory, Shot(camera, Renderer(backend=backend), np.full(3, background))
+    )
     if not finite:
         raise ValueError("the simulated trajectory has non-finite Gaussians; its frames would be black")
     return frames

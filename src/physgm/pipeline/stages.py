@@ -48,7 +48,7 @@ class FutureResult:
     predicted_error_px: float
     E_used: float  # Pa, as simulated (capped in mpm_capped)
     particles: int
-    grid_cells: int
+    grid_cells: list[int]  # along x, y, z
     dx_m: float
     substeps: int
     rest_frame: int | None
@@ -151,22 +151,22 @@ def _future_result(choice, traj, seconds: dict, finite: bool, video: str) -> Fut
     plan = traj.plan
     return FutureResult(
         name=choice.name,
-        video=video,
         material=choice.material,
         E=choice.E,
         nu=choice.nu,
+        particles=int(len(traj.particles.x)),
         mode=plan.mode,
         predicted_error_px=plan.predicted_error_px,
         E_used=plan.E_used,
-        particles=int(len(traj.particles.x)),
-        grid_cells=plan.summary()["grid_cells"],
         dx_m=plan.dx,
+        grid_cells=plan.summary()["grid_cells"],
+        reason=plan.reason,
         substeps=int(traj.substeps),
         rest_frame=traj.rest_frame,
         ballistic_frames=traj.ballistic_frames,
-        reason=plan.reason,
-        finite=finite,
         seconds={k: round(v, 3) for k, v in seconds.items()},
+        video=video,
+        finite=finite,
     )
 
 
@@ -194,7 +194,7 @@ def _execute(cfg: RunConfig) -> RunResult:
     from physgm.pipeline.physics_choice import choose_physics, physics_json
     from physgm.pipeline.prepared_input import input_kind, prepare_input
     from physgm.pipeline.staging import direction, floor_image, framing_camera, motion_region, place_object
-    from physgm.render.frames import render_gaussians, render_trajectory
+    from physgm.render.frames import Shot, render_trajectory
     from physgm.view.sequence import sequence_file, sequence_from_trajectory
 
     start = time.perf_counter()
@@ -224,7 +224,9 @@ def _execute(cfg: RunConfig) -> RunResult:
         bg = np.broadcast_to(np.asarray(cfg.output.background, np.float32), (res, res, 3)).copy()
         if cfg.output.floor and ground is not None:
             bg = floor_image(camera, ground, cfg.size_m / 4, np.asarray(cfg.output.background))
-        renderer = instantiate({"_target_": "physgm.render.Renderer", **cfg.renderer})
+        shot = Shot(
+            camera, instantiate({"_target_": "physgm.render.Renderer", **cfg.renderer}), bg, cfg.device
+        )
         sec["model"] = time.perf_counter() - t0
         # -- per future: plan, simulate, render, write the video ---------------------------------
         results, videos, sheet_rows, rest_state = [], {}, [], None
@@ -232,8 +234,7 @@ def _execute(cfg: RunConfig) -> RunResult:
             traj, plan_s, sim_s = _simulate(placement.gaussians, choice, cfg, camera, scene.overrides)
             t0 = time.perf_counter()
             desc = f"{choice.name} ({traj.plan.mode})"
-            progress = cfg.output.progress
-            frames, finite = render_trajectory(traj, camera, renderer, bg, cfg.device, progress, desc)
+            frames, finite = render_trajectory(traj, shot, cfg.output.progress, desc)
             finite = finite and bool(np.isfinite(traj.x).all() and np.isfinite(traj.F).all())
             render_s = time.perf_counter() - t0
             if not finite:
@@ -266,7 +267,7 @@ def _execute(cfg: RunConfig) -> RunResult:
 
         write_ply(rest_state, tmp / "gaussians.ply")
         if inp.kind == "ply":  # no photo to show: the object as the first frame shows it
-            inp.preview = render_gaussians(rest_state, camera, renderer, bg, cfg.device).clip(0, 1)
+            inp.preview = shot.draw(rest_state).clip(0, 1)
         else:
             save_png(tmp / "mask.png", inp.mask_image)
             save_png(tmp / "input.png", inp.preview)

@@ -6,6 +6,7 @@ scored against them all render here, so a rollout and its reference differ only 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
@@ -30,32 +31,28 @@ def finite_gaussians(g: Gaussians) -> bool:
     return all(bool(torch.isfinite(t).all()) for t in (g.means, g.quats, g.scales, g.opacities, g.colors))
 
 
-def render_gaussians(
-    g: Gaussians,
-    camera: Cameras,  # one camera
-    renderer: Renderer,
-    background: np.ndarray,  # [H, W, 3] (or broadcastable to it) float in [0, 1]
-    device: str = "cpu",
-) -> np.ndarray:  # [H, W, 3] float
-    """One image of ``g`` composited over a per-pixel background."""
-    g = g.to(device)
-    cam = camera.to(device)
-    with torch.no_grad():
-        rgb, alpha, _ = renderer(
-            g.means, g.quats, g.scales, g.opacities, g.colors, cam.viewmats, cam.Ks, cam.width, cam.height
-        )
-    rgb, alpha = rgb[0].cpu().numpy(), alpha[0].cpu().numpy()
-    return rgb + (1.0 - alpha) * background  # the renderer's rgb has no background (premultiplied)
+@dataclass
+class Shot:
+    """How every frame of a clip is drawn: one camera, a renderer, and what lies behind the object."""
+
+    camera: Cameras  # one camera
+    renderer: Renderer
+    background: np.ndarray  # [H, W, 3] (or broadcastable to it) float in [0, 1]
+    device: str = "cpu"
+
+    def draw(self, g: Gaussians) -> np.ndarray:  # [H, W, 3] float
+        """One image of ``g`` composited over the background."""
+        g, cam = g.to(self.device), self.camera.to(self.device)
+        with torch.no_grad():
+            rgb, alpha, _ = self.renderer(
+                g.means, g.quats, g.scales, g.opacities, g.colors, cam.viewmats, cam.Ks, cam.width, cam.height
+            )
+        rgb, alpha = rgb[0].cpu().numpy(), alpha[0].cpu().numpy()
+        return rgb + (1.0 - alpha) * self.background  # the renderer's rgb has no background (premultiplied)
 
 
 def render_trajectory(
-    trajectory: Trajectory,
-    camera: Cameras,  # one camera
-    renderer: Renderer,
-    background: np.ndarray,  # [H, W, 3] (or broadcastable to it) float in [0, 1]
-    device: str = "cpu",
-    progress: bool = False,
-    desc: str = "render",
+    trajectory: Trajectory, shot: Shot, progress: bool = False, desc: str = "render"
 ) -> tuple[np.ndarray, bool]:  # frames [T, H, W, 3] uint8, all finite
     """Frames of ``trajectory``; frames after its rest frame repeat the last one drawn.
 
@@ -65,8 +62,9 @@ def render_trajectory(
     from tqdm import tqdm
 
     n, rest = len(trajectory), trajectory.rest_frame
-    background = np.broadcast_to(np.asarray(background, np.float32), (camera.height, camera.width, 3))
-    frames = np.empty((n, camera.height, camera.width, 3), np.uint8)
+    h, w = shot.camera.height, shot.camera.width
+    black = np.zeros((h, w, 3), np.float32)
+    frames = np.empty((n, h, w, 3), np.uint8)
     finite = True
     for t in tqdm(range(n), desc=desc, unit="frame", disable=not progress, leave=False):
         if rest is not None and t >= rest and t > 0:
@@ -74,7 +72,7 @@ def render_trajectory(
             continue
         g = trajectory.gaussians_at(t)
         ok = finite_gaussians(g)
-        img = render_gaussians(g, camera, renderer, background, device) if ok else np.zeros_like(background)
+        img = shot.draw(g) if ok else black
         finite = finite and ok and bool(np.isfinite(img).all())
         frames[t] = np.round(np.clip(img, 0.0, 1.0) * 255.0).astype(np.uint8)
     return frames, finite
