@@ -105,6 +105,7 @@ def write_reference_video(
     cfg: VideoConfig | None = None,
 ) -> dict:
     """Simulate, render and write ``videos/<scene>.mp4`` + ``.json`` into an asset folder."""
+    from physgm.physics.materials import PhysicsSpec
     from physgm.sim.gaussian_trajectory import simulate
     from physgm.sim.stepping import SolverConfig
 
@@ -117,7 +118,7 @@ def write_reference_video(
     min_opacity = min(0.05, 0.5 * float(world.opacities.min()))
     traj = simulate(
         world,
-        physics,
+        PhysicsSpec(physics.material, physics.E, physics.nu, physics.density),
         cfg.scene,
         camera,
         n_frames=cfg.n_frames,

@@ -132,7 +132,7 @@ def _simulate(g, choice, cfg: RunConfig, camera, overrides: dict):
     try:
         traj = simulate(
             g,
-            choice.sim_physics(),
+            choice.spec(),
             cfg.scene,
             camera,
             n_frames=cfg.output.frames,
