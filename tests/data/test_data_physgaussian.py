@@ -14,9 +14,9 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from physgm.data.readers.physgaussian import UP_ROTATIONS, PhysGaussianConfigError, read_physgaussian
+from physgm.errors import UserError
 from physgm.gaussians import Gaussians, write_ply
 from physgm.pipeline.config import from_hydra
-from physgm.pipeline.errors import UserError
 from physgm.pipeline.prepared_input import UP_ROTATIONS as PIPELINE_UP_ROTATIONS
 from physgm.resources import conf_dir
 

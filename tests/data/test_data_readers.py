@@ -16,8 +16,8 @@ from PIL import Image
 from physgm.data.check import check_asset
 from physgm.data.format import AssetError, load_asset
 from physgm.data.readers.physgm_release import RELEASE_MATERIALS, canonical_material
+from physgm.errors import UserError
 from physgm.physics.materials import MATERIAL_NAMES, get_material
-from physgm.pipeline.errors import UserError
 from physgm.pipeline.prepared_input import _read_cameras
 
 

@@ -12,8 +12,9 @@ from physgm.data.check import check_asset
 from physgm.data.format import load_asset
 from physgm.data.priors import sample_physics
 from physgm.data.procedural import make_object
-from physgm.data.video import VideoConfig, place_object, read_mp4, video_camera, write_mp4
+from physgm.data.video import VideoConfig, place_object, video_camera
 from physgm.data.writer import camera_entry, write_json
+from physgm.mp4 import read_mp4, write_mp4
 
 
 def test_object_is_placed_above_ground_and_framed_by_the_paper_camera():

@@ -43,7 +43,7 @@ def _tiny_config():
 def tiny_ckpt(tmp_path_factory) -> Path:
     """A randomly initialised small PhysGM saved in the LitPretrain checkpoint layout."""
     from physgm.model import PhysGM
-    from physgm.pipeline.checkpoint import save_checkpoint
+    from physgm.model.checkpoint import save_checkpoint
 
     torch.manual_seed(0)
     path = tmp_path_factory.mktemp("ckpt") / "tiny.ckpt"

@@ -207,15 +207,15 @@ def test_shipped_checkpoint_runs_every_shipped_photo(make_cfg):
     import torch
 
     from physgm import CHECKPOINT_FORMAT_VERSION
-    from physgm.pipeline.checkpoint import REPO_ROOT, load_model
+    from physgm.model.checkpoint import REPO_ROOT, input_size, load_model
 
     path = REPO_ROOT / "checkpoints" / "physgm_tiny.ckpt"
     assert path.stat().st_size <= 25 * 2**20
     raw = torch.load(path, map_location="cpu", weights_only=False)
     assert raw["hyper_parameters"]["format_version"] == CHECKPOINT_FORMAT_VERSION
     assert "experiment=cpu_frozen" in raw["physgm"]["recipe"]
-    model, info = load_model(path)
-    assert info["input_size"] == 128 and model.config.physics_head.semantic_prior_weight > 0
+    model, ckpt = load_model(path)
+    assert input_size(model, ckpt.hparams) == 128 and model.config.physics_head.semantic_prior_weight > 0
     synthetic = ("jelly_cube.png", "metal_can.png", "rubber_blob_plain.jpg", "wood_toy_cluttered.jpg")
     photos = synthetic + ("ceramic_mug.png", "basketball.png", "soda_can.png")
     for photo in photos:

@@ -181,16 +181,16 @@ def test_failure_mid_run_leaves_nothing(tmp_path, make_cfg, examples, monkeypatc
 
 
 def test_non_finite_simulation_writes_nothing(tmp_path, make_cfg, examples, monkeypatch):
-    import physgm.pipeline.frames as pipeline_frames
+    import physgm.render.frames as render_frames
     from physgm.pipeline import execute
 
-    real = pipeline_frames.render_trajectory
+    real = render_frames.render_trajectory
 
     def poisoned(traj, *args, **kwargs):
         traj.x[-1, 0, 0] = float("nan")  # as if the solver had diverged
         return real(traj, *args, **kwargs)
 
-    monkeypatch.setattr(pipeline_frames, "render_trajectory", poisoned)
+    monkeypatch.setattr(render_frames, "render_trajectory", poisoned)
     cfg = make_cfg(examples / "metal_can.png", physics__material="rubber")
     with pytest.raises(RuntimeError, match="non-finite"):
         execute(cfg)

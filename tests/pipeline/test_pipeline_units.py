@@ -222,22 +222,21 @@ def test_physics_choice_rules():
 
 
 def test_checkpoint_layout_is_lightnings(tmp_path, tiny_config):
-    """save_checkpoint writes what LitPretrain.load_from_checkpoint reads; load_model gives the same net."""
+    """save_checkpoint writes what LitPretrain.load_from_checkpoint and load_model read, the same net."""
     from physgm.model import PhysGM
-    from physgm.pipeline.checkpoint import load_model, save_checkpoint
-    from physgm.train.pretrain import LitPretrain, model_from_checkpoint
+    from physgm.model.checkpoint import input_size, load_model, save_checkpoint
+    from physgm.train.pretrain import LitPretrain
 
     torch.manual_seed(1)
     model = PhysGM(tiny_config, load_pretrained=False).eval()
     path = tmp_path / "m.ckpt"
     save_checkpoint(model, path)
     lit = LitPretrain.load_from_checkpoint(path, map_location="cpu")
-    loaded, info = load_model(path)
-    other = model_from_checkpoint(str(path))
-    for net in (lit.model, loaded, other):
+    loaded, ckpt = load_model(path)
+    for net in (lit.model, loaded):
         for (k, a), (_, b) in zip(model.state_dict().items(), net.state_dict().items(), strict=True):
             torch.testing.assert_close(a, b, msg=k)
-    assert info["input_size"] == 32 and info["format_version"] == 1
+    assert input_size(loaded, ckpt.hparams) == 32 and ckpt.summary()["format_version"] == 1
 
 
 def test_run_folder_commit(tmp_path):

@@ -125,16 +125,25 @@ def test_early_stop_holds_frames_once_still():
     assert traj.face_contacts == 0  # the slide stayed inside the planned grid
 
 
-def test_resolve_material_reads_table_and_overrides():
-    from physgm.sim.gaussian_trajectory import resolve_material
+def test_physics_spec_reads_table_and_overrides():
+    from physgm.physics.materials import PhysicsSpec
+    from physgm.sim.gaussian_trajectory import physics_params
 
-    name, params = resolve_material({"material": "rubber", "E": 2e6, "nu": 0.45, "density": 1200.0})
-    assert name == "rubber" and params.model == "neo_hookean"
+    name, params, restitution = physics_params(
+        {"material": "rubber", "E": 2e6, "nu": 0.45, "density": 1200.0}
+    )
+    assert name == "rubber" and params.model == "neo_hookean" and restitution is None
     assert (params.E, params.nu, params.density) == (2e6, 0.45, 1200.0)
-    name, params = resolve_material({"material": "metal"})  # table defaults
+    name, params, _ = physics_params(PhysicsSpec("metal"))  # table defaults
     assert params.yield_stress > 0 and params.E == pytest.approx(2e11)
     with pytest.raises(ValueError, match="material"):
-        resolve_material({"E": 1e6})
+        physics_params({"E": 1e6})
+    with pytest.raises(ValueError, match="takes only"):
+        physics_params({"material": "metal", "young": 1e6})  # a misspelt key is not ignored
+    with pytest.raises(ValueError, match="unknown material"):
+        PhysicsSpec("unobtainium")
+    with pytest.raises(TypeError, match="PhysicsSpec"):
+        physics_params(("metal", 1e6))
 
 
 def test_registered_drop_scene_places_object_and_gaussians():

@@ -12,10 +12,11 @@ from torch.utils.data import DataLoader
 
 from physgm.cameras import orbit_cameras
 from physgm.model import BackboneConfig, EncoderConfig, GaussianHeadConfig, PhysGMConfig
+from physgm.model.checkpoint import load_model
 from physgm.model.posterior import PhysicsPosterior
 from physgm.train.dpo import LitDPO, dpo_loss, posterior_kl
 from physgm.train.pairs import Candidate, PairDataset, SceneInputs, SceneRecord, collate_pairs
-from physgm.train.pretrain import LitPretrain, model_from_checkpoint
+from physgm.train.pretrain import LitPretrain
 
 
 def tiny_model_config() -> dict:
@@ -109,7 +110,7 @@ def test_reference_is_a_frozen_copy_outside_the_module_tree(tmp_path):
     )
     assert not any(m is ref for m in lit.modules())
     # Same weights as the stage-1 model it was copied from.
-    stage1 = model_from_checkpoint(str(tmp_path / "s1.ckpt"))
+    stage1, _ = load_model(tmp_path / "s1.ckpt")
     for a, b in zip(stage1.state_dict().values(), ref.state_dict().values(), strict=True):
         assert torch.equal(a, b)
     # Only the physics head trains; the rest is frozen and stays in eval mode in training.
@@ -218,13 +219,13 @@ def test_training_moves_only_the_physics_head_and_never_the_reference(tmp_path):
     # 4 steps of DPO on consistent pairs: the winners became relatively more likely than the losers.
     assert m["rewards/margins"] > 0 and m["train/kl"] > 0
 
-    # The checkpoint holds the policy only, reloads without Hydra, and model_from_checkpoint reads it.
+    # The checkpoint holds the policy only, reloads without Hydra, and load_model reads it.
     path = tmp_path / "dpo.ckpt"
     trainer.save_checkpoint(path)
     ckpt = torch.load(path, map_location="cpu", weights_only=False)
     assert set(ckpt["state_dict"]) == {f"model.{k}" for k in lit.model.state_dict()}
     assert isinstance(ckpt["hyper_parameters"]["model"], dict)
-    policy = model_from_checkpoint(str(path))
+    policy, _ = load_model(path)
     for k, v in lit.model.state_dict().items():
         assert torch.equal(policy.state_dict()[k], v)
     back = LitDPO.load_from_checkpoint(path)

@@ -9,8 +9,9 @@ from hydra.core.global_hydra import GlobalHydra
 
 from physgm.data.datamodule import PhysAssetsDataModule
 from physgm.data.format import read_split
+from physgm.model.checkpoint import load_model
 from physgm.train.evaluate import evaluate_views, main
-from physgm.train.pretrain import LitPretrain, model_from_checkpoint, render_targets
+from physgm.train.pretrain import LitPretrain, render_targets
 from physgm.train.run import plain
 
 
@@ -57,7 +58,7 @@ def test_evaluate_reports_both_view_counts_and_matches_a_hand_computation(tiny_d
         assert 0 <= r["coverage90_E"] <= 1 and r["ssim"] <= 1
 
     # PSNR by hand over the novel views of the 4-view inputs: mean over images of -10 log10(MSE).
-    model = model_from_checkpoint(str(ckpt)).eval()
+    model, _ = load_model(ckpt)
     dm = PhysAssetsDataModule(
         str(tiny_dataset),
         batch_size=3,
@@ -86,7 +87,7 @@ def test_evaluate_reports_both_view_counts_and_matches_a_hand_computation(tiny_d
 
 def test_evaluate_single_view_batches_have_one_input(tiny_dataset, tmp_path):
     ckpt = save_random_checkpoint(tmp_path)
-    model = model_from_checkpoint(str(ckpt)).eval()
+    model, _ = load_model(ckpt)
     dm = PhysAssetsDataModule(
         str(tiny_dataset),
         batch_size=4,
@@ -134,7 +135,7 @@ def test_evaluate_scores_labelled_real_assets_and_sweeps_the_prior(tiny_dataset,
     assert abs(r["label_material_acc"] - float(matrix.trace()) / len(ids)) < 1e-6
     assert r["prior_sweep"]["0.0"]["label_material_acc"] == r["label_material_acc"]  # the checkpoint's w is 0
     # By hand at w = 2: argmax of log p_head + 2 log p_prior, against each asset's labelled material.
-    model = model_from_checkpoint(str(ckpt)).eval()
+    model, _ = load_model(ckpt)
     dm = PhysAssetsDataModule(
         str(root),
         batch_size=4,

@@ -6,9 +6,9 @@ import pytest
 import torch
 
 from physgm.cameras import orbit_cameras
-from physgm.pipeline.checkpoint import load_model
+from physgm.model.checkpoint import load_model
 from physgm.train.export import main
-from physgm.train.pretrain import LitPretrain, model_from_checkpoint
+from physgm.train.pretrain import LitPretrain
 
 SMALL = {
     "backbone": {"encoder": {"img_size": 16, "depth": 1}, "depth": 4, "width": 64, "out_layers": [0, 1, 2, 3]}
@@ -75,18 +75,15 @@ def test_export_keeps_predictions_and_drops_training_state(tmp_path, capsys):
     cams = orbit_cameras([0, 90, 180, 270], [0] * 4, 1.5, 40.0, 16, 16)
     images, masks = torch.rand(1, 4, 3, 16, 16), torch.ones(1, 4, 1, 16, 16)
     expected = module.model.eval()(images, masks, cams.c2w[None], cams.Ks[None])
-    for model in (
-        load_model(tmp_path / "out" / "slim.ckpt")[0],
-        model_from_checkpoint(str(tmp_path / "out" / "slim.ckpt")),
-    ):
-        got = model.eval()(images, masks, cams.c2w[None], cams.Ks[None])
-        assert torch.equal(got.gaussians.means, expected.gaussians.means)
-        assert torch.equal(got.physics.material_logits, expected.physics.material_logits)
+    model, _ = load_model(tmp_path / "out" / "slim.ckpt")
+    got = model(images, masks, cams.c2w[None], cams.Ks[None])
+    assert torch.equal(got.gaussians.means, expected.gaussians.means)
+    assert torch.equal(got.physics.material_logits, expected.physics.material_logits)
 
 
 def test_export_refuses_a_file_that_is_not_a_training_checkpoint(tmp_path):
     torch.save({"state_dict": {}}, tmp_path / "x.ckpt")
-    with pytest.raises(SystemExit, match="not a physgm training checkpoint"):
+    with pytest.raises(SystemExit, match="not a physgm checkpoint"):
         main([str(tmp_path / "x.ckpt"), str(tmp_path / "y.ckpt")])
     assert not (tmp_path / "y.ckpt").exists()
 
@@ -115,7 +112,7 @@ def test_export_sets_the_semantic_prior_weight(tmp_path, capsys):
         {"hyper_parameters": dict(module.hparams), "state_dict": module.state_dict()}, tmp_path / "t.ckpt"
     )
     assert main([str(tmp_path / "t.ckpt"), str(tmp_path / "w.ckpt"), "--prior-weight", "1.5"]) == 0
-    model = model_from_checkpoint(str(tmp_path / "w.ckpt")).eval()
+    model, _ = load_model(tmp_path / "w.ckpt")
     assert model.config.physics_head.semantic_prior_weight == 1.5
     cams = orbit_cameras([0], [0], 1.5, 40.0, 32, 32)
     images, masks = torch.rand(1, 1, 3, 32, 32), torch.ones(1, 1, 1, 32, 32)

@@ -8,7 +8,8 @@ from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 
 from physgm.data.datamodule import PhysAssetsDataModule
-from physgm.train.pretrain import LitPretrain, model_from_checkpoint
+from physgm.model.checkpoint import load_model
+from physgm.train.pretrain import LitPretrain
 from physgm.train.run import run
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
@@ -90,7 +91,7 @@ def test_resume_continues_step_count_and_checkpoint_predicts_the_same(tiny_datas
 
     # The checkpoint rebuilds outside Hydra and Lightning and predicts what the trained module predicts.
     module = LitPretrain.load_from_checkpoint(last, map_location="cpu").eval()
-    model = model_from_checkpoint(str(last)).eval()
+    model, _ = load_model(last)
     dm = PhysAssetsDataModule(
         root=str(tiny_dataset),
         val_split="train",

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -30,6 +30,22 @@ from physgm.train.pretrain import LitPretrain
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 COUNT = 4
+
+
+@dataclass
+class StillTrajectory:
+    """A trajectory whose Gaussians never move (what rendering reads of one)."""
+
+    gaussians: Gaussians
+    n: int
+    plan: object = None
+    rest_frame: int | None = None
+
+    def __len__(self) -> int:
+        return self.n
+
+    def gaussians_at(self, t: int) -> Gaussians:
+        return self.gaussians
 
 
 def tiny_model_config() -> dict:
@@ -284,14 +300,12 @@ def test_evaluate_physics_wiring(dpo_root, monkeypatch):
             physics=physics,
             planner=planner,
         )
-        return SimpleNamespace(
-            frames=lambda: iter([gaussians] * n_frames), plan=SimpleNamespace(mode="rigid", E_used=1.0)
-        )
+        return StillTrajectory(gaussians, n_frames, plan=SimpleNamespace(mode="rigid", E_used=1.0))
 
     monkeypatch.setattr("physgm.sim.gaussian_trajectory.simulate", static_simulate)
     settings = rollout.SimSettings(resolution=32, n_frames=6, backend="warp")
     camera = rollout.render_camera(scene, 32)
-    reference = render_frames(SimpleNamespace(frames=lambda: iter([placed] * 6)), camera, "warp", 1.0)
+    reference = render_frames(StillTrajectory(placed, 6), camera, "warp", 1.0)
     dist, info = rollout.evaluate_physics(
         scene, g, {"material": "rubber", "E": 1e6, "nu": 0.45}, reference, settings
     )

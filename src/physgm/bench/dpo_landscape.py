@@ -285,10 +285,10 @@ def main(argv: list[str] | None = None) -> dict:
     start = time.perf_counter()
     model, inputs = None, {"input_resolution": None, "num_views": 4, "background": 1.0}
     if "predicted" in sources:
-        from physgm.train.pretrain import model_from_checkpoint
+        from physgm.model.checkpoint import load_model
 
-        model = model_from_checkpoint(a.ckpt).eval()
-        inputs = input_settings(a.ckpt, model)
+        model, ckpt = load_model(a.ckpt)
+        inputs = input_settings(ckpt.hparams, model)
     scenes = select_scenes(
         a.data,
         [s.strip() for s in a.splits.split(",")],

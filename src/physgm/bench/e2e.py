@@ -46,7 +46,7 @@ def random_checkpoint(folder: Path) -> Path:
     import torch
 
     from physgm.model import PhysGM, PhysGMConfig
-    from physgm.pipeline.checkpoint import save_checkpoint
+    from physgm.model.checkpoint import save_checkpoint
 
     torch.manual_seed(0)
     path = folder / "random_tiny.ckpt"
@@ -121,7 +121,7 @@ def main(argv: list[str] | None = None) -> dict:
     with tempfile.TemporaryDirectory(prefix="physgm-e2e-") as tmp:
         ckpt = random_checkpoint(Path(tmp)) if args.random_ckpt else args.ckpt
         if not args.random_ckpt and not ckpt.is_file():
-            from physgm.pipeline.checkpoint import missing_checkpoint_message
+            from physgm.model.checkpoint import missing_checkpoint_message
 
             sys.exit(f"error: {missing_checkpoint_message(ckpt)}; or time with --random-ckpt")
         out_root = args.out or Path(tmp) / "runs"

@@ -11,18 +11,18 @@ object-to-world transform, scene) so DPO rollouts can be compared with it.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from physgm.cameras import Cameras, orbit_cameras
 from physgm.data.format import CAMERA_RADIUS, FOV_DEG
 from physgm.data.priors import TruePhysics
-from physgm.data.writer import camera_entry, to_rgba8, write_json
+from physgm.data.writer import camera_entry, write_json
 from physgm.gaussians import Gaussians
+from physgm.mp4 import read_mp4, write_mp4
+from physgm.placement import place
 
 
 @dataclass
@@ -43,18 +43,9 @@ class VideoConfig:
 
 def place_object(gaussians: Gaussians, cfg: VideoConfig) -> tuple[Gaussians, np.ndarray]:
     """Asset-frame Gaussians scaled and lifted into the simulation world, and the [4, 4] transform."""
-    s = cfg.object_scale
-    lift = cfg.drop_height_m - s * float(gaussians.means[:, 2].min())
-    T = np.diag([s, s, s, 1.0])
-    T[2, 3] = lift
-    g = Gaussians(
-        means=gaussians.means * s + torch.tensor([0.0, 0.0, lift]),
-        quats=gaussians.quats,
-        scales=gaussians.scales * s,
-        opacities=gaussians.opacities,
-        colors=gaussians.colors,
-    )
-    return g, T
+    lowest = float(gaussians.means[:, 2].min())
+    placed = place(gaussians, cfg.object_scale, (0.0, 0.0, lowest), (0.0, 0.0, cfg.drop_height_m))
+    return placed.gaussians, placed.object_to_world
 
 
 def video_camera(cfg: VideoConfig, azimuth_deg: float, resolution: int) -> Cameras:
@@ -71,93 +62,22 @@ def video_camera(cfg: VideoConfig, azimuth_deg: float, resolution: int) -> Camer
     )
 
 
-def _states(trajectory) -> Iterator[Gaussians | None]:
-    """Gaussians per frame; None where the frame repeats the previous one (after the rest frame)."""
-    rest = getattr(trajectory, "rest_frame", None)
-    if rest is None or not hasattr(trajectory, "gaussians_at"):
-        yield from trajectory.frames()
-        return
-    for t in range(len(trajectory)):
-        yield None if t >= rest else trajectory.gaussians_at(t)
-
-
 def render_frames(trajectory, camera: Cameras, backend: str, background: float) -> np.ndarray:
-    """RGB uint8 frames [T, H, W, 3] of a simulated trajectory, composited over the background.
+    """RGB uint8 frames [T, H, W, 3] of a simulated trajectory (``physgm.render.frames.Trajectory``)
+    over a uniform grey ``background``, as the reference videos are drawn.
 
-    ``trajectory`` needs ``frames()`` (an iterator of Gaussians); with ``gaussians_at(t)``,
-    ``rest_frame`` and ``len`` too, the held frames after the object came to rest are reused.
+    Raises:
+        ValueError: the trajectory holds non-finite Gaussians (a reference must not be a black clip).
     """
-    from physgm.render import rasterize
+    from physgm.render import Renderer
+    from physgm.render.frames import Shot, render_trajectory
 
-    frames = []
-    for g in _states(trajectory):
-        if g is None and frames:
-            frames.append(frames[-1])
-            continue
-        rgb, alpha, _ = rasterize(
-            g.means,
-            g.quats,
-            g.scales,
-            g.opacities,
-            g.colors,
-            camera.viewmats,
-            camera.Ks,
-            camera.width,
-            camera.height,
-            background=None,
-            backend=backend,
-        )
-        rgba = to_rgba8(rgb, alpha)[0].astype(np.float32) / 255.0
-        comp = rgba[..., :3] * rgba[..., 3:] + background * (1 - rgba[..., 3:])
-        frames.append(np.round(comp * 255).astype(np.uint8))
-    return np.stack(frames)
-
-
-def write_mp4(path: Path, frames: np.ndarray, fps: float) -> None:
-    """H.264 mp4 with bit-exact flags (no encoder version strings), single-threaded for determinism."""
-    import imageio_ffmpeg
-
-    h, w = frames.shape[1:3]
-    writer = imageio_ffmpeg.write_frames(
-        str(path),
-        (w, h),
-        fps=fps,
-        codec="libx264",
-        pix_fmt_out="yuv420p",
-        quality=None,
-        macro_block_size=1,
-        output_params=[
-            "-crf",
-            "18",
-            "-threads",
-            "1",
-            "-fflags",
-            "+bitexact",
-            "-flags:v",
-            "+bitexact",
-            "-map_metadata",
-            "-1",
-        ],
+    frames, finite = render_trajectory(
+        trajectory, Shot(camera, Renderer(backend=backend), np.full(3, background))
     )
-    writer.send(None)
-    for f in frames:
-        writer.send(np.ascontiguousarray(f))
-    writer.close()
-
-
-def read_mp4(path: Path | str, n_frames: int | None = None) -> np.ndarray:
-    """Frames [T, H, W, 3] uint8 of an mp4, the first ``n_frames`` only when given."""
-    import imageio_ffmpeg
-
-    reader = imageio_ffmpeg.read_frames(str(path))
-    w, h = next(reader)["size"]
-    frames = []
-    for buf in reader:
-        frames.append(np.frombuffer(buf, np.uint8).reshape(h, w, 3))
-        if n_frames is not None and len(frames) >= n_frames:
-            break
-    reader.close()
-    return np.stack(frames)
+    if not finite:
+        raise ValueError("the simulated trajectory has non-finite Gaussians; its frames would be black")
+    return frames
 
 
 def codec_round_trip(frames: np.ndarray, fps: float) -> np.ndarray:
@@ -185,6 +105,7 @@ def write_reference_video(
     cfg: VideoConfig | None = None,
 ) -> dict:
     """Simulate, render and write ``videos/<scene>.mp4`` + ``.json`` into an asset folder."""
+    from physgm.physics.materials import PhysicsSpec
     from physgm.sim.gaussian_trajectory import simulate
     from physgm.sim.stepping import SolverConfig
 
@@ -197,7 +118,7 @@ def write_reference_video(
     min_opacity = min(0.05, 0.5 * float(world.opacities.min()))
     traj = simulate(
         world,
-        physics,
+        PhysicsSpec(physics.material, physics.E, physics.nu, physics.density),
         cfg.scene,
         camera,
         n_frames=cfg.n_frames,

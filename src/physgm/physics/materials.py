@@ -13,10 +13,12 @@ solver parameters.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields, replace
 from functools import cache
 from importlib.resources.abc import Traversable
 from pathlib import Path
+from typing import Any
 
 import yaml
 
@@ -75,6 +77,51 @@ class Material:
             density=float(self.density),
             **{k: float(v) for k, v in self.plasticity.items()},
         )
+
+
+@dataclass(frozen=True)
+class PhysicsSpec:
+    """The physics one simulation runs with: a material of the table at a chosen E and nu (SI units).
+
+    The constitutive model and its plasticity parameters come from the material's row
+    (``params``); E, nu and density left at None take the row's values too.
+    """
+
+    material: str  # a name in the material table
+    E: float | None = None  # Young's modulus, Pa
+    nu: float | None = None  # Poisson ratio
+    density: float | None = None  # kg/m^3
+    restitution: float | None = None  # ground restitution of the rigid path; None: the planner's
+
+    def __post_init__(self) -> None:
+        get_material(self.material)  # an unknown name stops here, with the table's names
+        if self.E is not None and not (math.isfinite(self.E) and self.E > 0):
+            raise ValueError(f"E={self.E!r} Pa must be finite and > 0")
+        if self.nu is not None and not (math.isfinite(self.nu) and 0 <= self.nu < 0.5):
+            raise ValueError(f"nu={self.nu!r} must be in [0, 0.5)")
+        if self.density is not None and not (math.isfinite(self.density) and self.density > 0):
+            raise ValueError(f"density={self.density!r} kg/m^3 must be finite and > 0")
+
+    @classmethod
+    def from_dict(cls, physics: Mapping[str, Any]) -> PhysicsSpec:
+        """From a JSON-shaped description (physical.json, a DPO candidate); unknown keys are errors."""
+        names = [f.name for f in fields(cls)]
+        unknown = sorted(set(physics) - set(names))
+        if unknown or "material" not in physics:
+            raise ValueError(
+                f"a physics description needs 'material' and takes only {names}; got {dict(physics)!r}"
+            )
+        return cls(
+            **{
+                k: (str(v) if k == "material" else None if v is None else float(v))
+                for k, v in physics.items()
+            }
+        )
+
+    def params(self):
+        """Solver parameters (``physgm.sim.constitutive.MaterialParams``) of this physics."""
+        params = get_material(self.material).params(E=self.E, nu=self.nu)
+        return params if self.density is None else replace(params, density=float(self.density))
 
 
 def _fail(path: Path | Traversable, message: str) -> None:

@@ -1,20 +1,19 @@
 """Photo -> physically simulated 4D clip (``python simulate.py input=photo.png``).
 
 Layout:
-    config          typed run settings from conf/simulate.yaml
+    config          typed run settings from conf/simulate.yaml, the scene's settings
     prepared_input  photo, posed views or .ply -> model inputs
-    checkpoint      loading with a compatibility check
     physics_choice  posterior mean / samples / overrides
     staging         physical size, placement, output camera, floor
-    frames          a simulated trajectory rendered into frames
     outputs         atomic run folder, videos, contact sheet, JSON
     stages          the stages
 
-``run(cfg)`` is the Hydra entry; ``execute(RunConfig)`` the plain-Python one.
+``run(cfg)`` is the Hydra entry; ``execute(RunConfig)`` the plain-Python one (report.json's
+contents), ``run_pipeline(RunConfig)`` the same with each simulated future typed.
 """
 
+from physgm.errors import UserError
 from physgm.pipeline.config import RunConfig, from_hydra
-from physgm.pipeline.errors import UserError
-from physgm.pipeline.stages import STAGES, execute, run
+from physgm.pipeline.stages import STAGES, execute, run, run_pipeline
 
-__all__ = ["STAGES", "RunConfig", "UserError", "execute", "from_hydra", "run"]
+__all__ = ["STAGES", "RunConfig", "UserError", "execute", "from_hydra", "run", "run_pipeline"]

@@ -16,7 +16,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue
 
-from physgm.pipeline.errors import UserError
+from physgm.errors import UserError
 
 log = logging.getLogger(__name__)
 DEFAULT_CKPT = "checkpoints/physgm_tiny.ckpt"
@@ -197,6 +197,43 @@ def _with_physgaussian(raw: dict) -> dict:
     for key, why in run.ignored.items():
         log.info("physgaussian_config: %s has no effect here: %s", key, why)
     return run.apply(raw)
+
+
+@dataclass(frozen=True)
+class SceneSettings:
+    """The scene's settings (conf/sim/scene/<name>.yaml with the user's changes), read once per run."""
+
+    settings: dict[str, Any]  # every setting of the scene, as simulated
+    overrides: dict[str, Any]  # the part that differs from the scene file, handed to the simulator
+
+    @property
+    def ground_height(self) -> float | None:
+        """Height of the ground plane, m (None: the scene has no ground)."""
+        ground = self.settings.get("ground")
+        return None if ground is None else float(ground.get("height", 0.0))
+
+    def facing(self, view: Any) -> SceneSettings:
+        """These settings seen along ``view`` [3] (unit, object -> output camera): a stretch or push
+        along the line of sight would be invisible, so unless the user set ``axis`` the horizontal
+        world axis most across the view is used."""
+        if "axis" not in self.settings or "axis" in self.overrides:
+            return self
+        axis = min((0, 1), key=lambda a: abs(float(view[a])))
+        return SceneSettings({**self.settings, "axis": axis}, {**self.overrides, "axis": axis})
+
+
+def scene_settings(cfg: RunConfig) -> SceneSettings:
+    """The run's scene settings; a setting the scene does not have is an error that lists its settings."""
+    from physgm.sim.scenes import load_scene_config
+
+    base = load_scene_config(cfg.scene)
+    overrides = dict(cfg.scene_overrides)
+    if cfg.scene == "drop" and cfg.drop_height_m is not None:
+        overrides.setdefault("height", cfg.drop_height_m)
+    unknown = sorted(set(overrides) - set(base))
+    if unknown:
+        raise UserError(f"scene {cfg.scene!r} has no setting(s) {unknown}; its settings are {sorted(base)}")
+    return SceneSettings({**base, **overrides}, overrides)
 
 
 def from_hydra(cfg: DictConfig) -> RunConfig:

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from physgm.pipeline.errors import UserError
+from physgm.errors import UserError
 
 
 class RunFolder:
@@ -78,39 +78,19 @@ def save_png(path: Path, img: np.ndarray) -> None:
     Image.fromarray(arr).save(path)
 
 
-def write_mp4(path: Path, frames: np.ndarray, fps: float) -> None:
-    """H.264 mp4 of uint8 frames [T, H, W, 3] (even H and W), bit-exact flags, one encoder thread."""
-    import imageio_ffmpeg
+def write_frame_plys(trajectory, folder: Path) -> None:
+    """The deformed Gaussians of every frame of a ``GaussianTrajectory`` as ``frame_0000.ply`` ...;
+    the still frames after its rest frame are copies of the last one that moved."""
+    from physgm.gaussians import write_ply
 
-    t, h, w = frames.shape[:3]
-    writer = imageio_ffmpeg.write_frames(
-        str(path),
-        (w, h),
-        fps=fps,
-        codec="libx264",
-        pix_fmt_out="yuv420p",
-        quality=None,
-        macro_block_size=1,
-        output_params=[
-            "-crf",
-            "18",
-            "-preset",
-            "veryfast",
-            "-threads",
-            "1",
-            "-fflags",
-            "+bitexact",
-            "-flags:v",
-            "+bitexact",
-            "-map_metadata",
-            "-1",
-        ],
-        ffmpeg_log_level="error",
-    )
-    writer.send(None)
-    for f in frames:
-        writer.send(np.ascontiguousarray(f))
-    writer.close()
+    folder.mkdir(parents=True, exist_ok=True)
+    rest = trajectory.rest_frame
+    for t in range(len(trajectory)):
+        path = folder / f"frame_{t:04d}.ply"
+        if rest is not None and t >= rest and t > 0:
+            shutil.copyfile(folder / f"frame_{t - 1:04d}.ply", path)
+        else:
+            write_ply(trajectory.gaussians_at(t), path)
 
 
 def write_gif(path: Path, frames: np.ndarray, fps: float) -> None:

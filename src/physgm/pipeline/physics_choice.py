@@ -19,9 +19,9 @@ import math
 from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING
 
-from physgm.physics.materials import MATERIAL_NAMES, get_material
+from physgm.errors import UserError
+from physgm.physics.materials import MATERIAL_NAMES, PhysicsSpec, get_material
 from physgm.pipeline.config import PhysicsOverrides
-from physgm.pipeline.errors import UserError
 
 if TYPE_CHECKING:  # importing physgm.model pulls in timm; a .ply run never needs it
     from physgm.model.posterior import PhysicsPosterior, PhysicsSample
@@ -40,12 +40,9 @@ class PhysicsChoice:
     density: float | None  # kg/m^3; None: the material table's
     why: dict[str, str] = field(default_factory=dict)  # field -> reason
 
-    def sim_physics(self) -> dict:
-        """The physics description ``physgm.sim.gaussian_trajectory.simulate`` takes."""
-        out = {"material": self.material, "E": self.E, "nu": self.nu}
-        if self.density is not None:
-            out["density"] = self.density
-        return out
+    def spec(self) -> PhysicsSpec:
+        """The physics ``physgm.sim.gaussian_trajectory.simulate`` runs."""
+        return PhysicsSpec(self.material, self.E, self.nu, self.density)
 
     def label(self) -> str:
         return f"{self.name}: {self.material}, E={self.E:.3g} Pa, nu={self.nu:.2f}"

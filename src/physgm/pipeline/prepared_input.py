@@ -20,10 +20,10 @@ from torch import Tensor
 from physgm.cameras import Cameras, orbit_cameras
 from physgm.data.format import CAMERA_RADIUS, FOV_DEG, read_cameras
 from physgm.data.readers import camera_file
+from physgm.errors import UserError
 from physgm.gaussians import Gaussians, quat_to_rotmat, read_ply, rotmat_to_quat
 from physgm.inputs import Photo, frame_object, load_photo, object_mask
 from physgm.model.pretrained import CLASSIFIER_SIZE
-from physgm.pipeline.errors import UserError
 
 # Median side of the object's bounding square over the side of the canonical view (view 000) in
 # synthetic assets (measured on 40 assets: 10-90 % range 0.72-0.97); tests re-measure it.

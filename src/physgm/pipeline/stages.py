@@ -10,22 +10,23 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import asdict, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-from physgm.pipeline.config import RunConfig, from_hydra
-from physgm.pipeline.errors import UserError
+from physgm.errors import UserError
+from physgm.mp4 import write_mp4
+from physgm.pipeline.config import RunConfig, from_hydra, scene_settings
 from physgm.pipeline.outputs import (
     RunFolder,
     contact_sheet,
     keyframe_indices,
     plain_json,
     save_png,
+    write_frame_plys,
     write_gif,
     write_json,
-    write_mp4,
 )
 
 # Heavy modules (torch, timm, warp) are imported inside the stages that need them, so a bad
@@ -34,51 +35,65 @@ from physgm.pipeline.outputs import (
 STAGES = ("load", "model", "plan", "simulate", "render", "write")
 
 
+@dataclass
+class FutureResult:
+    """One simulated future (the "mean" run or a posterior sample) as report.json records it."""
+
+    name: str  # "mean" or "sample<k>"
+    video: str  # file name in the run folder
+    material: str
+    E: float  # Pa, as chosen
+    nu: float
+    mode: str  # the planner's choice: rigid | mpm_capped | mpm
+    predicted_error_px: float
+    E_used: float  # Pa, as simulated (capped in mpm_capped)
+    nu_used: float  # as simulated (lowered by the bulk-stiffness cap)
+    particles: int
+    grid_cells: list[int]  # along x, y, z
+    dx_m: float
+    substeps: int
+    rest_frame: int | None
+    face_contacts: int  # grid-face safety walls touched (0: the grid held)
+    ballistic_frames: int
+    reason: str  # why the planner chose the mode
+    finite: bool
+    seconds: dict[str, float]  # plan, simulate, render, write
+
+
+@dataclass
+class RunResult:
+    """What ``run_pipeline`` did: report.json's contents and the futures it simulated."""
+
+    report: dict  # report.json's contents
+    futures: list[FutureResult]  # "mean" first
+
+
 def run(cfg) -> dict:
     """Hydra entry (simulate.py): user errors print ``error: ...`` and exit with code 2."""
     try:
         run_cfg = from_hydra(cfg)
-        report = execute(run_cfg)
+        result = run_pipeline(run_cfg)
     except UserError as err:
         print(f"error: {err}", file=sys.stderr)
         raise SystemExit(2) from None
-    for r in report["runs"]:
+    for r in result.futures:
         print(
-            f"{run_cfg.output_dir / r['video']}: {r['material']} E={r['E']:.3g} Pa nu={r['nu']:.2f}, "
-            f"{r['mode']} ({r['predicted_error_px']:.2f} px predicted error)"
+            f"{run_cfg.output_dir / r.video}: {r.material} E={r.E:.3g} Pa nu={r.nu:.2f}, "
+            f"{r.mode} ({r.predicted_error_px:.2f} px predicted error)"
         )
     print(
-        f"done in {report['seconds']['total']:.1f} s; contact sheet: "
+        f"done in {result.report['seconds']['total']:.1f} s; contact sheet: "
         f"{run_cfg.output_dir / 'contact_sheet.png'}, report: {run_cfg.output_dir / 'report.json'}"
     )
-    return report
-
-
-def scene_settings(cfg: RunConfig, view: np.ndarray | None = None) -> tuple[dict, dict]:
-    """(the scene's full settings, the overrides handed to the simulator); unknown keys are errors.
-
-    ``view`` [3] is the unit direction from the object to the output camera: a stretch or push
-    along the line of sight would be invisible, so unless the user set ``axis`` the horizontal
-    world axis most across the view is used.
-    """
-    from physgm.sim.scenes import load_scene_config
-
-    base = load_scene_config(cfg.scene)
-    overrides = dict(cfg.scene_overrides)
-    if cfg.scene == "drop" and cfg.drop_height_m is not None:
-        overrides.setdefault("height", cfg.drop_height_m)
-    if "axis" in base and "axis" not in overrides and view is not None:
-        overrides["axis"] = int(np.argmin(np.abs(view[:2])))
-    unknown = sorted(set(overrides) - set(base))
-    if unknown:
-        raise UserError(f"scene {cfg.scene!r} has no setting(s) {unknown}; its settings are {sorted(base)}")
-    return {**base, **overrides}, overrides
+    return result.report
 
 
 def _load_model(cfg: RunConfig):
-    from physgm.pipeline.checkpoint import load_model
+    """The model and what report.json records about its checkpoint (with the input size it reads)."""
+    from physgm.model.checkpoint import input_size, load_model
 
-    return load_model(cfg.ckpt, cfg.device)
+    model, ckpt = load_model(cfg.ckpt, cfg.device)
+    return model, {**ckpt.summary(), "input_size": input_size(model, ckpt.hparams)}
 
 
 def _on(t, device: str):
@@ -124,7 +139,7 @@ def _simulate(g, choice, cfg: RunConfig, camera, overrides: dict):
     try:
         traj = simulate(
             g,
-            choice.sim_physics(),
+            choice.spec(),
             cfg.scene,
             camera,
             n_frames=cfg.output.frames,
@@ -139,34 +154,38 @@ def _simulate(g, choice, cfg: RunConfig, camera, overrides: dict):
     return traj, plan_s, max(0.0, traj.seconds - plan_s)
 
 
-def _run_summary(choice, traj, seconds: dict, finite: bool, video: str) -> dict:
+def _future_result(choice, traj, seconds: dict, finite: bool, video: str) -> FutureResult:
     plan = traj.plan
-    summary = plan.summary()
-    return {
-        "name": choice.name,
-        "video": video,
-        "material": choice.material,
-        "E": choice.E,
-        "nu": choice.nu,
-        "mode": plan.mode,
-        "predicted_error_px": plan.predicted_error_px,
-        "E_used": plan.E_used,
-        "nu_used": plan.nu_used,
-        "particles": int(len(traj.particles.x)),
-        "grid_cells": summary["grid_cells"],
-        "dx_m": plan.dx,
-        "substeps": int(traj.substeps),
-        "rest_frame": traj.rest_frame,
-        "face_contacts": int(traj.face_contacts),  # grid-face safety walls touched (0: the grid held)
-        "ballistic_frames": traj.ballistic_frames,
-        "reason": plan.reason,
-        "finite": finite,
-        "seconds": {k: round(v, 3) for k, v in seconds.items()},
-    }
+    return FutureResult(
+        name=choice.name,
+        material=choice.material,
+        E=choice.E,
+        nu=choice.nu,
+        particles=int(len(traj.particles.x)),
+        mode=plan.mode,
+        predicted_error_px=plan.predicted_error_px,
+        E_used=plan.E_used,
+        nu_used=plan.nu_used,
+        dx_m=plan.dx,
+        grid_cells=plan.summary()["grid_cells"],
+        reason=plan.reason,
+        substeps=int(traj.substeps),
+        rest_frame=traj.rest_frame,
+        face_contacts=int(traj.face_contacts),
+        ballistic_frames=traj.ballistic_frames,
+        seconds={k: round(v, 3) for k, v in seconds.items()},
+        video=video,
+        finite=finite,
+    )
 
 
 def execute(cfg: RunConfig) -> dict:
     """Run the whole pipeline into ``cfg.output_dir`` (atomically); returns report.json's contents."""
+    return run_pipeline(cfg).report
+
+
+def run_pipeline(cfg: RunConfig) -> RunResult:
+    """Run the whole pipeline into ``cfg.output_dir`` (atomically)."""
     import torch
 
     threads = torch.get_num_threads()
@@ -178,13 +197,13 @@ def execute(cfg: RunConfig) -> dict:
         torch.set_num_threads(threads)
 
 
-def _execute(cfg: RunConfig) -> dict:
+def _execute(cfg: RunConfig) -> RunResult:
     from hydra.utils import instantiate
 
-    from physgm.pipeline.frames import render_gaussians, render_trajectory
     from physgm.pipeline.physics_choice import choose_physics, physics_json
     from physgm.pipeline.prepared_input import input_kind, prepare_input
     from physgm.pipeline.staging import direction, floor_image, framing_camera, motion_region, place_object
+    from physgm.render.frames import Shot, render_trajectory
     from physgm.view.sequence import sequence_file, sequence_from_trajectory
 
     start = time.perf_counter()
@@ -194,7 +213,7 @@ def _execute(cfg: RunConfig) -> dict:
         # -- load ---------------------------------------------------------------------------
         t0 = time.perf_counter()
         kind = input_kind(cfg.input)
-        scene_cfg, overrides = scene_settings(cfg)
+        scene = scene_settings(cfg)  # a mistyped scene setting stops the run before the model loads
         model, ckpt_info = (None, None) if kind == "ply" else _load_model(cfg)
         inp = prepare_input(cfg.input, None if model is None else ckpt_info["input_size"], cfg.mask, cfg.up)
         sec["load"] = time.perf_counter() - t0
@@ -203,40 +222,29 @@ def _execute(cfg: RunConfig) -> dict:
         g, post = _predict(model, inp, cfg.device) if model is not None else (inp.gaussians, None)
         runs = choose_physics(post, cfg.physics, cfg.seed)
         min_opacity = float(cfg.planner.get("min_opacity", 0.05))
-        ground_cfg = scene_cfg.get("ground")
-        ground = None if ground_cfg is None else float(ground_cfg.get("height", 0.0))
+        ground = scene.ground_height
         placement = place_object(g, cfg.size_m, ground or 0.0, min_opacity)
         az = inp.azimuth_deg if cfg.camera.azimuth_deg is None else cfg.camera.azimuth_deg
         el = inp.elevation_deg if cfg.camera.elevation_deg is None else cfg.camera.elevation_deg
-        scene_cfg, overrides = scene_settings(cfg, direction(az, el))
-        lo, hi = motion_region(placement.gaussians, cfg.scene, scene_cfg, min_opacity)
+        scene = scene.facing(direction(az, el))
+        lo, hi = motion_region(placement.gaussians, cfg.scene, scene.settings, min_opacity)
         res = cfg.output.resolution
         camera = framing_camera(lo, hi, az, el, cfg.camera.fov_deg, res, res, cfg.camera.margin)
         bg = np.broadcast_to(np.asarray(cfg.output.background, np.float32), (res, res, 3)).copy()
         if cfg.output.floor and ground is not None:
             bg = floor_image(camera, ground, cfg.size_m / 4, np.asarray(cfg.output.background))
-        renderer = instantiate({"_target_": "physgm.render.Renderer", **cfg.renderer})
+        shot = Shot(
+            camera, instantiate({"_target_": "physgm.render.Renderer", **cfg.renderer}), bg, cfg.device
+        )
         sec["model"] = time.perf_counter() - t0
         # -- per future: plan, simulate, render, write the video ---------------------------------
         results, videos, sheet_rows, rest_state = [], {}, [], None
         for choice in runs:
-            traj, plan_s, sim_s = _simulate(placement.gaussians, choice, cfg, camera, overrides)
+            traj, plan_s, sim_s = _simulate(placement.gaussians, choice, cfg, camera, scene.overrides)
             t0 = time.perf_counter()
-            ply_dir = (
-                (tmp / ("frames" if choice.name == "mean" else f"frames_{choice.name}"))
-                if cfg.output.frame_plys
-                else None
-            )
-            frames, finite = render_trajectory(
-                traj,
-                camera,
-                renderer,
-                bg,
-                cfg.device,
-                cfg.output.progress,
-                f"{choice.name} ({traj.plan.mode})",
-                ply_dir,
-            )
+            desc = f"{choice.name} ({traj.plan.mode})"
+            frames, finite = render_trajectory(traj, shot, cfg.output.progress, desc)
+            finite = finite and bool(np.isfinite(traj.x).all() and np.isfinite(traj.F).all())
             render_s = time.perf_counter() - t0
             if not finite:
                 raise RuntimeError(
@@ -245,6 +253,8 @@ def _execute(cfg: RunConfig) -> dict:
             t0 = time.perf_counter()
             video = "video.mp4" if choice.name == "mean" else f"video_{choice.name}.mp4"
             write_mp4(tmp / video, frames, cfg.output.fps)
+            if cfg.output.frame_plys:
+                write_frame_plys(traj, tmp / ("frames" if choice.name == "mean" else f"frames_{choice.name}"))
             # what ``python -m physgm.view RUN_DIR`` shows: the moving Gaussians, beside the video
             sequence_from_trajectory(traj, camera, cfg.output.fps, ground).save(
                 tmp / sequence_file(choice.name)
@@ -259,14 +269,14 @@ def _execute(cfg: RunConfig) -> dict:
             stage = {"plan": plan_s, "simulate": sim_s, "render": render_s, "write": write_s}
             for k, v in stage.items():
                 sec[k] += v
-            results.append(_run_summary(choice, traj, stage, finite, video))
+            results.append(_future_result(choice, traj, stage, finite, video))
         # -- write the rest ------------------------------------------------------------------
         t0 = time.perf_counter()
         from physgm.gaussians import write_ply
 
         write_ply(rest_state, tmp / "gaussians.ply")
         if inp.kind == "ply":  # no photo to show: the object as the first frame shows it
-            inp.preview = render_gaussians(rest_state, camera, renderer, bg, cfg.device).clip(0, 1)
+            inp.preview = shot.draw(rest_state).clip(0, 1)
         else:
             save_png(tmp / "mask.png", inp.mask_image)
             save_png(tmp / "input.png", inp.preview)
@@ -278,14 +288,14 @@ def _execute(cfg: RunConfig) -> dict:
         sec["write"] += time.perf_counter() - t0
         sec["total"] = time.perf_counter() - start
         report = plain_json(
-            _report(cfg, inp, ckpt_info, scene_cfg, placement, camera, az, el, sec, results, len(g))
+            _report(cfg, inp, ckpt_info, scene.settings, placement, camera, az, el, sec, results, len(g))
         )
         write_json(tmp / "report.json", report)
         folder.commit()
-    return report
+    return RunResult(report, results)
 
 
-def _sheet_lines(phys: dict, results: list[dict], cfg: RunConfig) -> list[str]:
+def _sheet_lines(phys: dict, results: list[FutureResult], cfg: RunConfig) -> list[str]:
     lines = [f"scene: {cfg.scene}, object {cfg.size_m:g} m"]
     post = phys["posterior"]
     if post is not None:
@@ -298,8 +308,8 @@ def _sheet_lines(phys: dict, results: list[dict], cfg: RunConfig) -> list[str]:
         lines.append("no prediction (.ply input)")
     lines.append("simulated:")
     for r in results:
-        lines.append(f"  {r['name']}: {r['material']} E={r['E']:.3g} nu={r['nu']:.2f}")
-        lines.append(f"    {r['mode']}, error {r['predicted_error_px']:.2f} px, {r['substeps']} steps")
+        lines.append(f"  {r.name}: {r.material} E={r.E:.3g} nu={r.nu:.2f}")
+        lines.append(f"    {r.mode}, error {r.predicted_error_px:.2f} px, {r.substeps} steps")
     return lines
 
 
@@ -321,7 +331,7 @@ def _report(cfg, inp, ckpt_info, scene_cfg, placement, camera, az, el, sec, resu
             "resolution": cfg.output.resolution,
             "frames": cfg.output.frames,
             "fps": cfg.output.fps,
-            "videos": [r["video"] for r in results],
+            "videos": [r.video for r in results],
         },
         "object": {
             "size_m": cfg.size_m,
@@ -331,13 +341,13 @@ def _report(cfg, inp, ckpt_info, scene_cfg, placement, camera, az, el, sec, resu
         },
         "camera": {"azimuth_deg": az, "elevation_deg": el, "fov_deg": cfg.camera.fov_deg, "eye_m": eye},
         "seconds": {k: round(v, 3) for k, v in sec.items()},
-        "mode": mean["mode"],
-        "predicted_error_px": mean["predicted_error_px"],
-        "particles": mean["particles"],
-        "grid_cells": mean["grid_cells"],
-        "substeps": mean["substeps"],
-        "finite": all(r["finite"] for r in results),
-        "runs": results,
+        "mode": mean.mode,
+        "predicted_error_px": mean.predicted_error_px,
+        "particles": mean.particles,
+        "grid_cells": mean.grid_cells,
+        "substeps": mean.substeps,
+        "finite": all(r.finite for r in results),
+        "runs": [asdict(r) for r in results],
         "stage_notes": "load = input + checkpoint; model = forward pass, physics choice, placement; "
         "plan/simulate = physgm.sim.gaussian_trajectory.simulate; render = deforming + rasterising per "
         "frame; write = videos, Gaussians over time, PLYs, images, JSON",

@@ -10,25 +10,16 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from physgm.cameras import Cameras, intrinsics_from_fov, look_at
+from physgm.errors import UserError
 from physgm.gaussians import Gaussians
-from physgm.pipeline.errors import UserError
+from physgm.placement import Placement, place
 
 OUTLIER_QUANTILE = 0.001  # the extent ignores this share of stray Gaussians on each side
-
-
-@dataclass
-class Placement:
-    """The object in the world at rest on the ground, before the scene moves it."""
-
-    gaussians: Gaussians  # [N] metres, +z up, lowest point on the ground
-    object_to_world: np.ndarray  # [4, 4] model/input frame -> world (uniform scale + shift)
-    scale: float  # m per model-frame unit
 
 
 def place_object(g: Gaussians, size_m: float, ground: float, min_opacity: float) -> Placement:
@@ -50,21 +41,8 @@ def place_object(g: Gaussians, size_m: float, ground: float, min_opacity: float)
             f"the object has no size (extent {extent:.3g}); the input holds a single point or non-finite "
             "Gaussians"
         )
-    s = size_m / extent
-    shift = torch.stack([-(lo[0] + hi[0]) / 2, -(lo[1] + hi[1]) / 2, -lo[2]]) * s + torch.tensor(
-        [0.0, 0.0, ground], dtype=torch.float64
-    )
-    T = np.eye(4)
-    T[:3, :3] *= s
-    T[:3, 3] = shift.numpy()
-    placed = Gaussians(
-        means=(g.means.double() * s + shift).to(g.means.dtype),
-        quats=g.quats,
-        scales=g.scales * s,
-        opacities=g.opacities,
-        colors=g.colors,
-    )
-    return Placement(placed, T, s)
+    middle = (lo + hi) / 2
+    return place(g, size_m / extent, (middle[0], middle[1], lo[2]), (0.0, 0.0, ground))
 
 
 # -- the region each scene's motion can cover ------------------------------------------------

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -21,6 +21,7 @@ import torch
 
 from physgm.cameras import Cameras
 from physgm.gaussians import Gaussians
+from physgm.physics.materials import PhysicsSpec
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.coupling import follow_and_deform, rigid_transform_gaussians
 from physgm.sim.grid import GridSpec
@@ -99,25 +100,24 @@ class GaussianTrajectory:
         )
 
 
-def resolve_material(physics) -> tuple[str, MaterialParams]:
-    """(material name, solver parameters at the requested E and nu) from a physics description.
+def physics_params(
+    physics: PhysicsSpec | MaterialParams | Mapping,
+) -> tuple[str, MaterialParams, float | None]:
+    """(material name, solver parameters, rigid-path restitution or None) of a physics description.
 
-    Accepts ``MaterialParams`` (name "custom"), or anything with ``material``, ``E``, ``nu`` and
-    optionally ``density`` as attributes or mapping keys (e.g. the contents of physical.json).
+    ``MaterialParams`` is simulated as given (name "custom"); a mapping (JSON-shaped: physical.json,
+    a DPO candidate) is read by ``PhysicsSpec.from_dict``, which refuses unknown keys.
     """
+    if isinstance(physics, Mapping):
+        physics = PhysicsSpec.from_dict(physics)
     if isinstance(physics, MaterialParams):
-        return "custom", physics
-    get = physics.get if isinstance(physics, dict) else lambda k, d=None: getattr(physics, k, d)
-    name = get("material")
-    if name is None:
-        raise ValueError(f"physics must name a material (physics.material), got {physics!r}")
-    from physgm.physics.materials import get_material
-
-    params = get_material(str(name)).params(E=get("E"), nu=get("nu"))
-    density = get("density")
-    if density is not None:
-        params = replace(params, density=float(density))
-    return str(name), params
+        return "custom", physics, None
+    if isinstance(physics, PhysicsSpec):
+        return physics.material, physics.params(), physics.restitution
+    raise TypeError(
+        f"physics must be a PhysicsSpec (physgm.physics.materials), MaterialParams or a mapping, got "
+        f"{type(physics).__name__}"
+    )
 
 
 def apply_scene(scene, x: np.ndarray, overrides: dict | None) -> SceneSetup:
@@ -192,7 +192,7 @@ class _Prepared:
 
 def _prepare(
     gaussians: Gaussians,
-    physics,
+    physics: PhysicsSpec | MaterialParams | Mapping,
     scene,
     cameras: Cameras,
     n_frames: int,
@@ -200,10 +200,7 @@ def _prepare(
     frame_dt: float,
     scene_overrides: dict | None,
 ) -> _Prepared:
-    name, material = resolve_material(physics)
-    restitution = (
-        physics.get("restitution") if isinstance(physics, dict) else getattr(physics, "restitution", None)
-    )
+    name, material, restitution = physics_params(physics)
     if restitution is not None:  # the material table has none; a physics description may
         cfg = replace(cfg, restitution=float(restitution))
     opaque = gaussians.opacities >= cfg.min_opacity
@@ -234,7 +231,7 @@ def _prepare(
 
 def plan_for(
     gaussians: Gaussians,
-    physics,
+    physics: PhysicsSpec | MaterialParams | Mapping,
     scene: str | Scene | tuple,
     cameras: Cameras,
     n_frames: int = 50,
@@ -249,7 +246,7 @@ def plan_for(
 
 def simulate(
     gaussians: Gaussians,
-    physics,
+    physics: PhysicsSpec | MaterialParams | Mapping,
     scene: str | Scene | tuple,
     cameras: Cameras,
     n_frames: int = 50,
@@ -262,8 +259,8 @@ def simulate(
 
     Args:
         gaussians: [N] object Gaussians in SI metres, +z up, placed where the scene starts.
-        physics: material name + E + nu (+ density, + restitution for the rigid path), see
-            ``resolve_material``.
+        physics: a ``PhysicsSpec`` (material of the table, E, nu, density, restitution), or see
+            ``physics_params``.
         scene: registered scene name (conf/sim/scene), a Scene, or (Scene, v0 [P, 3] or [3]).
         cameras: output cameras and resolution (the pixel bound is measured there).
         n_frames: output frames T including the rest frame 0.

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
@@ -28,7 +29,34 @@ from physgm.sim.walls import SceneWalls
 # saves.
 _AUTO_THREADS_MIN_PARTICLES = 2_000
 _STATS_INIT = np.zeros(K.STATS_ROW, dtype=np.float32)
-_STATS_INIT[[1, 2]] = [1.0e30, -1.0e30]  # running min and max of det F
+_STATS_INIT[[K.STAT_JMIN, K.STAT_JMAX]] = [1.0e30, -1.0e30]  # running min and max of det F
+
+
+@dataclass(frozen=True)
+class SubstepStats:
+    """The G2P kernel's running reductions (columns ``kernels.STAT_*``) since the frame began."""
+
+    max_speed: float  # m/s
+    j_min: float  # min det F
+    j_max: float  # max det F
+    bad: int  # particles with a non-finite state
+    escaped: int  # particles newly stopped by the domain clamp
+    overrun: int  # particles that left the active grid box (the CFL estimate was exceeded)
+
+    @classmethod
+    def reduce(cls, rows: np.ndarray) -> SubstepStats:  # rows [threads, STATS_ROW], one per thread
+        return cls(
+            max_speed=math.sqrt(max(float(rows[:, K.STAT_VMAX].max()), 0.0)),  # the kernel keeps |v|^2
+            j_min=float(rows[:, K.STAT_JMIN].min()),
+            j_max=float(rows[:, K.STAT_JMAX].max()),
+            bad=int(rows[:, K.STAT_BAD].sum()),
+            escaped=int(rows[:, K.STAT_ESCAPED].sum()),
+            overrun=int(rows[:, K.STAT_OVERRUN].sum()),
+        )
+
+    @property
+    def finite(self) -> bool:
+        return self.bad == 0 and all(map(math.isfinite, (self.max_speed, self.j_min, self.j_max)))
 
 
 class GridHook(Protocol):
@@ -146,7 +174,7 @@ class MPMSolver:
         self._bounds.assign(np.array([[np.inf] * 3, [-np.inf] * 3], np.float32))
         wp.launch(ops.bounds, self.num_particles, [self.particles.x, self._bounds], device=self.device)
         b = self._bounds.numpy().astype(np.float64)
-        seen = float(self._read_stats()[0])
+        seen = self._read_stats().max_speed
         vmax = max(self._vmax, seen) if math.isfinite(seen) else self._vmax
         reach = 2.0 * vmax * dt * cfg.cfl_check_every + 3.0 * g.dx  # doubled speed, 3-cell stencil pad
         origin, res = np.asarray(g.origin), np.asarray(g.res)
@@ -231,20 +259,10 @@ class MPMSolver:
         cfl = self.config.cfl if cfl is None else cfl
         return cfl * self.grid.dx / (self._c_max + self._vmax)
 
-    def _read_stats(self) -> np.ndarray:
-        s = self.stats.numpy()[: self.threads]
-        return np.array(
-            [
-                math.sqrt(max(float(s[:, 0].max()), 0.0)),
-                s[:, 1].min(),
-                s[:, 2].max(),
-                s[:, 3].sum(),
-                s[:, 4].sum(),
-                s[:, 5].sum(),
-            ]
-        )
+    def _read_stats(self) -> SubstepStats:
+        return SubstepStats.reduce(self.stats.numpy()[: self.threads])
 
-    def _advance(self, frame_dt: float, cfl: float) -> tuple[int, float, float, np.ndarray]:
+    def _advance(self, frame_dt: float, cfl: float) -> tuple[int, float, float, SubstepStats]:
         """Sub-step through one frame; returns (sub-steps, dt_min, dt_max, stats)."""
         cfg = self.config
         self.stats.assign(np.tile(_STATS_INIT, (2, 1)))
@@ -255,9 +273,9 @@ class MPMSolver:
             if steps % cfg.cfl_check_every == 0:
                 if steps:
                     s = self._read_stats()
-                    if s[3] > 0 or s[5] > 0 or not math.isfinite(s[0]):
+                    if s.bad or s.overrun or not math.isfinite(s.max_speed):
                         break  # rejected below; no point stepping a broken state
-                    self._vmax = max(self._vmax, float(s[0]))
+                    self._vmax = max(self._vmax, s.max_speed)
                 dt_cfl = cfl * self.grid.dx / (self._c_max + self._vmax)
                 dt = remaining / math.ceil(remaining / dt_cfl - 1e-9)
                 self._fit_active(dt)
@@ -287,8 +305,8 @@ class MPMSolver:
             problems = self._problems(s)
             if not problems:
                 self.time = t0 + frame_dt
-                self.escaped += int(s[4])
-                self._vmax = float(s[0])
+                self.escaped += s.escaped
+                self._vmax = s.max_speed
                 self.frame += 1
                 face_contacts = self.face_contacts
                 return FrameStats(
@@ -299,9 +317,9 @@ class MPMSolver:
                     dt_max,
                     cfl,
                     attempt,
-                    float(s[0]),
-                    float(s[1]),
-                    float(s[2]),
+                    s.max_speed,
+                    s.j_min,
+                    s.j_max,
                     self.escaped,
                     face_contacts,
                 )
@@ -316,14 +334,15 @@ class MPMSolver:
             + f"; dx={self.grid.dx} m. Try a lower cfl, a finer grid, or the planner's rigid mode."
         )
 
-    def _problems(self, s: np.ndarray) -> str:
+    def _problems(self, s: SubstepStats) -> str:
         cfg = self.config
-        if s[3] > 0 or not np.all(np.isfinite(s[:3])):
-            return f"{int(s[3])} particles reached a non-finite state"
-        if s[5] > 0:
-            return f"{int(s[5])} particles moved faster than the CFL estimate allowed"
-        if s[1] < cfg.j_min or s[2] > cfg.j_max:
-            return f"det F reached [{s[1]:.3g}, {s[2]:.3g}], outside [j_min={cfg.j_min}, j_max={cfg.j_max}]"
+        if not s.finite:
+            return f"{s.bad} particles reached a non-finite state"
+        if s.overrun:
+            return f"{s.overrun} particles moved faster than the CFL estimate allowed"
+        if s.j_min < cfg.j_min or s.j_max > cfg.j_max:
+            bounds = f"[j_min={cfg.j_min}, j_max={cfg.j_max}]"
+            return f"det F reached [{s.j_min:.3g}, {s.j_max:.3g}], outside {bounds}"
         return ""
 
     def run(self, n_frames: int, record: bool = True) -> Trajectory:

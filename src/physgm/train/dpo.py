@@ -26,12 +26,12 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from physgm import CHECKPOINT_FORMAT_VERSION
+from physgm.model.checkpoint import load_model
 from physgm.model.config import PhysGMConfig
 from physgm.model.physgm import PhysGM
 from physgm.model.posterior import LOG10_E_RANGE, PhysicsPosterior
 from physgm.train.optim import OptimConfig, build_optimizer
 from physgm.train.pairs import DPOBatch
-from physgm.train.pretrain import model_from_checkpoint
 
 
 @dataclass
@@ -120,7 +120,7 @@ class LitDPO(L.LightningModule):
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
-        stage1 = model_from_checkpoint(init_ckpt) if init_ckpt and Path(init_ckpt).is_file() else None
+        stage1 = load_model(init_ckpt)[0] if init_ckpt and Path(init_ckpt).is_file() else None
         if model is None:
             if stage1 is None:
                 raise ValueError(

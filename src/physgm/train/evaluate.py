@@ -34,15 +34,15 @@ import torch
 from physgm.data.datamodule import PhysAssetsDataModule
 from physgm.metrics.image import ImageMetrics
 from physgm.metrics.physics_metrics import LabelMetrics, PhysicsMetrics
+from physgm.model.checkpoint import load_model
 from physgm.model.physics_head import fuse_material_logits
 from physgm.physics.materials import MATERIAL_NAMES
-from physgm.train.pretrain import model_from_checkpoint, render_targets
+from physgm.train.pretrain import render_targets
 
 
-def checkpoint_renderer(path: str) -> dict:
-    """The renderer settings the checkpoint trained with (warp by default)."""
-    hp = torch.load(path, map_location="cpu", weights_only=False).get("hyper_parameters", {})
-    return dict(hp.get("renderer") or {"backend": "warp"})
+def checkpoint_renderer(hparams: dict) -> dict:
+    """The renderer settings a checkpoint (its ``hyper_parameters``) trained with (warp by default)."""
+    return dict(hparams.get("renderer") or {"backend": "warp"})
 
 
 def fused_logits(out, weight: float) -> torch.Tensor:  # [B, M]
@@ -191,10 +191,10 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"checkpoint {a.ckpt} not found")
     if a.device.startswith("cuda") and not torch.cuda.is_available():
         raise SystemExit(f"--device {a.device}: CUDA is not available on this machine; use --device cpu")
-    model = model_from_checkpoint(a.ckpt).eval().to(a.device)
+    model, ckpt = load_model(a.ckpt, a.device)
     sweep = tuple(float(w) for w in a.prior_sweep.split(",") if w.strip())
     cache = "mobilenet_v2" if model.config.backbone.encoder.kind == "mobilenet_v2" else None
-    renderer = checkpoint_renderer(a.ckpt)
+    renderer = checkpoint_renderer(ckpt.hparams)
     res = model.config.backbone.encoder.img_size
     lpips_model = None
     if a.lpips_backbone:

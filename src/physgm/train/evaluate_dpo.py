@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from physgm.model.checkpoint import load_model
 from physgm.physics.materials import MATERIAL_NAMES
-from physgm.train.pretrain import model_from_checkpoint
 from physgm.train.rollout import (
     SimSettings,
     evaluate_physics,
@@ -38,10 +38,10 @@ from physgm.warp_runtime import preload
 KEY_MATERIALS = ("metal", "jelly", "plasticine", "snow", "sand")  # always reported, as in the paper
 
 
-def input_settings(path: str, model) -> dict:
-    """Views the model was trained on: stored by the DPO stage, else the encoder's native size."""
-    hp = torch.load(path, map_location="cpu", weights_only=False).get("hyper_parameters", {})
-    inputs = dict(hp.get("inputs") or {})
+def input_settings(hparams: dict, model) -> dict:
+    """Views the model was trained on: stored by the DPO stage in the checkpoint's
+    ``hyper_parameters``, else the encoder's native size."""
+    inputs = dict(hparams.get("inputs") or {})
     inputs.setdefault("input_resolution", model.config.backbone.encoder.img_size)
     inputs.setdefault("num_views", 4)
     inputs.setdefault("background", 1.0)
@@ -175,11 +175,10 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
 
     torch.manual_seed(a.seed)
-    models = {
-        "pretrain": model_from_checkpoint(a.pretrain).eval(),
-        "dpo": model_from_checkpoint(a.dpo).eval(),
-    }
-    inputs = input_settings(a.dpo, models["dpo"])
+    pretrained, _ = load_model(a.pretrain)
+    tuned, tuned_ckpt = load_model(a.dpo)
+    models = {"pretrain": pretrained, "dpo": tuned}
+    inputs = input_settings(tuned_ckpt.hparams, tuned)
     views = a.views or int(inputs["num_views"])
     res = a.input_resolution or inputs["input_resolution"]
     scenes = [s for split in a.split.split(",") for s in

@@ -6,7 +6,7 @@
 Keeps the model weights, the hyper-parameters that rebuild the model (and the renderer and input
 settings evaluation reads), the step count and a ``physgm`` record of where the file came from;
 drops optimiser, scheduler, loop and callback states (for AdamW two thirds of the file). The
-result loads with ``physgm.pipeline.checkpoint.load_model`` and ``model_from_checkpoint``.
+result loads with ``physgm.model.checkpoint.load_model`` and ``LitPretrain.load_from_checkpoint``.
 """
 
 from __future__ import annotations
@@ -22,6 +22,8 @@ from pathlib import Path
 import torch
 
 import physgm
+from physgm.errors import UserError
+from physgm.model.checkpoint import PREFIX, Checkpoint, read_checkpoint
 
 KEEP_HPARAMS = ("model", "renderer", "inputs", "format_version")
 
@@ -38,23 +40,19 @@ def git_revision(cwd: Path) -> str | None:
 
 
 def slim(
-    ckpt: dict,
+    ckpt: Checkpoint,
     source: str,
     recipe: str | None = None,
     metrics: dict | None = None,
     prior_weight: float | None = None,
 ) -> dict:
-    """The inference part of a Lightning checkpoint dict of ``LitPretrain`` or ``LitDPO``.
+    """The inference part of a Lightning checkpoint of ``LitPretrain`` or ``LitDPO``.
 
     ``prior_weight`` sets the semantic prior's weight w in the exported model (chosen on real
     validation objects with ``python -m physgm.train.evaluate --prior-sweep``).
     """
-    hparams = ckpt.get("hyper_parameters")
-    if not isinstance(hparams, dict) or "model" not in hparams:
-        raise ValueError(f"{source} is not a physgm training checkpoint (no hyper_parameters.model)")
-    state = {k: v.detach().clone() for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
-    if not state:
-        raise ValueError(f"{source} has no model weights (no state_dict keys starting with 'model.')")
+    hparams = ckpt.hparams
+    state = {PREFIX + k: v.detach().clone() for k, v in ckpt.state.items()}
     kept = {k: hparams[k] for k in KEEP_HPARAMS if k in hparams}
     if prior_weight is not None:
         model = copy.deepcopy(dict(kept["model"]))
@@ -72,9 +70,9 @@ def slim(
     return {
         "hyper_parameters": kept,
         "state_dict": state,
-        "global_step": ckpt.get("global_step"),
-        "epoch": ckpt.get("epoch"),
-        "pytorch-lightning_version": ckpt.get("pytorch-lightning_version"),
+        "global_step": ckpt.raw.get("global_step"),
+        "epoch": ckpt.raw.get("epoch"),
+        "pytorch-lightning_version": ckpt.raw.get("pytorch-lightning_version"),
         "physgm": {
             "version": physgm.__version__,
             "source": source,
@@ -101,10 +99,9 @@ def main(argv: list[str] | None = None) -> int:
     if not a.ckpt.is_file():
         raise SystemExit(f"checkpoint {a.ckpt} not found")
     metrics = json.loads(a.metrics.read_text()) if a.metrics else None
-    ckpt = torch.load(a.ckpt, map_location="cpu", weights_only=False)
     try:
-        out = slim(ckpt, str(a.ckpt), a.recipe, metrics, a.prior_weight)
-    except ValueError as err:
+        out = slim(read_checkpoint(a.ckpt), str(a.ckpt), a.recipe, metrics, a.prior_weight)
+    except (UserError, ValueError) as err:
         raise SystemExit(str(err)) from None
     a.out.parent.mkdir(parents=True, exist_ok=True)
     tmp = a.out.with_name(a.out.name + ".tmp")

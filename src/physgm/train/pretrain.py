@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import warnings
-from dataclasses import asdict
 from typing import Any
 
 import lightning as L
@@ -179,18 +178,6 @@ class LitPretrain(L.LightningModule):
                     # reduction honest
                     self.log(f"val/{key}/{name}", value, sync_dist=True)
             metric.reset()
-
-
-def model_from_checkpoint(path: str, map_location: str = "cpu") -> PhysGM:
-    """The PhysGM inside a stage-1 or stage-2 checkpoint, without Hydra or Lightning state."""
-    ckpt = torch.load(path, map_location=map_location, weights_only=False)
-    hparams = ckpt.get("hyper_parameters", {})
-    if "model" not in hparams:
-        raise ValueError(f"{path} is not a physgm checkpoint: no hyper_parameters.model")
-    state = {k.removeprefix("model."): v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
-    from physgm.model.physgm import load_physgm
-
-    return load_physgm(hparams["model"] or asdict(PhysGMConfig()), state)
 
 
 def fit(cfg) -> dict[str, float]:

@@ -1,31 +1,48 @@
-"""Loading a PhysGM checkpoint for inference, with a compatibility check that names the problem.
+"""Reading a PhysGM checkpoint, with a compatibility check that names the problem, and writing one.
 
-Checkpoints are the ones Lightning writes for ``LitPretrain`` / ``LitDPO``: a dict with
-``hyper_parameters.model`` (``PhysGMConfig.to_dict()``) and ``state_dict`` whose model weights
-carry the ``model.`` prefix. Compatibility is checked in three steps, each with its own message:
-the optional ``hyper_parameters.format_version``, the stored model config (unknown keys mean a
-different physgm version), and the state-dict keys and shapes against a freshly built model.
+Checkpoints are the ones Lightning writes for ``LitPretrain`` / ``LitDPO`` (or ``save_checkpoint``
+and ``physgm.train.export`` write in the same layout): a dict with ``hyper_parameters.model``
+(``PhysGMConfig.to_dict()``) and ``state_dict`` whose model weights carry the ``model.`` prefix.
+Every reader (the pipeline, the DPO stage's initial model, evaluation, export, benchmarks) goes
+through ``read_checkpoint`` / ``load_model``, so each finds the same problems with the same
+message: the optional ``hyper_parameters.format_version``, the stored model config (unknown keys
+mean a different physgm version), the state-dict keys and shapes against a freshly built model,
+and non-finite weights.
 """
 
 from __future__ import annotations
 
 import pickle
 import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+from torch import Tensor
 
 from physgm import CHECKPOINT_FORMAT_VERSION
+from physgm.errors import UserError
 from physgm.model.config import PhysGMConfig
 from physgm.model.physgm import PhysGM
-from physgm.pipeline.errors import UserError
 from physgm.resources import packaged_checkpoint
 
 PREFIX = "model."
 REPO_ROOT = Path(__file__).resolve().parents[3]  # relative checkpoint paths also resolve here
+# what torch.load raises on a file that is not a readable checkpoint
+_READ_ERRORS = (
+    pickle.UnpicklingError,
+    EOFError,
+    zipfile.BadZipFile,
+    RuntimeError,
+    OSError,
+    ValueError,
+    AttributeError,
+    ModuleNotFoundError,
+    IndexError,
+)
 
 
-def resolve_checkpoint(path: Path) -> Path:
+def resolve_checkpoint(path: Path | str) -> Path:
     """``path`` itself if it exists, else (for a relative path) the same path under the repo root,
     else the copy shipped in the package (``checkpoints/physgm_tiny.ckpt``), so the default is
     found from any working directory, in a checkout or an installed wheel."""
@@ -49,61 +66,95 @@ def _list(items: list[str], limit: int = 3) -> str:
     return ", ".join(items[:limit]) + more
 
 
-def load_model(path: Path, device: str = "cpu") -> tuple[PhysGM, dict]:
-    """The checkpoint's PhysGM in eval mode on ``device`` and a short description of the file.
+@dataclass
+class Checkpoint:
+    """A checkpoint file, read and checked for its layout (not yet against a model)."""
+
+    path: Path
+    hparams: dict  # hyper_parameters: model (PhysGMConfig.to_dict()), renderer, inputs, format_version
+    state: dict[str, Tensor]  # the model's weights, without Lightning's "model." prefix
+    raw: dict  # the whole file (global_step, Lightning's version, export record, optimiser states)
+
+    @property
+    def format_version(self) -> int:
+        return self.hparams.get("format_version", 1)
+
+    def summary(self) -> dict:
+        """What a run report records about the checkpoint."""
+        return {
+            "path": str(self.path),
+            "format_version": self.format_version,
+            "lightning_version": self.raw.get("pytorch-lightning_version"),
+            "global_step": self.raw.get("global_step"),
+        }
+
+
+def read_checkpoint(path: Path | str) -> Checkpoint:
+    """The checkpoint at ``path`` (see ``resolve_checkpoint``), with its layout and version checked.
 
     Raises:
-        UserError: the file is missing, unreadable, not a physgm checkpoint, or from an
-            incompatible version (the message says which part does not match).
+        UserError: the file is missing, unreadable, not a physgm checkpoint, holds no model
+            weights, or has another format version.
     """
     path = resolve_checkpoint(path)
     if not path.is_file():
         raise UserError(missing_checkpoint_message(path))
     try:
         # weights_only=False: Lightning stores plain-Python hyper-parameters next to the tensors.
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    except (
-        pickle.UnpicklingError,
-        EOFError,
-        zipfile.BadZipFile,
-        RuntimeError,
-        OSError,
-        ValueError,
-        AttributeError,
-        ModuleNotFoundError,
-        IndexError,
-    ) as err:
+        raw = torch.load(path, map_location="cpu", weights_only=False)
+    except _READ_ERRORS as err:
         raise UserError(
             f"{path} is not a readable PyTorch checkpoint ({type(err).__name__}: {str(err)[:120]})"
         ) from None
     if (
-        not isinstance(ckpt, dict)
-        or not isinstance(ckpt.get("hyper_parameters"), dict)
-        or "model" not in ckpt["hyper_parameters"]
+        not isinstance(raw, dict)
+        or not isinstance(raw.get("hyper_parameters"), dict)
+        or "model" not in raw["hyper_parameters"]
     ):
         raise UserError(
             f"{path} is not a physgm checkpoint: it has no hyper_parameters.model (train one with `python "
             "train.py`)"
         )
-    if not isinstance(ckpt.get("state_dict"), dict):
+    if not isinstance(raw.get("state_dict"), dict):
         raise UserError(f"{path} is not a physgm checkpoint: it has no state_dict")
-    hparams = ckpt["hyper_parameters"]
-    version = hparams.get("format_version", 1)
-    if version != CHECKPOINT_FORMAT_VERSION:
+    ckpt = Checkpoint(
+        path=path,
+        hparams=raw["hyper_parameters"],
+        state={k.removeprefix(PREFIX): v for k, v in raw["state_dict"].items() if k.startswith(PREFIX)},
+        raw=raw,
+    )
+    if ckpt.format_version != CHECKPOINT_FORMAT_VERSION:
         raise UserError(
-            f"{path} has checkpoint format version {version!r}, this physgm reads version "
+            f"{path} has checkpoint format version {ckpt.format_version!r}, this physgm reads version "
             f"{CHECKPOINT_FORMAT_VERSION}; use the physgm release that wrote it, or retrain"
         )
+    if not ckpt.state:
+        raise UserError(f"{path} holds no model weights (no state_dict keys starting with '{PREFIX}')")
+    return ckpt
+
+
+def load_model(path: Path | str, device: str = "cpu") -> tuple[PhysGM, Checkpoint]:
+    """The checkpoint's PhysGM in eval mode on ``device``, and the checkpoint it came from.
+
+    The check is always the strict one: the weights must match a freshly built model key for key
+    and shape for shape, and be finite. The looser loader the training tools had (no version or
+    finite check) served no caller: every one of them runs the model, and a missing weight, a
+    wrong shape or a NaN only fails later with a worse message.
+
+    Raises:
+        UserError: as ``read_checkpoint``, or the weights do not match this physgm's model (the
+            message says which part does not match), or some are non-finite.
+    """
+    ckpt = read_checkpoint(path)
+    path = ckpt.path
     try:
-        config = PhysGMConfig.from_dict(dict(hparams["model"] or {}))
+        config = PhysGMConfig.from_dict(dict(ckpt.hparams["model"] or {}))
         model = PhysGM(config, load_pretrained=False)
     except (ValueError, TypeError, KeyError) as err:
         raise UserError(
             f"{path} was written by an incompatible physgm version: its model config does not load ({err})"
         ) from None
-    state = {k.removeprefix(PREFIX): v for k, v in ckpt["state_dict"].items() if k.startswith(PREFIX)}
-    if not state:
-        raise UserError(f"{path} holds no model weights (no state_dict keys starting with '{PREFIX}')")
+    state = ckpt.state
     expected = model.state_dict()
     missing = sorted(set(expected) - set(state))
     unexpected = sorted(set(state) - set(expected))
@@ -130,14 +181,7 @@ def load_model(path: Path, device: str = "cpu") -> tuple[PhysGM, dict]:
             f"{path} has non-finite weights ({_list(bad)}); the training run that wrote it diverged"
         )
     model.load_state_dict(state, strict=True)
-    info = {
-        "path": str(path),
-        "format_version": version,
-        "lightning_version": ckpt.get("pytorch-lightning_version"),
-        "global_step": ckpt.get("global_step"),
-        "input_size": input_size(model, hparams),
-    }
-    return model.to(device).eval(), info
+    return model.to(device).eval(), ckpt
 
 
 def input_size(model: PhysGM, hparams: dict | None = None) -> int:
