@@ -48,7 +48,8 @@ cohesion=0, viscosity=0)``                          (constitutive/__init__.py)
     Allocates every array once, then only launches kernels.
     ``.step_frame(frame_dt=None) -> FrameStats``  CFL sub-steps (dt = cfl dx / (c_p + |v|max),
         |v|max re-read every ``cfl_check_every`` steps); checks the state (finite, J in
-        [j_min, j_max]); on failure restores the frame start and retries with half the CFL
+        (j_min, j_max], elastic trial J above each model's floor ``MODELS[m].j_floor``, so
+        J <= 0 is a failed step); on failure restores the frame start and retries with half the CFL
         number, finally raises ``SimulationDiverged``. Never returns a NaN frame.
     ``.run(n_frames) -> Trajectory(x [T, P, 3], F [T, P, 3, 3], stats)``, frame 0 = initial.
     ``.substep(dt)``   one raw MLS-MPM step (no guard), for tests and couplings.

@@ -14,7 +14,7 @@ from physgm.parallel import PairWorker
 from physgm.sim import kernels as K
 from physgm.sim import particle_ops as ops
 from physgm.sim.boundary import BoxStruct
-from physgm.sim.constitutive import MaterialParams
+from physgm.sim.constitutive import MODELS, MaterialParams
 from physgm.sim.grid import GridSpec
 from physgm.sim.launches import SubstepLaunches
 from physgm.sim.particle_store import ParticleStore
@@ -191,6 +191,7 @@ class MPMSolver:
                 s[:, 3].sum(),
                 s[:, 4].sum(),
                 s[:, 5].sum(),
+                s[:, 6].sum(),
             ]
         )
 
@@ -205,7 +206,7 @@ class MPMSolver:
             if steps % cfg.cfl_check_every == 0:
                 if steps:
                     s = self._read_stats()
-                    if s[3] > 0 or s[5] > 0 or not math.isfinite(s[0]):
+                    if s[3] > 0 or s[5] > 0 or s[6] > 0 or not math.isfinite(s[0]):
                         break  # rejected below; no point stepping a broken state
                     self._vmax = max(self._vmax, float(s[0]))
                 dt_cfl = cfl * self.grid.dx / (self._c_max + self._vmax)
@@ -266,12 +267,18 @@ class MPMSolver:
 
     def _problems(self, s: np.ndarray) -> str:
         cfg = self.config
-        if s[3] > 0 or not np.all(np.isfinite(s[:3])):
-            return f"{int(s[3])} particles reached a non-finite state"
+        if s[6] > 0:  # first: an inversion also moves particles wildly and can turn the state NaN
+            floors = ", ".join(f"{m.model} {MODELS[m.model].j_floor:g}" for m in self.materials)
+            return (
+                f"a step compressed particles below their model's det F floor ({floors}; "
+                f"{int(s[6])} particle sub-steps, smallest det F {s[1]:.3g})"
+            )
         if s[5] > 0:
             return f"{int(s[5])} particles moved faster than the CFL estimate allowed"
-        if s[1] < cfg.j_min or s[2] > cfg.j_max:
-            return f"det F reached [{s[1]:.3g}, {s[2]:.3g}], outside [j_min={cfg.j_min}, j_max={cfg.j_max}]"
+        if s[3] > 0 or not np.all(np.isfinite(s[:3])):
+            return f"{int(s[3])} particles reached a non-finite state"
+        if s[1] <= cfg.j_min or s[2] > cfg.j_max:
+            return f"det F reached [{s[1]:.3g}, {s[2]:.3g}], outside (j_min={cfg.j_min}, j_max={cfg.j_max}]"
         return ""
 
     def run(self, n_frames: int, record: bool = True) -> Trajectory:

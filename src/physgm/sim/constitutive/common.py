@@ -48,6 +48,7 @@ class MaterialStruct:
     tension_strain: float  # Drucker-Prager apex in log volumetric strain (cohesion), >= 0
     viscosity: float  # foam Perzyna viscosity, Pa s
     bulk: float  # fluid bulk modulus, Pa
+    j_floor: float  # smallest det F of the elastic trial state a step may produce (divergence guard)
 
 
 @wp.func
