@@ -11,7 +11,8 @@ Per cell: ``finite`` (no divergence error, no NaN), ``escaped`` particles, ``min
 det F over every sub-step), ``crushed_fraction`` (share of particles with det F < 0.1 at the end:
 crushed and not recovered), ``mean_J_end`` (mean elastic det F at the end: the volume ratio of the
 elastic models and of von Mises / foam, whose plastic flow keeps volume), ``elastic_peak`` and
-``elastic_end`` (elastic energy, J: what an impact stored and what is left), ``retries`` (frames
+``elastic_end`` (elastic energy at frame ends, J: what an impact stored and what is left, against
+``energy_start``, the kinetic + gravitational energy it came with), ``retries`` (frames
 the divergence guard redid), and ``energy_ratio``
 = 1 + max over frames of (E(t) - E(0) - W(t)) / max(E(0), max W), with E kinetic +
 gravitational (above the ground) + elastic and W the work of the scene's velocity boxes (grips);
@@ -58,6 +59,7 @@ def run_cell(
     cells_across: int = 4,
     max_time: float | None = None,  # s; default 0.3, 0.5 for impact
     impact_factor: float = 2.0,  # impact scene: speed / P-wave speed
+    params=None,  # MaterialParams to use instead of model_params(model, E, nu) (e.g. a table material)
     **solver_settings,
 ) -> dict:
     """Simulate one cell and return its report row."""
@@ -65,7 +67,7 @@ def run_cell(
     from physgm.sim.stepping import cfl_dt
 
     start = time.perf_counter()
-    mat = model_params(model, E, nu)
+    mat = model_params(model, E, nu) if params is None else params
     if max_time is None:
         max_time = 0.5 if scene_name == "impact" else 0.3
     dx = size / cells_across
@@ -101,6 +103,7 @@ def run_cell(
         "mean_J_end": math.nan,
         "elastic_peak": math.nan,
         "elastic_end": math.nan,
+        "energy_start": math.nan,
         "retries": 0,
         "impact_speed": speed,
         "mode": "mpm",
@@ -145,6 +148,7 @@ def run_cell(
             mean_J_end=float(J_end.mean()),  # lattice particles: all the same rest volume
             elastic_peak=elastic_peak,
             elastic_end=elastic,
+            energy_start=e0,
             retries=retries,
         )
     except SimulationDiverged as err:
