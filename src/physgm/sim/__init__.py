@@ -40,8 +40,9 @@ cohesion=0, viscosity=0)``                          (constitutive/__init__.py)
 
 ``SolverConfig`` (stepping.py; conf/sim/solver/default.yaml)
     frame_dt 0.04 s, cfl 0.4, flip 0.95 (affine-FLIP share of the particle (v, C) update, 0 = pure
-    APIC; positions always move with the grid velocity), max_retries, j_min / j_max (divergence guard), boundary_cells, threads (0 = auto: 2
-    CPU threads from 8k particles), cfl_check_every, sort_every, max_substeps.
+    APIC; positions always move with the grid velocity), max_retries, j_min / j_max (divergence
+    guard), boundary_cells, threads (0 = auto: 2 CPU threads from 8k particles), cfl_check_every,
+    sort_every, max_substeps.
     ``SolverConfig.load("default")`` reads the YAML.
 
 ``MPMSolver(particles, materials, grid, scene=None, config=None, device="cpu")``  (solver.py)
