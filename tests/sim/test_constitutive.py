@@ -100,9 +100,10 @@ def test_reference_stress_is_the_energy_gradient(model):
     F = random_F(20, seed=2)
     if model == "fluid":  # the fluid clamps J below J_MIN_FLUID, where it is not hyperelastic
         F = F[np.linalg.det(F) > 2 * ref.J_MIN_FLUID]
-    if model == "fixed_corotated":  # its volume barrier is defined for J > 0 only
+    if model in ("fixed_corotated", "neo_hookean"):  # their volume barriers are defined for J > 0 only
         F = F[np.linalg.det(F) > 0.01]
-        assert (np.linalg.det(F) < ref.FC_J_B).sum() >= 3  # the barrier branch is exercised
+        if model == "fixed_corotated":
+            assert (np.linalg.det(F) < ref.FC_J_B).sum() >= 3  # the barrier branch is exercised
     _, tau, _ = ref.update(p, F, np.zeros(len(F)), DT)
     h = 1e-6
     P = np.zeros_like(F)
@@ -193,11 +194,11 @@ def test_fixed_corotated_volume_barrier_pushes_back_and_is_c1():
     """Below J = 1/2 the pressure keeps growing in compression (Stomakhin's returns to 0 at J = 0)."""
     lam = 1.0
     J = np.array([0.9, 0.5 + 1e-7, 0.5 - 1e-7, 0.3, 0.1, 0.01, 1e-4])
-    p = ref.fc_volume_pressure(J, lam)
+    p = ref.fc_volume_pressure(J, lam, lam)
     assert p[1] == pytest.approx(p[2], abs=1e-6) and p[1] == pytest.approx(-0.25, abs=1e-6)
     assert np.all(np.diff(p[2:]) < 0)  # more compression, more (negative) pressure
     assert p[-2] < -4 * lam  # J = 1 % pushes back with over 4 lam (Stomakhin: -0.0099 lam)
-    e = ref.fc_volume_energy(J, lam)
+    e = ref.fc_volume_energy(J, lam, lam)
     assert np.all(np.diff(e[2:]) > 0) and e[-1] > 10 * lam  # a barrier: unbounded as J -> 0
 
 
@@ -239,3 +240,19 @@ def test_plane_shear_strength_of_the_granular_models(model):
     s = np.sin(np.radians(35.0))
     expected = s if model == "mohr_coulomb" else 6 * s / (np.sqrt(3) * (3 - s))
     assert ratio == pytest.approx(expected, rel=2e-3)
+
+
+@pytest.mark.parametrize("model", ["fixed_corotated", "neo_hookean"])
+def test_volume_barrier_holds_when_lam_vanishes(model):
+    """At nu = 0.01 lam is 2 % of mu: a barrier scaled by lam alone (fixed_corotated before) or none
+    below J_E (neo_hookean before) left a crushed particle at |p| < mu, and a cube hit at twice its
+    wave speed inverted. The barrier on lam + 2 mu pushes back with several mu."""
+    p = MaterialParams(model, 1e4, 0.01, 1000.0)
+    J = np.array([0.2, 0.05, 0.01, 1e-3])
+    F = np.cbrt(J)[:, None, None] * np.eye(3)
+    got = run_warp(p, F, np.zeros(len(F)))
+    pressure = np.trace(got["tau"], axis1=1, axis2=2) / 3  # Kirchhoff, Pa (negative: pushes out)
+    assert np.all(np.diff(pressure) < 0)
+    assert pressure[2] < -5 * p.mu, pressure / p.mu
+    _, tau_ref, _ = ref.update(p, F, np.zeros(len(F)), DT)
+    np.testing.assert_allclose(got["tau"], tau_ref, rtol=1e-4, atol=1e-3 * p.mu)

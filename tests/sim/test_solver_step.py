@@ -122,7 +122,7 @@ def test_fused_scatter_equals_a_fresh_p2g():
     solver.close()
 
 
-def test_particles_never_leave_the_grid_and_are_counted():
+def test_particles_thrown_at_the_walls_stop_at_the_separating_walls():
     p = random_block(300, seed=2)
     p.v = np.tile([40.0, -30.0, 25.0], (300, 1))  # thrown hard at three walls
     grid = GridSpec.fit((0.05, 0.05, 0.05), (0.25, 0.25, 0.25), 0.025)
@@ -133,7 +133,24 @@ def test_particles_never_leave_the_grid_and_are_counted():
     s = solver.state()
     lo, hi = np.asarray(grid.origin), np.asarray(grid.upper)
     assert np.isfinite(s.x).all() and np.isfinite(s.F).all()
-    assert np.all(s.x >= lo + grid.dx - 1e-6) and np.all(s.x <= hi - grid.dx + 1e-6)
+    # Particles move with the grid velocity, which the walls 3 cells inside the faces stop.
+    assert np.all(s.x >= lo + 2 * grid.dx) and np.all(s.x <= hi - 2 * grid.dx)
+    assert solver.escaped == 0 and not s.escaped.any()
+
+
+def test_particles_driven_into_a_face_are_clamped_and_counted():
+    p = random_block(300, seed=2)
+    grid = GridSpec.fit((0.05, 0.05, 0.05), (0.25, 0.25, 0.25), 0.025)
+    # A velocity box carries its particles past the walls; only the clamp at the face stops them.
+    push = VelocityBox((0.09, 0.09, 0.09), (0.21, 0.21, 0.21), velocity=(8.0, 0.0, 0.0))
+    solver = MPMSolver(
+        p, MATS[:1], grid, Scene(gravity=(0, 0, 0), boxes=(push,)), SolverConfig(frame_dt=0.02)
+    )
+    for _ in range(2):
+        solver.step_frame()
+    s = solver.state()
+    hi = np.asarray(grid.upper)
+    assert np.isfinite(s.x).all() and np.all(s.x <= hi - grid.dx + 1e-6)
     assert solver.escaped == int(s.escaped.sum()) > 0
 
 
@@ -169,6 +186,61 @@ def test_divergence_guard_raises_instead_of_returning_nan():
     solver.hooks.append(NaNOnce(times=10))
     with pytest.raises(SimulationDiverged, match="non-finite"):
         solver.step_frame()
+
+
+class InvertOnce:
+    """Grid hook that, in the first sub-step of the first ``times`` attempts of frame 0, sets the grid
+    velocity to the converging affine field -k (x - c) with k dt = 1.2: every particle's F is
+    multiplied by (1 - k dt) = -0.2, an inversion with det F = -0.008 det F (inside the old guard's
+    accepted range down to -0.5)."""
+
+    def __init__(self, times: int) -> None:
+        self.times = times
+
+    def apply(self, solver, dt):
+        if solver.time > 1e-12 or self.times <= 0:
+            return
+        self.times -= 1
+        g = solver.grid_v.numpy()
+        idx = np.stack(np.meshgrid(*[np.arange(n) for n in g.shape[:3]], indexing="ij"), axis=-1)
+        pos = np.asarray(solver.grid.origin) + idx * solver.grid.dx
+        centre = solver.state().x.mean(0)
+        vel = -1.2 / dt * (pos - centre)
+        has_mass = g[..., 3] > 0
+        g[..., 4:7] += np.where(has_mass[..., None], vel - g[..., 0:3], 0.0)
+        g[..., 0:3] = np.where(has_mass[..., None], vel, g[..., 0:3])
+        solver.grid_v.assign(g)
+
+
+@pytest.mark.parametrize("material", [MATS[0], MATS[1]], ids=["fixed_corotated", "drucker_prager"])
+def test_divergence_guard_retries_a_step_that_inverts_particles(material):
+    p = random_block(100, seed=4)
+    grid = GridSpec.fit((0.05, 0.05, 0.05), (0.25, 0.25, 0.25), 0.025)
+    solver = MPMSolver(p, [material], grid, Scene(gravity=(0, 0, 0)), SolverConfig(frame_dt=0.01))
+    solver.hooks.append(InvertOnce(times=1))
+    stats = solver.step_frame()
+    # With the old j_min = -0.5 the inverted state (det F ~ -0.008) was accepted: retries == 0.
+    assert stats.retries == 1 and stats.j_min > 0.0
+    assert np.all(np.linalg.det(solver.state().F.astype(np.float64)) > 0.0)
+
+
+def test_divergence_guard_names_the_floor_when_it_gives_up():
+    p = random_block(100, seed=4)
+    grid = GridSpec.fit((0.05, 0.05, 0.05), (0.25, 0.25, 0.25), 0.025)
+    cfg = SolverConfig(frame_dt=0.01, max_retries=1)
+    solver = MPMSolver(p, MATS[:1], grid, Scene(gravity=(0, 0, 0)), cfg)
+    solver.hooks.append(InvertOnce(times=10))
+    with pytest.raises(SimulationDiverged, match=r"det F floor \(fixed_corotated 0.0001;"):
+        solver.step_frame()
+
+
+def test_j_floor_is_per_model_and_never_below_zero():
+    from physgm.sim.constitutive import MODELS
+
+    assert all(m.j_floor >= 0.0 for m in MODELS.values())
+    assert MODELS["fixed_corotated"].j_floor > 0.0  # its barrier's pressure is clamped near J = 0
+    with pytest.raises(ValueError, match="j_min"):
+        SolverConfig(j_min=-0.5)
 
 
 def test_two_threads_match_one_thread():

@@ -4,11 +4,16 @@ Every constitutive model x E in {1e3 .. 4e11} Pa x nu in {0.01, 0.3, 0.45, 0.49}
 ``drop`` (a 0.1 m cube hits the ground at 5 m/s), ``impact`` (the same at twice the material's
 P-wave speed, ``--impact-factor``: faster than any stress wave can stop it) and ``stretch``
 (grips pull it to twice its length). Cells are small (512 particles, 4 cells across) and short: each runs for
-min(duration, ``--budget`` CFL sub-steps), so a 4e11 Pa cell covers ~0.5 ms, many wave transits.
+min(duration, ``--budget`` CFL sub-steps), so a 4e11 Pa cell covers ~0.5 ms, many wave transits;
+duration is 0.3 s, 0.5 s for ``impact`` (the recovery time of issue 24).
 
 Per cell: ``finite`` (no divergence error, no NaN), ``escaped`` particles, ``min_J`` (smallest
 det F over every sub-step), ``crushed_fraction`` (share of particles with det F < 0.1 at the end:
-crushed and not recovered), and ``energy_ratio``
+crushed and not recovered), ``mean_J_end`` (mean elastic det F at the end: the volume ratio of the
+elastic models and of von Mises / foam, whose plastic flow keeps volume), ``elastic_peak`` and
+``elastic_end`` (elastic energy at frame ends, J: what an impact stored and what is left, against
+``energy_start``, the kinetic + gravitational energy it came with), ``retries`` (frames
+the divergence guard redid), and ``energy_ratio``
 = 1 + max over frames of (E(t) - E(0) - W(t)) / max(E(0), max W), with E kinetic +
 gravitational (above the ground) + elastic and W the work of the scene's velocity boxes (grips);
 the target is <= 1.05. Models' extra parameters scale with E so every cell exercises its
@@ -53,8 +58,9 @@ def run_cell(
     frames: int = 20,
     size: float = 0.1,
     cells_across: int = 4,
-    max_time: float = 0.3,
+    max_time: float | None = None,  # s; default 0.3, 0.5 for impact
     impact_factor: float = 2.0,  # impact scene: speed / P-wave speed
+    params=None,  # MaterialParams to use instead of model_params(model, E, nu) (e.g. a table material)
     **solver_settings,
 ) -> dict:
     """Simulate one cell and return its report row."""
@@ -62,7 +68,9 @@ def run_cell(
     from physgm.sim.stepping import cfl_dt
 
     start = time.perf_counter()
-    mat = model_params(model, E, nu)
+    mat = model_params(model, E, nu) if params is None else params
+    if max_time is None:
+        max_time = 0.5 if scene_name == "impact" else 0.3
     dx = size / cells_across
     particles = Particles.lattice((0.0, 0.0, 0.0), (size, size, size), dx / 2)
     speed = {"drop": 5.0, "impact": impact_factor * mat.wave_speed()}.get(scene_name, 0.0)
@@ -93,6 +101,11 @@ def run_cell(
         "energy_ratio": math.nan,
         "min_J": math.nan,
         "crushed_fraction": math.nan,
+        "mean_J_end": math.nan,
+        "elastic_peak": math.nan,
+        "elastic_end": math.nan,
+        "energy_start": math.nan,
+        "retries": 0,
         "impact_speed": speed,
         "mode": "mpm",
         "seconds": 0.0,
@@ -104,23 +117,27 @@ def run_cell(
         gravity = float(np.linalg.norm(setup.scene.gravity))
         mass = float(particles.volume.sum() * mat.density)
 
-        def total() -> float:
+        def total() -> tuple[float, float]:
             e = solver.energy()
             # Gravitational energy measured from the ground plane, not the world origin.
-            return e.kinetic + e.elastic + e.gravitational - mass * gravity * ground
+            return e.kinetic + e.elastic + e.gravitational - mass * gravity * ground, e.elastic
 
-        e0 = total()
-        excess, max_work, substeps = -math.inf, 0.0, 0
+        e0, elastic = total()
+        excess, max_work, substeps, retries, elastic_peak = -math.inf, 0.0, 0, 0, elastic
         j_range = [math.inf, -math.inf]
         for _ in range(frames):
             stats = solver.step_frame()
             substeps += stats.substeps
+            retries += stats.retries > 0
             j_range = [min(j_range[0], stats.j_min), max(j_range[1], stats.j_max)]
             w = solver.driver_work
             max_work = max(max_work, abs(w))
-            excess = max(excess, total() - e0 - w)
+            e, elastic = total()
+            excess = max(excess, e - e0 - w)
+            elastic_peak = max(elastic_peak, elastic)
             if not np.isfinite(solver.state().x).all():
                 raise SimulationDiverged("non-finite positions")
+        J_end = np.linalg.det(solver.state().F.astype(np.float64))
         row.update(
             finite=True,
             escaped=solver.escaped,
@@ -128,7 +145,12 @@ def run_cell(
             j_range=j_range,
             energy_ratio=1.0 + max(excess, 0.0) / max(abs(e0), max_work, 1e-30),
             min_J=j_range[0],
-            crushed_fraction=float((np.linalg.det(solver.state().F.astype(np.float64)) < CRUSHED_J).mean()),
+            crushed_fraction=float((J_end < CRUSHED_J).mean()),
+            mean_J_end=float(J_end.mean()),  # lattice particles: all the same rest volume
+            elastic_peak=elastic_peak,
+            elastic_end=elastic,
+            energy_start=e0,
+            retries=retries,
         )
     except SimulationDiverged as err:
         row.update(error=str(err)[:200], escaped=solver.escaped)
@@ -163,7 +185,8 @@ def main(argv: list[str] | None = None) -> dict:
                     print(
                         f"{len(cells):3d} {m} E={E:.0e} nu={nu} {s}: finite={c['finite']} "
                         f"escaped={c['escaped']} energy_ratio={c['energy_ratio']:.3f} min_J={c['min_J']:.3g} "
-                        f"crushed={c['crushed_fraction']:.3g} {c['seconds']:.1f}s",
+                        f"crushed={c['crushed_fraction']:.3g} mean_J_end={c['mean_J_end']:.3f} "
+                        f"retries={c['retries']} {c['seconds']:.1f}s",
                         file=sys.stderr,
                         flush=True,
                     )
@@ -180,6 +203,12 @@ def main(argv: list[str] | None = None) -> dict:
             "max_crushed_fraction": max(
                 (c["crushed_fraction"] for c in cells if c["finite"]), default=math.nan
             ),
+            "cells_crushed": sum(1 for c in cells if not c["crushed_fraction"] == 0.0),
+            "mean_J_end_range": [
+                min((c["mean_J_end"] for c in cells if c["finite"]), default=math.nan),
+                max((c["mean_J_end"] for c in cells if c["finite"]), default=math.nan),
+            ],
+            "cells_with_retries": sum(1 for c in cells if c["retries"] > 0),
             "seconds": round(time.perf_counter() - start, 1),
         },
     }

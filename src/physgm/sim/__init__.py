@@ -45,16 +45,18 @@ cohesion=0, viscosity=0)``                          (constitutive/__init__.py)
     (drop, stretch, push, two_objects) to rest particles.
 
 ``SolverConfig`` (stepping.py; conf/sim/solver/default.yaml)
-    frame_dt 0.04 s, cfl 0.4, flip 0.95 (affine-FLIP share of the particle update, 0 = pure
-    APIC), max_retries, j_min / j_max (divergence guard), boundary_cells, threads (0 = auto: 2
-    CPU threads from 8k particles), cfl_check_every, sort_every, max_substeps.
+    frame_dt 0.04 s, cfl 0.4, flip 0.95 (affine-FLIP share of the particle (v, C) update, 0 = pure
+    APIC; positions always move with the grid velocity), max_retries, j_min / j_max (divergence
+    guard), boundary_cells, threads (0 = auto: 2 CPU threads from 8k particles), cfl_check_every,
+    sort_every, max_substeps.
     ``SolverConfig.load("default")`` reads the YAML.
 
 ``MPMSolver(particles, materials, grid, scene=None, config=None, device="cpu")``  (solver.py)
     Allocates every array once, then only launches kernels.
     ``.step_frame(frame_dt=None) -> FrameStats``  CFL sub-steps (dt = cfl dx / (c_p + |v|max),
         |v|max re-read every ``cfl_check_every`` steps); checks the state (finite, J in
-        [j_min, j_max]); on failure restores the frame start and retries with half the CFL
+        (j_min, j_max], elastic trial J above each model's floor ``MODELS[m].j_floor``, so
+        J <= 0 is a failed step); on failure restores the frame start and retries with half the CFL
         number, finally raises ``SimulationDiverged``. Never returns a NaN frame.
     ``.run(n_frames) -> Trajectory(x [T, P, 3], F [T, P, 3, 3], stats)``, frame 0 = initial.
     ``.substep(dt)``   one raw MLS-MPM step (no guard), for tests and couplings.

@@ -106,12 +106,14 @@ def substep(state: dict, params: list, grid, scene, dt: float, t: float, flip: f
         c_grid = 4 / dx * B
         v_new = vel + flip * (v[p] + dvel - vel)
         c_new = c_grid + flip * (C[p] + 4 / dx * dB - c_grid)
+        v_move = vel  # particles move with the grid velocity; only v carries the FLIP share
         for box in scene.boxes:
             v_new = _box_velocity(box, x[p], t, v_new)
+            v_move = _box_velocity(box, x[p], t, v_move)
         F_trial = (np.eye(3) + dt * c_grid) @ F[p]
         prm = params[material[p]]
         F_new, _, pl = cref.update(prm, F_trial[None], plastic[p : p + 1], dt)
-        out["x"][p] = x[p] + dt * v_new
+        out["x"][p] = x[p] + dt * v_move
         out["v"][p], out["C"][p], out["F"][p] = v_new, c_new, F_new[0]
         if pl is not None:
             out["plastic"][p] = pl[0]

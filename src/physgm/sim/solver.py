@@ -15,7 +15,7 @@ from physgm.parallel import PairWorker
 from physgm.sim import kernels as K
 from physgm.sim import particle_ops as ops
 from physgm.sim.boundary import BoxStruct
-from physgm.sim.constitutive import MaterialParams
+from physgm.sim.constitutive import MODELS, MaterialParams
 from physgm.sim.grid import GridSpec
 from physgm.sim.launches import SubstepLaunches
 from physgm.sim.observables import SubstepObservables, SubstepObserver, particle_momentum
@@ -42,6 +42,7 @@ class SubstepStats:
     bad: int  # particles with a non-finite state
     escaped: int  # particles newly stopped by the domain clamp
     overrun: int  # particles that left the active grid box (the CFL estimate was exceeded)
+    floor_hits: int  # particle sub-steps whose elastic trial det F fell below the model's j_floor
 
     @classmethod
     def reduce(cls, rows: np.ndarray) -> SubstepStats:  # rows [threads, STATS_ROW], one per thread
@@ -52,6 +53,7 @@ class SubstepStats:
             bad=int(rows[:, K.STAT_BAD].sum()),
             escaped=int(rows[:, K.STAT_ESCAPED].sum()),
             overrun=int(rows[:, K.STAT_OVERRUN].sum()),
+            floor_hits=int(rows[:, K.STAT_FLOOR].sum()),
         )
 
     @property
@@ -273,7 +275,7 @@ class MPMSolver:
             if steps % cfg.cfl_check_every == 0:
                 if steps:
                     s = self._read_stats()
-                    if s.bad or s.overrun or not math.isfinite(s.max_speed):
+                    if not s.finite or s.overrun or s.floor_hits:
                         break  # rejected below; no point stepping a broken state
                     self._vmax = max(self._vmax, s.max_speed)
                 dt_cfl = cfl * self.grid.dx / (self._c_max + self._vmax)
@@ -336,12 +338,18 @@ class MPMSolver:
 
     def _problems(self, s: SubstepStats) -> str:
         cfg = self.config
-        if not s.finite:
-            return f"{s.bad} particles reached a non-finite state"
+        if s.floor_hits:  # first: an inversion also moves particles wildly and can turn the state NaN
+            floors = ", ".join(f"{m.model} {MODELS[m.model].j_floor:g}" for m in self.materials)
+            return (
+                f"a step compressed particles below their model's det F floor ({floors}; "
+                f"{s.floor_hits} particle sub-steps, smallest det F {s.j_min:.3g})"
+            )
         if s.overrun:
             return f"{s.overrun} particles moved faster than the CFL estimate allowed"
-        if s.j_min < cfg.j_min or s.j_max > cfg.j_max:
-            bounds = f"[j_min={cfg.j_min}, j_max={cfg.j_max}]"
+        if not s.finite:
+            return f"{s.bad} particles reached a non-finite state"
+        if s.j_min <= cfg.j_min or s.j_max > cfg.j_max:
+            bounds = f"(j_min={cfg.j_min}, j_max={cfg.j_max}]"
             return f"det F reached [{s.j_min:.3g}, {s.j_max:.3g}], outside {bounds}"
         return ""
 

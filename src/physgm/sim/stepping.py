@@ -13,7 +13,8 @@ CONF_DIR = package_file("conf", "sim")  # ships inside the package (physgm.resou
 
 
 class SimulationDiverged(RuntimeError):
-    """The divergence guard gave up: the state stayed non-finite or J left [j_min, j_max]."""
+    """The divergence guard gave up: the state stayed non-finite, J left (j_min, j_max] or fell below
+    a model's floor."""
 
 
 @dataclass(frozen=True)
@@ -26,13 +27,18 @@ class SolverConfig:
     # grid cannot hold on every transfer, so its energy loss grows with the number of sub-steps
     # (two elastic spheres lost 13 % of their energy in one collision at cfl 0.4, 21 % at 0.2);
     # 0.95 keeps it under 5 % and, because C is incremented with v, angular momentum stays exact.
+    # Positions move with the grid velocity whatever this is (kernels.g2p; issue 24).
     flip: float = 0.95
     max_retries: int = 4  # divergence-guard retries per frame, each halving the CFL number
-    # det F bounds of the divergence guard. Wide on purpose: a crushed soft object legitimately
-    # reaches J ~ 0 (slightly negative for the inversion-safe elastic models) and a plastic
-    # particle torn off its neighbours J ~ 1e3, while a diverging explicit step grows F
-    # exponentially and leaves these bounds (or turns NaN) within a frame.
-    j_min: float = -0.5  # smallest det F accepted
+    # det F bounds of the divergence guard. A step is rejected (and retried smaller) when det F
+    # of any particle ends at or below j_min, or when the elastic trial det F of a particle falls
+    # below its constitutive model's floor (``ConstitutiveModel.j_floor``, on the elastic part so
+    # plastic compaction is never rejected). det F <= 0 is an inverted or collapsed element, never
+    # a state: before issue 24 the guard accepted it down to -0.5 and a jelly hit at twice its wave
+    # speed kept 10 % of its particles inverted. j_max is wide on purpose: a plastic particle torn
+    # off its neighbours reaches J ~ 1e3, while a diverging explicit step grows F exponentially
+    # and leaves the bound (or turns NaN) within a frame.
+    j_min: float = 0.0  # det F must stay above this, in [0, 1)
     j_max: float = 1.0e4  # largest det F accepted
     boundary_cells: int = 3  # separating-wall margin at the grid faces, cells
     threads: int = 0  # CPU worker threads for the particle kernels; 0 = auto (2 from 2k particles)
@@ -47,7 +53,7 @@ class SolverConfig:
             "cfl": 0 < self.cfl <= 1,
             "flip": 0 <= self.flip <= 1,
             "max_retries": self.max_retries >= 0,
-            "j_min": self.j_min < 1,
+            "j_min": 0 <= self.j_min < 1,
             "j_max": self.j_max > 1,
             "boundary_cells": self.boundary_cells >= 2,
             "threads": self.threads >= 0,

@@ -85,6 +85,7 @@ class MaterialParams:
         s.hardening = self.hardening
         s.viscosity = self.viscosity
         s.bulk = self.bulk
+        s.j_floor = MODELS[self.model].j_floor
         if self.model in ("drucker_prager", "mohr_coulomb"):
             sin_phi = math.sin(math.radians(self.friction_angle))
             s.alpha = math.sqrt(2.0 / 3.0) * 2.0 * sin_phi / (3.0 - sin_phi)
@@ -101,13 +102,22 @@ def _check(ok: bool, message: str) -> None:
 
 @dataclass(frozen=True)
 class ConstitutiveModel:
-    """Registry entry: kernel id, the stiffness that sets the CFL speed, extra validation."""
+    """Registry entry: kernel id, the stiffness that sets the CFL speed, extra validation, J floor.
+
+    ``j_floor`` bounds det F of the *elastic* trial state (F after the step, before the return
+    mapping): the divergence guard rejects a step that takes any particle of the model below it
+    and retries with a smaller one. It is per model because what a model can represent differs,
+    and on the elastic part so that plastic compaction (which the return mappings put into the
+    plastic history, not into F) is never rejected. 0 for every model means an inverted or
+    collapsed element (J <= 0) is always a failed step, never a state.
+    """
 
     name: str
     id: int
     stiffness: Callable[[MaterialParams], float]  # P-wave modulus, Pa
     validate: Callable[[MaterialParams], None]
     plastic: bool  # has a return mapping
+    j_floor: float = 0.0
 
 
 def _p_modulus(p: MaterialParams) -> float:
@@ -132,7 +142,12 @@ def _needs_friction(p: MaterialParams) -> None:
 MODELS: dict[str, ConstitutiveModel] = {
     m.name: m
     for m in (
-        ConstitutiveModel("fixed_corotated", int(common.FIXED_COROTATED), _p_modulus, _no_extra, False),
+        # The volume barrier holds down to its pressure clamp at J = 1e-6; 1e-4 stays well inside
+        # it (float32 J still has three digits) and costs 100 lam of energy density, more than
+        # an impact below ~10x the wave speed brings: a step reaching it overshot.
+        ConstitutiveModel(
+            "fixed_corotated", int(common.FIXED_COROTATED), _p_modulus, _no_extra, False, j_floor=1.0e-4
+        ),
         ConstitutiveModel("neo_hookean", int(common.NEO_HOOKEAN), _p_modulus, _no_extra, False),
         ConstitutiveModel("drucker_prager", int(common.DRUCKER_PRAGER), _p_modulus, _needs_friction, True),
         ConstitutiveModel("mohr_coulomb", int(common.MOHR_COULOMB), _p_modulus, _needs_friction, True),

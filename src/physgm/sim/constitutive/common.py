@@ -50,6 +50,7 @@ class MaterialStruct:
     viscosity: float  # foam Perzyna viscosity, Pa s
     bulk: float  # fluid bulk modulus, Pa
     sin_phi: float  # Mohr-Coulomb sin(friction angle)
+    j_floor: float  # smallest det F of the elastic trial state a step may produce (divergence guard)
 
 
 @wp.func

@@ -35,22 +35,28 @@ def _diag_sandwich(U: np.ndarray, d: np.ndarray, Vt: np.ndarray) -> np.ndarray:
 FC_J_B, FC_J_FLOOR = 0.5, 1.0e-6  # fixed_corotated's volume barrier (see its Warp module)
 
 
-def fc_volume_pressure(J, lam):
-    """p(J) = J psi_vol'(J): lam (J - 1) J above J_B, -lam/4 - lam/2 log(J / J_B)^2 below."""
+def fc_volume_pressure(J, lam, k):
+    """p(J) = J psi_vol'(J): lam (J - 1) J above J_B, -lam/4 - k/2 log(J / J_B)^2 below (k = lam + 2 mu)."""
     L = np.log(np.maximum(J, FC_J_FLOOR) / FC_J_B)
-    return np.where(J >= FC_J_B, lam * (J - 1) * J, -0.25 * lam - 0.5 * lam * L**2)
+    return np.where(J >= FC_J_B, lam * (J - 1) * J, -0.25 * lam - 0.5 * k * L**2)
 
 
-def fc_volume_energy(J, lam):
+def fc_volume_energy(J, lam, k):
     L = np.log(np.maximum(J, FC_J_FLOOR) / FC_J_B)
-    return np.where(J >= FC_J_B, 0.5 * lam * (J - 1) ** 2, lam / 8 - lam * L / 4 - lam * L**3 / 6)
+    return np.where(J >= FC_J_B, 0.5 * lam * (J - 1) ** 2, lam / 8 - lam * L / 4 - k * L**3 / 6)
+
+
+def nh_barrier_log(J):
+    """log(J / J_E) below J_E (J clamped at 1e-6), 0 above: neo_hookean's volume barrier."""
+    return np.where(J >= J_E, 0.0, np.log(np.maximum(J, 1.0e-6) / J_E))
 
 
 def fixed_corotated(F, mu, lam, plastic=None, dt=0.0):
     U, s, Vt = rv_svd(F)
     R = U @ Vt
     J = np.linalg.det(F)
-    tau = 2 * mu * (F - R) @ np.swapaxes(F, 1, 2) + fc_volume_pressure(J, lam)[:, None, None] * np.eye(3)
+    p = fc_volume_pressure(J, lam, lam + 2 * mu)
+    tau = 2 * mu * (F - R) @ np.swapaxes(F, 1, 2) + p[:, None, None] * np.eye(3)
     return F.copy(), tau, plastic
 
 
@@ -80,7 +86,9 @@ def neo_hookean_first_pk(F, mu, lam):
 
 
 def neo_hookean(F, mu, lam, plastic=None, dt=0.0):
-    return F.copy(), neo_hookean_first_pk(F, mu, lam) @ np.swapaxes(F, 1, 2), plastic
+    barrier = -0.5 * (lam + 2 * mu) * nh_barrier_log(np.linalg.det(F)) ** 2  # Kirchhoff pressure
+    tau = neo_hookean_first_pk(F, mu, lam) @ np.swapaxes(F, 1, 2) + barrier[:, None, None] * np.eye(3)
+    return F.copy(), tau, plastic
 
 
 def _hencky(F):
@@ -189,10 +197,11 @@ def energy_density(model: str, F: np.ndarray, mu: float, lam: float, bulk: float
     J = np.linalg.det(F)
     if model == "fixed_corotated":
         s = rv_svd(F)[1]
-        return mu * ((s - 1) ** 2).sum(1) + fc_volume_energy(J, lam)
+        return mu * ((s - 1) ** 2).sum(1) + fc_volume_energy(J, lam, lam + 2 * mu)
     if model == "neo_hookean":
         g = _g(J)
-        return 0.5 * mu * ((F**2).sum((1, 2)) - 3) - mu * g + 0.5 * lam * g**2
+        barrier = -(lam + 2 * mu) * nh_barrier_log(J) ** 3 / 6
+        return 0.5 * mu * ((F**2).sum((1, 2)) - 3) - mu * g + 0.5 * lam * g**2 + barrier
     if model == "fluid":
         return 0.5 * bulk * (J - 1) ** 2
     eps = _hencky(F)[2]
