@@ -81,20 +81,13 @@ def _load_model(cfg: RunConfig):
     return load_model(cfg.ckpt, cfg.device)
 
 
-def _predict(model, inp, device: str):
+def _predict(model, inp):
     """The model's Gaussians (valid pixels only, CPU) and physics posterior (CPU) for one scene."""
     import torch
 
-    with torch.no_grad():
-        out = model(
-            inp.images[None].to(device),
-            inp.masks[None].to(device),
-            inp.c2w[None].to(device),
-            inp.Ks[None].to(device),
-        )
-    g = out.gaussians.to_gaussians(0).to("cpu")
-    post = out.physics.detach()
-    post = type(post)(**{k: v.cpu() for k, v in vars(post).items()})
+    from physgm.model.predict import predict_scene
+
+    g, post = predict_scene(model, inp.images, inp.masks, inp.c2w, inp.Ks)
     if len(g) == 0:
         raise UserError("the model placed no Gaussian inside the object mask; check the mask (mask.png)")
     values = [g.means, g.scales, g.opacities, g.colors, post.material_logits, post.z_E_mean, post.z_nu_mean]
@@ -193,7 +186,7 @@ def _execute(cfg: RunConfig) -> dict:
         sec["load"] = time.perf_counter() - t0
         # -- model + physics choice + placement -------------------------------------------------
         t0 = time.perf_counter()
-        g, post = _predict(model, inp, cfg.device) if model is not None else (inp.gaussians, None)
+        g, post = _predict(model, inp) if model is not None else (inp.gaussians, None)
         runs = choose_physics(post, cfg.physics, cfg.seed)
         min_opacity = float(cfg.planner.get("min_opacity", 0.05))
         ground_cfg = scene_cfg.get("ground")

@@ -175,6 +175,139 @@ def ballistic_frames(
     return int(min(n_frames, max(1, math.floor(t_hit / frame_dt) + 1)))
 
 
+class SimulationBudgetExceeded(RuntimeError):
+    """The MPM run passed its wall-clock deadline; raised between frames, nothing is returned."""
+
+    def __init__(self, frames_done: int, n_frames: int) -> None:
+        super().__init__(f"cut at frame {frames_done} of {n_frames}: past its wall-clock deadline")
+        self.frames_done, self.n_frames = frames_done, n_frames
+
+
+@dataclass
+class PreparedSimulation:
+    """Everything ``simulate`` settles before the solver starts: the plan and what it runs on.
+
+    ``plan.predicted_cost`` and ``ballistic_frames`` let a caller decide, before any solver
+    step, whether the run fits a time budget (``physgm.train.rollout_budget``).
+    """
+
+    plan: Plan
+    gaussians: Gaussians  # [N] placed where the scene starts
+    sample: ParticleSample  # [P] placed particles
+    scene: Scene
+    v0: np.ndarray  # [P, 3] m/s
+    material: MaterialParams  # at the requested E (the plan says which E runs)
+    planner: PlannerConfig
+    solver: SolverConfig
+    seconds: float  # sampling + planning, s
+
+    @property
+    def ballistic_frames(self) -> int:
+        """Leading frames computed in closed form (1 without the ballistic prefix)."""
+        if self.plan.mode == "rigid" or not self.planner.ballistic:
+            return 1
+        x0 = self.sample.x.detach().cpu().double().numpy()
+        return ballistic_frames(
+            x0, self.v0, self.scene, self.plan.frame_dt, self.plan.n_frames, 3 * self.plan.dx
+        )
+
+
+def prepare_simulation(
+    gaussians: Gaussians,
+    physics,
+    scene: str | Scene | tuple,
+    cameras: Cameras,
+    n_frames: int = 50,
+    planner: PlannerConfig | dict | None = None,
+    solver: SolverConfig | None = None,
+    scene_overrides: dict | None = None,
+) -> PreparedSimulation:
+    """Sample particles, apply the scene and plan; see ``simulate`` for the arguments."""
+    start = time.perf_counter()
+    cfg = PlannerConfig(**planner) if isinstance(planner, dict) else planner or PlannerConfig()
+    solver_cfg = solver or SolverConfig()
+    frame_dt = solver_cfg.frame_dt
+    name, material = resolve_material(physics)
+    restitution = (
+        physics.get("restitution") if isinstance(physics, dict) else getattr(physics, "restitution", None)
+    )
+    if restitution is not None:  # the material table has none; a physics description may
+        cfg = replace(cfg, restitution=float(restitution))
+    opaque = gaussians.opacities >= cfg.min_opacity
+    if not opaque.any():
+        raise ValueError(f"no Gaussian has opacity >= {cfg.min_opacity}; nothing to simulate")
+    extent = gaussians.means[opaque].detach().amax(0) - gaussians.means[opaque].detach().amin(0)
+    dx, spacing = choose_spacing(float(extent.max()), cfg)
+    rest = sample_particles(gaussians, spacing, cfg.min_opacity, cfg.fill_interior)
+    setup = apply_scene(scene, rest.x.detach().cpu().double().numpy(), scene_overrides)
+    gaussians = _place_gaussians(gaussians, rest.x.detach().cpu(), setup.x)
+    sample = replace(rest, x=torch.from_numpy(setup.x).float().to(rest.x.device))
+    v0 = np.asarray(setup.v, dtype=np.float64)
+    plan = plan_simulation(
+        sample.x.cpu(),
+        sample.volume,
+        torch.from_numpy(v0),
+        name,
+        material,
+        setup.scene,
+        cameras,
+        n_frames,
+        frame_dt,
+        dx,
+        spacing,
+        cfg,
+    )
+    return PreparedSimulation(
+        plan, gaussians, sample, setup.scene, v0, material, cfg, solver_cfg, time.perf_counter() - start
+    )
+
+
+def run_prepared(
+    prepared: PreparedSimulation, device: str = "cpu", deadline: float | None = None
+) -> GaussianTrajectory:
+    """Run a prepared simulation; ``deadline`` (a ``time.perf_counter()`` value) cuts an MPM run
+    between frames with ``SimulationBudgetExceeded``."""
+    start = time.perf_counter() - prepared.seconds
+    plan, sample, gaussians, cfg = prepared.plan, prepared.sample, prepared.gaussians, prepared.planner
+    x0, v0, n_frames = sample.x.detach().cpu().double().numpy(), prepared.v0, plan.n_frames
+    if plan.mode == "rigid":
+        traj = _run_rigid(plan, prepared.scene, x0, v0, sample, prepared.material.density, gaussians, cfg)
+        xs = np.stack([traj.transform(x0, t) for t in range(n_frames)]).astype(np.float32)
+        Fs = np.broadcast_to(traj.rotations[:, None].astype(np.float32), (n_frames, len(x0), 3, 3))
+        seconds = time.perf_counter() - start
+        return GaussianTrajectory(
+            plan,
+            gaussians,
+            sample,
+            None,
+            xs,
+            Fs,
+            traj,
+            traj.rest_frame,
+            1,
+            traj.steps,
+            seconds,
+            prepared.seconds,
+        )
+    followers = build_followers(gaussians.means, sample.x, k=cfg.follower_k)
+    xs, Fs, substeps, rest_frame, k0 = _run_mpm(
+        plan,
+        prepared.material.with_elasticity(E=plan.E_used),
+        prepared.scene,
+        x0,
+        v0,
+        sample,
+        prepared.solver,
+        device,
+        cfg.ballistic,
+        deadline,
+    )
+    seconds = time.perf_counter() - start
+    return GaussianTrajectory(
+        plan, gaussians, sample, followers, xs, Fs, None, rest_frame, k0, substeps, seconds, prepared.seconds
+    )
+
+
 def simulate(
     gaussians: Gaussians,
     physics,
@@ -199,65 +332,10 @@ def simulate(
         solver: MPM solver settings (frame_dt, cfl, ...).
         device: Warp device of the MPM solver.
     """
-    start = time.perf_counter()
-    cfg = PlannerConfig(**planner) if isinstance(planner, dict) else planner or PlannerConfig()
-    solver_cfg = solver or SolverConfig()
-    frame_dt = solver_cfg.frame_dt
-    name, material = resolve_material(physics)
-    restitution = (
-        physics.get("restitution") if isinstance(physics, dict) else getattr(physics, "restitution", None)
+    prepared = prepare_simulation(
+        gaussians, physics, scene, cameras, n_frames, planner, solver, scene_overrides
     )
-    if restitution is not None:  # the material table has none; a physics description may
-        cfg = replace(cfg, restitution=float(restitution))
-    opaque = gaussians.opacities >= cfg.min_opacity
-    if not opaque.any():
-        raise ValueError(f"no Gaussian has opacity >= {cfg.min_opacity}; nothing to simulate")
-    extent = gaussians.means[opaque].detach().amax(0) - gaussians.means[opaque].detach().amin(0)
-    dx, spacing = choose_spacing(float(extent.max()), cfg)
-    rest = sample_particles(gaussians, spacing, cfg.min_opacity, cfg.fill_interior)
-    setup = apply_scene(scene, rest.x.detach().cpu().double().numpy(), scene_overrides)
-    gaussians = _place_gaussians(gaussians, rest.x.detach().cpu(), setup.x)
-    sample = replace(rest, x=torch.from_numpy(setup.x).float().to(rest.x.device))
-    x0, v0 = setup.x, np.asarray(setup.v, dtype=np.float64)
-    plan = plan_simulation(
-        sample.x.cpu(),
-        sample.volume,
-        torch.from_numpy(v0),
-        name,
-        material,
-        setup.scene,
-        cameras,
-        n_frames,
-        frame_dt,
-        dx,
-        spacing,
-        cfg,
-    )
-    plan_seconds = time.perf_counter() - start
-    if plan.mode == "rigid":
-        traj = _run_rigid(plan, setup.scene, x0, v0, sample, material.density, gaussians, cfg)
-        xs = np.stack([traj.transform(x0, t) for t in range(n_frames)]).astype(np.float32)
-        Fs = np.broadcast_to(traj.rotations[:, None].astype(np.float32), (n_frames, len(x0), 3, 3))
-        seconds = time.perf_counter() - start
-        return GaussianTrajectory(
-            plan, gaussians, sample, None, xs, Fs, traj, traj.rest_frame, 1, traj.steps, seconds, plan_seconds
-        )
-    followers = build_followers(gaussians.means, sample.x, k=cfg.follower_k)
-    xs, Fs, substeps, rest_frame, k0 = _run_mpm(
-        plan,
-        material.with_elasticity(E=plan.E_used),
-        setup.scene,
-        x0,
-        v0,
-        sample,
-        solver_cfg,
-        device,
-        cfg.ballistic,
-    )
-    seconds = time.perf_counter() - start
-    return GaussianTrajectory(
-        plan, gaussians, sample, followers, xs, Fs, None, rest_frame, k0, substeps, seconds, plan_seconds
-    )
+    return run_prepared(prepared, device)
 
 
 def _run_rigid(
@@ -297,6 +375,7 @@ def _run_mpm(
     solver_cfg: SolverConfig,
     device: str,
     ballistic: bool = True,
+    deadline: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int, int | None, int]:
     """MPM with a ballistic prefix and early stop.
 
@@ -321,6 +400,8 @@ def _run_mpm(
     substeps, quiet, rest_frame = 0, 0, None
     try:
         for k in range(k0, T):
+            if deadline is not None and time.perf_counter() > deadline:
+                raise SimulationBudgetExceeded(k, T)
             stats = solver.step_frame()
             substeps += stats.substeps
             state = solver.state()
