@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from physgm.metrics.clip_score import ScoreConfig, edge_profile, score_clip, silhouette_distance
+from physgm.metrics.clip_score import ScoreConfig, moment_profile, score_clip, silhouette_distance, soft_alpha
 from physgm.metrics.perceptual import perceptual_distance
 
 
@@ -45,7 +45,7 @@ def test_profile_and_silhouette_grow_with_the_squash_and_rebound_mismatch():
     ref = drop_clip(0.3, 0.5)
     squash = [score_clip(ref, drop_clip(s, 0.5)).terms for s in (0.3, 0.2, 0.1, 0.0)]
     assert [t["profile"] for t in squash] == sorted(t["profile"] for t in squash)
-    assert squash[0]["profile"] == 0.0 and squash[-1]["profile"] > 0.02
+    assert squash[0]["profile"] == 0.0 and squash[-1]["profile"] > 0.01
     assert squash[-1]["silhouette"] > squash[0]["silhouette"] + 0.02
     rebound = [score_clip(ref, drop_clip(0.3, r)).value for r in (0.5, 0.25, 0.0)]
     assert rebound[0] < rebound[1] < rebound[2]
@@ -53,12 +53,25 @@ def test_profile_and_silhouette_grow_with_the_squash_and_rebound_mismatch():
     assert perceptual_distance(ref, drop_clip(0.0, 0.0)) > perceptual_distance(ref, drop_clip(0.25, 0.5)) > 0
 
 
-def test_profile_is_relative_to_the_first_frame_box_so_scale_and_offset_cancel():
+def test_profile_is_relative_to_the_first_frame_so_scale_and_offset_cancel():
     ref = drop_clip(0.3, 0.5)
+    big = np.repeat(np.repeat(ref, 2, 1), 2, 2)  # the same clip at twice the size
+    shifted = np.roll(ref, (3, -5), axis=(1, 2))  # and moved in the image
+    profile = moment_profile(soft_alpha(ref))
+    assert np.abs(profile).max() > 0.5  # it falls more than half its size
+    np.testing.assert_allclose(moment_profile(soft_alpha(big)), profile, atol=0.02)
+    np.testing.assert_allclose(moment_profile(soft_alpha(shifted)), profile, atol=1e-6)
     masks = (ref < 250).any(-1)
-    big = np.repeat(np.repeat(masks, 2, 1), 2, 2)  # the same clip at twice the size
-    np.testing.assert_allclose(edge_profile(big), edge_profile(masks), atol=0.07)
-    assert silhouette_distance(masks, big) < 0.1
+    assert silhouette_distance(masks, np.repeat(np.repeat(masks, 2, 1), 2, 2)) < 0.1
+
+
+def test_profile_sees_sub_pixel_motion():
+    """An anti-aliased edge a quarter pixel further moves the moment profile; whole-pixel masks would not."""
+    a = np.full((2, 32, 32, 3), 255, np.uint8)
+    a[:, 10:20, 10:20] = 0
+    b = a.copy()
+    b[1, 20, 10:20] = 191  # frame 1: a quarter-pixel deeper bottom edge (coverage 0.25)
+    assert moment_profile(soft_alpha(b))[1, 1] > 0.005 and moment_profile(soft_alpha(a))[1, 1] == 0.0
 
 
 def test_weights_select_the_terms():
