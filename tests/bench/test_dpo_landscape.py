@@ -94,10 +94,10 @@ def test_landscape_is_lowest_at_the_true_E_with_the_true_gaussians(drop_root, ti
     assert [p["log10_E"] for p in true["points"]] == pytest.approx(
         [row["log10_E"] - 1, row["log10_E"], row["log10_E"] + 1]
     )
-    for key, at_truth in (("distance", 0.01), ("distance_encoded", 0.01), ("score", 0.05)):
+    for key, at_truth in (("distance", 0.01), ("distance_encoded", 0.01), ("score", 0.08)):
         dist = [p[key] for p in true["points"]]
         # The true Gaussians, physics and density re-create the reference video: ~0 at d = 0, far off
-        # at +-1 decade (the score's silhouette terms keep the codec's edge pixels at 32 px: 0.02).
+        # at +-1 decade (the score keeps the codec's edge pixels at 32 px: 0.05).
         assert dist[1] < at_truth and min(dist[0], dist[2]) > 3 * dist[1] + 0.01, (key, dist)
         assert true[key]["argmin_d"] == 0.0 and true[key]["at_truth"] == dist[1] and not true[key]["flat"]
         assert true[key]["spread"] == pytest.approx(max(dist) - min(dist))

@@ -207,11 +207,18 @@ def test_cache_resumes_after_a_kill_and_never_reads_half_files(dpo_root, policy,
     assert len(again.calls) == 2 * COUNT * 3
 
 
-def test_winner_is_lowest_distance_and_candidates_are_raw_samples(dpo_root, policy, tmp_path, monkeypatch):
+def test_winner_is_lowest_distance_and_candidates_are_raw_samples(
+    dpo_root, policy, tmp_path, monkeypatch, capsys
+):
     monkeypatch.setattr(rollout, "evaluate_physics", StandIn())
     cb = make_callback(dpo_root, workers=2, num_candidates=4, min_std_decades=1.0)
     cb.setup(None, None, "fit")
     records = cb.refresh(fake_trainer(tmp_path), policy, 0, "p0")
+    progress = capsys.readouterr().err.splitlines()
+    assert [line.split(" scenes")[0] for line in progress if line.startswith("rollout round")] == [
+        f"rollout round 0: {i}/{COUNT}" for i in range(1, COUNT + 1)
+    ]
+    assert f"{COUNT} pairs written, 0 candidates skipped" in progress[-1]
     for r in records:
         d = [c.distance for c in r.candidates]
         assert len(d) == 4 and r.has_pair
