@@ -19,6 +19,7 @@ import pytest
 import torch
 
 import physgm.train.rollout as rollout
+import physgm.train.rollout_env as env
 from physgm.data.synth import SynthConfig, asset_id, generate
 from physgm.data.video import VideoConfig, place_object, render_frames, video_camera, write_mp4
 from physgm.data.writer import camera_entry, write_json
@@ -27,6 +28,7 @@ from physgm.model import BackboneConfig, EncoderConfig, GaussianHeadConfig, Phys
 from physgm.model.physgm import PhysGM
 from physgm.train.pairs import PairCache
 from physgm.train.pretrain import LitPretrain
+from physgm.train.rollout_budget import BoundedRun
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 COUNT = 4
@@ -145,7 +147,7 @@ class StandIn:
             raise Killed()
         self.calls.append((scene.id, physics))
         target = 4.0 + scene.index  # an arbitrary, scene-dependent "true" stiffness
-        return abs(math.log10(physics["E"]) - target), {"mode": "stand-in"}
+        return env.ClipResult(abs(math.log10(physics["E"]) - target), mode="stand-in")
 
 
 def make_callback(root: Path, **over) -> rollout.RolloutCallback:
@@ -221,11 +223,18 @@ def test_cache_resumes_after_a_kill_and_never_reads_half_files(dpo_root, policy,
     assert len(again.calls) == 2 * COUNT * 3
 
 
-def test_winner_is_lowest_distance_and_candidates_are_raw_samples(dpo_root, policy, tmp_path, monkeypatch):
+def test_winner_is_lowest_distance_and_candidates_are_raw_samples(
+    dpo_root, policy, tmp_path, monkeypatch, capsys
+):
     monkeypatch.setattr(rollout, "evaluate_physics", StandIn())
     cb = make_callback(dpo_root, workers=2, num_candidates=4, min_std_decades=1.0)
     cb.setup(None, None, "fit")
     records = cb.refresh(fake_trainer(tmp_path), policy, 0, "p0")
+    progress = capsys.readouterr().err.splitlines()
+    assert [line.split(" scenes")[0] for line in progress if line.startswith("rollout round")] == [
+        f"rollout round 0: {i}/{COUNT}" for i in range(1, COUNT + 1)
+    ]
+    assert f"{COUNT} pairs written, 0 candidates skipped" in progress[-1]
     for r in records:
         d = [c.distance for c in r.candidates]
         assert len(d) == 4 and r.has_pair
@@ -244,7 +253,7 @@ def test_mode_material_candidates_share_the_most_likely_material(dpo_root, polic
     cb = make_callback(dpo_root, material="mode", num_candidates=4)
     cb.setup(None, None, "fit")
     for r, scene in zip(cb.refresh(fake_trainer(tmp_path), policy, 0, "p0"), cb.scenes, strict=True):
-        _, posterior = rollout.predict(policy.model, scene.inputs)
+        _, posterior = env.predict(policy.model, scene.inputs)
         assert {c.material for c in r.candidates} == {int(posterior.material_logits.argmax())}
         assert len({c.log10_E for c in r.candidates}) == 4
 
@@ -266,7 +275,7 @@ def test_ddp_ranks_simulate_disjoint_shares(dpo_root, policy, tmp_path, monkeypa
 
 def test_evaluate_physics_wiring(dpo_root, monkeypatch):
     """Placement, camera, frame rate and scene given to the simulator; real render + score, still object."""
-    scene = rollout.load_scenes(dpo_root, "dpo", num_views=1)[0]
+    scene = env.load_scenes(dpo_root, "dpo", num_views=1)[0]
     n = 200
     gen = torch.Generator().manual_seed(0)
     g = Gaussians(
@@ -285,10 +294,12 @@ def test_evaluate_physics_wiring(dpo_root, monkeypatch):
         scene_name,
         cameras,
         n_frames,
-        planner=None,
-        solver=None,
-        scene_overrides=None,
-        device="cpu",
+        planner,
+        solver,
+        scene_overrides,
+        device,
+        budget,
+        start,
     ):
         seen.update(
             g=gaussians,
@@ -299,16 +310,21 @@ def test_evaluate_physics_wiring(dpo_root, monkeypatch):
             over=scene_overrides,
             physics=physics,
             planner=planner,
+            budget=budget,
         )
-        return StillTrajectory(gaussians, n_frames, plan=SimpleNamespace(mode="rigid", E_used=1.0))
+        return BoundedRun(
+            StillTrajectory(gaussians, n_frames, plan=SimpleNamespace(mode="rigid", E_used=1.0)),
+            planner,
+            -1,
+            0.0,
+            0.0,
+        )
 
-    monkeypatch.setattr("physgm.sim.gaussian_trajectory.simulate", static_simulate)
-    settings = rollout.SimSettings(resolution=32, n_frames=6, backend="warp")
-    camera = rollout.render_camera(scene, 32)
+    monkeypatch.setattr(env, "bounded_simulate", static_simulate)
+    settings = env.SimSettings(resolution=32, n_frames=6, backend="warp")
+    camera = env.render_camera(scene, 32)
     reference = render_frames(StillTrajectory(placed, 6), camera, "warp", 1.0)
-    dist, info = rollout.evaluate_physics(
-        scene, g, {"material": "rubber", "E": 1e6, "nu": 0.45}, reference, settings
-    )
+    result = env.evaluate_physics(scene, g, {"material": "rubber", "E": 1e6, "nu": 0.45}, reference, settings)
     torch.testing.assert_close(seen["g"].means, placed.means)
     assert seen["g"].means[:, 2].min().item() == pytest.approx(scene.video.drop_height_m, abs=1e-6)
     assert (
@@ -319,8 +335,8 @@ def test_evaluate_physics_wiring(dpo_root, monkeypatch):
     # Rendering at half the reference size: the pixel bounds halve, so the plan is the reference's.
     from physgm.sim.planner import PlannerConfig
 
-    half = rollout.SimSettings(resolution=16, n_frames=6, backend="warp", planner={"cells_across": 7})
-    rollout.evaluate_physics(scene, g, {"material": "rubber", "E": 1e6, "nu": 0.45}, reference, half)
+    half = env.SimSettings(resolution=16, n_frames=6, backend="warp", planner={"cells_across": 7})
+    env.evaluate_physics(scene, g, {"material": "rubber", "E": 1e6, "nu": 0.45}, reference, half)
     assert seen["cams"].width == 16 and seen["cams"].Ks[0, 0, 0].item() == pytest.approx(
         scene.camera.Ks[0, 0, 0].item() / 2
     )
@@ -332,7 +348,13 @@ def test_evaluate_physics_wiring(dpo_root, monkeypatch):
         "cells_across": 7,
     }
     torch.testing.assert_close(seen["cams"].c2w, scene.camera.c2w)
-    assert dist == pytest.approx(0.0, abs=1e-6) and info["mode"] == "rigid"
+    assert seen["budget"].max_seconds == 30.0  # the default budget reaches the simulator
+    # A still object scored against itself (through the codec): tracks agree exactly, the silhouette
+    # terms only see the codec's edge pixels at 32 px.
+    terms = result.terms
+    assert terms["tracks"] == pytest.approx(0.0, abs=1e-6) and result.mode == "rigid"
+    assert result.distance == pytest.approx(terms["tracks"] + terms["profile"] + 0.5 * terms["silhouette"])
+    assert terms["profile"] < 0.1 and terms["silhouette"] < 0.2
 
 
 def test_fit_trains_and_resumes_mid_round_from_the_cache(dpo_root, stage1_ckpt, tmp_path, monkeypatch):
@@ -476,54 +498,46 @@ def test_evaluate_command_compares_two_checkpoints(dpo_root, stage1_ckpt, tmp_pa
         },
         dpo_path,
     )
-    truth = {s.id: s.log10_E for s in rollout.load_scenes(dpo_root, "dpo", num_views=2, input_resolution=32)}
+    truth = {s.id: s.log10_E for s in env.load_scenes(dpo_root, "dpo", num_views=2, input_resolution=32)}
 
-    def score(scene, gaussians, physics, reference, settings, device="cpu"):
-        return abs(math.log10(physics["E"]) - truth[scene.id]), {"mode": "stand-in"}
+    def score(scene, gaussians, physics, reference, settings, device="cpu", keep_frames=False):
+        # The rollout score is the stand-in; the clip is the reference itself, so the command's own
+        # trajectory and perceptual distances must come out 0.
+        return env.ClipResult(
+            abs(math.log10(physics["E"]) - truth[scene.id]), mode="stand-in", frames=reference
+        )
 
     monkeypatch.setattr(evaluate_dpo, "evaluate_physics", score)
-    table = tmp_path / "eval.md"
-    assert (
-        evaluate_dpo.main(
-            [
-                "--pretrain",
-                stage1_ckpt,
-                "--dpo",
-                str(dpo_path),
-                "--data",
-                str(dpo_root),
-                "--split",
-                "dpo",
-                "--frames",
-                "6",
-                "--table",
-                str(table),
-                "--workers",
-                "1",
-            ]
-        )
-        == 0
-    )
+    out = tmp_path / "eval"
+    argv = ["--pretrain", stage1_ckpt, "--dpo", str(dpo_path), "--data", str(dpo_root), "--split", "dpo"]
+    assert evaluate_dpo.main([*argv, "--frames", "6", "--out", str(out), "--workers", "1"]) == 0
     report = json.loads(capsys.readouterr().out)
+    assert report == json.loads((out / "evaluate_dpo.json").read_text())
     assert report["scenes"] == COUNT and report["views"] == 2 and report["input_resolution"] == 32
     rows = report["per_scene"]
     for r in rows:
         for name in ("pretrain", "dpo"):
-            assert r[name]["distance"] == pytest.approx(
+            assert r[name]["score"] == pytest.approx(
                 abs(min(max(r[name]["log10_E"], 3.0), 11.7) - r["log10_E"]), abs=1e-4
             )
+            assert r[name]["distance"] == pytest.approx(0.0, abs=1e-6)
+            assert r[name]["perceptual"] == pytest.approx(0.0, abs=1e-6)
             assert r[name]["abs_log10_E_error"] == pytest.approx(abs(r[name]["log10_E"] - r["log10_E"]))
         assert r["dpo"]["log10_E"] - r["pretrain"]["log10_E"] == pytest.approx(0.5 * 8.7 / 2, abs=1e-3)
     overall = report["summary"]["overall"]
     for name in ("pretrain", "dpo"):
-        assert overall[name]["mean_distance"] == pytest.approx(np.mean([r[name]["distance"] for r in rows]))
+        assert overall[name]["mean_score"] == pytest.approx(np.mean([r[name]["score"] for r in rows]))
         assert overall[name]["median_abs_log10_E_error"] == pytest.approx(
             np.median([r[name]["abs_log10_E_error"] for r in rows])
         )
-    gain = 1 - overall["dpo"]["mean_distance"] / overall["pretrain"]["mean_distance"]
-    assert overall["gain"]["mean_distance"] == pytest.approx(gain)
-    assert set(evaluate_dpo.KEY_MATERIALS) <= set(report["summary"]) and report["summary"]["metal"][
-        "pretrain"
-    ]["n"] == sum(r["material"] == "metal" for r in rows)
-    text = table.read_text()
-    assert text.count("\n") == len(report["summary"]) + 2 and "| overall |" in text and "| sand |" in text
+    gain = 1 - overall["dpo"]["median_abs_log10_E_error"] / overall["pretrain"]["median_abs_log10_E_error"]
+    assert overall["gain"]["median_abs_log10_E_error"] == pytest.approx(gain)
+    summary = report["summary"]
+    assert set(evaluate_dpo.KEY_MATERIALS) <= set(summary) and "rubber" in summary
+    assert summary["metal"]["pretrain"]["n"] == sum(r["material"] == "metal" for r in rows)
+    # One contact sheet per material present: reference, stage 1 and stage 2 rows.
+    present = {r["material"] for r in rows}
+    assert set(report["sheets"]) == present and all(Path(p).is_file() for p in report["sheets"].values())
+    text = (out / "evaluate_dpo.md").read_text()
+    assert text.count("\n") == len(summary) + 2 and "| overall |" in text and "| rubber |" in text
+    assert "stage 1 perceptual" in text and "stage 2 traj dist" in text

@@ -96,25 +96,13 @@ def _load_model(cfg: RunConfig):
     return model, {**ckpt.summary(), "input_size": input_size(model, ckpt.hparams)}
 
 
-def _on(t, device: str):
-    return None if t is None else t.to(device)
-
-
-def _predict(model, inp, device: str):
+def _predict(model, inp):
     """The model's Gaussians (valid pixels only, CPU) and physics posterior (CPU) for one scene."""
     import torch
 
-    with torch.no_grad():
-        out = model(
-            inp.images[None].to(device),
-            inp.masks[None].to(device),
-            inp.c2w[None].to(device),
-            inp.Ks[None].to(device),
-            model.encode_views(inp.images.to(device), _on(inp.classifier_images, device)),
-        )
-    g = out.gaussians.to_gaussians(0).to("cpu")
-    post = out.physics.detach()
-    post = type(post)(**{k: v.cpu() for k, v in vars(post).items()})
+    from physgm.model.predict import predict_scene
+
+    g, post = predict_scene(model, inp.images, inp.masks, inp.c2w, inp.Ks, inp.classifier_images)
     if len(g) == 0:
         raise UserError("the model placed no Gaussian inside the object mask; check the mask (mask.png)")
     values = [g.means, g.scales, g.opacities, g.colors, post.material_logits, post.z_E_mean, post.z_nu_mean]
@@ -219,7 +207,7 @@ def _execute(cfg: RunConfig) -> RunResult:
         sec["load"] = time.perf_counter() - t0
         # -- model + physics choice + placement -------------------------------------------------
         t0 = time.perf_counter()
-        g, post = _predict(model, inp, cfg.device) if model is not None else (inp.gaussians, None)
+        g, post = _predict(model, inp) if model is not None else (inp.gaussians, None)
         runs = choose_physics(post, cfg.physics, cfg.seed)
         min_opacity = float(cfg.planner.get("min_opacity", 0.05))
         ground = scene.ground_height

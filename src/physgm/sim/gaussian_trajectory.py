@@ -178,28 +178,58 @@ def ballistic_frames(
     return int(min(n_frames, max(1, math.floor(t_hit / frame_dt) + 1)))
 
 
+class SimulationBudgetExceeded(RuntimeError):
+    """The MPM run passed its wall-clock deadline; raised between frames, nothing is returned."""
+
+    def __init__(self, frames_done: int, n_frames: int) -> None:
+        super().__init__(f"cut at frame {frames_done} of {n_frames}: past its wall-clock deadline")
+        self.frames_done, self.n_frames = frames_done, n_frames
+
+
 @dataclass
-class _Prepared:
-    """Everything ``simulate`` decides before it runs: particles, scene, material and plan."""
+class PreparedSimulation:
+    """Everything ``simulate`` settles before the solver starts: the plan and what it runs on.
 
-    cfg: PlannerConfig
-    material: MaterialParams
-    gaussians: Gaussians  # placed by the scene
-    sample: ParticleSample  # placed particles
-    setup: SceneSetup
+    ``plan.predicted_cost`` and ``ballistic_frames`` let a caller decide, before any solver
+    step, whether the run fits a time budget (``physgm.train.rollout_budget``).
+    """
+
     plan: Plan
+    gaussians: Gaussians  # [N] placed where the scene starts
+    sample: ParticleSample  # [P] placed particles
+    scene: Scene
+    v0: np.ndarray  # [P, 3] m/s
+    material: MaterialParams  # at the requested E (the plan says which E runs)
+    planner: PlannerConfig
+    solver: SolverConfig
+    seconds: float  # sampling + planning, s
+
+    @property
+    def ballistic_frames(self) -> int:
+        """Leading frames computed in closed form (1 without the ballistic prefix)."""
+        if self.plan.mode == "rigid" or not self.planner.ballistic:
+            return 1
+        x0 = self.sample.x.detach().cpu().double().numpy()
+        return ballistic_frames(
+            x0, self.v0, self.scene, self.plan.frame_dt, self.plan.n_frames, 3 * self.plan.dx
+        )
 
 
-def _prepare(
+def prepare_simulation(
     gaussians: Gaussians,
     physics: PhysicsSpec | MaterialParams | Mapping,
-    scene,
+    scene: str | Scene | tuple,
     cameras: Cameras,
-    n_frames: int,
-    cfg: PlannerConfig,
-    frame_dt: float,
-    scene_overrides: dict | None,
-) -> _Prepared:
+    n_frames: int = 50,
+    planner: PlannerConfig | dict | None = None,
+    solver: SolverConfig | None = None,
+    scene_overrides: dict | None = None,
+) -> PreparedSimulation:
+    """Sample particles, apply the scene and plan; see ``simulate`` for the arguments."""
+    start = time.perf_counter()
+    cfg = PlannerConfig(**planner) if isinstance(planner, dict) else planner or PlannerConfig()
+    solver_cfg = solver or SolverConfig()
+    frame_dt = solver_cfg.frame_dt
     name, material, restitution = physics_params(physics)
     if restitution is not None:  # the material table has none; a physics description may
         cfg = replace(cfg, restitution=float(restitution))
@@ -212,10 +242,11 @@ def _prepare(
     setup = apply_scene(scene, rest.x.detach().cpu().double().numpy(), scene_overrides)
     gaussians = _place_gaussians(gaussians, rest.x.detach().cpu(), setup.x)
     sample = replace(rest, x=torch.from_numpy(setup.x).float().to(rest.x.device))
+    v0 = np.asarray(setup.v, dtype=np.float64)
     plan = plan_simulation(
         sample.x.cpu(),
         sample.volume,
-        torch.from_numpy(np.asarray(setup.v, dtype=np.float64)),
+        torch.from_numpy(v0),
         name,
         material,
         setup.scene,
@@ -226,7 +257,9 @@ def _prepare(
         spacing,
         cfg,
     )
-    return _Prepared(cfg, material, gaussians, sample, setup, plan)
+    return PreparedSimulation(
+        plan, gaussians, sample, setup.scene, v0, material, cfg, solver_cfg, time.perf_counter() - start
+    )
 
 
 def plan_for(
@@ -240,8 +273,68 @@ def plan_for(
     frame_dt: float = SolverConfig.frame_dt,
 ) -> Plan:
     """The plan ``simulate`` would run with these arguments, without simulating."""
-    cfg = planner or PlannerConfig()
-    return _prepare(gaussians, physics, scene, cameras, n_frames, cfg, frame_dt, scene_overrides).plan
+    solver = SolverConfig(frame_dt=frame_dt)
+    return prepare_simulation(
+        gaussians, physics, scene, cameras, n_frames, planner, solver, scene_overrides
+    ).plan
+
+
+def run_prepared(
+    prepared: PreparedSimulation, device: str = "cpu", deadline: float | None = None
+) -> GaussianTrajectory:
+    """Run a prepared simulation; ``deadline`` (a ``time.perf_counter()`` value) cuts an MPM run
+    between frames with ``SimulationBudgetExceeded``."""
+    start = time.perf_counter() - prepared.seconds
+    plan, sample, gaussians, cfg = prepared.plan, prepared.sample, prepared.gaussians, prepared.planner
+    x0, v0, n_frames = sample.x.detach().cpu().double().numpy(), prepared.v0, plan.n_frames
+    if plan.mode == "rigid":
+        traj = _run_rigid(plan, prepared.scene, x0, v0, sample, prepared.material.density, gaussians, cfg)
+        xs = np.stack([traj.transform(x0, t) for t in range(n_frames)]).astype(np.float32)
+        Fs = np.broadcast_to(traj.rotations[:, None].astype(np.float32), (n_frames, len(x0), 3, 3))
+        seconds = time.perf_counter() - start
+        return GaussianTrajectory(
+            plan,
+            gaussians,
+            sample,
+            None,
+            xs,
+            Fs,
+            traj,
+            traj.rest_frame,
+            1,
+            traj.steps,
+            seconds,
+            prepared.seconds,
+        )
+    followers = build_followers(gaussians.means, sample.x, k=cfg.follower_k)
+    xs, Fs, substeps, rest_frame, k0, faces = _run_mpm(
+        plan,
+        prepared.material.with_elasticity(E=plan.E_used, nu=plan.nu_used),
+        prepared.scene,
+        x0,
+        v0,
+        sample,
+        prepared.solver,
+        device,
+        cfg.ballistic,
+        deadline,
+    )
+    seconds = time.perf_counter() - start
+    return GaussianTrajectory(
+        plan,
+        gaussians,
+        sample,
+        followers,
+        xs,
+        Fs,
+        None,
+        rest_frame,
+        k0,
+        substeps,
+        seconds,
+        prepared.seconds,
+        faces,
+    )
 
 
 def simulate(
@@ -268,49 +361,10 @@ def simulate(
         solver: MPM solver settings (frame_dt, cfl, ...).
         device: Warp device of the MPM solver.
     """
-    start = time.perf_counter()
-    cfg = PlannerConfig(**planner) if isinstance(planner, dict) else planner or PlannerConfig()
-    solver_cfg = solver or SolverConfig()
-    prep = _prepare(gaussians, physics, scene, cameras, n_frames, cfg, solver_cfg.frame_dt, scene_overrides)
-    plan, material, sample, gaussians, cfg = prep.plan, prep.material, prep.sample, prep.gaussians, prep.cfg
-    x0, v0 = prep.setup.x, np.asarray(prep.setup.v, dtype=np.float64)
-    plan_seconds = time.perf_counter() - start
-    if plan.mode == "rigid":
-        traj = _run_rigid(plan, prep.setup.scene, x0, v0, sample, material.density, gaussians, cfg)
-        xs = np.stack([traj.transform(x0, t) for t in range(n_frames)]).astype(np.float32)
-        Fs = np.broadcast_to(traj.rotations[:, None].astype(np.float32), (n_frames, len(x0), 3, 3))
-        seconds = time.perf_counter() - start
-        return GaussianTrajectory(
-            plan, gaussians, sample, None, xs, Fs, traj, traj.rest_frame, 1, traj.steps, seconds, plan_seconds
-        )
-    followers = build_followers(gaussians.means, sample.x, k=cfg.follower_k)
-    xs, Fs, substeps, rest_frame, k0, faces = _run_mpm(
-        plan,
-        material.with_elasticity(E=plan.E_used, nu=plan.nu_used),
-        prep.setup.scene,
-        x0,
-        v0,
-        sample,
-        solver_cfg,
-        device,
-        cfg.ballistic,
+    prepared = prepare_simulation(
+        gaussians, physics, scene, cameras, n_frames, planner, solver, scene_overrides
     )
-    seconds = time.perf_counter() - start
-    return GaussianTrajectory(
-        plan,
-        gaussians,
-        sample,
-        followers,
-        xs,
-        Fs,
-        None,
-        rest_frame,
-        k0,
-        substeps,
-        seconds,
-        plan_seconds,
-        faces,
-    )
+    return run_prepared(prepared, device)
 
 
 def _run_rigid(
@@ -350,6 +404,7 @@ def _run_mpm(
     solver_cfg: SolverConfig,
     device: str,
     ballistic: bool = True,
+    deadline: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int, int | None, int, int]:
     """MPM with a ballistic prefix and early stop.
 
@@ -374,6 +429,8 @@ def _run_mpm(
     substeps, quiet, rest_frame = 0, 0, None
     try:
         for k in range(k0, T):
+            if deadline is not None and time.perf_counter() > deadline:
+                raise SimulationBudgetExceeded(k, T)
             stats = solver.step_frame()
             substeps += stats.substeps
             state = solver.state()

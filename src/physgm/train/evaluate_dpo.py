@@ -1,20 +1,23 @@
-"""Pretrain-only vs DPO on held-out scenes with reference videos.
+"""Stage 1 against stage 2 (DPO) on held-out scenes with reference videos: the paper's DPO ablation.
 
     python -m physgm.train.evaluate_dpo --pretrain STAGE1.ckpt --dpo DPO.ckpt --data ROOT [--split test]
 
 For every scene of the split that has ``videos/drop.mp4``, each model predicts Gaussians and a
 physics posterior from the scene's input views; the posterior MEAN physics (most likely
 material, mean log10 E, mean nu) is simulated on the model's own Gaussians exactly like the
-reference video was made, rendered from its camera and scored with the trajectory distance.
-Reported per true material and overall: mean trajectory distance and median |log10 E - true|
-(plus material accuracy). One JSON object goes to stdout and a markdown table to ``--table``.
+reference video was made, rendered from its camera and compared with the reference. Reported
+per true material (metal, jelly, plasticine, snow, sand, rubber always, then any other present)
+and overall: mean trajectory distance (the paper's tracks recipe), mean rollout score (the score
+DPO ranks by), a perceptual distance (``physgm.metrics.perceptual``), median |log10 E - true|
+and material accuracy. One JSON object goes to stdout (and ``--out``/evaluate_dpo.json), the
+table to stderr and ``--out``/evaluate_dpo.md, and one contact sheet per material (reference,
+stage 1, stage 2) to ``--out``/sheet_<material>.png.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -23,9 +26,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from physgm.metrics.perceptual import perceptual_distance
+from physgm.metrics.trajectory import score_videos
 from physgm.model.checkpoint import load_model
 from physgm.physics.materials import MATERIAL_NAMES
-from physgm.train.rollout import (
+from physgm.train.rollout_env import (
     SimSettings,
     evaluate_physics,
     load_scenes,
@@ -35,7 +40,9 @@ from physgm.train.rollout import (
 )
 from physgm.warp_runtime import preload
 
-KEY_MATERIALS = ("metal", "jelly", "plasticine", "snow", "sand")  # always reported, as in the paper
+KEY_MATERIALS = ("metal", "jelly", "plasticine", "snow", "sand", "rubber")  # always reported
+LABELS = {"pretrain": "stage 1", "dpo": "stage 2"}
+METRICS = ("mean_distance", "mean_score", "mean_perceptual", "median_abs_log10_E_error", "material_accuracy")
 
 
 def input_settings(hparams: dict, model) -> dict:
@@ -48,8 +55,8 @@ def input_settings(hparams: dict, model) -> dict:
     return inputs
 
 
-def evaluate_scene(models: dict, scene, settings: SimSettings, workers: int) -> dict:
-    """Both models' mean-physics rollouts of one scene."""
+def evaluate_scene(models: dict, scene, settings: SimSettings, workers: int) -> tuple[dict, dict]:
+    """Both models' mean-physics rollouts of one scene: (row, {name: scored frames or None})."""
     reference = reference_frames(scene, settings.n_frames)
     row = {
         "scene": scene.id,
@@ -59,7 +66,7 @@ def evaluate_scene(models: dict, scene, settings: SimSettings, workers: int) -> 
         "true_known": scene.true_known,
     }
 
-    def run(name: str) -> tuple[str, dict]:
+    def run(name: str) -> tuple[str, dict, np.ndarray | None]:
         gaussians, posterior = predict(models[name], scene.inputs)
         mean = posterior.mean()
         physics = physics_dict(mean)
@@ -68,24 +75,35 @@ def evaluate_scene(models: dict, scene, settings: SimSettings, workers: int) -> 
             "log10_E": float(mean.log10_E[0, 0]),
             "nu": float(mean.nu[0, 0]),
         }
-        start = time.perf_counter()
+        start, frames = time.perf_counter(), None
         try:
-            distance, info = evaluate_physics(scene, gaussians, physics, reference, settings)
-            out.update(distance=float(distance) if math.isfinite(distance) else None, mode=info.get("mode"))
+            result = evaluate_physics(scene, gaussians, physics, reference, settings, keep_frames=True)
+            frames = result.frames
+            out.update(score=result.distance, mode=result.mode, skipped=result.skipped, terms=result.terms)
         except (ValueError, RuntimeError) as err:
-            out.update(distance=None, error=f"{type(err).__name__}: {err}")
+            out.update(score=None, error=f"{type(err).__name__}: {err}")
         out["seconds"] = round(time.perf_counter() - start, 2)
         out["abs_log10_E_error"] = abs(out["log10_E"] - scene.log10_E) if scene.true_known else None
-        return name, out
+        return name, out, frames
 
     preload("cpu")  # no Warp module may load while the workers launch kernels
     with ThreadPoolExecutor(max(1, workers)) as pool:
-        row.update(dict(pool.map(run, list(models))))
-    return row
+        results = list(pool.map(run, list(models)))
+    clips = {}
+    for name, out, frames in results:
+        clips[name] = frames
+        # Scored here, in one thread: the tracker and the feature network are not shared across threads.
+        out["distance"] = out["perceptual"] = None
+        if frames is not None:
+            d = score_videos(reference[: len(frames)], frames).distance
+            out["distance"] = d if np.isfinite(d) else None
+            out["perceptual"] = perceptual_distance(reference, frames)
+        row[name] = out
+    return row, clips
 
 
 def summarise(rows: list[dict], names: list[str]) -> dict:
-    """Per-material and overall metrics of each model, and the DPO gains."""
+    """Per-material and overall metrics of each model, and the stage-2 gains (1 - stage 2 / stage 1)."""
     present = sorted({r["material"] for r in rows}, key=MATERIAL_NAMES.index)
     groups = {
         m: [r for r in rows if r["material"] == m]
@@ -93,43 +111,74 @@ def summarise(rows: list[dict], names: list[str]) -> dict:
     }
     groups["overall"] = rows
 
+    def values(subset: list[dict], name: str, key: str) -> list[float]:
+        return [r[name][key] for r in subset if r[name].get(key) is not None]
+
     def stats(subset: list[dict], name: str) -> dict:
-        dist = [r[name]["distance"] for r in subset if r[name]["distance"] is not None]
-        err = [r[name]["abs_log10_E_error"] for r in subset if r[name]["abs_log10_E_error"] is not None]
+        err = values(subset, name, "abs_log10_E_error")
         acc = [r[name]["material"] == r["material"] for r in subset]
-        return {"n": len(subset), "failed": len(subset) - len(dist),
-                "mean_distance": float(np.mean(dist)) if dist else None,
-                "median_abs_log10_E_error": float(np.median(err)) if err else None,
-                "material_accuracy": float(np.mean(acc)) if acc else None}
+        return {
+            "n": len(subset),
+            "failed": len(subset) - len(values(subset, name, "distance")),
+            "mean_distance": _mean(values(subset, name, "distance")),
+            "mean_score": _mean(values(subset, name, "score")),
+            "mean_perceptual": _mean(values(subset, name, "perceptual")),
+            "median_abs_log10_E_error": float(np.median(err)) if err else None,
+            "material_accuracy": float(np.mean(acc)) if acc else None,
+        }
 
     out = {}
     for group, subset in groups.items():
         out[group] = {name: stats(subset, name) for name in names}
         if len(names) == 2:
             a, b = out[group][names[0]], out[group][names[1]]
-            out[group]["gain"] = {k: (1.0 - b[k] / a[k]) if a[k] and b[k] is not None else None
-                                  for k in ("mean_distance", "median_abs_log10_E_error")}
+            out[group]["gain"] = {
+                k: (1.0 - b[k] / a[k]) if a[k] and b[k] is not None else None
+                for k in ("mean_distance", "mean_perceptual", "median_abs_log10_E_error")
+            }
     return out
 
 
 def markdown(summary: dict, names: list[str]) -> str:
-    """The summary as a markdown table (one row per material, then overall)."""
-    def fmt(x, pct=False):
-        return "—" if x is None else f"{100 * x:+.1f}%" if pct else f"{x:.4f}"
+    """The summary as one markdown table (one row per material, then overall)."""
 
-    head = ["material", "n"] + [f"{n} dist" for n in names] + [f"{n} med abs dlog10E" for n in names]
-    head += [f"{n} mat acc" for n in names] + ["dist gain", "E-err gain"]
+    def fmt(x, pct=False):
+        return "—" if x is None else f"{100 * x:+.1f}%" if pct else f"{x:.3f}"
+
+    cols = [
+        ("traj dist", "mean_distance"),
+        ("perceptual", "mean_perceptual"),
+        ("med abs dlog10E", "median_abs_log10_E_error"),
+        ("mat acc", "material_accuracy"),
+    ]
+    head = ["material", "n"] + [f"{LABELS.get(n, n)} {c}" for c, _ in cols for n in names]
+    head += ["dist gain", "perceptual gain", "E-err gain"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for group, s in summary.items():
-        cells = [group, str(s[names[0]]["n"])]
-        cells += [fmt(s[n]["mean_distance"]) for n in names] + [
-            fmt(s[n]["median_abs_log10_E_error"]) for n in names
-        ]
-        cells += [fmt(s[n]["material_accuracy"]) for n in names]
+        cells = [group, str(s[names[0]]["n"])] + [fmt(s[n][key]) for _, key in cols for n in names]
         gain = s.get("gain", {})
-        cells += [fmt(gain.get("mean_distance"), True), fmt(gain.get("median_abs_log10_E_error"), True)]
+        cells += [
+            fmt(gain.get(k), True) for k in ("mean_distance", "mean_perceptual", "median_abs_log10_E_error")
+        ]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
+
+
+def write_sheet(path: Path, scene, row: dict, reference: np.ndarray, clips: dict, fps: float) -> None:
+    """One scene: its first input view, then reference / stage 1 / stage 2 keyframes, and the physics."""
+    from physgm.pipeline.outputs import contact_sheet, keyframe_indices, save_png
+
+    keys = keyframe_indices(len(reference), 6)
+    rows = [("reference", reference, keys)]
+    lines = [f"{scene.id}: true {row['material']} log10E={row['log10_E']:.2f} nu={row['nu']:.2f}"]
+    for name, frames in clips.items():
+        r = row[name]
+        label = f"{LABELS.get(name, name)}: {r['material']} log10E={r['log10_E']:.2f}"
+        lines.append(f"{label}, traj dist {r['distance']}, perceptual {r['perceptual']}")
+        if frames is not None:
+            rows.append((label, frames, keyframe_indices(len(frames), 6)))
+    preview = scene.inputs.images[0].permute(1, 2, 0).numpy()
+    save_png(path, contact_sheet(preview, rows, lines, fps))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -139,38 +188,28 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--pretrain", required=True, help="stage-1 checkpoint")
     p.add_argument("--dpo", required=True, help="stage-2 (DPO) checkpoint")
     p.add_argument("--data", required=True, help="PhysAssets root with splits/ and reference videos")
-    p.add_argument(
-        "--split",
-        default="test",
-        help="split(s) to evaluate, comma-separated (e.g. test,dpo of a held-out set)",
-    )
+    p.add_argument("--split", default="test", help="split(s) to evaluate, comma-separated (e.g. test,dpo)")
     p.add_argument("--video", default="drop", help="reference video name (videos/<name>.mp4)")
     p.add_argument("--max-scenes", type=int, default=None)
     p.add_argument(
         "--views", type=int, default=None, help="input views (default: as in DPO training, else 4)"
     )
     p.add_argument(
-        "--input-resolution", type=int, default=None, help="input view size, px (default: as in training)"
+        "--input-resolution", type=int, default=None, help="input view size, px (default: as trained)"
     )
+    p.add_argument("--resolution", type=int, default=None, help="render size, px (default: the reference's)")
+    p.add_argument("--frames", type=int, default=None, help="frames compared (default: the whole reference)")
     p.add_argument(
-        "--resolution", type=int, default=None, help="render size, px (default: the reference video's)"
+        "--cells-across", type=int, default=None, help="MPM cells across the object (default: planner's)"
     )
-    p.add_argument(
-        "--frames", type=int, default=None, help="frames to compare (default: the whole reference video)"
-    )
-    p.add_argument(
-        "--cells-across",
-        type=int,
-        default=None,
-        help="MPM cells across the object (default: planner default)",
-    )
+    p.add_argument("--budget", type=float, default=None, help="seconds per rollout (default: none)")
     p.add_argument("--backend", default="warp")
     p.add_argument("--workers", type=int, default=2, help="models simulated at once (threads)")
     p.add_argument(
         "--seed", type=int, default=0, help="seed of the fixed evaluation views (as the datamodule)"
     )
     p.add_argument(
-        "--table", type=Path, default=None, help="markdown output (default: next to the DPO checkpoint)"
+        "--out", type=Path, default=None, help="folder for JSON, table, sheets (default: by --dpo)"
     )
     a = p.parse_args(argv)
 
@@ -181,29 +220,68 @@ def main(argv: list[str] | None = None) -> int:
     inputs = input_settings(tuned_ckpt.hparams, tuned)
     views = a.views or int(inputs["num_views"])
     res = a.input_resolution or inputs["input_resolution"]
-    scenes = [s for split in a.split.split(",") for s in
-              load_scenes(a.data, split.strip(), a.video, views, res, float(inputs["background"]), a.seed)]
+    scenes = [
+        s
+        for split in a.split.split(",")
+        for s in load_scenes(a.data, split.strip(), a.video, views, res, float(inputs["background"]), a.seed)
+    ]
     scenes = scenes[: a.max_scenes]
-    settings = SimSettings(resolution=a.resolution, n_frames=a.frames, backend=a.backend,
-                           planner={"cells_across": a.cells_across} if a.cells_across else {}, device="cpu")
-    start = time.perf_counter()
-    rows = []
+    settings = SimSettings(
+        resolution=a.resolution,
+        n_frames=a.frames,
+        backend=a.backend,
+        planner={"cells_across": a.cells_across} if a.cells_across else {},
+        device="cpu",
+        budget={"max_seconds": a.budget},
+    )
+    out_dir = a.out or Path(a.dpo).resolve().parent / "evaluate_dpo"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    start, rows, sheets = time.perf_counter(), [], []
     for i, scene in enumerate(scenes):
-        rows.append(evaluate_scene(models, scene, settings, a.workers))
-        print(f"[{i + 1}/{len(scenes)}] {scene.id} ({scene.material}): "
-              + ", ".join(f"{n} d={rows[-1][n]['distance']}" for n in models), file=sys.stderr, flush=True)
+        row, clips = evaluate_scene(models, scene, settings, a.workers)
+        rows.append(row)
+        if scene.material not in {m for m, _ in sheets}:
+            sheet = out_dir / f"sheet_{scene.material}.png"
+            write_sheet(sheet, scene, row, reference_frames(scene, settings.n_frames), clips, scene.fps)
+            sheets.append((scene.material, str(sheet)))
+        print(
+            f"[{i + 1}/{len(scenes)}] {scene.id} ({scene.material}): "
+            + ", ".join(f"{LABELS[n]} dist={row[n]['distance']}" for n in models),
+            file=sys.stderr,
+            flush=True,
+        )
     names = list(models)
     summary = summarise(rows, names)
-    table = a.table or Path(a.dpo).resolve().parent / "evaluate_dpo.md"
-    table.parent.mkdir(parents=True, exist_ok=True)
-    table.write_text(markdown(summary, names))
-    report = {"pretrain": a.pretrain, "dpo": a.dpo, "data": a.data, "split": a.split, "scenes": len(rows),
-              "views": views, "input_resolution": res, "seconds": round(time.perf_counter() - start, 1),
-              "settings": {"resolution": a.resolution, "frames": a.frames, "cells_across": a.cells_across},
-              "summary": summary, "table": str(table), "per_scene": rows}
+    table = markdown(summary, names)
+    (out_dir / "evaluate_dpo.md").write_text(table)
+    report = {
+        "pretrain": a.pretrain,
+        "dpo": a.dpo,
+        "data": a.data,
+        "split": a.split,
+        "scenes": len(rows),
+        "views": views,
+        "input_resolution": res,
+        "seconds": round(time.perf_counter() - start, 1),
+        "settings": {
+            "resolution": a.resolution,
+            "frames": a.frames,
+            "cells_across": a.cells_across,
+            "budget": a.budget,
+        },
+        "summary": summary,
+        "table": str(out_dir / "evaluate_dpo.md"),
+        "sheets": dict(sheets),
+        "per_scene": rows,
+    }
+    (out_dir / "evaluate_dpo.json").write_text(json.dumps(report, indent=1))
     print(json.dumps(report))
-    print(markdown(summary, names), file=sys.stderr)
+    print(table, file=sys.stderr)
     return 0
+
+
+def _mean(x: list[float]) -> float | None:
+    return float(np.mean(x)) if x else None
 
 
 if __name__ == "__main__":

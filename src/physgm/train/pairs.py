@@ -24,7 +24,7 @@ from torch.utils.data import Dataset
 
 from physgm.model.posterior import PhysicsSample
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2  # 2: candidates carry their proposal, budget fallback and skip reason
 
 
 @dataclass
@@ -39,6 +39,11 @@ class Candidate:
     seconds: float = 0.0  # wall-clock time of simulate + render + score
     mode: str = ""  # "rigid" or "mpm", from the simulation plan
     error: str | None = None  # why the rollout failed
+    source: str = "policy"  # the proposal that drew it ("policy" or "wide", physgm.train.proposal)
+    skipped: str | None = None  # why the time budget skipped or cut it (then it is neither winner nor loser)
+    fallback: int = -1  # -1: simulated as planned; i: the budget's i-th cheaper planner setting
+    predicted_error_px: float = 0.0  # the plan's predicted error against full-stiffness MPM, pixels
+    terms: dict[str, float] = field(default_factory=dict)  # the score's parts (physgm.metrics.clip_score)
 
     @property
     def score(self) -> float:
@@ -84,17 +89,20 @@ def select_pair(candidates: list[Candidate], min_gap: float) -> tuple[int | None
     No pair when fewer than two candidates have finite distances, or when the best and the
     worst are less than ``min_gap`` apart (a tie, e.g. stiff bodies that all move rigidly):
     such pairs carry no preference, only tracker noise. A failed rollout loses against any
-    finished one, so physics that cannot be simulated is pushed away.
+    finished one, so physics that cannot be simulated is pushed away. A candidate the time
+    budget skipped or cut says nothing about the physics and takes no part.
     """
-    scores = [c.score for c in candidates]
+    scores = [math.nan if c.skipped else c.score for c in candidates]
     finite = [i for i, s in enumerate(scores) if math.isfinite(s)]
     if not finite:
         return None, None, "every rollout failed"
     winner = min(finite, key=lambda i: (scores[i], i))
-    failed = [i for i, s in enumerate(scores) if not math.isfinite(s)]
+    failed = [i for i, s in enumerate(scores) if math.isinf(s)]
     if failed:
         return winner, failed[0], "loser failed to simulate"
-    loser = max(range(len(scores)), key=lambda i: (scores[i], -i))
+    loser = max(finite, key=lambda i: (scores[i], -i))
+    if loser == winner:
+        return None, None, "fewer than two candidates within the time budget"
     if scores[loser] - scores[winner] < min_gap:
         return None, None, f"tie: distances within {min_gap}"
     return winner, loser, ""
@@ -149,8 +157,14 @@ class PairCache:
                 stacklevel=2,
             )
             return None
-        ok = (record.complete and record.version == CACHE_VERSION and record.round == round_
-              and record.scene == scene and record.settings == settings and record.policy == policy)
+        ok = (
+            record.complete
+            and record.version == CACHE_VERSION
+            and record.round == round_
+            and record.scene == scene
+            and record.settings == settings
+            and record.policy == policy
+        )
         return record if ok else None
 
     def write_summary(self, round_: int, stats: dict) -> Path:
@@ -186,7 +200,10 @@ def round_stats(records: list[SceneRecord]) -> dict[str, float]:
     return {
         "rollout/scenes": float(len(records)),
         "rollout/pairs": float(len(pairs)),
-        "rollout/failed": float(sum(c.distance is None for r in records for c in r.candidates)),
+        "rollout/failed": float(
+            sum(c.distance is None and not c.skipped for r in records for c in r.candidates)
+        ),
+        "rollout/skipped": float(sum(bool(c.skipped) for r in records for c in r.candidates)),
         "rollout/distance_mean": mean(dist),
         "rollout/distance_winner": mean([r.candidates[r.winner].score for r in pairs]),
         "rollout/distance_loser": mean(losers),
@@ -300,10 +317,14 @@ def collate_pairs(items: list[tuple[SceneInputs, Candidate, Candidate, str, bool
 
     inputs, wins, losses, scenes, has_pair = zip(*items, strict=True)
     return DPOBatch(
-        images=torch.stack([i.images for i in inputs]), masks=torch.stack([i.masks for i in inputs]),
-        c2w=torch.stack([i.c2w for i in inputs]), Ks=torch.stack([i.Ks for i in inputs]),
-        winner=sample(list(wins)), loser=sample(list(losses)),
+        images=torch.stack([i.images for i in inputs]),
+        masks=torch.stack([i.masks for i in inputs]),
+        c2w=torch.stack([i.c2w for i in inputs]),
+        Ks=torch.stack([i.Ks for i in inputs]),
+        winner=sample(list(wins)),
+        loser=sample(list(losses)),
         distance_winner=torch.tensor([c.score for c in wins], dtype=torch.float32),
         distance_loser=torch.tensor([c.score for c in losses], dtype=torch.float32),
-        has_pair=torch.tensor(has_pair, dtype=torch.bool), scenes=list(scenes),
+        has_pair=torch.tensor(has_pair, dtype=torch.bool),
+        scenes=list(scenes),
     )
