@@ -60,7 +60,7 @@ def test_substeps_match_numpy_twin(flip, threads):
     ref = {k: np.asarray(val, dtype=np.float64) if k != "material" else val for k, val in ref.items()}
     for step, dt in enumerate([2e-4, 1.5e-4, 2e-4]):  # dt changes: the scatter must not depend on it
         out = reference_mpm.substep(
-            ref, MATS, grid, scene, dt, solver.time, flip, SolverConfig().boundary_cells
+            ref, MATS, solver.grid, scene, dt, solver.time, flip, SolverConfig().boundary_cells
         )
         solver.substep(dt)
         s1 = solver.state()
@@ -95,7 +95,7 @@ def test_block_skipping_grid_update_matches_twin_across_blocks(threads):
     ref["material"] = p.material
     x_start = ref["x"].mean(0)
     for _ in range(30):
-        out = reference_mpm.substep(ref, soft, grid, solver.scene, 4e-4, solver.time, 0.0, 3)
+        out = reference_mpm.substep(ref, soft, solver.grid, solver.scene, 4e-4, solver.time, 0.0, 3)
         solver.substep(4e-4)
         ref.update({k: out[k] for k in ("x", "v", "C", "F", "plastic")})
     s1 = solver.state()

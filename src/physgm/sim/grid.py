@@ -55,6 +55,17 @@ class GridSpec:
         res = np.ceil((hi - lo) / dx - 1e-9).astype(int) + 2 * pad + 1
         return cls(tuple(origin.tolist()), float(dx), tuple(np.maximum(res, 8).tolist()))
 
+    def aligned(self, height: float) -> GridSpec:
+        """This grid with its origin lowered by less than a cell so that z = ``height`` (m) is a
+        node plane, and one more node along z if it moved, so it still covers this grid."""
+        oz = self.origin[2]
+        shift = (oz - height) / self.dx
+        shift = (shift - math.floor(shift)) * self.dx  # in [0, dx)
+        if shift < 1e-6 * self.dx or shift > (1.0 - 1e-6) * self.dx:
+            return self
+        nx, ny, nz = self.res
+        return GridSpec((self.origin[0], self.origin[1], oz - shift), self.dx, (nx, ny, nz + 1))
+
     @property
     def num_nodes(self) -> int:
         return self.res[0] * self.res[1] * self.res[2]

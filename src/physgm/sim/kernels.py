@@ -236,7 +236,7 @@ def update_node(
         # Mechanical work of the imposed impulse m (v_box - v_free) moving at v_box.
         wp.atomic_add(work, slot, WORK_DRIVER, wp.float64(m * wp.dot(vel - v_free, vel)))
     v_free = vel
-    vel = ground_velocity(ground, pos, vel)
+    vel = ground_velocity(ground, pos, dx, vel)
     if wp.length_sq(vel - v_free) > 0.0:
         add_impulse(work, slot, WORK_GROUND, m * (vel - v_free))
     # Separating walls in the margin keep particles off the grid edge. A scene whose grid holds

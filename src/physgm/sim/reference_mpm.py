@@ -28,8 +28,8 @@ def _box_velocity(box, pos, t, v):
     return np.asarray(box.velocity, float) if moving else np.zeros(3)
 
 
-def _ground_velocity(ground, pos, v):
-    if ground is None or pos[2] > ground.height:
+def _ground_velocity(ground, pos, dx, v):
+    if ground is None or pos[2] > ground.height - 0.5 * dx:
         return v
     if ground.mode == "sticky":
         return np.zeros(3)
@@ -86,7 +86,7 @@ def substep(state: dict, params: list, grid, scene, dt: float, t: float, flip: f
         pos = origin + np.array(node) * dx
         for box in scene.boxes:
             vel = _box_velocity(box, pos, t, vel)
-        vel = _ground_velocity(scene.ground, pos, vel)
+        vel = _ground_velocity(scene.ground, pos, dx, vel)
         for a in range(3):
             if (node[a] < bound and vel[a] < 0) or (node[a] >= res[a] - bound and vel[a] > 0):
                 vel[a] = 0.0

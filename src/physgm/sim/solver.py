@@ -79,7 +79,9 @@ class MPMSolver:
     Args:
         particles: input particles; ``particles.material`` indexes ``materials``.
         materials: [M] solver parameters.
-        grid: background grid; every particle must start inside its free interior.
+        grid: background grid; every particle must start inside its free interior. With a ground
+            plane the solver uses ``grid.aligned(ground height)`` (``self.grid``): the ground's
+            condition needs the plane on a node plane (``physgm.sim.boundary``).
         scene: gravity and boundary conditions (default: gravity only).
         config: solver settings.
         device: Warp device ("cpu", "cuda:0", ...).
@@ -96,7 +98,9 @@ class MPMSolver:
     ) -> None:
         wp.init()
         self.device = wp.get_device(device)
-        self.grid, self.scene = grid, scene or Scene()
+        self.scene = scene or Scene()
+        ground = self.scene.ground
+        self.grid = grid if ground is None else grid.aligned(ground.height)
         self.config = config or SolverConfig()
         self.materials = list(materials)
         self.hooks: list[GridHook] = []
@@ -114,7 +118,7 @@ class MPMSolver:
         self._alloc_grid()
         self._launches = SubstepLaunches(self)
         self._worker = PairWorker() if self.threads == 2 else None
-        self.particles.sort(grid)
+        self.particles.sort(self.grid)
         ps = self.particles
         wp.launch(
             ops.init_stress,
