@@ -1,0 +1,82 @@
+"""Ground contact at the surface (issue 24 item 3): where impacts begin and where bodies rest."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from physgm.sim import verification as V
+from physgm.sim.boundary import GroundPlane
+from physgm.sim.constitutive import MaterialParams
+from physgm.sim.grid import GridSpec
+from physgm.sim.scenes import Scene
+from physgm.sim.solver import MPMSolver
+from physgm.sim.state import Particles
+from physgm.sim.stepping import SolverConfig
+
+G = 9.81
+DX = 0.02
+SP = DX / 2  # particle spacing: the lowest particles sit SP / 2 above the block's bottom face
+
+
+def _block(bottom: float, ground: GroundPlane, frame_dt: float, damping: float = 0.0, origin_z: float = 0.0):
+    """An 8 x 8 x 5 cm elastic block (lowest particles at ``bottom``) above the plane z = 0."""
+    p = Particles.lattice((-0.04, -0.04, bottom - SP / 2), (0.04, 0.04, bottom - SP / 2 + 0.05), SP)
+    mat = MaterialParams("fixed_corotated", 5e4, 0.3, 1000.0)
+    grid = GridSpec.fit((-0.08, -0.08, origin_z), (0.08, 0.08, bottom + 0.08), DX)
+    scene = Scene(ground=ground, damping=damping)
+    return MPMSolver(p, [mat], grid, scene, SolverConfig(frame_dt=frame_dt, threads=1))
+
+
+@pytest.mark.parametrize("mode, friction", [("slip", 0.0), ("separate", 0.5), ("sticky", 0.0)])
+def test_dropped_block_rests_with_its_lowest_particles_on_the_plane(mode, friction):
+    # Dropped 3 cm; a drag settles the bounce. Before the fix it rested about a cell high.
+    solver = _block(0.03, GroundPlane(0.0, friction=friction, mode=mode), 0.04, damping=15.0)
+    for _ in range(20):
+        solver.step_frame()
+    z_low = float(solver.state().x[:, 2].min())
+    assert abs(z_low) <= 0.25 * DX, f"lowest particle {z_low / DX:.3f} dx from the plane"
+
+
+def test_grid_is_aligned_to_the_ground_and_rest_height_does_not_depend_on_it():
+    # A grid whose nodes straddle the plane is lowered by a fraction of a cell to put the plane
+    # on a node plane; the result is the same as on a grid fitted with a node on the plane.
+    ground = GroundPlane(0.0, friction=0.0, mode="slip")
+    lows = []
+    for origin_z in (0.0, -0.37 * DX):
+        solver = _block(0.03, ground, 0.04, damping=15.0, origin_z=origin_z)
+        k = (0.0 - solver.grid.origin[2]) / DX
+        assert k == pytest.approx(round(k), abs=1e-6)
+        for _ in range(20):
+            solver.step_frame()
+        lows.append(float(solver.state().x[:, 2].min()))
+    assert lows[0] == pytest.approx(lows[1], abs=0.02 * DX)
+
+
+def test_impact_begins_when_the_bottom_face_reaches_the_plane():
+    # Free fall until the ground acts: the first frame whose mean velocity leaves the ballistic
+    # one (by 1 % of the impact speed) dates the first contact; the bottom face (SP / 2 below the
+    # lowest particles) is then within a quarter cell of the plane. Before the fix it was ~1 cell up.
+    bottom = 0.04
+    frame_dt = 0.001
+    solver = _block(bottom, GroundPlane(0.0, friction=0.0, mode="slip"), frame_dt)
+    face = bottom - SP / 2
+    v_hit = math.sqrt(2 * G * face)
+    t, dev = [0.0], [0.0]
+    while solver.time < math.sqrt(2 * face / G) + 0.02:
+        solver.step_frame()
+        t.append(solver.time)
+        dev.append(float(solver.state().v[:, 2].astype(np.float64).mean()) + G * solver.time)
+    t, dev = np.array(t), np.array(dev)
+    k = int(np.argmax(dev > 0.01 * v_hit))
+    assert k > 0, "the block never touched the ground"
+    t_contact = t[k - 1] + (0.01 * v_hit - dev[k - 1]) / (dev[k] - dev[k - 1]) * frame_dt
+    height = face - 0.5 * G * t_contact**2  # the bottom face's height at first contact, m
+    assert abs(height) <= 0.25 * DX, f"contact began with the bottom face {height / DX:.3f} dx from the plane"
+
+
+def test_elastic_ball_keeps_its_restitution():
+    result = V.ball_restitution(fast=True, E=1e5)
+    assert result["restitution"] >= 0.9, result
