@@ -564,4 +564,15 @@ def _grid_region(
     ]
     friction = scene.ground.friction if scene.ground is not None and scene.ground.mode == "separate" else 0.0
     g_lo, g_hi = reachable_region(x, v0, duration, np.asarray(scene.gravity), ground, spread, boxes, friction)
-    return g_lo, g_hi, max(dx, float((g_hi - g_lo).max()) / cfg.max_cells)
+    # Horizontally the grid is mirror-symmetric about the particles' centre (a node or a cell
+    # centre there): on a grid offset by a fraction of a cell, a symmetric body dropped flat meets
+    # asymmetric stencils, its Coulomb friction at the ground pushes more on one side than the
+    # other, and it drifts sideways (issue 24: ~1 mm in 2 s, docs/measurements_sim.md).
+    centre = 0.5 * (lo[:2] + hi[:2])
+    g_lo, g_hi = np.array(g_lo, dtype=np.float64), np.array(g_hi, dtype=np.float64)
+    half = np.maximum(centre - g_lo[:2], g_hi[:2] - centre)
+    g_lo[:2], g_hi[:2] = centre - half, centre + half
+    grid_dx = max(dx, float((g_hi - g_lo).max()) / cfg.max_cells)
+    cells = np.ceil(2.0 * half / grid_dx - 1e-9)
+    g_lo[:2], g_hi[:2] = centre - 0.5 * cells * grid_dx, centre + 0.5 * cells * grid_dx
+    return g_lo, g_hi, grid_dx
