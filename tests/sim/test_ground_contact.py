@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from physgm.sim import verification as V
-from physgm.sim.boundary import GroundPlane
+from physgm.sim.boundary import HELD_DEPTH, GroundPlane
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.grid import GridSpec
 from physgm.sim.scenes import Scene
@@ -41,13 +41,13 @@ def test_dropped_block_rests_with_its_lowest_particles_on_the_plane(mode, fricti
 
 
 def test_grid_is_aligned_to_the_ground_and_rest_height_does_not_depend_on_it():
-    # A grid whose nodes straddle the plane is lowered by a fraction of a cell to put the plane
-    # on a node plane; the result is the same as on a grid fitted with a node on the plane.
+    # A grid is lowered by a fraction of a cell to put a node plane HELD_DEPTH cells under the
+    # ground; the result does not depend on where the given grid's nodes were.
     ground = GroundPlane(0.0, friction=0.0, mode="slip")
     lows = []
     for origin_z in (0.0, -0.37 * DX):
         solver = _block(0.03, ground, 0.04, damping=15.0, origin_z=origin_z)
-        k = (0.0 - solver.grid.origin[2]) / DX
+        k = (0.0 - HELD_DEPTH * DX - solver.grid.origin[2]) / DX
         assert k == pytest.approx(round(k), abs=1e-6)
         for _ in range(20):
             solver.step_frame()

@@ -57,7 +57,10 @@ class GridSpec:
 
     def aligned(self, height: float) -> GridSpec:
         """This grid with its origin lowered by less than a cell so that z = ``height`` (m) is a
-        node plane, and one more node along z if it moved, so it still covers this grid."""
+        node plane, and one more node along z if it moved, so it still covers this grid.
+
+        The ground's condition needs its held nodes at a fixed depth below the plane
+        (``physgm.sim.boundary``)."""
         oz = self.origin[2]
         shift = (oz - height) / self.dx
         shift = (shift - math.floor(shift)) * self.dx  # in [0, dx)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from physgm.sim.boundary import HELD_DEPTH
 from physgm.sim.constitutive import reference as cref
 
 
@@ -29,7 +30,7 @@ def _box_velocity(box, pos, t, v):
 
 
 def _ground_velocity(ground, pos, dx, v):
-    if ground is None or pos[2] > ground.height - 0.5 * dx:
+    if ground is None or pos[2] > ground.height - (HELD_DEPTH - 0.5) * dx:
         return v
     if ground.mode == "sticky":
         return np.zeros(3)
