@@ -10,8 +10,8 @@ material's surface (half a particle spacing, a quarter cell, below the lowest pa
 the plane, and a body rests with its lowest particles within a quarter cell of it. At one cell
 down a stiff block rested at +0.05 cells and a soft jelly (E = 1e4 Pa, 10-20 % strain at its
 base) sank to -0.3 cells; 7/8 of a cell puts both inside +-0.2 (docs/measurements_sim.md).
-Clamping particles to the plane instead was tried and costs restitution (it stops them without
-storing the energy); shifting where the nodes are held keeps the contact as elastic as before.
+An earlier attempt that also clamped particles to the plane lost restitution; shifting where the
+nodes are held alone keeps the contact as elastic as before (ball restitution 0.946 -> 0.940).
 """
 
 from __future__ import annotations
