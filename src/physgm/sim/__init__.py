@@ -29,9 +29,11 @@ cohesion=0, viscosity=0)``                          (constitutive/__init__.py)
 ``Scene(gravity=(0, 0, -9.81), ground=None, boxes=(), damping=0.0, walls=(), periodic=())``
 (scenes.py, boundary.py, walls.py)
     ``GroundPlane(height=0.0, friction=0.3, mode="separate"|"slip"|"sticky")`` acts on grid
-    nodes at or below the plane. ``VelocityBox(lo, hi, velocity, start=0, stop=inf, hold=True)``
-    prescribes the velocity of grid nodes and particles inside a box that moves with it (grips,
-    clamps with velocity 0, pushers); after ``stop`` a held box fixes its contents.
+    nodes ``HELD_DEPTH`` (7/8) cells or more below the plane, on a grid the solver lowers by under
+    a cell to put a node plane there, so bodies touch and rest at the plane.
+    ``VelocityBox(lo, hi, velocity, start=0, stop=inf, hold=True)`` prescribes the velocity of
+    grid nodes and particles inside a box that moves with it (grips, clamps with velocity 0,
+    pushers); after ``stop`` a held box fixes its contents.
     ``damping`` (1/s) is a mass-proportional drag. ``SideWall(axis, position, solid="below"|
     "above", mode="slip"|"sticky")`` is a wall plane on x or y (or z); ``PeriodicAxis(axis, lo,
     hi)`` makes an axis periodic (lo, hi on grid nodes; plane-strain set-ups). The grid faces
