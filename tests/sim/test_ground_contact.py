@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from physgm.sim import verification as V
-from physgm.sim.boundary import HELD_DEPTH, GroundPlane
+from physgm.sim.boundary import SURFACE_DEPTH, GroundPlane
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.grid import GridSpec
 from physgm.sim.scenes import Scene
@@ -33,7 +33,8 @@ def _block(bottom: float, ground: GroundPlane, frame_dt: float, damping: float =
 @pytest.mark.parametrize("mode, friction", [("slip", 0.0), ("separate", 0.5), ("sticky", 0.0)])
 def test_dropped_block_rests_with_its_lowest_particles_on_the_plane(mode, friction):
     # Dropped 3 cm; a drag settles the bounce. Before the fix it rested about a cell high.
-    solver = _block(0.03, GroundPlane(0.0, friction=friction, mode=mode), 0.04, damping=15.0)
+    ground = GroundPlane(0.0, friction=friction, mode=mode, held_depth=SURFACE_DEPTH)
+    solver = _block(0.03, ground, 0.04, damping=15.0)
     for _ in range(20):
         solver.step_frame()
     z_low = float(solver.state().x[:, 2].min())
@@ -41,13 +42,13 @@ def test_dropped_block_rests_with_its_lowest_particles_on_the_plane(mode, fricti
 
 
 def test_grid_is_aligned_to_the_ground_and_rest_height_does_not_depend_on_it():
-    # A grid is lowered by a fraction of a cell to put a node plane HELD_DEPTH cells under the
+    # A grid is lowered by a fraction of a cell to put a node plane SURFACE_DEPTH cells under the
     # ground; the result does not depend on where the given grid's nodes were.
-    ground = GroundPlane(0.0, friction=0.0, mode="slip")
+    ground = GroundPlane(0.0, friction=0.0, mode="slip", held_depth=SURFACE_DEPTH)
     lows = []
     for origin_z in (0.0, -0.37 * DX):
         solver = _block(0.03, ground, 0.04, damping=15.0, origin_z=origin_z)
-        k = (0.0 - HELD_DEPTH * DX - solver.grid.origin[2]) / DX
+        k = (0.0 - SURFACE_DEPTH * DX - solver.grid.origin[2]) / DX
         assert k == pytest.approx(round(k), abs=1e-6)
         for _ in range(20):
             solver.step_frame()
@@ -61,7 +62,7 @@ def test_impact_begins_when_the_bottom_face_reaches_the_plane():
     # lowest particles) is then within a quarter cell of the plane. Before the fix it was ~1 cell up.
     bottom = 0.04
     frame_dt = 0.001
-    solver = _block(bottom, GroundPlane(0.0, friction=0.0, mode="slip"), frame_dt)
+    solver = _block(bottom, GroundPlane(0.0, friction=0.0, mode="slip", held_depth=SURFACE_DEPTH), frame_dt)
     face = bottom - SP / 2
     v_hit = math.sqrt(2 * G * face)
     t, dev = [0.0], [0.0]
@@ -78,5 +79,5 @@ def test_impact_begins_when_the_bottom_face_reaches_the_plane():
 
 
 def test_elastic_ball_keeps_its_restitution():
-    result = V.ball_restitution(fast=True, E=1e5)
+    result = V.ball_restitution(fast=True, E=1e5, held_depth=SURFACE_DEPTH)
     assert result["restitution"] >= 0.9, result

@@ -28,9 +28,9 @@ cohesion=0, viscosity=0)``                          (constitutive/__init__.py)
 
 ``Scene(gravity=(0, 0, -9.81), ground=None, boxes=(), damping=0.0, walls=(), periodic=())``
 (scenes.py, boundary.py, walls.py)
-    ``GroundPlane(height=0.0, friction=0.3, mode="separate"|"slip"|"sticky")`` acts on grid
-    nodes ``HELD_DEPTH`` (7/8) cells or more below the plane, on a grid the solver lowers by under
-    a cell to put a node plane there, so bodies touch and rest at the plane.
+    ``GroundPlane(height=0.0, friction=0.3, mode="separate"|"slip"|"sticky", held_depth=0.0)``
+    acts on grid nodes at or below the plane; ``held_depth=SURFACE_DEPTH`` (7/8 cell, on a grid
+    the solver lowers by under a cell) makes bodies touch and rest at the plane (boundary.py).
     ``VelocityBox(lo, hi, velocity, start=0, stop=inf, hold=True)`` prescribes the velocity of
     grid nodes and particles inside a box that moves with it (grips, clamps with velocity 0,
     pushers); after ``stop`` a held box fixes its contents.

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from physgm.sim.boundary import HELD_DEPTH
 from physgm.sim.constitutive import reference as cref
 
 
@@ -30,7 +29,11 @@ def _box_velocity(box, pos, t, v):
 
 
 def _ground_velocity(ground, pos, dx, v):
-    if ground is None or pos[2] > ground.height - (HELD_DEPTH - 0.5) * dx:
+    if ground is None:
+        return v
+    depth = ground.held_depth
+    limit = ground.height if depth == 0 else ground.height - (depth - 0.5) * dx
+    if pos[2] > limit:
         return v
     if ground.mode == "sticky":
         return np.zeros(3)

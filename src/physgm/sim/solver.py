@@ -14,7 +14,7 @@ import warp as wp
 from physgm.parallel import PairWorker
 from physgm.sim import kernels as K
 from physgm.sim import particle_ops as ops
-from physgm.sim.boundary import HELD_DEPTH, BoxStruct
+from physgm.sim.boundary import BoxStruct
 from physgm.sim.constitutive import MODELS, MaterialParams
 from physgm.sim.grid import GridSpec
 from physgm.sim.launches import SubstepLaunches
@@ -80,8 +80,8 @@ class MPMSolver:
         particles: input particles; ``particles.material`` indexes ``materials``.
         materials: [M] solver parameters.
         grid: background grid; every particle must start inside its free interior. With a ground
-            plane the solver uses ``grid`` lowered by under a cell (``self.grid``) so that a node
-            plane lies ``HELD_DEPTH`` cells below the ground (``physgm.sim.boundary``).
+            plane whose ``held_depth`` > 0 the solver uses ``grid`` lowered by under a cell
+            (``self.grid``) so that a node plane lies that deep below it (``physgm.sim.boundary``).
         scene: gravity and boundary conditions (default: gravity only).
         config: solver settings.
         device: Warp device ("cpu", "cuda:0", ...).
@@ -100,7 +100,8 @@ class MPMSolver:
         self.device = wp.get_device(device)
         self.scene = scene or Scene()
         ground = self.scene.ground
-        self.grid = grid if ground is None else grid.aligned(ground.height - HELD_DEPTH * grid.dx)
+        held = ground is not None and ground.held_depth > 0
+        self.grid = grid.aligned(ground.height - ground.held_depth * grid.dx) if held else grid
         self.config = config or SolverConfig()
         self.materials = list(materials)
         self.hooks: list[GridHook] = []
