@@ -1,4 +1,4 @@
-"""Ground contact at the surface (issue 24 item 3): where impacts begin and where bodies rest."""
+"""Ground contact with held_depth=SURFACE_DEPTH (issue 24 item 3): where impacts begin, where bodies rest."""
 
 from __future__ import annotations
 
@@ -32,7 +32,7 @@ def _block(bottom: float, ground: GroundPlane, frame_dt: float, damping: float =
 
 @pytest.mark.parametrize("mode, friction", [("slip", 0.0), ("separate", 0.5), ("sticky", 0.0)])
 def test_dropped_block_rests_with_its_lowest_particles_on_the_plane(mode, friction):
-    # Dropped 3 cm; a drag settles the bounce. Before the fix it rested about a cell high.
+    # Dropped 3 cm; a drag settles the bounce. At the default held_depth = 0 it rests about a cell high.
     ground = GroundPlane(0.0, friction=friction, mode=mode, held_depth=SURFACE_DEPTH)
     solver = _block(0.03, ground, 0.04, damping=15.0)
     for _ in range(20):
@@ -59,7 +59,7 @@ def test_grid_is_aligned_to_the_ground_and_rest_height_does_not_depend_on_it():
 def test_impact_begins_when_the_bottom_face_reaches_the_plane():
     # Free fall until the ground acts: the first frame whose mean velocity leaves the ballistic
     # one (by 1 % of the impact speed) dates the first contact; the bottom face (SP / 2 below the
-    # lowest particles) is then within a quarter cell of the plane. Before the fix it was ~1 cell up.
+    # lowest particles) is then within a quarter cell of the plane. At held_depth = 0 it is ~1 cell up.
     bottom = 0.04
     frame_dt = 0.001
     solver = _block(bottom, GroundPlane(0.0, friction=0.0, mode="slip", held_depth=SURFACE_DEPTH), frame_dt)
