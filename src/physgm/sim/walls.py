@@ -165,18 +165,9 @@ def apply_walls(
             wp.atomic_add(impulse, a, wp.float64(dp[a]))
 
 
-@wp.kernel
-def fold_periodic(
-    acc0: wp.array3d(dtype=K.vec8),  # [nx, ny, nz] first thread's scatter, in/out
-    acc1: wp.array3d(dtype=K.vec8),  # [nx, ny, nz] second thread's scatter, in/out
-    axis: int,
-    i0: int,  # node of the plane lo
-    i1: int,  # node of the plane hi (same point as i0)
-    touched: wp.array3d(dtype=wp.int32),
-    stamp: wp.int32,
-):
-    """Add the scatter on the ghost nodes (GHOST past each end) to their images, one thread per ghost."""
-    g, u, w = wp.tid()  # g: ghost layer 0 .. 2 GHOST - 1; (u, w): node in the plane
+@wp.func
+def ghost_and_image(g: int, u: int, w: int, axis: int, i0: int, i1: int):
+    """Node of ghost layer ``g`` at (u, w) in the plane across ``axis``, and its periodic image."""
     idx = wp.vec3i(0, 0, 0)
     img = wp.vec3i(0, 0, 0)
     a1 = (axis + 1) % 3
@@ -191,6 +182,22 @@ def fold_periodic(
     else:  # at and past hi: images at and past lo
         idx[axis] = i1 + g - GHOST
         img[axis] = i0 + g - GHOST
+    return idx, img
+
+
+@wp.kernel
+def fold_periodic(
+    acc0: wp.array3d(dtype=K.vec8),  # [nx, ny, nz] first thread's scatter, in/out
+    acc1: wp.array3d(dtype=K.vec8),  # [nx, ny, nz] second thread's scatter, in/out
+    axis: int,
+    i0: int,  # node of the plane lo
+    i1: int,  # node of the plane hi (same point as i0)
+    touched: wp.array3d(dtype=wp.int32),
+    stamp: wp.int32,
+):
+    """Add the scatter on the ghost nodes (GHOST past each end) to their images, one thread per ghost."""
+    g, u, w = wp.tid()  # g: ghost layer 0 .. 2 GHOST - 1; (u, w): node in the plane
+    idx, img = ghost_and_image(g, u, w, axis, i0, i1)
     s = acc0[idx[0], idx[1], idx[2]] + acc1[idx[0], idx[1], idx[2]]
     if s[3] > 0.0:
         wp.atomic_add(acc0, img[0], img[1], img[2], s)
@@ -211,20 +218,7 @@ def mirror_periodic(
 ):
     """Copy each folded image back onto its ghost, so particles past an end read the same node."""
     g, u, w = wp.tid()
-    idx = wp.vec3i(0, 0, 0)
-    img = wp.vec3i(0, 0, 0)
-    a1 = (axis + 1) % 3
-    a2 = (axis + 2) % 3
-    idx[a1] = u
-    img[a1] = u
-    idx[a2] = w
-    img[a2] = w
-    if g < GHOST:
-        idx[axis] = i0 - GHOST + g
-        img[axis] = i1 - GHOST + g
-    else:
-        idx[axis] = i1 + g - GHOST
-        img[axis] = i0 + g - GHOST
+    idx, img = ghost_and_image(g, u, w, axis, i0, i1)
     s = acc0[img[0], img[1], img[2]] + acc1[img[0], img[1], img[2]]
     if s[3] > 0.0:
         acc0[idx[0], idx[1], idx[2]] = s
