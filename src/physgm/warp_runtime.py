@@ -44,6 +44,8 @@ KERNEL_MODULES = (
     "physgm.sim.kernels",
     "physgm.sim.particle_ops",
     "physgm.sim.coupling",
+    "physgm.sim.walls",
+    "physgm.sim.observables",
     "physgm.render.warp_tile_kernels",
 )
 # Modules whose kernels only ever run on the CPU (C++ snippets written for the host compiler).
