@@ -74,11 +74,8 @@ def assign_ids(meshes: list[MeshFile]) -> dict[Path, str]:
 
 
 def file_sha1(path: Path) -> str:
-    h = hashlib.sha1()
     with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+        return hashlib.file_digest(f, "sha1").hexdigest()
 
 
 def existing_import(out: Path, aid: str, mesh: Path, digest: str) -> bool:
