@@ -41,11 +41,11 @@ def ensure_loaded(kernel, device) -> None:
 KERNEL_MODULES = (
     "physgm.render.warp_kernels",
     "physgm.render.warp_raster_kernels",
-    "physgm.sim.kernels",
-    "physgm.sim.particle_ops",
+    "physgm.sim.mpm.kernels",
+    "physgm.sim.mpm.particle_ops",
     "physgm.sim.coupling",
-    "physgm.sim.walls",
-    "physgm.sim.observables",
+    "physgm.sim.mpm.walls",
+    "physgm.sim.mpm.observables",
     "physgm.render.warp_tile_kernels",
 )
 # Modules whose kernels only ever run on the CPU (C++ snippets written for the host compiler).

@@ -9,11 +9,11 @@ import pytest
 import torch
 
 from physgm.cameras import orbit_cameras
-from physgm.sim.boundary import GroundPlane
 from physgm.sim.bulk_cap import capped_material, choose_bulk_cap, nu_for_wave_ratio, wave_ratio
 from physgm.sim.constitutive import MaterialParams
+from physgm.sim.mpm.boundary import GroundPlane
+from physgm.sim.mpm.scene import Scene
 from physgm.sim.planner import PlannerConfig, choose_spacing, plan_simulation
-from physgm.sim.scenes import Scene
 
 CAMERAS = orbit_cameras(
     [30.0], [20.0], radius=1.0, fov_deg=40.0, width=256, height=256, target=(0.0, 0.0, 0.3)
@@ -100,10 +100,10 @@ def test_planner_takes_bulk_cap_only_under_its_bound():
 def _resting_block(material: MaterialParams, frames: int = 10, side: float = 0.08):
     """An 8 cm block released on a rough floor: CoM [T, 3] m, volume ratio sum(J V0) / sum(V0) [T]."""
 
-    from physgm.sim.grid import GridSpec
-    from physgm.sim.solver import MPMSolver
-    from physgm.sim.state import Particles
-    from physgm.sim.stepping import SolverConfig
+    from physgm.sim.mpm.grid import GridSpec
+    from physgm.sim.mpm.solver import MPMSolver
+    from physgm.sim.mpm.state import Particles
+    from physgm.sim.mpm.stepping import SolverConfig
 
     dx = side / 6
     particles = Particles.lattice((-side / 2, -side / 2, 0.0), (side / 2, side / 2, side), dx / 2)

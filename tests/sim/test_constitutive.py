@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import warp as wp
 
-from physgm.sim import particle_ops as K
 from physgm.sim.constitutive import MODELS, MaterialParams, MaterialStruct
 from physgm.sim.constitutive import reference as ref
+from physgm.sim.mpm import particle_ops as K
 
 PARAMS = {
     "fixed_corotated": MaterialParams("fixed_corotated", 1.0e6, 0.3, 1000.0),

@@ -9,8 +9,9 @@ import pytest
 import torch
 
 from physgm.cameras import orbit_cameras
-from physgm.sim.boundary import GroundPlane, VelocityBox
 from physgm.sim.constitutive import MaterialParams
+from physgm.sim.mpm.boundary import GroundPlane, VelocityBox
+from physgm.sim.mpm.scene import Scene
 from physgm.sim.planner import (
     PlannerConfig,
     choose_spacing,
@@ -20,7 +21,6 @@ from physgm.sim.planner import (
     reachable_region,
     stiffness_cap,
 )
-from physgm.sim.scenes import Scene
 
 G = 9.81
 CAMERAS = orbit_cameras(

@@ -10,10 +10,10 @@ import torch
 
 from physgm.cameras import orbit_cameras
 from physgm.gaussians import Gaussians, quat_to_rotmat
-from physgm.sim.boundary import GroundPlane
 from physgm.sim.gaussian_trajectory import ballistic_frames, simulate
+from physgm.sim.mpm.boundary import GroundPlane
+from physgm.sim.mpm.scene import Scene
 from physgm.sim.planner import PlannerConfig
-from physgm.sim.scenes import Scene
 
 G = 9.81
 CAMERAS = orbit_cameras(

@@ -141,7 +141,7 @@ def test_throw_at_a_wall_rebounds_with_restitution(restitution):
 
 
 def test_static_walls_from_scene_boxes():
-    from physgm.sim.boundary import VelocityBox
+    from physgm.sim.mpm.boundary import VelocityBox
     from physgm.sim.rigid import static_walls
 
     lo, hi = np.array([0.0, 0.0, 0.0]), np.array([0.1, 0.1, 0.1])

@@ -28,14 +28,14 @@ from physgm.bench.drop_scene import bench_camera, hollow_cube_gaussians, project
 from physgm.bench.sim_options import option_table
 from physgm.cameras import Cameras
 from physgm.physics.materials import MATERIAL_NAMES, get_material
-from physgm.sim.boundary import GroundPlane
 from physgm.sim.gaussian_trajectory import GaussianTrajectory, simulate
-from physgm.sim.grid import GridSpec
+from physgm.sim.mpm.boundary import GroundPlane
+from physgm.sim.mpm.grid import GridSpec
+from physgm.sim.mpm.scene import Scene
+from physgm.sim.mpm.solver import MPMSolver
+from physgm.sim.mpm.state import Particles
+from physgm.sim.mpm.stepping import SolverConfig
 from physgm.sim.planner import PlannerConfig
-from physgm.sim.scenes import Scene
-from physgm.sim.solver import MPMSolver
-from physgm.sim.state import Particles
-from physgm.sim.stepping import SolverConfig
 
 
 def pixel_error(cameras: Cameras, a: GaussianTrajectory, b: GaussianTrajectory) -> dict[str, float]:

@@ -64,8 +64,9 @@ def run_cell(
     **solver_settings,
 ) -> dict:
     """Simulate one cell and return its report row."""
-    from physgm.sim import GridSpec, MPMSolver, Particles, SimulationDiverged, SolverConfig, build_scene
-    from physgm.sim.stepping import cfl_dt
+    from physgm.sim.mpm import GridSpec, MPMSolver, Particles, SimulationDiverged, SolverConfig
+    from physgm.sim.mpm.stepping import cfl_dt
+    from physgm.sim.scenes import build_scene
 
     start = time.perf_counter()
     mat = model_params(model, E, nu) if params is None else params

@@ -1,7 +1,7 @@
 """``python -m physgm.bench sim-verify``: the MPM solver against analytic results.
 
 Prints ``{"cases": [{"name", "error", "tolerance", "passed", ...}], "summary": {...}}``. The
-cases live in ``physgm.sim.verification`` (the granular column collapse at a = 0.5, 1, 2, 4 in
+cases live in ``physgm.bench.verification.analytic`` (the granular column collapse at a = 0.5, 1, 2, 4 in
 ``verification_granular``); ``--fast`` runs the coarse versions the default tests use (8-20 cells
 across the column), the default the finer ones (20 cells across; the column at a = 4 alone
 holds 12,800 particles for ~0.8 s of flow, most of the run's time).
@@ -21,7 +21,7 @@ def main(argv: list[str] | None = None) -> dict:
     import warp as wp
 
     wp.config.quiet = True
-    from physgm.sim.verification import all_cases
+    from physgm.bench.verification.analytic import all_cases
 
     cases, start = [], time.perf_counter()
     for case in all_cases(fast=args.fast):

@@ -107,7 +107,7 @@ def write_reference_video(
     """Simulate, render and write ``videos/<scene>.mp4`` + ``.json`` into an asset folder."""
     from physgm.physics.materials import PhysicsSpec
     from physgm.sim.gaussian_trajectory import simulate
-    from physgm.sim.stepping import SolverConfig
+    from physgm.sim.mpm.stepping import SolverConfig
 
     cfg = cfg or VideoConfig()
     az = float(cfg.azimuths_deg[int(rng.integers(len(cfg.azimuths_deg)))])

@@ -116,8 +116,8 @@ def _predict(model, inp):
 
 def _simulate(g, choice, cfg: RunConfig, camera, overrides: dict):
     from physgm.sim.gaussian_trajectory import simulate
+    from physgm.sim.mpm.stepping import SolverConfig
     from physgm.sim.planner import PlannerConfig
-    from physgm.sim.stepping import SolverConfig
 
     try:
         planner = PlannerConfig(**cfg.planner)

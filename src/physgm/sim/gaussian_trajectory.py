@@ -24,14 +24,15 @@ from physgm.gaussians import Gaussians
 from physgm.physics.materials import PhysicsSpec
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.coupling import follow_and_deform, rigid_transform_gaussians
-from physgm.sim.grid import GridSpec
+from physgm.sim.mpm.grid import GridSpec
+from physgm.sim.mpm.scene import Scene
+from physgm.sim.mpm.solver import MPMSolver
+from physgm.sim.mpm.state import Particles
+from physgm.sim.mpm.stepping import SolverConfig
 from physgm.sim.planner import Plan, PlannerConfig, choose_spacing, plan_simulation
 from physgm.sim.rigid import ContactParams, RigidBody, RigidSimulator, RigidTrajectory
 from physgm.sim.sampling import Followers, ParticleSample, build_followers, sample_particles
-from physgm.sim.scenes import Scene, SceneSetup, build_scene
-from physgm.sim.solver import MPMSolver
-from physgm.sim.state import Particles
-from physgm.sim.stepping import SolverConfig
+from physgm.sim.scenes import SceneSetup, build_scene
 
 
 @dataclass

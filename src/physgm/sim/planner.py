@@ -37,9 +37,9 @@ from torch import Tensor
 from physgm.cameras import Cameras
 from physgm.sim.bulk_cap import choose_bulk_cap, rebound_px
 from physgm.sim.constitutive import MODELS, MaterialParams
+from physgm.sim.mpm.scene import Scene
+from physgm.sim.mpm.stepping import substeps_per_frame
 from physgm.sim.rigid import static_walls
-from physgm.sim.scenes import Scene
-from physgm.sim.stepping import substeps_per_frame
 
 # Constitutive models whose material flows instead of springing back: never rigid.
 FLOWING_MODELS = frozenset({"drucker_prager", "mohr_coulomb", "fluid"})

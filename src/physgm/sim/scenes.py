@@ -16,39 +16,17 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import yaml
 
 from physgm.resources import package_file
-from physgm.sim.boundary import GroundPlane, VelocityBox
-from physgm.sim.walls import PeriodicAxis, SideWall
+from physgm.sim.mpm.boundary import GroundPlane, VelocityBox
+from physgm.sim.mpm.scene import Scene
+from physgm.sim.mpm.walls import PeriodicAxis, SideWall
 
 SCENE_DIR = package_file("conf", "sim", "scene")  # ships inside the package (physgm.resources)
-
-
-@dataclass(frozen=True)
-class Scene:
-    """Everything the solver needs besides particles, materials and grid."""
-
-    gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)  # m/s^2
-    ground: GroundPlane | None = None
-    boxes: tuple[VelocityBox, ...] = field(default_factory=tuple)
-    damping: float = 0.0  # 1/s, mass-proportional drag on grid velocities (0: none)
-    walls: tuple[SideWall, ...] = field(default_factory=tuple)  # side walls (walls.py)
-    periodic: tuple[PeriodicAxis, ...] = field(default_factory=tuple)  # periodic axes (walls.py)
-
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.damping) and self.damping >= 0.0):
-            raise ValueError(f"scene damping={self.damping!r} 1/s must be finite and >= 0")
-        g = np.asarray(self.gravity, dtype=np.float64)
-        if g.shape != (3,) or not np.isfinite(g).all():
-            raise ValueError(f"gravity={self.gravity!r} must be three finite numbers (m/s^2)")
-        object.__setattr__(self, "gravity", tuple(float(c) for c in g))
-        object.__setattr__(self, "boxes", tuple(self.boxes))
-        object.__setattr__(self, "walls", tuple(self.walls))
-        object.__setattr__(self, "periodic", tuple(self.periodic))
 
 
 @dataclass

@@ -206,8 +206,8 @@ def simulate_clip(
     video's scene at the video's frame rate and rendered from the video's camera over the same
     background: frames [n_frames, H, W, 3] uint8 (None when the budget skipped or cut the run).
     """
+    from physgm.sim.mpm.stepping import SolverConfig
     from physgm.sim.planner import PlannerConfig
-    from physgm.sim.stepping import SolverConfig
 
     world, _ = place_object(gaussians, scene.video)
     camera = render_camera(scene, settings.resolution)

@@ -60,7 +60,7 @@ class GridSpec:
         node plane, and one more node along z if it moved, so it still covers this grid.
 
         The ground's condition needs its held nodes at a fixed depth below the plane
-        (``physgm.sim.boundary``)."""
+        (``physgm.sim.mpm.boundary``)."""
         oz = self.origin[2]
         shift = (oz - height) / self.dx
         shift = (shift - math.floor(shift)) * self.dx  # in [0, dx)

@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 
-from physgm.sim import kernels as K
-from physgm.sim.solver import SubstepStats
+from physgm.sim.mpm import kernels as K
+from physgm.sim.mpm.solver import SubstepStats
 
 
 def _row(v2: float, j_min: float, j_max: float, bad: int, escaped: int, overrun: int) -> np.ndarray:

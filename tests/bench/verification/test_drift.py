@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from physgm.sim.verification_contact import drop_drift
+from physgm.bench.verification.contact import drop_drift
 
 
 def test_symmetric_box_dropped_flat_does_not_drift():

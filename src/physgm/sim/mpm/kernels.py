@@ -25,16 +25,16 @@ one thread per block of the active box (``lo`` + launch dims, the only region pa
 before the next re-fit) and skips blocks no stencil reached, so empty space costs a few reads per
 64 nodes instead of 64 node updates (most nodes of a falling object's active box hold no mass).
 Particle stencils are clamped inside the grid, so no index can leave an array whatever the state.
-The numpy twin of one sub-step is ``physgm.sim.reference_mpm`` (tests only).
+The numpy twin of one sub-step is ``physgm.sim.mpm.reference_mpm`` (tests only).
 """
 
 from __future__ import annotations
 
 import warp as wp
 
-from physgm.sim.boundary import BoxStruct, GroundStruct, box_velocity, ground_velocity
 from physgm.sim.constitutive.common import EYE, MaterialStruct, det_minus_one
 from physgm.sim.constitutive.dispatch import constitutive_update
+from physgm.sim.mpm.boundary import BoxStruct, GroundStruct, box_velocity, ground_velocity
 
 wp.set_module_options({"enable_backward": False})
 

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import warp as wp
 
-from physgm.sim import (
+from physgm.sim.constitutive import MaterialParams
+from physgm.sim.mpm import (
     GridSpec,
     GroundPlane,
-    MaterialParams,
     MPMSolver,
     Particles,
     Scene,

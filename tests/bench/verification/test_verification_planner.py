@@ -1,10 +1,10 @@
-"""An elastic cube through the planner's defaults against its static sag (physgm.sim.verification_planner)."""
+"""An elastic cube through the planner's defaults against its static sag (bench.verification.planner)."""
 
 from __future__ import annotations
 
 import pytest
 
-from physgm.sim import verification_planner as VP
+from physgm.bench.verification import planner as VP
 
 
 def test_static_sag_formula():

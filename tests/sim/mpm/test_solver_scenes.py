@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from physgm.physics.materials import get_material
-from physgm.sim import SCENES, GridSpec, MPMSolver, Particles, SolverConfig, build_scene
+from physgm.sim.mpm import GridSpec, MPMSolver, Particles, SolverConfig
+from physgm.sim.scenes import SCENES, build_scene
 
 SP = 0.0125  # particle spacing, m (dx = 2 SP)
 

@@ -1,6 +1,6 @@
 """Verification through the planner: an elastic cube at the planner's defaults against statics.
 
-The cases of ``verification.py`` build particle lattices by hand; these start from Gaussians,
+The cases of ``analytic.py`` build particle lattices by hand; these start from Gaussians,
 as the pipeline does, so they also check the planner's particle sampling (sampling.py).
 
 Static sag of a block under its own weight (height H, density rho, gravity g). At depth s below
@@ -31,12 +31,12 @@ import torch
 
 from physgm.cameras import Cameras, orbit_cameras
 from physgm.gaussians import Gaussians
-from physgm.sim.boundary import GroundPlane
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.gaussian_trajectory import GaussianTrajectory, simulate
+from physgm.sim.mpm.boundary import GroundPlane
+from physgm.sim.mpm.scene import Scene
+from physgm.sim.mpm.stepping import SolverConfig
 from physgm.sim.planner import PlannerConfig
-from physgm.sim.scenes import Scene
-from physgm.sim.stepping import SolverConfig
 
 G = 9.81
 

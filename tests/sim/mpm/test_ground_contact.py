@@ -7,14 +7,14 @@ import math
 import numpy as np
 import pytest
 
-from physgm.sim import verification as V
-from physgm.sim.boundary import SURFACE_DEPTH, GroundPlane
+from physgm.bench.verification import analytic as V
 from physgm.sim.constitutive import MaterialParams
-from physgm.sim.grid import GridSpec
-from physgm.sim.scenes import Scene
-from physgm.sim.solver import MPMSolver
-from physgm.sim.state import Particles
-from physgm.sim.stepping import SolverConfig
+from physgm.sim.mpm.boundary import SURFACE_DEPTH, GroundPlane
+from physgm.sim.mpm.grid import GridSpec
+from physgm.sim.mpm.scene import Scene
+from physgm.sim.mpm.solver import MPMSolver
+from physgm.sim.mpm.state import Particles
+from physgm.sim.mpm.stepping import SolverConfig
 
 G = 9.81
 DX = 0.02

@@ -12,14 +12,14 @@ from collections.abc import Callable
 
 import numpy as np
 
-from physgm.sim.boundary import GroundPlane, VelocityBox
+from physgm.bench.verification.granular import ASPECTS, FAST_CELLS, FULL_CELLS, column_collapse
 from physgm.sim.constitutive import MaterialParams
-from physgm.sim.grid import GridSpec
-from physgm.sim.scenes import Scene
-from physgm.sim.solver import MPMSolver
-from physgm.sim.state import Particles
-from physgm.sim.stepping import SolverConfig
-from physgm.sim.verification_granular import ASPECTS, FAST_CELLS, FULL_CELLS, column_collapse
+from physgm.sim.mpm.boundary import GroundPlane, VelocityBox
+from physgm.sim.mpm.grid import GridSpec
+from physgm.sim.mpm.scene import Scene
+from physgm.sim.mpm.solver import MPMSolver
+from physgm.sim.mpm.state import Particles
+from physgm.sim.mpm.stepping import SolverConfig
 
 G = 9.81
 

@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from physgm.sim import kernels as K
-from physgm.sim.grid import GridSpec
+from physgm.sim.mpm import kernels as K
+from physgm.sim.mpm.grid import GridSpec
 
 wp.set_module_options({"enable_backward": False})
 

@@ -7,10 +7,10 @@ from collections.abc import Sequence
 import numpy as np
 import warp as wp
 
-from physgm.sim import particle_ops as ops
 from physgm.sim.constitutive import MaterialParams, MaterialStruct
-from physgm.sim.grid import GridSpec
-from physgm.sim.state import Particles, ParticleState
+from physgm.sim.mpm import particle_ops as ops
+from physgm.sim.mpm.grid import GridSpec
+from physgm.sim.mpm.state import Particles, ParticleState
 from physgm.warp_runtime import ensure_loaded
 
 _GATHERS = {

@@ -19,15 +19,15 @@ import torch
 
 from physgm.cameras import orbit_cameras
 from physgm.gaussians import Gaussians
-from physgm.sim.boundary import GroundPlane
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.gaussian_trajectory import simulate
-from physgm.sim.grid import GridSpec
+from physgm.sim.mpm.boundary import GroundPlane
+from physgm.sim.mpm.grid import GridSpec
+from physgm.sim.mpm.scene import Scene
+from physgm.sim.mpm.solver import MPMSolver
+from physgm.sim.mpm.state import Particles
+from physgm.sim.mpm.stepping import SolverConfig
 from physgm.sim.planner import PlannerConfig
-from physgm.sim.scenes import Scene
-from physgm.sim.solver import MPMSolver
-from physgm.sim.state import Particles
-from physgm.sim.stepping import SolverConfig
 
 
 def hertz_contact(

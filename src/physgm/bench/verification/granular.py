@@ -25,13 +25,13 @@ from dataclasses import replace
 import numpy as np
 
 from physgm.physics.materials import get_material
-from physgm.sim.boundary import GroundPlane
-from physgm.sim.grid import GridSpec
-from physgm.sim.scenes import Scene
-from physgm.sim.solver import MPMSolver
-from physgm.sim.state import Particles
-from physgm.sim.stepping import SolverConfig
-from physgm.sim.walls import PeriodicAxis, SideWall
+from physgm.sim.mpm.boundary import GroundPlane
+from physgm.sim.mpm.grid import GridSpec
+from physgm.sim.mpm.scene import Scene
+from physgm.sim.mpm.solver import MPMSolver
+from physgm.sim.mpm.state import Particles
+from physgm.sim.mpm.stepping import SolverConfig
+from physgm.sim.mpm.walls import PeriodicAxis, SideWall
 
 G = 9.81
 ASPECTS = (0.5, 1.0, 2.0, 4.0)  # a = H0 / L0 of the verification cases

@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from physgm.sim import GridSpec, GroundPlane, MaterialParams, MPMSolver, Particles, Scene, SolverConfig
-from physgm.sim.observables import ObservableRecorder
-from physgm.sim.walls import PeriodicAxis, SideWall
+from physgm.sim.constitutive import MaterialParams
+from physgm.sim.mpm import GridSpec, GroundPlane, MPMSolver, Particles, Scene, SolverConfig
+from physgm.sim.mpm.observables import ObservableRecorder
+from physgm.sim.mpm.walls import PeriodicAxis, SideWall
 
 SP = 0.0125
 DX = 2 * SP

@@ -14,8 +14,8 @@ import math
 import numpy as np
 import warp as wp
 
-from physgm.sim import kernels as K
-from physgm.sim.boundary import no_ground
+from physgm.sim.mpm import kernels as K
+from physgm.sim.mpm.boundary import no_ground
 from physgm.warp_runtime import ensure_loaded
 
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from physgm.sim import verification as V
-from physgm.sim import verification_granular as VG
+from physgm.bench.verification import analytic as V
+from physgm.bench.verification import granular as VG
 
 
 def _check(result):

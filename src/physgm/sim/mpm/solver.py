@@ -12,18 +12,18 @@ import numpy as np
 import warp as wp
 
 from physgm.parallel import PairWorker
-from physgm.sim import kernels as K
-from physgm.sim import particle_ops as ops
-from physgm.sim.boundary import BoxStruct
 from physgm.sim.constitutive import MODELS, MaterialParams
-from physgm.sim.grid import GridSpec
-from physgm.sim.launches import SubstepLaunches
-from physgm.sim.observables import SubstepObservables, SubstepObserver, particle_momentum
-from physgm.sim.particle_store import ParticleStore
-from physgm.sim.scenes import Scene
-from physgm.sim.state import Energy, FrameStats, Particles, ParticleState, Trajectory
-from physgm.sim.stepping import SimulationDiverged, SolverConfig, wave_speed
-from physgm.sim.walls import SceneWalls
+from physgm.sim.mpm import kernels as K
+from physgm.sim.mpm import particle_ops as ops
+from physgm.sim.mpm.boundary import BoxStruct
+from physgm.sim.mpm.grid import GridSpec
+from physgm.sim.mpm.launches import SubstepLaunches
+from physgm.sim.mpm.observables import SubstepObservables, SubstepObserver, particle_momentum
+from physgm.sim.mpm.particle_store import ParticleStore
+from physgm.sim.mpm.scene import Scene
+from physgm.sim.mpm.state import Energy, FrameStats, Particles, ParticleState, Trajectory
+from physgm.sim.mpm.stepping import SimulationDiverged, SolverConfig, wave_speed
+from physgm.sim.mpm.walls import SceneWalls
 
 # Two threads pay off from about 2k particles; below that the hand-off costs more than the split
 # saves.
@@ -65,7 +65,7 @@ class GridHook(Protocol):
     """Extension point called after the grid update of every sub-step.
 
     ``solver.grid_v`` (wp.array3d of ``kernels.vec8``, [nx, ny, nz]: node velocity in m/s, mass
-    in kg, velocity change of this step; see ``physgm.sim``) may be modified in place with Warp
+    in kg, velocity change of this step; see ``physgm.sim.mpm``) may be modified in place with Warp
     kernels on ``solver.device``; e.g. a rigid collider sets the velocity of the nodes it covers
     and reads the momentum change.
     """
@@ -74,14 +74,14 @@ class GridHook(Protocol):
 
 
 class MPMSolver:
-    """MLS-MPM on a box grid for one or more materials (see physgm.sim for the full contract).
+    """MLS-MPM on a box grid for one or more materials (see physgm.sim.mpm for the full contract).
 
     Args:
         particles: input particles; ``particles.material`` indexes ``materials``.
         materials: [M] solver parameters.
         grid: background grid; every particle must start inside its free interior. With a ground
             plane whose ``held_depth`` > 0 the solver uses ``grid`` lowered by under a cell
-            (``self.grid``) so that a node plane lies that deep below it (``physgm.sim.boundary``).
+            (``self.grid``) so that a node plane lies that deep below it (``physgm.sim.mpm.boundary``).
         scene: gravity and boundary conditions (default: gravity only).
         config: solver settings.
         device: Warp device ("cpu", "cuda:0", ...).
@@ -432,7 +432,7 @@ class MPMSolver:
             pass
 
 
-def simulate(
+def run_solver(
     particles: Particles,
     materials: Sequence[MaterialParams],
     grid: GridSpec,
@@ -441,7 +441,8 @@ def simulate(
     config: SolverConfig | None = None,
     device: str = "cpu",
 ) -> Trajectory:
-    """Build a solver, run ``n_frames`` frames and return the trajectory (frame 0 = initial)."""
+    """Build a solver, run ``n_frames`` frames, close it and return the trajectory (frame 0 =
+    initial). The engine's one-shot run; Gaussians in, Gaussians out is ``physgm.sim.simulate``."""
     solver = MPMSolver(particles, materials, grid, scene, config, device)
     try:
         return solver.run(n_frames)

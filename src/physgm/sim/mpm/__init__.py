@@ -1,0 +1,131 @@
+"""physgm.sim.mpm: the MLS-MPM engine in NVIDIA Warp (CPU and CUDA, one code path).
+
+This docstring is the contract the Gaussian-level layer (``physgm.sim``: planner, rigid path,
+coupling) and the benchmarks build on. Everything is SI: metres, seconds, kilograms, pascals.
+World frame: +z up, ground z = 0.
+
+Building blocks (all importable from ``physgm.sim.mpm``)
+--------------------------------------------------------
+``GridSpec(origin, dx, res)``                       (grid.py)
+    Box grid, not necessarily cubic: ``origin`` (3,) m is node (0, 0, 0), ``dx`` the cell size,
+    ``res = (nx, ny, nz)`` node counts (>= 8 each). ``GridSpec.fit(lo, hi, dx, margin_cells=3)``
+    is the smallest grid whose free interior holds the box [lo, hi] (m); the planner fits it to
+    the object's reachable region. ``grid.interior(cells)`` gives the region away from the faces.
+
+``MaterialParams(model, E, nu, density, yield_stress=0, hardening=0, friction_angle=0,
+cohesion=0, viscosity=0)``                          (``physgm.sim.constitutive``)
+    Solver-level parameters of one material; validated (E > 0, -1 < nu < 0.5, density > 0,
+    model extras) with a ValueError naming the bad value. ``get_material(name).params(E, nu)``
+    builds one from the material table (``physgm.physics.materials``). ``.mu``, ``.lam``, ``.bulk``,
+    ``.wave_speed()`` (P-wave speed, m/s). ``constitutive.MODELS``: the registry
+    name -> ``ConstitutiveModel(id, stiffness, validate, plastic)``; models: fixed_corotated,
+    neo_hookean, drucker_prager, mohr_coulomb (the table's sand), von_mises, foam, fluid.
+
+``Particles(x [P, 3], volume [P] m^3, material [P] int, v=None [P, 3], F=None [P, 3, 3])``
+    Input particle set (state.py), validated (P > 0, finite x, volume > 0). ``Particles.lattice
+    (lo, hi, spacing, material, inside=None)`` and ``Particles.cat([...])`` help build scenes.
+    ``ParticleState`` (x, v, F, C, plastic, escaped) is what ``solver.state()`` returns: numpy,
+    in the caller's particle order (the solver sorts particles by cell internally).
+
+``Scene(gravity=(0, 0, -9.81), ground=None, boxes=(), damping=0.0, walls=(), periodic=())``
+(scene.py, boundary.py, walls.py)
+    ``GroundPlane(height=0.0, friction=0.3, mode="separate"|"slip"|"sticky", held_depth=0.0)``
+    acts on grid nodes at or below the plane; ``held_depth=SURFACE_DEPTH`` (7/8 cell, on a grid
+    the solver lowers by under a cell) makes bodies touch and rest at the plane (boundary.py).
+    ``VelocityBox(lo, hi, velocity, start=0, stop=inf, hold=True)`` prescribes the velocity of
+    grid nodes and particles inside a box that moves with it (grips, clamps with velocity 0,
+    pushers); after ``stop`` a held box fixes its contents.
+    ``damping`` (1/s) is a mass-proportional drag. ``SideWall(axis, position, solid="below"|
+    "above", mode="slip"|"sticky")`` is a wall plane on x or y (or z); ``PeriodicAxis(axis, lo,
+    hi)`` makes an axis periodic (lo, hi on grid nodes; plane-strain set-ups). The grid faces
+    carry separating safety walls (``boundary_cells`` cells inside each face): every node update
+    in which they stop mass is counted (``solver.face_contacts``, ``FrameStats.face_contacts``,
+    the run report), a particle the final clamp has to hold is counted once in
+    ``solver.escaped``, and no grid index can ever leave its array. A grid that holds the
+    motion keeps both at 0 (the planner's grids do for its scenes).
+    ``physgm.sim.scenes``: the ``SCENES`` registry and ``build_scene(name, x, material=None,
+    **overrides) -> SceneSetup(scene, x, v, duration, reach_lo, reach_hi, driver_work)`` apply
+    conf/sim/scene/<name>.yaml (drop, stretch, push, two_objects) to rest particles.
+
+``SolverConfig`` (stepping.py; conf/sim/solver/default.yaml)
+    frame_dt 0.04 s, cfl 0.4, flip 0.95 (affine-FLIP share of the particle (v, C) update, 0 = pure
+    APIC; positions always move with the grid velocity), max_retries, j_min / j_max (divergence
+    guard), boundary_cells, threads (0 = auto: 2 CPU threads from 8k particles), cfl_check_every,
+    sort_every, max_substeps.
+    ``SolverConfig.load("default")`` reads the YAML.
+
+``MPMSolver(particles, materials, grid, scene=None, config=None, device="cpu")``  (solver.py)
+    Allocates every array once, then only launches kernels.
+    ``.step_frame(frame_dt=None) -> FrameStats``  CFL sub-steps (dt = cfl dx / (c_p + |v|max),
+        |v|max re-read every ``cfl_check_every`` steps); checks the state (finite, J in
+        (j_min, j_max], elastic trial J above each model's floor ``MODELS[m].j_floor``, so
+        J <= 0 is a failed step); on failure restores the frame start and retries with half the CFL
+        number, finally raises ``SimulationDiverged``. Never returns a NaN frame.
+    ``.run(n_frames) -> Trajectory(x [T, P, 3], F [T, P, 3, 3], stats)``, frame 0 = initial.
+    ``.substep(dt)``   one raw MLS-MPM step (no guard), for tests and couplings.
+    ``.stable_dt()``, ``.state()``, ``.set_velocities(v [P, 3])``, ``.energy() -> Energy``
+    (kinetic incl. APIC affine part, gravitational, elastic; J), ``.driver_work`` (J put in by
+    velocity boxes), ``.time``, ``.frame``, ``.escaped``, ``.threads``, ``.close()``.
+    ``.observers``: list of ``SubstepObserver``; ``observer.observe(SubstepObservables)`` runs
+    after every sub-step with its time, dt, mass, momentum, centre-of-mass velocity and the
+    forces of the ground, the side walls and the grid faces (observables.py;
+    ``ObservableRecorder`` keeps them, dropping retried attempts). ``.face_contacts``.
+    ``.hooks``: list of ``GridHook``; ``hook.apply(solver, dt)`` runs after each grid update.
+    ``solver.grid_v`` is a wp.array3d [nx, ny, nz] of ``kernels.vec8`` = (vx, vy, vz, mass,
+    dvx, dvy, dvz, 0); a hook that changes a node velocity must add the same change to
+    components 4-6 (``kernels.set_node_velocity`` does both). Only nodes of the 4^3-node
+    blocks a particle stencil reached this sub-step are current (``kernels.grid_update``);
+    particles read no others.
+
+``run_solver(particles, materials, grid, scene, n_frames, config=None, device="cpu")`` builds a
+solver, runs it, closes it and returns the ``Trajectory``. Gaussians in, Gaussians out (plan,
+sample particles, run, follow): ``physgm.sim.simulate``.
+
+``cfl_dt(dx, materials, vmax, cfl)``, ``wave_speed(materials)`` and ``substeps_per_frame(...)``
+predict the cost of a run before building a solver (for the planner).
+
+Design notes (why the code looks the way it does)
+-------------------------------------------------
+* Three fused kernels per sub-step (kernels.py): p2g (stress + APIC), grid_update, g2p (gather,
+  F update, return mapping, stress, advection, clamp, statistics), recorded once and replayed
+  (launches.py). On the CPU, particles are split over two threads (a launch releases the GIL),
+  each p2g thread with its own accumulator grid; particles are re-sorted by cell every frame.
+* grid_update only covers the active box around the particles (re-fitted every
+  ``cfl_check_every`` steps); a particle that outruns it is flagged and the frame retried.
+* The deformation state is H = F - I and every constitutive model works in H (b - I, det F - 1,
+  log1p / expm1): stiff materials strain ~1e-5 per step, which float32 loses near 1.
+* Particle updates blend APIC with an affine FLIP increment (``flip``): pure APIC loses energy
+  per transfer; incrementing C with v keeps angular momentum exact.
+* Verification against analytic results: ``physgm.bench.verification`` (python -m physgm.bench
+  sim-verify); the stiffness sweep: python -m physgm.bench sim-stability.
+"""
+
+from physgm.sim.mpm.boundary import GroundPlane, VelocityBox
+from physgm.sim.mpm.grid import GridSpec
+from physgm.sim.mpm.scene import Scene
+from physgm.sim.mpm.solver import GridHook, MPMSolver, run_solver
+from physgm.sim.mpm.state import Energy, FrameStats, Particles, ParticleState, Trajectory
+from physgm.sim.mpm.stepping import SimulationDiverged, SolverConfig, cfl_dt, substeps_per_frame, wave_speed
+from physgm.sim.mpm.walls import PeriodicAxis, SideWall
+
+__all__ = [
+    "Energy",
+    "FrameStats",
+    "GridHook",
+    "GridSpec",
+    "GroundPlane",
+    "MPMSolver",
+    "ParticleState",
+    "Particles",
+    "PeriodicAxis",
+    "Scene",
+    "SideWall",
+    "SimulationDiverged",
+    "SolverConfig",
+    "Trajectory",
+    "VelocityBox",
+    "cfl_dt",
+    "run_solver",
+    "substeps_per_frame",
+    "wave_speed",
+]
