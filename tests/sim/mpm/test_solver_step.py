@@ -17,6 +17,7 @@ from physgm.sim.mpm import (
     SolverConfig,
     VelocityBox,
     reference_mpm,
+    run_solver,
 )
 
 
@@ -112,11 +113,11 @@ def test_fused_scatter_equals_a_fresh_p2g():
     solver = MPMSolver(p, MATS[:1], grid, Scene(ground=GroundPlane(height=0.09)), SolverConfig(threads=2))
     for _ in range(5):
         solver.substep(1e-4)
-    fused = solver.acc[0].numpy() + solver.acc[1].numpy()
+    fused = solver.arrays.acc[0].numpy() + solver.arrays.acc[1].numpy()
     solver.launches.invalidate()
     for launch in solver.launches.p2g:
         launch.launch()
-    fresh = solver.acc[0].numpy() + solver.acc[1].numpy()
+    fresh = solver.arrays.acc[0].numpy() + solver.arrays.acc[1].numpy()
     assert fused[..., 3].sum() > 0
     np.testing.assert_allclose(fused, fresh, rtol=1e-5, atol=1e-6 * np.abs(fresh).max())
     solver.close()
@@ -320,6 +321,19 @@ def test_runs_on_an_explicit_device():
     solver = MPMSolver(p, MATS[:1], grid, Scene(), SolverConfig(frame_dt=0.005), device=wp.get_device("cpu"))
     traj = solver.run(2)
     assert traj.x.shape == (3, 50, 3) and traj.F.shape == (3, 50, 3, 3) and len(traj.stats) == 2
+
+
+def test_run_solver_is_one_solver_run():
+    p = random_block(50, seed=9)
+    grid = GridSpec.fit((0.1, 0.1, 0.1), (0.2, 0.2, 0.2), 0.025)
+    cfg = SolverConfig(frame_dt=0.005)
+    solver = MPMSolver(p, MATS[:1], grid, Scene(), cfg)
+    expected = solver.run(2)
+    solver.close()
+    traj = run_solver(p, MATS[:1], grid, Scene(), 2, cfg)
+    assert np.abs(traj.x[-1] - traj.x[0]).max() > 1e-4  # gravity moved the block
+    np.testing.assert_array_equal(traj.x, expected.x)
+    np.testing.assert_array_equal(traj.F, expected.F)
 
 
 def test_raw_substeps_follow_a_fast_object_across_the_grid():

@@ -1,4 +1,4 @@
-"""The recorded kernel launches of one MPM sub-step, per worker thread.
+"""The recorded kernel launches of one MPM sub-step, per worker thread; they own the grid arrays.
 
 In steady state a sub-step is grid_update then g2p, which also scatters the particles for the
 next sub-step (``kernels``); p2g runs only when the accumulators were invalidated.
@@ -16,35 +16,58 @@ import warp as wp
 
 from physgm.sim.mpm import kernels as K
 from physgm.sim.mpm.boundary import no_ground
+from physgm.sim.mpm.grid import GridSpec
+from physgm.sim.mpm.grid_arrays import GridArrays
+from physgm.sim.mpm.particle_store import ParticleStore
+from physgm.sim.mpm.scene import Scene
+from physgm.sim.mpm.stepping import SolverConfig
 from physgm.warp_runtime import ensure_loaded
 
 
 class SubstepLaunches:
-    """p2g and g2p launches for ``threads`` particle slices of ``solver``, and one grid_update."""
+    """p2g and g2p launches for ``threads`` particle slices, and one grid_update.
 
-    def __init__(self, solver) -> None:
-        self.solver = solver
-        self._record()
+    Args:
+        particles: the solver's particle arrays (the launches read and write them in place).
+        grid: the grid the solver runs on.
+        scene: gravity, ground and velocity boxes (side walls and periodic axes are ``walls.py``).
+        config: solver settings (``flip``, ``boundary_cells``).
+        threads: 1 or 2 particle slices, each with its own accumulator.
+        device: Warp device.
+    """
+
+    def __init__(
+        self,
+        particles: ParticleStore,
+        grid: GridSpec,
+        scene: Scene,
+        config: SolverConfig,
+        threads: int,
+        device,
+    ) -> None:
+        self.arrays = GridArrays.allocate(grid.res, scene.boxes, device)
+        self._record(particles, grid, scene, config, threads, device)
         self._dt = None
         self.scattered = False  # the accumulators hold the current particles' scatter
         # Number of the last sub-step run; the scatter stamps the blocks it reaches with the number
         # of the sub-step that consumes it, so stale stamps never match and nothing needs clearing.
         self.stamp = 0
-        self.timed = bool(len(solver.scene.boxes))  # only the velocity boxes depend on time
+        self.timed = bool(len(scene.boxes))  # only the velocity boxes depend on time
 
-    def _record(self) -> None:
-        s = self.solver
-        g, dev, cfg, ps = s.grid, s.device, s.config, s.particles
+    def _record(
+        self, ps: ParticleStore, g: GridSpec, scene: Scene, cfg: SolverConfig, threads: int, dev
+    ) -> None:
+        a = self.arrays
         origin = wp.vec3(*g.origin)
         lo, hi = g.interior(1)
-        ground = s.scene.ground.pack() if s.scene.ground is not None else no_ground()
-        num_boxes = len(s.scene.boxes)
-        n = s.num_particles
+        ground = scene.ground.pack() if scene.ground is not None else no_ground()
+        num_boxes = len(scene.boxes)
+        n = ps.n
         shape = wp.vec3i(*g.res)
-        split = [0, n] if s.threads == 1 else [0, n // 2, n]
+        split = [0, n] if threads == 1 else [0, n // 2, n]
         self.p2g, self.g2p = [], []
         ensure_loaded(K.p2g, dev)  # all three kernels live in one module
-        for t in range(s.threads):
+        for t in range(threads):
             p0, count = split[t], split[t + 1] - split[t]
             self.p2g.append(
                 wp.launch(
@@ -60,9 +83,9 @@ class SubstepLaunches:
                         g.dx,
                         p0,
                         shape,
-                        s.touched,
+                        a.touched,
                         0,
-                        s.acc[t].flatten(),
+                        a.acc[t].flatten(),
                     ],
                     device=dev,
                     record_cmd=True,
@@ -73,7 +96,7 @@ class SubstepLaunches:
                     K.g2p,
                     count,
                     [
-                        s.grid_v.flatten(),
+                        a.grid_v.flatten(),
                         shape,
                         origin,
                         g.dx,
@@ -83,7 +106,7 @@ class SubstepLaunches:
                         wp.vec3(*lo),
                         wp.vec3(*hi),
                         0.0,
-                        s.boxes,
+                        a.boxes,
                         num_boxes,
                         cfg.flip,
                         ps.mat_table,
@@ -99,11 +122,11 @@ class SubstepLaunches:
                         ps.stress,
                         ps.plastic,
                         ps.escaped,
-                        s.stats,
-                        s.work,
-                        s.touched,
+                        a.stats,
+                        a.work,
+                        a.touched,
                         0,
-                        s.acc[t].flatten(),
+                        a.acc[t].flatten(),
                     ],
                     device=dev,
                     record_cmd=True,
@@ -116,24 +139,24 @@ class SubstepLaunches:
             K.grid_update,
             K.block_res(g.res),
             [
-                s.acc[0],
-                s.acc[1],
-                s.touched,
+                a.acc[0],
+                a.acc[1],
+                a.touched,
                 0,
                 wp.vec3i(0, 0, 0),
                 origin,
                 g.dx,
                 0.0,
                 0.0,
-                wp.vec3(*s.scene.gravity),
+                wp.vec3(*scene.gravity),
                 1.0,
                 cfg.boundary_cells,
                 ground,
-                s.boxes,
+                a.boxes,
                 num_boxes,
                 0,
-                s.work,
-                s.grid_v,
+                a.work,
+                a.grid_v,
             ],
             device=dev,
             record_cmd=True,
@@ -141,7 +164,7 @@ class SubstepLaunches:
 
     def invalidate(self) -> None:
         """The particle state was replaced: clear the accumulators, scatter afresh next sub-step."""
-        for acc in self.solver.acc:
+        for acc in self.arrays.acc:
             acc.zero_()
         self.scattered = False
 

@@ -15,7 +15,6 @@ from physgm.parallel import PairWorker
 from physgm.sim.constitutive import MODELS, MaterialParams
 from physgm.sim.mpm import kernels as K
 from physgm.sim.mpm import particle_ops as ops
-from physgm.sim.mpm.boundary import BoxStruct
 from physgm.sim.mpm.grid import GridSpec
 from physgm.sim.mpm.launches import SubstepLaunches
 from physgm.sim.mpm.observables import SubstepObservables, SubstepObserver, particle_momentum
@@ -115,9 +114,19 @@ class MPMSolver:
         self.threads = min(self.config.threads or auto, 2) if self.device.is_cpu else 1
         self._c_max = wave_speed(self.materials)
         self.particles = ParticleStore(particles, self.materials, self.device)
-        self._walls = SceneWalls(self, self.scene.walls, self.scene.periodic)
-        self._alloc_grid()
-        self._launches = SubstepLaunches(self)
+        self._launches = SubstepLaunches(
+            self.particles, self.grid, self.scene, self.config, self.threads, self.device
+        )
+        self.arrays = self._launches.arrays
+        self._walls = SceneWalls(
+            self.scene.walls,
+            self.scene.periodic,
+            self.grid,
+            self.arrays,
+            self.config.boundary_cells,
+            self.device,
+        )
+        self._alloc_buffers()
         self._worker = PairWorker() if self.threads == 2 else None
         self.particles.sort(self.grid)
         ps = self.particles
@@ -157,20 +166,13 @@ class MPMSolver:
                 "enlarge the grid, e.g. GridSpec.fit(lo, hi, dx)"
             )
 
-    def _alloc_grid(self) -> None:
+    def _alloc_buffers(self) -> None:
+        """The solver's own arrays; the sub-step's grid arrays belong to the launches (``arrays``)."""
         dev, res = self.device, self.grid.res
-        self.acc = [wp.zeros(res, dtype=K.vec8, device=dev) for _ in range(2)]  # per-thread accumulators
-        self.grid_v = wp.zeros(res, dtype=K.vec8, device=dev)  # velocity, mass, velocity change
-        self.touched = wp.zeros(K.block_res(res), dtype=wp.int32, device=dev)  # see kernels.scatter_particle
-        self.stats = wp.zeros((2, K.STATS_ROW), dtype=float, device=dev)
-        self.boxes = wp.array(
-            [b.pack() for b in self.scene.boxes] or [BoxStruct()], dtype=BoxStruct, device=dev
-        )
-        self.work = wp.zeros((2, K.WORK_ROW), dtype=wp.float64, device=dev)  # per-thread driver work, J
         self._energy = wp.zeros(3, dtype=wp.float64, device=dev)
         self._bounds = wp.zeros(2, dtype=wp.vec3, device=dev)
         self._observed = wp.zeros(4, dtype=wp.float64, device=dev)
-        self._dynamic = [*self.particles.dynamic, self.work, self._walls.impulse]
+        self._dynamic = [*self.particles.dynamic, self.arrays.work, self._walls.impulse]
         self._backup = [wp.empty_like(a) for a in self._dynamic]
         self.active_box = (np.zeros(3, int), np.array(res) - 1)  # node index range grid_update covers
 
@@ -214,14 +216,14 @@ class MPMSolver:
         stamp = self._launches.stamp + 1  # the number _launches.run gives this sub-step
 
         def hooks() -> None:
-            self._walls.after_grid_update(stamp)
+            self._walls.after_grid_update(stamp, self.active_box)
             for hook in self.hooks:
                 hook.apply(self, dt)
 
         fold = (lambda: self._walls.before_grid_update(stamp)) if self._walls.periodic else None
         self._launches.run(self._worker, hooks, fold)
         if self._walls.periodic:
-            self._walls.after_g2p()
+            self._walls.after_g2p(self.particles.x)
         self.time += dt
         if before is not None:
             self._observe(dt, before)
@@ -229,7 +231,7 @@ class MPMSolver:
     # ----------------------------------------------------------------------------- observables
     def _impulses(self) -> np.ndarray:
         """Running sums: ground impulse [0:3], face impulse [3:6], face contacts [6], wall impulse [7:10]."""
-        w = self.work.numpy().sum(0)
+        w = self.arrays.work.numpy().sum(0)
         return np.concatenate([w[K.WORK_GROUND : K.WORK_FACE_CONTACTS + 1], self._walls.impulse.numpy()])
 
     def _observe(self, dt: float, before: np.ndarray) -> None:
@@ -259,7 +261,7 @@ class MPMSolver:
         The faces are a safety net, not a boundary condition a scene asks for: a grid that holds
         everywhere the particles go keeps this at 0 (the planner's grids do).
         """
-        return int(round(float(self.work.numpy()[:, K.WORK_FACE_CONTACTS].sum())))
+        return int(round(float(self.arrays.work.numpy()[:, K.WORK_FACE_CONTACTS].sum())))
 
     def stable_dt(self, cfl: float | None = None) -> float:
         """CFL step cfl dx / (c_p + |v|max) for the current |v|max, s."""
@@ -267,12 +269,12 @@ class MPMSolver:
         return cfl * self.grid.dx / (self._c_max + self._vmax)
 
     def _read_stats(self) -> SubstepStats:
-        return SubstepStats.reduce(self.stats.numpy()[: self.threads])
+        return SubstepStats.reduce(self.arrays.stats.numpy()[: self.threads])
 
     def _advance(self, frame_dt: float, cfl: float) -> tuple[int, float, float, SubstepStats]:
         """Sub-step through one frame; returns (sub-steps, dt_min, dt_max, stats)."""
         cfg = self.config
-        self.stats.assign(np.tile(_STATS_INIT, (2, 1)))
+        self.arrays.stats.assign(np.tile(_STATS_INIT, (2, 1)))
         t_end = self.time + frame_dt
         steps, dt, dt_min, dt_max = 0, 0.0, math.inf, 0.0
         while t_end - self.time > 1e-9 * frame_dt:
@@ -385,6 +387,11 @@ class MPMSolver:
         self._fit_active(self.stable_dt())
 
     @property
+    def grid_v(self) -> wp.array:
+        """[nx, ny, nz] ``kernels.vec8`` node velocity, mass and velocity change: what grid hooks change."""
+        return self.arrays.grid_v
+
+    @property
     def launches(self) -> SubstepLaunches:
         """The recorded kernel launches of one sub-step (tests replay them to check the fused scatter)."""
         return self._launches
@@ -392,7 +399,7 @@ class MPMSolver:
     @property
     def driver_work(self) -> float:
         """Energy the velocity boxes (grips, pushers) have put into the system so far, J."""
-        return float(self.work.numpy()[:, K.WORK_DRIVER].sum())
+        return float(self.arrays.work.numpy()[:, K.WORK_DRIVER].sum())
 
     def energy(self) -> Energy:
         """Kinetic (with the APIC affine part), gravitational and elastic energy, J."""

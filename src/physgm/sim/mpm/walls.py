@@ -26,6 +26,7 @@ import warp as wp
 
 from physgm.sim.mpm import kernels as K
 from physgm.sim.mpm.grid import GridSpec
+from physgm.sim.mpm.grid_arrays import GridArrays
 
 wp.set_module_options({"enable_backward": False})
 
@@ -248,21 +249,38 @@ class SceneWalls:
 
     ``impulse`` ([3] float64, N s) is the running impulse of the side walls on the grid, saved and
     restored with the particles when a frame is retried.
+
+    Args:
+        walls, periodic: the scene's side walls and periodic axes.
+        grid: the grid the solver runs on.
+        arrays: the sub-step's grid arrays (``GridArrays``: accumulators, node
+            velocities, touched blocks), changed in place.
+        boundary_cells: cells of the separating walls inside each grid face (``SolverConfig``).
+        device: Warp device.
     """
 
-    def __init__(self, solver, walls: tuple[SideWall, ...], periodic: tuple[PeriodicAxis, ...]) -> None:
-        self.solver = solver
-        g, dev = solver.grid, solver.device
+    def __init__(
+        self,
+        walls: tuple[SideWall, ...],
+        periodic: tuple[PeriodicAxis, ...],
+        grid: GridSpec,
+        arrays: GridArrays,
+        boundary_cells: int,
+        device,
+    ) -> None:
+        self.grid, self.arrays, self.device = grid, arrays, device
         self.walls = tuple(walls)
         self.periodic = tuple(periodic)
-        self.ranges = [p.node_range(g, solver.config.boundary_cells) for p in self.periodic]
+        self.ranges = [p.node_range(grid, boundary_cells) for p in self.periodic]
         if len({p.axis for p in self.periodic}) != len(self.periodic):
             raise ValueError("each axis can be periodic only once")
         if any(w.axis == p.axis for w in self.walls for p in self.periodic):
             raise ValueError("an axis cannot have both side walls and a periodic boundary")
-        self.impulse = wp.zeros(3, dtype=wp.float64, device=dev)
-        self._table = wp.array([pack_wall(w) for w in walls] or [WallStruct()], dtype=WallStruct, device=dev)
-        self._origin = wp.vec3(*g.origin)
+        self.impulse = wp.zeros(3, dtype=wp.float64, device=device)
+        self._table = wp.array(
+            [pack_wall(w) for w in walls] or [WallStruct()], dtype=WallStruct, device=device
+        )
+        self._origin = wp.vec3(*grid.origin)
 
     def __bool__(self) -> bool:
         return bool(self.walls or self.periodic)
@@ -276,23 +294,23 @@ class SceneWalls:
         return lo, hi
 
     def before_grid_update(self, stamp: int) -> None:
-        s = self.solver
-        acc0, acc1 = s.acc
+        acc0, acc1 = self.arrays.acc
         for p, (i0, i1) in zip(self.periodic, self.ranges, strict=True):
-            res = s.grid.res
+            res = self.grid.res
             dims = (2 * GHOST, res[(p.axis + 1) % 3], res[(p.axis + 2) % 3])  # the kernels' (u, w) order
-            args = [acc0, acc1, p.axis, i0, i1, s.touched, stamp]
-            wp.launch(fold_periodic, dims, args, device=s.device)
-            wp.launch(mirror_periodic, dims, args, device=s.device)
+            args = [acc0, acc1, p.axis, i0, i1, self.arrays.touched, stamp]
+            wp.launch(fold_periodic, dims, args, device=self.device)
+            wp.launch(mirror_periodic, dims, args, device=self.device)
 
-    def after_grid_update(self, stamp: int) -> None:
+    def after_grid_update(self, stamp: int, active_box: tuple[np.ndarray, np.ndarray]) -> None:
+        """Apply the side walls to the nodes of ``active_box`` (node index range lo, hi)."""
         if not self.walls:
             return
-        s = self.solver
-        box_lo, box_hi = s.active_box
+        g = self.grid
+        box_lo, box_hi = active_box
         for wall in self.walls:
             lo, hi = np.array(box_lo), np.array(box_hi)
-            c = (wall.position - s.grid.origin[wall.axis]) / s.grid.dx
+            c = (wall.position - g.origin[wall.axis]) / g.dx
             if wall.solid == "below":
                 hi[wall.axis] = min(hi[wall.axis], math.floor(c + 1e-6))
             else:
@@ -307,16 +325,15 @@ class SceneWalls:
                     len(self.walls),
                     wp.vec3i(*lo.tolist()),
                     self._origin,
-                    s.grid.dx,
-                    s.touched,
+                    g.dx,
+                    self.arrays.touched,
                     stamp,
                     self.impulse,
-                    s.grid_v,
+                    self.arrays.grid_v,
                 ],
-                device=s.device,
+                device=self.device,
             )
 
-    def after_g2p(self) -> None:
-        s = self.solver
+    def after_g2p(self, x: wp.array) -> None:  # x: [P] vec3 particle positions, m, in/out
         for p in self.periodic:
-            wp.launch(wrap_periodic, s.num_particles, [s.particles.x, p.axis, p.lo, p.hi], device=s.device)
+            wp.launch(wrap_periodic, len(x), [x, p.axis, p.lo, p.hi], device=self.device)

@@ -1,0 +1,38 @@
+"""The grid-side Warp arrays of one solver: accumulators, node velocities, block stamps, reductions."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import warp as wp
+
+from physgm.sim.mpm import kernels as K
+from physgm.sim.mpm.boundary import BoxStruct, VelocityBox
+
+
+@dataclass(frozen=True)
+class GridArrays:
+    """The grid-side arrays the sub-step kernels read and write, allocated once per solver.
+
+    ``SubstepLaunches`` allocates and owns them; the side walls and grid hooks change ``grid_v``
+    (and the walls the accumulators) in place.
+    """
+
+    acc: tuple[wp.array, wp.array]  # 2 x [nx, ny, nz] vec8, one scatter accumulator per thread
+    grid_v: wp.array  # [nx, ny, nz] vec8: velocity m/s, mass kg, velocity change (see kernels)
+    touched: wp.array  # [bx, by, bz] int32 stamps of the blocks a scatter reached (kernels.scatter_particle)
+    stats: wp.array  # [2, STATS_ROW] per-thread running reductions of g2p (kernels.STAT_*)
+    work: wp.array  # [2, WORK_ROW] float64 per-thread driver work, J, and impulses (kernels.WORK_*)
+    boxes: wp.array  # [max(B, 1)] BoxStruct, the scene's velocity boxes
+
+    @classmethod
+    def allocate(cls, res: tuple[int, int, int], boxes: Sequence[VelocityBox], device) -> GridArrays:
+        return cls(
+            acc=(wp.zeros(res, dtype=K.vec8, device=device), wp.zeros(res, dtype=K.vec8, device=device)),
+            grid_v=wp.zeros(res, dtype=K.vec8, device=device),
+            touched=wp.zeros(K.block_res(res), dtype=wp.int32, device=device),
+            stats=wp.zeros((2, K.STATS_ROW), dtype=float, device=device),
+            work=wp.zeros((2, K.WORK_ROW), dtype=wp.float64, device=device),
+            boxes=wp.array([b.pack() for b in boxes] or [BoxStruct()], dtype=BoxStruct, device=device),
+        )
