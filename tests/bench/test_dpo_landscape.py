@@ -13,6 +13,7 @@ from physgm.bench import dpo_landscape as landscape
 from physgm.data.synth import SynthConfig, asset_id, generate
 from physgm.gaussians import read_ply
 from physgm.model import BackboneConfig, EncoderConfig, GaussianHeadConfig, PhysGMConfig
+from physgm.physics.materials import PhysicsSpec
 from physgm.train import rollout_env as rollout
 from physgm.train.pretrain import LitPretrain
 
@@ -105,7 +106,7 @@ def test_landscape_is_lowest_at_the_true_E_with_the_true_gaussians(drop_root, ti
     predicted = row["sources"]["predicted"]
     assert (
         len(predicted["points"]) == 3 and predicted["density"] == 1000.0
-    )  # the table's jelly, as rollout.physics_dict
+    )  # the table's jelly, as rollout.physics_spec
     assert math.isfinite(predicted["policy_d"]) and true["policy_d"] is None
     assert all(
         p["distance"] is not None or p["error"] for p in predicted["points"]
@@ -138,7 +139,7 @@ def test_rollout_scores_the_clip_after_the_codec_round_trip(drop_root, monkeypat
     )
     reference = rollout.reference_frames(scene, settings.n_frames)
     gaussians = read_ply(drop_root / scene.id / "gaussians.ply")
-    physics = {"material": scene.material, "E": 10 ** (scene.log10_E + 0.5), "nu": scene.nu}
+    physics = PhysicsSpec(scene.material, E=10 ** (scene.log10_E + 0.5), nu=scene.nu)
     encoded = rollout.evaluate_physics(scene, gaussians, physics, reference, settings)
     raw_settings = rollout.SimSettings(**{**settings.__dict__, "codec_round_trip": False})
     raw = rollout.evaluate_physics(scene, gaussians, physics, reference, raw_settings)

@@ -26,6 +26,7 @@ from physgm.data.writer import camera_entry, write_json
 from physgm.gaussians import Gaussians
 from physgm.model import BackboneConfig, EncoderConfig, GaussianHeadConfig, PhysGMConfig
 from physgm.model.physgm import PhysGM
+from physgm.physics.materials import PhysicsSpec
 from physgm.train.pairs import PairCache
 from physgm.train.pretrain import LitPretrain
 from physgm.train.rollout_budget import BoundedRun
@@ -133,7 +134,7 @@ class StandIn:
     """Deterministic stand-in for simulate + render + score; records every call."""
 
     def __init__(self, kill_at_scene: str | None = None):
-        self.calls: list[tuple[str, dict]] = []
+        self.calls: list[tuple[str, PhysicsSpec]] = []
         self.kill_at_scene = kill_at_scene
 
     def __call__(self, scene, gaussians, physics, reference, settings, device="cpu"):
@@ -142,12 +143,12 @@ class StandIn:
             32,
             3,
         )  # the decoded reference video
-        assert len(gaussians) > 0 and physics["material"] and physics["E"] > 0
+        assert len(gaussians) > 0 and physics.material and physics.E > 0
         if scene.id == self.kill_at_scene:
             raise Killed()
         self.calls.append((scene.id, physics))
         target = 4.0 + scene.index  # an arbitrary, scene-dependent "true" stiffness
-        return env.ClipResult(abs(math.log10(physics["E"]) - target), mode="stand-in")
+        return env.ClipResult(abs(math.log10(physics.E) - target), mode="stand-in")
 
 
 def make_callback(root: Path, **over) -> rollout.RolloutCallback:
@@ -210,7 +211,7 @@ def test_cache_resumes_after_a_kill_and_never_reads_half_files(dpo_root, policy,
     # Same scene and round: the same candidates whatever the interruption (seeded per scene and round).
     redo = [p for s, p in rerun.calls if s == asset_id(1)]
     assert [c.log10_E for c in records[1].candidates] == pytest.approx(
-        [math.log10(p["E"]) for p in redo], abs=1e-5
+        [math.log10(p.E) for p in redo], abs=1e-5
     )
     # A third run simulates nothing.
     again = StandIn()
@@ -324,7 +325,7 @@ def test_evaluate_physics_wiring(dpo_root, monkeypatch):
     settings = env.SimSettings(resolution=32, n_frames=6, backend="warp")
     camera = env.render_camera(scene, 32)
     reference = render_frames(StillTrajectory(placed, 6), camera, "warp", 1.0)
-    result = env.evaluate_physics(scene, g, {"material": "rubber", "E": 1e6, "nu": 0.45}, reference, settings)
+    result = env.evaluate_physics(scene, g, PhysicsSpec("rubber", E=1e6, nu=0.45), reference, settings)
     torch.testing.assert_close(seen["g"].means, placed.means)
     assert seen["g"].means[:, 2].min().item() == pytest.approx(scene.video.drop_height_m, abs=1e-6)
     assert (
@@ -336,7 +337,7 @@ def test_evaluate_physics_wiring(dpo_root, monkeypatch):
     from physgm.sim.planner import PlannerConfig
 
     half = env.SimSettings(resolution=16, n_frames=6, backend="warp", planner={"cells_across": 7})
-    env.evaluate_physics(scene, g, {"material": "rubber", "E": 1e6, "nu": 0.45}, reference, half)
+    env.evaluate_physics(scene, g, PhysicsSpec("rubber", E=1e6, nu=0.45), reference, half)
     assert seen["cams"].width == 16 and seen["cams"].Ks[0, 0, 0].item() == pytest.approx(
         scene.camera.Ks[0, 0, 0].item() / 2
     )
@@ -504,7 +505,7 @@ def test_evaluate_command_compares_two_checkpoints(dpo_root, stage1_ckpt, tmp_pa
         # The rollout score is the stand-in; the clip is the reference itself, so the command's own
         # trajectory and perceptual distances must come out 0.
         return env.ClipResult(
-            abs(math.log10(physics["E"]) - truth[scene.id]), mode="stand-in", frames=reference
+            abs(math.log10(physics.E) - truth[scene.id]), mode="stand-in", frames=reference
         )
 
     monkeypatch.setattr(evaluate_dpo, "evaluate_physics", score)

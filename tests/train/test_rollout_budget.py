@@ -12,6 +12,7 @@ import torch
 
 import physgm.sim.gaussian_trajectory as gt
 from physgm.gaussians import Gaussians
+from physgm.physics.materials import PhysicsSpec
 from physgm.train.pairs import Candidate, PairCache, SceneRecord, select_pair
 from physgm.train.rollout_budget import THROUGHPUT, BudgetConfig, bounded_simulate
 
@@ -43,7 +44,7 @@ def run_bounded(monkeypatch, sim: FakeSim, **budget):
     monkeypatch.setattr(gt, "run_prepared", sim.run)
     THROUGHPUT.clear()
     cfg = BudgetConfig(**{"max_seconds": 30.0, "throughput": 1e6, **budget})
-    physics = {"material": "rubber", "E": 3e7, "nu": 0.45}
+    physics = PhysicsSpec("rubber", E=3e7, nu=0.45)
     return bounded_simulate(None, physics, "drop", None, 11, {"bound_px": 0.5}, None, {}, "cpu", cfg)
 
 

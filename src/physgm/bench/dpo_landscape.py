@@ -8,7 +8,7 @@ decades d, with the TRUE material and nu, and scores each clip exactly as the ro
 - ``true``: the asset's own ``gaussians.ply`` (the Gaussians the reference video was made
   from), with the asset's density: at d = 0 this re-creates the reference simulation;
 - ``predicted``: the model's Gaussians as the rollout callback uses them (``rollout_env.predict``),
-  with the material table's density, as ``rollout_env.physics_dict`` hands it to the simulator.
+  with the material table's density, as ``rollout_env.physics_spec`` hands it to the simulator.
 
 Each point holds three numbers against the decoded H.264 reference: ``distance``, the paper's
 track distance of the raw rendered clip (what the rollouts scored before
@@ -31,13 +31,14 @@ import json
 import math
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from physgm.gaussians import Gaussians
+from physgm.physics.materials import PhysicsSpec
 
 DEFAULT_MATERIALS = ("metal", "jelly", "plasticine", "snow", "sand")
 DEFAULT_DECADES = tuple(np.round(np.arange(-2.0, 2.01, 0.5), 2).tolist())
@@ -68,14 +69,14 @@ class LandscapePoint:
 def sweep(
     scene,
     gaussians: Gaussians,
-    physics: dict,
+    physics: PhysicsSpec,
     decades: list[float],
     reference: np.ndarray,
     settings,
     device: str = "cpu",
     log=None,
 ) -> list[LandscapePoint]:
-    """Simulate ``physics`` with E = physics["E"] x 10^d for each d; score each clip against ``reference``."""
+    """Simulate ``physics`` with E = physics.E x 10^d for each d; score each clip against ``reference``."""
     from physgm.data.video import codec_round_trip
     from physgm.metrics.clip_score import score_clip
     from physgm.metrics.trajectory import score_videos
@@ -83,12 +84,12 @@ def sweep(
 
     points = []
     for d in decades:
-        E = float(physics["E"]) * 10.0**d
+        E = float(physics.E) * 10.0**d
         start = time.perf_counter()
         point = LandscapePoint(d, math.log10(E), None, None, None, "", None, None, None, 0.0)
         try:
             frames, run = simulate_clip(
-                scene, gaussians, {**physics, "E": E}, settings, len(reference), device
+                scene, gaussians, replace(physics, E=E), settings, len(reference), device
             )
             if frames is None:
                 raise RuntimeError(run.skipped)
@@ -226,20 +227,19 @@ def source_gaussians(source: str, scene, data: str, model) -> tuple[Gaussians, s
     return gaussians, "table", float(posterior.log10_E_mean[0]) - scene.log10_E
 
 
-def physics_for(scene, data: str, density: str) -> dict:
+def physics_for(scene, data: str, density: str) -> PhysicsSpec:
     """True material, E and nu, with the asset's density ("asset") or the material table's ("table")."""
     from physgm.data.format import load_asset
     from physgm.physics.materials import get_material
 
-    physics = {"material": scene.material, "E": 10.0**scene.log10_E, "nu": scene.nu}
     if density == "asset":
         rho = load_asset(Path(data) / scene.id).physical.density
         if rho is None:
             raise ValueError(f"{scene.id}/physical.json has no density; run with --density table")
-        physics["density"] = float(rho)
-    else:  # what rollout_env.physics_dict gives the simulator: no density, the table's is used
-        physics["density"] = float(get_material(scene.material).density)
-    return physics
+    else:  # what rollout_env.physics_spec gives the simulator: no density, the table's is used
+        rho = get_material(scene.material).density
+    E, nu = float(10.0**scene.log10_E), float(scene.nu)
+    return PhysicsSpec(str(scene.material), E=E, nu=nu, density=float(rho))
 
 
 def parse_decades(values: list[str]) -> list[float]:
@@ -337,12 +337,12 @@ def main(argv: list[str] | None = None) -> dict:
             physics = physics_for(scene, a.data, default_density if a.density == "auto" else a.density)
             log(
                 f"[{i + 1}/{len(scenes)}] {scene.id} {scene.material} log10E={scene.log10_E:.2f} {source} "
-                f"({len(gaussians)} Gaussians, density {physics['density']:.0f} kg/m^3, policy_d={policy_d})"
+                f"({len(gaussians)} Gaussians, density {physics.density:.0f} kg/m^3, policy_d={policy_d})"
             )
             points = sweep(scene, gaussians, physics, a.decades, reference, settings, log=log)
             row["sources"][source] = {
                 "gaussians": len(gaussians),
-                "density": physics["density"],
+                "density": physics.density,
                 "policy_d": policy_d,
                 "points": [asdict(pt) for pt in points],
                 **{key: shape(points, key, a.min_gap, policy_d) for key in KEYS},

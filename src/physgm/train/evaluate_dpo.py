@@ -34,7 +34,7 @@ from physgm.train.rollout_env import (
     SimSettings,
     evaluate_physics,
     load_scenes,
-    physics_dict,
+    physics_spec,
     predict,
     reference_frames,
 )
@@ -69,14 +69,14 @@ def evaluate_scene(models: dict, scene, settings: SimSettings, workers: int) -> 
     def run(name: str) -> tuple[str, dict, np.ndarray | None]:
         gaussians, posterior = predict(models[name], scene.inputs)
         mean = posterior.mean()
-        physics = physics_dict(mean)
         out = {
-            "material": physics["material"],
+            "material": MATERIAL_NAMES[int(mean.material[0, 0])],
             "log10_E": float(mean.log10_E[0, 0]),
             "nu": float(mean.nu[0, 0]),
         }
         start, frames = time.perf_counter(), None
         try:
+            physics = physics_spec(mean)
             result = evaluate_physics(scene, gaussians, physics, reference, settings, keep_frames=True)
             frames = result.frames
             out.update(score=result.distance, mode=result.mode, skipped=result.skipped, terms=result.terms)

@@ -25,6 +25,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from physgm.model.posterior import PhysicsPosterior
+from physgm.physics.materials import MATERIAL_NAMES
 from physgm.train.pairs import (
     Candidate,
     PairCache,
@@ -43,7 +44,7 @@ from physgm.train.rollout_env import (
     SimSettings,
     evaluate_physics,
     load_scenes,
-    physics_dict,
+    physics_spec,
     predict,
     reference_frames,
     warp_device,
@@ -124,17 +125,17 @@ def rollout_scene(
     device = warp_device(cfg.sim.device, next(model.parameters()).device)
 
     def run(k: int) -> Candidate:
-        physics = physics_dict(draws, k)
         cand = Candidate(
             int(draws.material[0, k]),
-            physics["material"],
+            MATERIAL_NAMES[int(draws.material[0, k])],
             float(draws.log10_E[0, k]),
             float(draws.nu[0, k]),
             None,
             source=drawn.sources[k],
         )
         start = time.perf_counter()
-        try:
+        try:  # a draw the simulator cannot take (e.g. non-finite) raises ValueError: recorded below
+            physics = physics_spec(draws, k)
             result = evaluate_physics(scene, gaussians, physics, reference, cfg.sim, device)
             cand.distance, cand.mode, cand.skipped = result.distance, result.mode, result.skipped
             cand.fallback, cand.predicted_error_px = result.fallback, result.predicted_error_px

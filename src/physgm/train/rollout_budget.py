@@ -18,6 +18,8 @@ import threading
 import time
 from dataclasses import dataclass, field
 
+from physgm.physics.materials import PhysicsSpec
+
 log = logging.getLogger("physgm.train.rollout")
 
 
@@ -106,7 +108,7 @@ def predicted_seconds(prepared, throughput: float) -> float:
 
 def bounded_simulate(
     gaussians,
-    physics: dict,
+    physics: PhysicsSpec,
     scene: str,
     camera,
     n_frames: int,
@@ -145,7 +147,7 @@ def bounded_simulate(
                 traj = run_prepared(prepared, device, deadline)
             except SimulationBudgetExceeded as err:
                 reason = f"{err} ({budget.max_seconds:.0f} s budget; predicted {seconds:.0f} s)"
-                log.warning("candidate %s E=%.3g Pa cut: %s", physics["material"], physics["E"], reason)
+                log.warning("candidate %s E=%.3g Pa cut: %s", physics.material, physics.E, reason)
                 return BoundedRun(None, over, i - 1, seconds, error, f"cut: {reason}")
             THROUGHPUT.add(traj)
             return BoundedRun(traj, over, i - 1, seconds, error)
@@ -154,7 +156,7 @@ def bounded_simulate(
         f"({'; '.join(tried)}; at {throughput:.3g} particle-substeps/s; fallbacks need <= "
         f"{budget.max_error_px} px)"
     )
-    log.warning("candidate %s E=%.3g Pa skipped: %s", physics["material"], physics["E"], reason)
+    log.warning("candidate %s E=%.3g Pa skipped: %s", physics.material, physics.E, reason)
     return BoundedRun(None, planner, -1, seconds, error, f"skipped: {reason}")
 
 

@@ -31,7 +31,7 @@ from physgm.gaussians import Gaussians
 from physgm.metrics.clip_score import ScoreConfig, score_clip
 from physgm.model.posterior import PhysicsPosterior, PhysicsSample
 from physgm.model.predict import predict_scene
-from physgm.physics.materials import MATERIAL_NAMES
+from physgm.physics.materials import MATERIAL_NAMES, PhysicsSpec
 from physgm.train.pairs import SceneInputs
 from physgm.train.rollout_budget import BoundedRun, BudgetConfig, bounded_simulate
 
@@ -167,13 +167,14 @@ def predict(model: torch.nn.Module, inputs: SceneInputs) -> tuple[Gaussians, Phy
     return predict_scene(model, inputs.images, inputs.masks, inputs.c2w, inputs.Ks)
 
 
-def physics_dict(sample: PhysicsSample, k: int = 0) -> dict:
-    """Candidate ``k`` of a [1, K] sample as simulator input (E and nu clipped to simulable values)."""
-    return {
-        "material": MATERIAL_NAMES[int(sample.material[0, k])],
-        "E": float(sample.youngs_modulus()[0, k]),
-        "nu": float(sample.poisson_ratio()[0, k]),
-    }
+def physics_spec(sample: PhysicsSample, k: int = 0) -> PhysicsSpec:
+    """Candidate ``k`` of a [1, K] sample as simulator input (E and nu clipped to simulable values;
+    the table's density)."""
+    return PhysicsSpec(
+        material=MATERIAL_NAMES[int(sample.material[0, k])],
+        E=float(sample.youngs_modulus()[0, k]),
+        nu=float(sample.poisson_ratio()[0, k]),
+    )
 
 
 @dataclass
@@ -194,7 +195,7 @@ class ClipResult:
 def simulate_clip(
     scene: RolloutScene,
     gaussians: Gaussians,
-    physics: dict,
+    physics: PhysicsSpec,
     settings: SimSettings,
     n_frames: int,
     device: str = "cpu",
@@ -242,7 +243,7 @@ def simulate_clip(
 def evaluate_physics(
     scene: RolloutScene,
     gaussians: Gaussians,
-    physics: dict,
+    physics: PhysicsSpec,
     reference: np.ndarray,
     settings: SimSettings,
     device: str = "cpu",
