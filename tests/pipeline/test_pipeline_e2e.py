@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from physgm.pipeline import STAGES, execute
+from physgm.pipeline import STAGES, run_pipeline
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 
@@ -65,7 +65,7 @@ def check_run_folder(run, report, n_videos: int = 1) -> None:
 
 def test_photo_with_alpha(make_cfg):
     cfg = make_cfg(EXAMPLES / "jelly_cube.png", scene="drop", drop_height_m=0.05)
-    report = execute(cfg)
+    report = run_pipeline(cfg).report
     run = cfg.output_dir
     check_run_folder(run, report)
     assert report["input"]["kind"] == "photo" and report["input"]["mask_source"] == "alpha"
@@ -106,7 +106,7 @@ def test_photo_segmentation_overrides_and_stretch(make_cfg):
         physics__nu=0.4,
         output__frame_plys=True,
     )
-    report = execute(cfg)
+    report = run_pipeline(cfg).report
     check_run_folder(cfg.output_dir, report)
     assert report["input"]["mask_source"] == "segmentation"
     phys = json.loads((cfg.output_dir / "physics.json").read_text())
@@ -123,7 +123,7 @@ def test_photo_segmentation_overrides_and_stretch(make_cfg):
 
 def test_samples_give_k_videos(make_cfg):
     cfg = make_cfg(EXAMPLES / "metal_can.png", physics__samples=2, output__gif=True)
-    report = execute(cfg)
+    report = run_pipeline(cfg).report
     check_run_folder(cfg.output_dir, report, n_videos=3)
     for k in range(2):
         assert video_frames(cfg.output_dir / f"video_sample{k}.mp4") == 6
@@ -139,7 +139,7 @@ def test_samples_give_k_videos(make_cfg):
 
 def test_views_folder_push(make_cfg):
     cfg = make_cfg(EXAMPLES / "plasticine_views", scene="push", physics__material="rubber")
-    report = execute(cfg)
+    report = run_pipeline(cfg).report
     check_run_folder(cfg.output_dir, report)
     assert report["input"]["kind"] == "views" and report["input"]["views"] == 4
     assert report["camera"]["azimuth_deg"] == pytest.approx(0.0, abs=1e-3)
@@ -153,7 +153,7 @@ def test_ply_skips_the_model(make_cfg, blob_ply, tmp_path):
     cfg = make_cfg(
         blob_ply, ckpt=tmp_path / "absent.ckpt", physics__material="rubber", output__frame_plys=True
     )
-    report = execute(cfg)
+    report = run_pipeline(cfg).report
     check_run_folder(cfg.output_dir, report)
     assert report["input"]["kind"] == "ply" and report["checkpoint"] is None
     phys = json.loads((cfg.output_dir / "physics.json").read_text())
@@ -177,7 +177,7 @@ def test_greyscale_16bit_photo_with_mask_file(make_cfg, tmp_path):
     mask = tmp_path / "mask_in.png"
     Image.fromarray((inside * 255).astype(np.uint8)).save(mask)
     cfg = make_cfg(photo, mask=mask, physics__material="wood")
-    report = execute(cfg)
+    report = run_pipeline(cfg).report
     check_run_folder(cfg.output_dir, report)
     assert report["input"]["mask_source"] == "mask file" and report["input"]["size"] == [140, 90]
     saved = np.asarray(Image.open(cfg.output_dir / "mask.png")) > 127
@@ -193,7 +193,7 @@ def test_default_settings_full_clip(make_cfg):
     from physgm.pipeline.config import OutputSettings
 
     cfg = make_cfg(EXAMPLES / "wood_toy_cluttered.jpg", output=OutputSettings(progress=False))
-    report = execute(cfg)
+    report = run_pipeline(cfg).report
     assert (report["output"]["resolution"], report["output"]["frames"], report["output"]["fps"]) == (
         256,
         50,
@@ -221,6 +221,6 @@ def test_shipped_checkpoint_runs_every_shipped_photo(make_cfg):
     for photo in photos:
         cfg = make_cfg(EXAMPLES / photo, ckpt=path)
         cfg.output_dir = cfg.output_dir.with_name(f"run_{Path(photo).stem}")
-        report = execute(cfg)
+        report = run_pipeline(cfg).report
         check_run_folder(cfg.output_dir, report)
         assert report["checkpoint"]["input_size"] == 128

@@ -163,7 +163,7 @@ def test_failure_mid_run_leaves_nothing(tmp_path, make_cfg, examples, monkeypatc
     """An error after the videos were written removes everything, including an empty run folder
     made beforehand (as Hydra does)."""
     import physgm.pipeline.stages as pipeline_run
-    from physgm.pipeline import execute
+    from physgm.pipeline import run_pipeline
 
     real = pipeline_run.write_json
 
@@ -176,13 +176,13 @@ def test_failure_mid_run_leaves_nothing(tmp_path, make_cfg, examples, monkeypatc
     cfg = make_cfg(examples / "metal_can.png", physics__material="metal")
     cfg.output_dir.mkdir()
     with pytest.raises(OSError, match="disk full"):
-        execute(cfg)
+        run_pipeline(cfg)
     assert list(cfg.output_dir.parent.iterdir()) == [], "no run folder and no temporary folder may remain"
 
 
 def test_non_finite_simulation_writes_nothing(tmp_path, make_cfg, examples, monkeypatch):
     import physgm.render.frames as render_frames
-    from physgm.pipeline import execute
+    from physgm.pipeline import run_pipeline
 
     real = render_frames.render_trajectory
 
@@ -193,7 +193,7 @@ def test_non_finite_simulation_writes_nothing(tmp_path, make_cfg, examples, monk
     monkeypatch.setattr(render_frames, "render_trajectory", poisoned)
     cfg = make_cfg(examples / "metal_can.png", physics__material="rubber")
     with pytest.raises(RuntimeError, match="non-finite"):
-        execute(cfg)
+        run_pipeline(cfg)
     assert not cfg.output_dir.exists() and list(cfg.output_dir.parent.iterdir()) == []
 
 

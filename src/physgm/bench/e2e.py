@@ -55,7 +55,7 @@ def random_checkpoint(folder: Path) -> Path:
 
 
 def bench_one(path: Path, scene: str, ckpt: Path, out: Path, args) -> dict:
-    from physgm.pipeline import UserError, execute
+    from physgm.pipeline import UserError, run_pipeline
 
     overrides = [
         f"input={path}",
@@ -72,7 +72,7 @@ def bench_one(path: Path, scene: str, ckpt: Path, out: Path, args) -> dict:
     row = {"input": path.name, "scene": scene, "frames": args.frames, "res": args.res}
     start = time.perf_counter()
     try:
-        report = execute(compose_run(overrides))
+        report = run_pipeline(compose_run(overrides)).report
     except UserError as err:
         return {**row, "error": str(err)}
     mean = report["runs"][0]

@@ -8,12 +8,21 @@ Layout:
     outputs         atomic run folder, videos, contact sheet, JSON
     stages          the stages
 
-``run(cfg)`` is the Hydra entry; ``execute(RunConfig)`` the plain-Python one (report.json's
-contents), ``run_pipeline(RunConfig)`` the same with each simulated future typed.
+``run(cfg)`` is the Hydra entry; ``run_pipeline(RunConfig) -> RunResult`` the plain-Python one
+(report.json's contents and each simulated future, typed).
 """
 
 from physgm.errors import UserError
 from physgm.pipeline.config import RunConfig, from_hydra
-from physgm.pipeline.stages import STAGES, execute, run, run_pipeline
+from physgm.pipeline.stages import STAGES, FutureResult, RunResult, run, run_pipeline
 
-__all__ = ["STAGES", "RunConfig", "UserError", "execute", "from_hydra", "run", "run_pipeline"]
+__all__ = [
+    "STAGES",
+    "FutureResult",
+    "RunConfig",
+    "RunResult",
+    "UserError",
+    "from_hydra",
+    "run",
+    "run_pipeline",
+]

@@ -167,11 +167,6 @@ def _future_result(choice, traj, seconds: dict, finite: bool, video: str) -> Fut
     )
 
 
-def execute(cfg: RunConfig) -> dict:
-    """Run the whole pipeline into ``cfg.output_dir`` (atomically); returns report.json's contents."""
-    return run_pipeline(cfg).report
-
-
 def run_pipeline(cfg: RunConfig) -> RunResult:
     """Run the whole pipeline into ``cfg.output_dir`` (atomically)."""
     import torch
