@@ -1,10 +1,10 @@
 """``python -m physgm.bench sim-verify``: the MPM solver against analytic results.
 
 Prints ``{"cases": [{"name", "error", "tolerance", "passed", ...}], "summary": {...}}``. The
-cases live in ``physgm.bench.verification.analytic`` (the granular column collapse at a = 0.5, 1, 2, 4 in
-``verification_granular``); ``--fast`` runs the coarse versions the default tests use (8-20 cells
-across the column), the default the finer ones (20 cells across; the column at a = 4 alone
-holds 12,800 particles for ~0.8 s of flow, most of the run's time).
+cases live in ``physgm.bench.verification`` (``analytic.all_cases``; the granular column
+collapse at a = 0.5, 1, 2, 4 in ``granular``); ``--fast`` runs the coarse versions the default
+tests use (8-20 cells across the column), the default the finer ones (20 cells across; the
+column at a = 4 alone holds 12,800 particles for ~0.8 s of flow, most of the run's time).
 """
 
 from __future__ import annotations
