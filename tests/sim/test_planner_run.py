@@ -10,6 +10,7 @@ import torch
 
 from physgm.cameras import orbit_cameras
 from physgm.gaussians import Gaussians, quat_to_rotmat
+from physgm.physics.materials import PhysicsSpec
 from physgm.sim.gaussian_trajectory import ballistic_frames, simulate
 from physgm.sim.mpm.boundary import GroundPlane
 from physgm.sim.mpm.scene import Scene
@@ -44,7 +45,7 @@ def _shell_cube(n: int = 3000, side: float = 0.1, bottom: float = 0.3, seed: int
 
 def test_steel_drop_runs_rigid_and_moves_gaussians_rigidly():
     gs = _shell_cube()
-    traj = simulate(gs, {"material": "metal", "E": 2e11}, GROUND, CAMERAS, n_frames=40)
+    traj = simulate(gs, PhysicsSpec("metal", E=2e11), GROUND, CAMERAS, n_frames=40)
     assert traj.plan.mode == "rigid"
     assert len(traj) == 40
     # Falls 0.3 m: the bottom reaches the ground, and the body never sinks below it.
@@ -74,7 +75,7 @@ def test_ballistic_frames_match_free_fall_time():
 def test_jelly_drop_runs_mpm_and_gaussians_follow_particles():
     gs = _shell_cube(bottom=0.05)
     cfg = PlannerConfig(cells_across=8)
-    traj = simulate(gs, {"material": "jelly", "E": 3e4}, GROUND, CAMERAS, n_frames=8, planner=cfg)
+    traj = simulate(gs, PhysicsSpec("jelly", E=3e4), GROUND, CAMERAS, n_frames=8, planner=cfg)
     plan = traj.plan
     assert plan.mode == "mpm" and plan.E_used == 3e4
     assert traj.substeps > 0 and traj.ballistic_frames >= 1
@@ -96,7 +97,7 @@ def test_planned_grid_holds_a_sand_collapse():
     """Sand dropped onto the floor runs out; the planner's grid must hold it off the grid faces."""
     gs = _shell_cube(bottom=0.1)
     cfg = PlannerConfig(cells_across=8, particles_per_cell=1)  # coarse: the extent is the point
-    traj = simulate(gs, {"material": "sand"}, GROUND, CAMERAS, n_frames=30, planner=cfg)
+    traj = simulate(gs, PhysicsSpec("sand"), GROUND, CAMERAS, n_frames=30, planner=cfg)
     assert traj.plan.mode == "mpm"
     spread = np.abs(traj.x[-1, :, :2] - traj.x[0, :, :2].mean(0)).max()
     assert spread > 0.1  # it did collapse and run out (the cube's half size is 0.05 m)
@@ -110,7 +111,7 @@ def test_early_stop_holds_frames_once_still():
     cfg = PlannerConfig(
         cells_across=8, particles_per_cell=1, allow_rigid=False, allow_stiffness_cap=False, rest_frames=3
     )
-    physics = {"material": "rubber", "E": 1e6, "nu": 0.3}
+    physics = PhysicsSpec("rubber", E=1e6, nu=0.3)
     traj = simulate(gs, physics, (GROUND, [0.3, 0.0, 0.0]), CAMERAS, n_frames=30, planner=cfg)
     assert traj.plan.mode == "mpm"
     moved_px = np.linalg.norm(np.diff(traj.x, axis=0), axis=2).max(axis=1) * traj.plan.px_per_m  # [T-1]
@@ -126,29 +127,33 @@ def test_early_stop_holds_frames_once_still():
 
 
 def test_physics_spec_reads_table_and_overrides():
-    from physgm.physics.materials import PhysicsSpec
+    from physgm.sim.constitutive import MaterialParams
     from physgm.sim.gaussian_trajectory import physics_params
 
-    name, params, restitution = physics_params(
-        {"material": "rubber", "E": 2e6, "nu": 0.45, "density": 1200.0}
-    )
+    spec = PhysicsSpec.from_dict({"material": "rubber", "E": 2e6, "nu": 0.45, "density": 1200.0})
+    assert PhysicsSpec.from_dict(spec.to_dict()) == spec
+    name, params, restitution = physics_params(spec)
     assert name == "rubber" and params.model == "neo_hookean" and restitution is None
     assert (params.E, params.nu, params.density) == (2e6, 0.45, 1200.0)
     name, params, _ = physics_params(PhysicsSpec("metal"))  # table defaults
     assert params.yield_stress > 0 and params.E == pytest.approx(2e11)
+    custom = MaterialParams("fixed_corotated", 1e5, 0.3, 1000.0)
+    assert physics_params(custom) == ("custom", custom, None)  # simulated as given
     with pytest.raises(ValueError, match="material"):
-        physics_params({"E": 1e6})
+        PhysicsSpec.from_dict({"E": 1e6})
     with pytest.raises(ValueError, match="takes only"):
-        physics_params({"material": "metal", "young": 1e6})  # a misspelt key is not ignored
+        PhysicsSpec.from_dict({"material": "metal", "young": 1e6})  # a misspelt key is not ignored
     with pytest.raises(ValueError, match="unknown material"):
         PhysicsSpec("unobtainium")
+    with pytest.raises(TypeError, match="PhysicsSpec.from_dict"):
+        physics_params({"material": "metal", "E": 1e6})  # JSON goes through from_dict first
     with pytest.raises(TypeError, match="PhysicsSpec"):
         physics_params(("metal", 1e6))
 
 
 def test_registered_drop_scene_places_object_and_gaussians():
     gs = _shell_cube(bottom=0.0)
-    traj = simulate(gs, {"material": "ceramic"}, "drop", CAMERAS, n_frames=5, scene_overrides={"height": 0.2})
+    traj = simulate(gs, PhysicsSpec("ceramic"), "drop", CAMERAS, n_frames=5, scene_overrides={"height": 0.2})
     assert traj.plan.mode == "rigid"
     first = traj.gaussians_at(0)
     # Lifted so the lowest particle is 0.2 m above the ground; Gaussians moved with it.
@@ -158,4 +163,4 @@ def test_registered_drop_scene_places_object_and_gaussians():
     # The bottom face Gaussians sit at z = 0 and the lowest particles half a spacing above them.
     assert float(shift[0, 2]) == pytest.approx(0.2 - 0.5 * traj.particles.spacing, abs=1e-6)
     with pytest.raises(ValueError, match="overrides"):
-        simulate(gs, {"material": "ceramic"}, GROUND, CAMERAS, n_frames=5, scene_overrides={"height": 0.2})
+        simulate(gs, PhysicsSpec("ceramic"), GROUND, CAMERAS, n_frames=5, scene_overrides={"height": 0.2})

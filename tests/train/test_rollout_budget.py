@@ -94,7 +94,7 @@ def test_the_solver_deadline_stops_a_real_mpm_run_between_frames():
     from physgm.cameras import orbit_cameras
 
     cams = orbit_cameras([0.0], [10.0], 1.0, 40.0, 32, 32)
-    physics = {"material": "jelly", "E": 1e4, "nu": 0.3}
+    physics = PhysicsSpec("jelly", E=1e4, nu=0.3)
     prepared = gt.prepare_simulation(g, physics, "drop", cams, 6, {"cells_across": 6, "ballistic": False})
     assert prepared.plan.mode == "mpm" and prepared.ballistic_frames == 1
     with pytest.raises(gt.SimulationBudgetExceeded, match="cut at frame 1 of 6"):

@@ -23,7 +23,7 @@ from __future__ import annotations
 import sys
 
 from physgm.bench.drop_scene import bench_camera, hollow_cube_gaussians, project
-from physgm.physics.materials import get_material
+from physgm.physics.materials import PhysicsSpec, get_material
 from physgm.sim.gaussian_trajectory import GaussianTrajectory, plan_for, simulate
 from physgm.sim.planner import PlannerConfig
 
@@ -73,14 +73,14 @@ def option_table(
     cameras = bench_camera(side, bottom)
     out = []
     for name in materials:
-        physics = {"material": name, "E": E_override.get(name, get_material(name).E)}
+        physics = PhysicsSpec(name, E=E_override.get(name, get_material(name).E))
 
         ref, seen = None, {}
         for option, overrides in options(tuple(bulk_ratios)).items():
             cfg = PlannerConfig(**overrides, **grid)
             probe = plan_for(gaussians, physics, "drop", cameras, n_frames, cfg, {"height": bottom})
             key = (probe.mode, probe.E_used, probe.nu_used)
-            row = {"material": name, "option": option, **physics, **grid, "mode": probe.mode}
+            row = {"material": name, "option": option, **physics.to_dict(), **grid, "mode": probe.mode}
             row.update(E_used=probe.E_used, nu_used=probe.nu_used)
             row.update(
                 substeps_per_frame=probe.substeps_per_frame, predicted_error_px=probe.predicted_error_px

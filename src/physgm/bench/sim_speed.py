@@ -27,7 +27,7 @@ import warp as wp
 from physgm.bench.drop_scene import bench_camera, hollow_cube_gaussians, project
 from physgm.bench.sim_options import option_table
 from physgm.cameras import Cameras
-from physgm.physics.materials import MATERIAL_NAMES, get_material
+from physgm.physics.materials import MATERIAL_NAMES, PhysicsSpec, get_material
 from physgm.sim.gaussian_trajectory import GaussianTrajectory, simulate
 from physgm.sim.mpm.boundary import GroundPlane
 from physgm.sim.mpm.grid import GridSpec
@@ -101,7 +101,7 @@ def drop_scenes(
     cameras = bench_camera(side, bottom)
     out = []
     for name in materials:
-        physics = {"material": name, "E": E_override.get(name, get_material(name).E)}
+        physics = PhysicsSpec(name, E=E_override.get(name, get_material(name).E))
         traj = simulate(
             gaussians, physics, "drop", cameras, n_frames=n_frames, scene_overrides={"height": bottom}
         )
@@ -109,7 +109,7 @@ def drop_scenes(
         out.append(
             {
                 "material": name,
-                "E": physics["E"],
+                "E": physics.E,
                 "mode": plan.mode,
                 "E_used": plan.E_used,
                 "particles": len(traj.particles),
@@ -126,12 +126,17 @@ def drop_scenes(
 
 
 def _row(
-    study: str, physics: dict, run: GaussianTrajectory, ref: GaussianTrajectory | None, cameras, **extra
+    study: str,
+    physics: PhysicsSpec,
+    run: GaussianTrajectory,
+    ref: GaussianTrajectory | None,
+    cameras,
+    **extra,
 ) -> dict:
     plan = run.plan
     row = {
         "study": study,
-        **physics,
+        **physics.to_dict(),
         **extra,
         "mode": plan.mode,
         "E_used": plan.E_used,
@@ -150,7 +155,7 @@ def _row(
     row.update(
         pixel_error(cameras, run, ref) if ref is not None else {"error_px": 0.0, "error_px_worst_frame": 0.0}
     )
-    print(f"[bench sim] {study} {physics} {extra}: {run.seconds:.1f} s", file=sys.stderr)
+    print(f"[bench sim] {study} {physics.to_dict()} {extra}: {run.seconds:.1f} s", file=sys.stderr)
     return row
 
 
@@ -168,13 +173,13 @@ def speed_vs_error(n_frames: int, n_gaussians: int, side: float, bottom: float, 
     scene = Scene(ground=GroundPlane(0.0, friction=0.3))
     base = PlannerConfig()
 
-    def run(physics: dict, cfl: float = 0.4, **planner) -> GaussianTrajectory:
+    def run(physics: PhysicsSpec, cfl: float = 0.4, **planner) -> GaussianTrajectory:
         cfg = PlannerConfig(**planner)
         return simulate(
             gaussians, physics, scene, cameras, n_frames, planner=cfg, solver=SolverConfig(cfl=cfl)
         )
 
-    jelly = {"material": "jelly", "E": 2e4}
+    jelly = PhysicsSpec("jelly", E=2e4)
     ref_cells = 20 if quick else 24
     ref = run(jelly, cfl=0.2, cells_across=ref_cells)
     ppc = base.particles_per_cell
@@ -205,9 +210,9 @@ def speed_vs_error(n_frames: int, n_gaussians: int, side: float, bottom: float, 
             )
         )
     naive = dict(allow_rigid=False, allow_stiffness_cap=False, ballistic=False, rest_frames=10**6)
-    cases = [(jelly, {**naive, "fit_grid": False}), ({"material": "rubber"}, naive)]
+    cases = [(jelly, {**naive, "fit_grid": False}), (PhysicsSpec("rubber"), naive)]
     if not quick:
-        cases.append(({"material": "plastic", "E": 5e7}, naive))
+        cases.append((PhysicsSpec("plastic", E=5e7), naive))
     for physics, off_cfg in cases:
         off = run(physics, **off_cfg)
         out.append(_row("planner", physics, off, None, cameras, planner="off", particles_per_cell=ppc))

@@ -104,7 +104,7 @@ class PhysicsSpec:
 
     @classmethod
     def from_dict(cls, physics: Mapping[str, Any]) -> PhysicsSpec:
-        """From a JSON-shaped description (physical.json, a DPO candidate); unknown keys are errors."""
+        """From a JSON-shaped description (physical.json); unknown keys are errors."""
         names = [f.name for f in fields(cls)]
         unknown = sorted(set(physics) - set(names))
         if unknown or "material" not in physics:
@@ -117,6 +117,10 @@ class PhysicsSpec:
                 for k, v in physics.items()
             }
         )
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON-shaped description ``from_dict`` reads, fields left at None omitted."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None}
 
     def params(self):
         """Solver parameters (``physgm.sim.constitutive.MaterialParams``) of this physics."""

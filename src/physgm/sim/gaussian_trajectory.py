@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -101,23 +101,19 @@ class GaussianTrajectory:
         )
 
 
-def physics_params(
-    physics: PhysicsSpec | MaterialParams | Mapping,
-) -> tuple[str, MaterialParams, float | None]:
-    """(material name, solver parameters, rigid-path restitution or None) of a physics description.
+def physics_params(physics: PhysicsSpec | MaterialParams) -> tuple[str, MaterialParams, float | None]:
+    """(material name, solver parameters, rigid-path restitution or None) of the physics to simulate.
 
-    ``MaterialParams`` is simulated as given (name "custom"); a mapping (JSON-shaped: physical.json,
-    a DPO candidate) is read by ``PhysicsSpec.from_dict``, which refuses unknown keys.
+    ``MaterialParams`` is simulated as given (name "custom"). A JSON-shaped description
+    (physical.json) becomes a ``PhysicsSpec`` with ``PhysicsSpec.from_dict`` first.
     """
-    if isinstance(physics, Mapping):
-        physics = PhysicsSpec.from_dict(physics)
     if isinstance(physics, MaterialParams):
         return "custom", physics, None
     if isinstance(physics, PhysicsSpec):
         return physics.material, physics.params(), physics.restitution
     raise TypeError(
-        f"physics must be a PhysicsSpec (physgm.physics.materials), MaterialParams or a mapping, got "
-        f"{type(physics).__name__}"
+        f"physics must be a PhysicsSpec (physgm.physics.materials) or MaterialParams, got "
+        f"{type(physics).__name__}; a JSON-shaped description goes through PhysicsSpec.from_dict"
     )
 
 
@@ -218,7 +214,7 @@ class PreparedSimulation:
 
 def prepare_simulation(
     gaussians: Gaussians,
-    physics: PhysicsSpec | MaterialParams | Mapping,
+    physics: PhysicsSpec | MaterialParams,
     scene: str | Scene | tuple,
     cameras: Cameras,
     n_frames: int = 50,
@@ -265,7 +261,7 @@ def prepare_simulation(
 
 def plan_for(
     gaussians: Gaussians,
-    physics: PhysicsSpec | MaterialParams | Mapping,
+    physics: PhysicsSpec | MaterialParams,
     scene: str | Scene | tuple,
     cameras: Cameras,
     n_frames: int = 50,
@@ -340,7 +336,7 @@ def run_prepared(
 
 def simulate(
     gaussians: Gaussians,
-    physics: PhysicsSpec | MaterialParams | Mapping,
+    physics: PhysicsSpec | MaterialParams,
     scene: str | Scene | tuple,
     cameras: Cameras,
     n_frames: int = 50,
@@ -353,8 +349,8 @@ def simulate(
 
     Args:
         gaussians: [N] object Gaussians in SI metres, +z up, placed where the scene starts.
-        physics: a ``PhysicsSpec`` (material of the table, E, nu, density, restitution), or see
-            ``physics_params``.
+        physics: a ``PhysicsSpec`` (material of the table, E, nu, density, restitution), or
+            ``MaterialParams`` simulated as given.
         scene: registered scene name (conf/sim/scene), a Scene, or (Scene, v0 [P, 3] or [3]).
         cameras: output cameras and resolution (the pixel bound is measured there).
         n_frames: output frames T including the rest frame 0.
