@@ -11,20 +11,7 @@ registry) live in ``physgm.sim.constitutive``; ``linalg.py`` holds the Warp 3x3 
 they and the coupling share.
 
 Everything is SI: metres, seconds, kilograms, pascals. World frame: +z up, ground z = 0.
+
+This package file imports nothing: the material table imports ``physgm.sim.constitutive`` to
+check its rows, and that must not load torch and the whole Gaussian layer.
 """
-
-from physgm.sim.constitutive import MODELS, MaterialParams
-from physgm.sim.gaussian_trajectory import GaussianTrajectory, simulate
-from physgm.sim.planner import PlannerConfig
-from physgm.sim.scenes import SCENES, SceneSetup, build_scene
-
-__all__ = [
-    "MODELS",
-    "SCENES",
-    "GaussianTrajectory",
-    "MaterialParams",
-    "PlannerConfig",
-    "SceneSetup",
-    "build_scene",
-    "simulate",
-]

@@ -4,5 +4,6 @@
 cantilever, spinning cube, colliding spheres, restitution, sand pile); ``all_cases`` lists what
 sim-verify runs. ``granular``: granular column collapse against published run-out laws.
 ``contact``: Hertz contact time and the sideways drift of a dropped box. ``planner``: an elastic
-cube of Gaussians through ``physgm.sim.simulate`` at the planner's defaults against its static sag.
+cube of Gaussians through ``physgm.sim.gaussian_trajectory.simulate`` at the planner's defaults
+against its static sag.
 """

@@ -79,7 +79,7 @@ cohesion=0, viscosity=0)``                          (``physgm.sim.constitutive``
 
 ``run_solver(particles, materials, grid, scene, n_frames, config=None, device="cpu")`` builds a
 solver, runs it, closes it and returns the ``Trajectory``. Gaussians in, Gaussians out (plan,
-sample particles, run, follow): ``physgm.sim.simulate``.
+sample particles, run, follow): ``physgm.sim.gaussian_trajectory.simulate``.
 
 ``cfl_dt(dx, materials, vmax, cfl)``, ``wave_speed(materials)`` and ``substeps_per_frame(...)``
 predict the cost of a run before building a solver (for the planner).

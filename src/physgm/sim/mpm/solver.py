@@ -449,7 +449,8 @@ def run_solver(
     device: str = "cpu",
 ) -> Trajectory:
     """Build a solver, run ``n_frames`` frames, close it and return the trajectory (frame 0 =
-    initial). The engine's one-shot run; Gaussians in, Gaussians out is ``physgm.sim.simulate``."""
+    initial). The engine's one-shot run; Gaussians in, Gaussians out is
+    ``physgm.sim.gaussian_trajectory.simulate``."""
     solver = MPMSolver(particles, materials, grid, scene, config, device)
     try:
         return solver.run(n_frames)
