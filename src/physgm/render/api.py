@@ -6,6 +6,7 @@ import contextlib
 import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from typing import Protocol
 
 import torch
 from torch import Tensor
@@ -105,6 +106,31 @@ def rasterize(
         out_shape = (*lead, num_c, height, width)
         meta = {k: (v.reshape(*lead, *v.shape[1:]) if isinstance(v, Tensor) else v) for k, v in meta.items()}
         return rgb.reshape(*out_shape, 3), alpha.reshape(*out_shape, 1), meta
+
+
+class SplatFields(Protocol):
+    """What `rasterize_gaussians` reads: physgm.gaussians.Gaussians ([N]) or the model's
+    GaussianPrediction ([B, N]) alike."""
+
+    means: Tensor  # [..., N, 3]
+    quats: Tensor  # [..., N, 4]
+    scales: Tensor  # [..., N, 3]
+    opacities: Tensor  # [..., N]
+    colors: Tensor  # [..., N, 3]
+
+
+def rasterize_gaussians(
+    g: SplatFields,
+    viewmats: Tensor,  # [..., C, 4, 4]
+    Ks: Tensor,  # [..., C, 3, 3]
+    width: int,
+    height: int,
+    **options,  # rasterize's background, backend, near_plane, far_plane, eps2d, tile_size, num_threads
+) -> tuple[Tensor, Tensor, dict]:
+    """`rasterize` of a Gaussians container."""
+    return rasterize(
+        g.means, g.quats, g.scales, g.opacities, g.colors, viewmats, Ks, width, height, **options
+    )
 
 
 def _keep_graph(out: Tensor, inputs: list[Tensor]) -> Tensor:
