@@ -16,6 +16,7 @@ from hydra import compose, initialize_config_dir
 from physgm.data.readers.physgaussian import UP_ROTATIONS, PhysGaussianConfigError, read_physgaussian
 from physgm.errors import UserError
 from physgm.gaussians import Gaussians, write_ply
+from physgm.physics.materials import PhysicsSpec
 from physgm.pipeline.config import from_hydra
 from physgm.pipeline.prepared_input import UP_ROTATIONS as PIPELINE_UP_ROTATIONS
 from physgm.resources import conf_dir
@@ -47,7 +48,7 @@ JELLY = {
 def test_jelly_on_a_sticky_ground():
     means, opacities = _box_points(np.array([2.0, 1.0, 0.5]))
     run = read_physgaussian(JELLY, means, opacities)
-    assert (run.material, run.E, run.nu, run.density) == ("jelly", 2e6, 0.4, 200.0)
+    assert run.physics == PhysicsSpec("jelly", E=2e6, nu=0.4, density=200.0)
     # Largest extent 2 -> scaled to 1 m; the 0.5 tall box is 0.25 m tall, centred at z = 1, so its
     # bottom is at 0.875 m: 0.575 m above the collider at z = 0.3 (the box floor, 3 cells of
     # 2 / 50 m = 0.12 m, is lower). The faint stray Gaussian at z = -50 does not count.
@@ -84,7 +85,7 @@ def test_y_up_template_with_defaults_and_particle_filling():
     means, opacities = _box_points(np.array([1.0, 0.5, 1.0]))  # 0.5 tall along y, the up axis
     run = read_physgaussian(DOWN_TEMPLATE, means, opacities)
     # No material, E or nu: PhysGaussian's defaults (jelly, 1e5 Pa, 0.4); density from the file.
-    assert (run.material, run.E, run.nu, run.density) == ("jelly", 1e5, 0.4, 5000.0)
+    assert run.physics == PhysicsSpec("jelly", E=1e5, nu=0.4, density=5000.0)
     assert run.up == "y"
     # y up: the object turns y -> z, and so does gravity: (0, -0.98, 0) becomes (0, 0, -0.98).
     np.testing.assert_allclose(run.gravity, (0.0, 0.0, -0.98))
@@ -138,6 +139,7 @@ def test_up_rotations_match_the_pipeline():
         ({"rpic_damping": 0.1}, "rpic_damping"),
         ({"mpm_space_vertical_upward_axis": [1, 0, 0]}, "mpm_space_vertical_upward_axis"),
         ({"colour": "red"}, "colour: unknown key"),
+        ({"nu": 0.5}, r"E, nu, density: nu=0\.5 must be in \[0, 0\.5\)"),
     ],
 )  # fmt: skip
 def test_keys_without_a_counterpart_are_errors_naming_the_key(change, key):

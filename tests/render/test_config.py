@@ -32,3 +32,19 @@ def test_configured_renderer_renders_like_rasterize(name, scene, kit):
     ref, ref_alpha, _ = rasterize(*args, backend="torch")
     assert (rgb - ref).abs().max() <= 1e-4 and (alpha - ref_alpha).abs().max() <= 1e-4
     assert torch.isfinite(rgb).all()
+
+
+def test_rasterize_gaussians_reads_a_container_in_rasterize_order(scene, kit):
+    from physgm.gaussians import Gaussians
+    from physgm.render import rasterize_gaussians
+
+    s = kit.to(scene)
+    g = Gaussians(**{k: s[k] for k in ("means", "quats", "scales", "opacities", "colors")})
+    cams = (s["viewmats"], s["Ks"], s["width"], s["height"])
+    rgb, alpha, _ = rasterize_gaussians(g, *cams, backend="torch", eps2d=0.5)
+    ref, ref_alpha, _ = rasterize(
+        g.means, g.quats, g.scales, g.opacities, g.colors, *cams, backend="torch", eps2d=0.5
+    )
+    assert alpha.amax() > 0.5  # something is drawn, so swapped fields would show
+    torch.testing.assert_close(rgb, ref, rtol=0, atol=0)
+    torch.testing.assert_close(alpha, ref_alpha, rtol=0, atol=0)

@@ -123,7 +123,8 @@ def test_finite_values_whose_sum_overflows_are_accepted(good):
     assert not torch.isfinite(colors.sum())
     args = {**good, "colors": colors}
     validate_inputs(
-        *(args[k] for k in ("means", "quats", "scales", "opacities", "colors", "viewmats", "Ks")),
+        tuple(args[k] for k in ("means", "quats", "scales", "opacities", "colors")),
+        (args["viewmats"], args["Ks"]),
         args["width"],
         args["height"],
         None,

@@ -325,13 +325,7 @@ def main(argv: list[str] | None = None) -> dict:
     rows = []
     for i, scene in enumerate(scenes):
         reference = reference_frames(scene, settings.n_frames)
-        row = {
-            "scene": scene.id,
-            "material": scene.material,
-            "log10_E": scene.log10_E,
-            "nu": scene.nu,
-            "sources": {},
-        }
+        row = {**scene.truth(), "sources": {}}
         for source in sources:
             gaussians, default_density, policy_d = source_gaussians(source, scene, a.data, model)
             physics = physics_for(scene, a.data, default_density if a.density == "auto" else a.density)

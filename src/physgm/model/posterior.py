@@ -24,24 +24,32 @@ NU_MAX = 0.49  # physical clip: nu -> 0.5 makes the Lamé lambda blow up in the 
 _LOG_2PI = math.log(2.0 * math.pi)
 
 
+def _to_unit(x: Tensor, value_range: tuple[float, float]) -> Tensor:
+    """Affine map of [lo, hi] onto [-1, 1]."""
+    lo, hi = value_range
+    return 2.0 * (x - lo) / (hi - lo) - 1.0
+
+
+def _from_unit(z: Tensor, value_range: tuple[float, float]) -> Tensor:
+    """Inverse of `_to_unit`."""
+    lo, hi = value_range
+    return lo + (z + 1.0) * 0.5 * (hi - lo)
+
+
 def normalise_log10_E(log10_E: Tensor) -> Tensor:
-    lo, hi = LOG10_E_RANGE
-    return 2.0 * (log10_E - lo) / (hi - lo) - 1.0
+    return _to_unit(log10_E, LOG10_E_RANGE)
 
 
 def denormalise_log10_E(z: Tensor) -> Tensor:
-    lo, hi = LOG10_E_RANGE
-    return lo + (z + 1.0) * 0.5 * (hi - lo)
+    return _from_unit(z, LOG10_E_RANGE)
 
 
 def normalise_nu(nu: Tensor) -> Tensor:
-    lo, hi = NU_RANGE
-    return 2.0 * (nu - lo) / (hi - lo) - 1.0
+    return _to_unit(nu, NU_RANGE)
 
 
 def denormalise_nu(z: Tensor) -> Tensor:
-    lo, hi = NU_RANGE
-    return lo + (z + 1.0) * 0.5 * (hi - lo)
+    return _from_unit(z, NU_RANGE)
 
 
 @dataclass

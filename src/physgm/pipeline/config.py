@@ -189,7 +189,7 @@ def _with_physgaussian(raw: dict) -> dict:
         raise UserError(f"{path}: {err}") from None
     given = raw.get("physics") or {}
     for key in ("material", "E", "nu", "density"):
-        mine, theirs = given.get(key), getattr(run, key)
+        mine, theirs = given.get(key), getattr(run.physics, key)
         if mine is not None and mine != theirs:
             raise UserError(
                 f"physics.{key}={mine!r} disagrees with {path} ({key} = {theirs!r}); change one of them"

@@ -5,7 +5,8 @@ from __future__ import annotations
 import contextlib
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
+from typing import Protocol
 
 import torch
 from torch import Tensor
@@ -80,82 +81,56 @@ def rasterize(
         raise ValueError(f"num_threads must be a positive int, got {num_threads!r}")
     # the checks and the warp backend's glue are many small ops, see single_threaded_torch
     with single_threaded_torch() if backend == "warp" else contextlib.nullcontext():
-        return _rasterize(
-            means,
-            quats,
-            scales,
-            opacities,
-            colors,
-            viewmats,
-            Ks,
-            width,
-            height,
-            background,
-            backend,
-            near_plane,
-            far_plane,
-            eps2d,
-            tile_size,
-            num_threads,
+        gauss, cams = (means, quats, scales, opacities, colors), (viewmats, Ks)
+        lead, num_n, num_c = validate_inputs(
+            gauss, cams, width, height, background, near_plane, far_plane, eps2d
         )
+        settings = RasterSettings(
+            width, height, float(near_plane), float(far_plane), float(eps2d), tile_size, num_threads
+        )
+        num_b = math.prod(lead)
+        gauss = [x.reshape(num_b, num_n, *x.shape[len(lead) + 1 :]) for x in gauss]
+        cams = [x.reshape(num_b, num_c, *x.shape[len(lead) + 1 :]) for x in cams]
+
+        if num_n == 0 or num_c == 0:
+            rgb = means.new_zeros(num_b, num_c, height, width, 3)
+            alpha = means.new_zeros(num_b, num_c, height, width, 1)
+            meta = _empty_meta(means, num_b, num_c, num_n)
+        else:
+            rgb, alpha, meta = BACKENDS[backend](*gauss, *cams, settings)
+        rgb, alpha = _keep_graph(rgb, gauss), _keep_graph(alpha, gauss)
+
+        if background is not None:
+            bg = background if background.dim() == 1 else background.reshape(num_b, num_c, 1, 1, 3)
+            rgb = rgb + (1.0 - alpha) * bg
+        out_shape = (*lead, num_c, height, width)
+        meta = {k: (v.reshape(*lead, *v.shape[1:]) if isinstance(v, Tensor) else v) for k, v in meta.items()}
+        return rgb.reshape(*out_shape, 3), alpha.reshape(*out_shape, 1), meta
 
 
-def _rasterize(
-    means,
-    quats,
-    scales,
-    opacities,
-    colors,
-    viewmats,
-    Ks,
-    width,
-    height,
-    background,
-    backend,
-    near_plane,
-    far_plane,
-    eps2d,
-    tile_size,
-    num_threads,
-):
-    lead, num_n, num_c = validate_inputs(
-        means,
-        quats,
-        scales,
-        opacities,
-        colors,
-        viewmats,
-        Ks,
-        width,
-        height,
-        background,
-        near_plane,
-        far_plane,
-        eps2d,
+class SplatFields(Protocol):
+    """What `rasterize_gaussians` reads: physgm.gaussians.Gaussians ([N]) or the model's
+    GaussianPrediction ([B, N]) alike."""
+
+    means: Tensor  # [..., N, 3]
+    quats: Tensor  # [..., N, 4]
+    scales: Tensor  # [..., N, 3]
+    opacities: Tensor  # [..., N]
+    colors: Tensor  # [..., N, 3]
+
+
+def rasterize_gaussians(
+    g: SplatFields,
+    viewmats: Tensor,  # [..., C, 4, 4]
+    Ks: Tensor,  # [..., C, 3, 3]
+    width: int,
+    height: int,
+    **options,  # rasterize's background, backend, near_plane, far_plane, eps2d, tile_size, num_threads
+) -> tuple[Tensor, Tensor, dict]:
+    """`rasterize` of a Gaussians container."""
+    return rasterize(
+        g.means, g.quats, g.scales, g.opacities, g.colors, viewmats, Ks, width, height, **options
     )
-    settings = RasterSettings(
-        width, height, float(near_plane), float(far_plane), float(eps2d), tile_size, num_threads
-    )
-    num_b = math.prod(lead)
-    gauss = [
-        x.reshape(num_b, num_n, *x.shape[len(lead) + 1 :]) for x in (means, quats, scales, opacities, colors)
-    ]
-    cams = [x.reshape(num_b, num_c, *x.shape[len(lead) + 1 :]) for x in (viewmats, Ks)]
-
-    if num_n == 0 or num_c == 0:
-        rgb = means.new_zeros(num_b, num_c, height, width, 3)
-        alpha = means.new_zeros(num_b, num_c, height, width, 1)
-        meta = _empty_meta(means, num_b, num_c, num_n)
-    else:
-        rgb, alpha, meta = BACKENDS[backend](*gauss, *cams, settings)
-    rgb, alpha = _keep_graph(rgb, gauss), _keep_graph(alpha, gauss)
-
-    if background is not None:
-        bg = background if background.dim() == 1 else background.reshape(num_b, num_c, 1, 1, 3)
-        rgb = rgb + (1.0 - alpha) * bg
-    out_shape = (*lead, num_c, height, width)
-    meta = {k: (v.reshape(*lead, *v.shape[1:]) if isinstance(v, Tensor) else v) for k, v in meta.items()}
-    return rgb.reshape(*out_shape, 3), alpha.reshape(*out_shape, 1), meta
 
 
 def _keep_graph(out: Tensor, inputs: list[Tensor]) -> Tensor:
@@ -221,21 +196,5 @@ class Renderer:
         background: Tensor | None = None,  # [3] or [..., C, 3]
     ) -> tuple[Tensor, Tensor, dict]:
         """Same as `rasterize` with this object's options."""
-        return rasterize(
-            means,
-            quats,
-            scales,
-            opacities,
-            colors,
-            viewmats,
-            Ks,
-            width,
-            height,
-            background=background,
-            backend=self.backend,
-            near_plane=self.near_plane,
-            far_plane=self.far_plane,
-            eps2d=self.eps2d,
-            tile_size=self.tile_size,
-            num_threads=self.num_threads,
-        )
+        gauss, cams = (means, quats, scales, opacities, colors), (viewmats, Ks)
+        return rasterize(*gauss, *cams, width, height, background, **asdict(self))

@@ -8,15 +8,17 @@ import math
 import torch
 from torch import Tensor
 
-# argument name -> trailing shape after the shared leading dims; "N"/"C" are per-call sizes
-_GAUSSIAN_SHAPES = {
+# argument name -> trailing shape after the shared leading dims; "N"/"C" are per-call sizes.
+# The Gaussians' tensors come first, then the cameras', in `rasterize`'s order.
+_SHAPES = {
     "means": ("N", 3),
     "quats": ("N", 4),
     "scales": ("N", 3),
     "opacities": ("N",),
     "colors": ("N", 3),
+    "viewmats": ("C", 4, 4),
+    "Ks": ("C", 3, 3),
 }
-_CAMERA_SHAPES = {"viewmats": ("C", 4, 4), "Ks": ("C", 3, 3)}
 
 
 def _spec(tail: tuple) -> str:
@@ -47,13 +49,8 @@ def _check_tensor(name: str, x, tail: tuple) -> None:
 
 
 def validate_inputs(
-    means,
-    quats,
-    scales,
-    opacities,
-    colors,
-    viewmats,
-    Ks,
+    gaussians: tuple,  # means [..., N, 3], quats [..., N, 4], scales [..., N, 3], opacities [..., N], colors
+    cameras: tuple,  # viewmats [..., C, 4, 4], Ks [..., C, 3, 3]
     width,
     height,
     background,
@@ -69,28 +66,24 @@ def validate_inputs(
     Raises:
         ValueError: naming the offending argument and the expected shape or range.
     """
-    args = dict(
-        means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, viewmats=viewmats, Ks=Ks
-    )
-    for name, tail in {**_GAUSSIAN_SHAPES, **_CAMERA_SHAPES}.items():
+    args = dict(zip(_SHAPES, (*gaussians, *cameras), strict=True))
+    for name, tail in _SHAPES.items():
         _check_tensor(name, args[name], tail)
 
+    means, quats, scales, opacities, _colors = gaussians
+    viewmats, Ks = cameras
     lead = tuple(means.shape[:-2])
     num_n = means.shape[-2]
     num_c = viewmats.shape[-3]
-    for name, tail in _GAUSSIAN_SHAPES.items():
-        want = (*lead, num_n, *tail[1:])
+    # every tensor has means' batch dims; N or C as the first of its own dims says
+    sizes = {"N": (num_n, f"N = {num_n} like means"), "C": (num_c, f"C = {num_c} cameras like viewmats")}
+    for name, tail in _SHAPES.items():
+        size, which = sizes[tail[0]]
+        want = (*lead, size, *tail[1:])
         if tuple(args[name].shape) != want:
             raise ValueError(
-                f"{name} must have shape {list(want)} to match means {list(means.shape)} "
-                f"(batch dims {list(lead)}, N = {num_n}), got {tuple(args[name].shape)}"
-            )
-    for name, tail in _CAMERA_SHAPES.items():
-        want = (*lead, num_c, *tail[1:])
-        if tuple(args[name].shape) != want:
-            raise ValueError(
-                f"{name} must have shape {list(want)}: the same batch dims as means "
-                f"{list(lead)} and C = {num_c} cameras like viewmats, got {tuple(args[name].shape)}"
+                f"{name} must have shape {list(want)}: the batch dims of means {list(lead)} and "
+                f"{which}, got {tuple(args[name].shape)}"
             )
     devices = {str(t.device) for t in args.values()}
     if len(devices) > 1:

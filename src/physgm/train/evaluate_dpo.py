@@ -58,13 +58,7 @@ def input_settings(hparams: dict, model) -> dict:
 def evaluate_scene(models: dict, scene, settings: SimSettings, workers: int) -> tuple[dict, dict]:
     """Both models' mean-physics rollouts of one scene: (row, {name: scored frames or None})."""
     reference = reference_frames(scene, settings.n_frames)
-    row = {
-        "scene": scene.id,
-        "material": scene.material,
-        "log10_E": scene.log10_E,
-        "nu": scene.nu,
-        "true_known": scene.true_known,
-    }
+    row = {**scene.truth(), "true_known": scene.true_known}
 
     def run(name: str) -> tuple[str, dict, np.ndarray | None]:
         gaussians, posterior = predict(models[name], scene.inputs)

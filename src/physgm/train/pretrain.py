@@ -15,7 +15,7 @@ from physgm.metrics.image import ImageMetrics, save_panel
 from physgm.metrics.physics_metrics import PhysicsMetrics
 from physgm.model.config import PhysGMConfig
 from physgm.model.physgm import PhysGM, PhysGMOutput
-from physgm.render import rasterize
+from physgm.render import rasterize_gaussians
 from physgm.train.losses import PretrainLossConfig, pretrain_losses
 from physgm.train.optim import OptimConfig, build_optimizer
 
@@ -34,18 +34,8 @@ def render_targets(
     g = out.gaussians
     viewmats = torch.linalg.inv(target_c2w)
     background = torch.ones(3, dtype=g.means.dtype, device=g.means.device)
-    rgb, alpha, _ = rasterize(
-        g.means,
-        g.quats,
-        g.scales,
-        g.opacities,
-        g.colors,
-        viewmats,
-        target_Ks,
-        width,
-        height,
-        background=background,
-        **renderer,
+    rgb, alpha, _ = rasterize_gaussians(
+        g, viewmats, target_Ks, width, height, background=background, **renderer
     )
     return rgb, alpha
 

@@ -75,6 +75,10 @@ class RolloutScene:
     nu: float
     true_known: bool
 
+    def truth(self) -> dict:
+        """The scene's id and true physics: the first columns of every per-scene report row."""
+        return {"scene": self.id, "material": self.material, "log10_E": self.log10_E, "nu": self.nu}
+
 
 def load_scenes(
     root: str | Path,

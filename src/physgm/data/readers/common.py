@@ -29,6 +29,24 @@ def load_json(path: Path, problems: list[str]) -> dict | None:
     return data
 
 
+def camera_frames(d: dict, source: str, problems: list[str]) -> list[tuple[str, dict]] | None:
+    """The frames of a camera file's object ``d`` (``source``: its name, e.g. "pose.json") that are
+    objects with a 'file_path', each as (where, frame) with its place for messages; the others
+    are noted in ``problems``. None when ``d`` has no non-empty 'frames' list."""
+    frames = d.get("frames")
+    if not isinstance(frames, list) or not frames:
+        problems.append(f"{source}: 'frames' must be a non-empty list")
+        return None
+    usable = []
+    for i, fr in enumerate(frames):
+        where = f"{source} frame {i}"
+        if not isinstance(fr, dict) or not isinstance(fr.get("file_path"), str):
+            problems.append(f"{where}: must be an object with a 'file_path'")
+            continue
+        usable.append((where, fr))
+    return usable
+
+
 def number(d: dict, key: str, where: str, problems: list[str]) -> float | None:
     """``d[key]`` as a finite float (numeric strings accepted), or None with a problem noted."""
     value = d.get(key)

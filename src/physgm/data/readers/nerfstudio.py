@@ -25,7 +25,7 @@ from pathlib import Path
 
 from PIL import Image
 
-from physgm.data.readers.common import GL_TO_CV, matrix4, number
+from physgm.data.readers.common import GL_TO_CV, camera_frames, matrix4, number
 
 PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
@@ -94,17 +94,12 @@ def _frame_camera(merged: dict, folder: Path, file: str, where: str, problems: l
 
 def translate(d: dict, folder: Path, problems: list[str]) -> dict | None:
     """The project's cameras.json object (OpenCV c2w) for a transforms.json object ``d``."""
-    frames = d.get("frames")
-    if not isinstance(frames, list) or not frames:
-        problems.append("transforms.json: 'frames' must be a non-empty list")
+    out, n0 = [], len(problems)
+    frames = camera_frames(d, "transforms.json", problems)
+    if frames is None:
         return None
     shared = {k: d[k] for k in INTRINSIC_KEYS if k in d}
-    out, n0 = [], len(problems)
-    for i, fr in enumerate(frames):
-        where = f"transforms.json frame {i}"
-        if not isinstance(fr, dict) or not isinstance(fr.get("file_path"), str):
-            problems.append(f"{where}: must be an object with a 'file_path'")
-            continue
+    for where, fr in frames:
         c2w_gl = matrix4(fr.get("transform_matrix"), "transform_matrix", where, problems)
         file = image_file(folder, fr["file_path"])
         cam = _frame_camera(

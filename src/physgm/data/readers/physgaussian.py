@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from physgm.physics.materials import get_material
+from physgm.physics.materials import PhysicsSpec, get_material
 
 # physgm's name for each of PhysGaussian's materials (mpm_solver_warp: jelly, metal, sand, foam,
 # snow, plasticine): all six exist in the table, each with its own constitutive model.
@@ -101,10 +101,7 @@ class PhysGaussianConfigError(ValueError):
 class PhysGaussianRun:
     """What a PhysGaussian config asks for, in simulate.yaml's terms (SI, the project's +z-up world)."""
 
-    material: str
-    E: float  # Pa
-    nu: float
-    density: float  # kg/m^3
+    physics: PhysicsSpec  # material (the project's name), E (Pa), nu, density (kg/m^3)
     size_m: float  # largest extent of the object
     up: str  # file axis pointing up: z | y | -y
     gravity: tuple[float, float, float]  # m/s^2, world (+z up)
@@ -119,12 +116,13 @@ class PhysGaussianRun:
     def apply(self, raw: dict) -> dict:
         """``raw`` (simulate.yaml as a plain dict) with this run's settings in place (a copy)."""
         out = {**raw}
+        p = self.physics
         out["physics"] = {
             **(raw.get("physics") or {}),
-            "material": self.material,
-            "E": self.E,
-            "nu": self.nu,
-            "density": self.density,
+            "material": p.material,
+            "E": p.E,
+            "nu": p.nu,
+            "density": p.density,
         }
         out["object"] = {
             **(raw.get("object") or {}),
@@ -342,11 +340,12 @@ def read_physgaussian(cfg: dict, means: np.ndarray, opacities: np.ndarray) -> Ph
     if floors:
         height, ground, _ = max(floors, key=lambda f: f[0])  # the first plane the object meets
         gap = max(bottom - height, 0.0)
+    try:
+        physics = PhysicsSpec(ours.name, E=_num(cfg, "E"), nu=_num(cfg, "nu"), density=_num(cfg, "density"))
+    except ValueError as err:  # E, nu or density outside what a simulation takes
+        _fail("E, nu, density", str(err))
     return PhysGaussianRun(
-        material=ours.name,
-        E=_num(cfg, "E"),
-        nu=_num(cfg, "nu"),
-        density=_num(cfg, "density"),
+        physics=physics,
         size_m=scale,
         up=up,
         gravity=gravity,

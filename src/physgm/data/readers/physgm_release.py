@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from physgm.data.readers.common import matrix4
+from physgm.data.readers.common import camera_frames, matrix4
 from physgm.physics.materials import MATERIAL_NAMES
 
 # Their 14 names in their class order (MATERIAL_TO_CLASS in the release's utils.py) -> ours.
@@ -53,16 +53,11 @@ def canonical_material(name: object) -> str | None:
 
 def translate_pose(d: dict, folder: Path, problems: list[str]) -> dict | None:
     """The project's cameras.json object (OpenCV c2w) for a pose.json object ``d``."""
-    frames = d.get("frames")
-    if not isinstance(frames, list) or not frames:
-        problems.append("pose.json: 'frames' must be a non-empty list")
-        return None
     out, n0 = [], len(problems)
-    for i, fr in enumerate(frames):
-        where = f"pose.json frame {i}"
-        if not isinstance(fr, dict) or not isinstance(fr.get("file_path"), str):
-            problems.append(f"{where}: must be an object with a 'file_path'")
-            continue
+    frames = camera_frames(d, "pose.json", problems)
+    if frames is None:
+        return None
+    for where, fr in frames:
         w2c = matrix4(fr.get("w2c"), "w2c", where, problems)
         if w2c is None:
             continue

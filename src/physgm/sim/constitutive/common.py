@@ -6,6 +6,8 @@ Every model exposes two Warp functions with the same signature so one dispatch c
         -> (H_new: mat33, tau: mat33, plastic_new: float)
     energy(H: mat33, mat: MaterialStruct) -> float     # strain energy density, J/m^3
 
+(the four Hencky-strain models share one energy, ``hencky_model_energy``).
+
 H = F - I is the displacement gradient of the elastic deformation gradient F. Models work in H,
 not F: a stiff material (E ~ 1e11 Pa) strains ~1e-5 per impact, and forming I + H in float32
 rounds that strain to a few significant digits; the resulting stress noise (lam x 1e-7) made the
@@ -153,3 +155,11 @@ def hencky_finish(
 def hencky_energy(eps: wp.vec3, mu: float, lam: float) -> float:
     tr = eps[0] + eps[1] + eps[2]
     return mu * wp.dot(eps, eps) + 0.5 * lam * tr * tr
+
+
+@wp.func
+def hencky_model_energy(H: wp.mat33, mat: MaterialStruct) -> float:
+    """The ``energy`` of every Hencky-strain model (Drucker-Prager, Mohr-Coulomb, von Mises, foam):
+    their return maps differ, but the elastic energy of a state is StVK-Hencky's for all four."""
+    U, sigma, eps, clamped = hencky_decompose(H)
+    return hencky_energy(eps, mat.mu, mat.lam)

@@ -13,14 +13,15 @@ from physgm.sim.constitutive.common import (
     NEO_HOOKEAN,
     VON_MISES,
     MaterialStruct,
+    hencky_model_energy,
 )
-from physgm.sim.constitutive.drucker_prager import drucker_prager_energy, drucker_prager_update
+from physgm.sim.constitutive.drucker_prager import drucker_prager_update
 from physgm.sim.constitutive.fixed_corotated import fixed_corotated_energy, fixed_corotated_update
 from physgm.sim.constitutive.fluid import fluid_energy, fluid_update
-from physgm.sim.constitutive.foam import foam_energy, foam_update
-from physgm.sim.constitutive.mohr_coulomb import mohr_coulomb_energy, mohr_coulomb_update
+from physgm.sim.constitutive.foam import foam_update
+from physgm.sim.constitutive.mohr_coulomb import mohr_coulomb_update
 from physgm.sim.constitutive.neo_hookean import neo_hookean_energy, neo_hookean_update
-from physgm.sim.constitutive.von_mises import von_mises_energy, von_mises_update
+from physgm.sim.constitutive.von_mises import von_mises_update
 
 
 @wp.func
@@ -48,14 +49,7 @@ def energy_density(H: wp.mat33, mat: MaterialStruct) -> float:
         return fixed_corotated_energy(H, mat)
     if mat.model == NEO_HOOKEAN:
         return neo_hookean_energy(H, mat)
-    if mat.model == DRUCKER_PRAGER:
-        return drucker_prager_energy(H, mat)
-    if mat.model == MOHR_COULOMB:
-        return mohr_coulomb_energy(H, mat)
-    if mat.model == VON_MISES:
-        return von_mises_energy(H, mat)
-    if mat.model == FOAM:
-        return foam_energy(H, mat)
     if mat.model == FLUID:
         return fluid_energy(H, mat)
-    return 0.0
+    # Drucker-Prager, Mohr-Coulomb, von Mises and foam: Hencky strain, one energy
+    return hencky_model_energy(H, mat)

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from physgm.sim.constitutive.common import MaterialStruct, hencky_decompose, hencky_energy, hencky_finish
+from physgm.sim.constitutive.common import MaterialStruct, hencky_decompose, hencky_finish
 
 
 @wp.func
@@ -42,9 +42,3 @@ def drucker_prager_update(H: wp.mat33, mat: MaterialStruct, plastic: float, dt: 
     eps_new, dgamma = drucker_prager_project(eps, mat)
     H_new, tau = hencky_finish(H, U, sigma, eps, eps_new, clamped or dgamma > 0.0, clamped, mat.mu, mat.lam)
     return H_new, tau, plastic + dgamma
-
-
-@wp.func
-def drucker_prager_energy(H: wp.mat33, mat: MaterialStruct) -> float:
-    U, sigma, eps, clamped = hencky_decompose(H)
-    return hencky_energy(eps, mat.mu, mat.lam)

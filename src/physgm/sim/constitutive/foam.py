@@ -13,24 +13,13 @@ from __future__ import annotations
 
 import warp as wp
 
-from physgm.sim.constitutive.common import MaterialStruct, hencky_decompose, hencky_energy, hencky_finish
-from physgm.sim.constitutive.von_mises import von_mises_project
+from physgm.sim.constitutive.common import MaterialStruct
+from physgm.sim.constitutive.von_mises import von_mises_return
 
 
 @wp.func
 def foam_update(H: wp.mat33, mat: MaterialStruct, plastic: float, dt: float):
-    U, sigma, eps, clamped = hencky_decompose(H)
     viscous_term = 0.0
     if dt > 0.0:
         viscous_term = mat.viscosity / (2.0 * mat.mu * dt)
-    eps_new, kappa = von_mises_project(eps, mat, plastic, viscous_term)
-    H_new, tau = hencky_finish(
-        H, U, sigma, eps, eps_new, clamped or kappa > plastic, clamped, mat.mu, mat.lam
-    )
-    return H_new, tau, kappa
-
-
-@wp.func
-def foam_energy(H: wp.mat33, mat: MaterialStruct) -> float:
-    U, sigma, eps, clamped = hencky_decompose(H)
-    return hencky_energy(eps, mat.mu, mat.lam)
+    return von_mises_return(H, mat, plastic, viscous_term)

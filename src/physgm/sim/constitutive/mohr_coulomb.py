@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from physgm.sim.constitutive.common import MaterialStruct, hencky_decompose, hencky_energy, hencky_finish
+from physgm.sim.constitutive.common import MaterialStruct, hencky_decompose, hencky_finish
 
 
 @wp.func
@@ -107,9 +107,3 @@ def mohr_coulomb_update(H: wp.mat33, mat: MaterialStruct, plastic: float, dt: fl
     eps_new, dgamma = mohr_coulomb_project(eps, mat)
     H_new, tau = hencky_finish(H, U, sigma, eps, eps_new, clamped or dgamma > 0.0, clamped, mat.mu, mat.lam)
     return H_new, tau, plastic + dgamma
-
-
-@wp.func
-def mohr_coulomb_energy(H: wp.mat33, mat: MaterialStruct) -> float:
-    U, sigma, eps, clamped = hencky_decompose(H)
-    return hencky_energy(eps, mat.mu, mat.lam)

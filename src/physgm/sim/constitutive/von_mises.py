@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from physgm.sim.constitutive.common import MaterialStruct, hencky_decompose, hencky_energy, hencky_finish
+from physgm.sim.constitutive.common import MaterialStruct, hencky_decompose, hencky_finish
 
 SQRT_2_3 = wp.constant(0.816496580927726)
 
@@ -32,9 +32,10 @@ def von_mises_project(eps: wp.vec3, mat: MaterialStruct, kappa: float, viscous_t
 
 
 @wp.func
-def von_mises_update(H: wp.mat33, mat: MaterialStruct, plastic: float, dt: float):
+def von_mises_return(H: wp.mat33, mat: MaterialStruct, plastic: float, viscous_term: float):
+    """``update`` with the radial return of `von_mises_project`: (H_new, tau [Pa], kappa_new)."""
     U, sigma, eps, clamped = hencky_decompose(H)
-    eps_new, kappa = von_mises_project(eps, mat, plastic, 0.0)
+    eps_new, kappa = von_mises_project(eps, mat, plastic, viscous_term)
     H_new, tau = hencky_finish(
         H, U, sigma, eps, eps_new, clamped or kappa > plastic, clamped, mat.mu, mat.lam
     )
@@ -42,6 +43,5 @@ def von_mises_update(H: wp.mat33, mat: MaterialStruct, plastic: float, dt: float
 
 
 @wp.func
-def von_mises_energy(H: wp.mat33, mat: MaterialStruct) -> float:
-    U, sigma, eps, clamped = hencky_decompose(H)
-    return hencky_energy(eps, mat.mu, mat.lam)
+def von_mises_update(H: wp.mat33, mat: MaterialStruct, plastic: float, dt: float):
+    return von_mises_return(H, mat, plastic, 0.0)
