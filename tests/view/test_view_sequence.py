@@ -107,7 +107,7 @@ def test_cli_without_viser_says_how_to_install(tmp_path, monkeypatch, capsys):
 def test_simulate_writes_the_frames_it_renders(tmp_path):
     """A .ply run (no checkpoint): gaussians_t.npz holds the clip's frames, the frame PLYs' Gaussians."""
     from physgm.gaussians import Gaussians, read_ply, write_ply
-    from physgm.pipeline import execute
+    from physgm.pipeline import run_pipeline
     from physgm.pipeline.config import OutputSettings, RunConfig
 
     gen = torch.Generator().manual_seed(1)
@@ -122,7 +122,7 @@ def test_simulate_writes_the_frames_it_renders(tmp_path):
                     output=out)  # fmt: skip
     cfg.physics.material = "rubber"
     cfg.validate()
-    report = execute(cfg)
+    report = run_pipeline(cfg).report
     seq = GaussianSequence.load(tmp_path / "run" / SEQUENCE_FILE)
     assert (len(seq), seq.fps, len(seq.colors)) == (6, 20.0, n)
     assert seq.ground == pytest.approx(0.0)  # the drop scene's ground
