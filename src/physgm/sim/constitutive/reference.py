@@ -11,6 +11,7 @@ import math
 import numpy as np
 
 SIGMA_MIN = 1.0e-3
+HENCKY_DEV_MAX = 1.0  # largest elastic ||dev log stretch|| of von Mises / foam (common.HENCKY_DEV_MAX)
 J_E = 0.1
 J_MIN_FLUID = 0.05
 
@@ -178,8 +179,9 @@ def von_mises(F, mu, lam, yield_stress, hardening, plastic, dt=0.0, viscosity=0.
         dev = eps[n] - eps[n].sum() / 3
         norm = np.linalg.norm(dev)
         radius = math.sqrt(2 / 3) * (yield_stress + hardening * plastic[n]) / (2 * mu)
-        if norm > radius:
-            dg = (norm - radius) / (1 + hardening / (3 * mu) + viscous)
+        if norm > min(radius, HENCKY_DEV_MAX):
+            dg = max(norm - radius, 0.0) / (1 + hardening / (3 * mu) + viscous)
+            dg = max(dg, norm - HENCKY_DEV_MAX)
             out[n] = eps[n] - dg * dev / norm
             kappa[n] = plastic[n] + math.sqrt(2 / 3) * dg
     F_new, tau = _hencky_out(U, Vt, out, mu, lam)
