@@ -175,6 +175,38 @@ def run_cell(
     return row
 
 
+def summarize(cells: list[dict], seconds: float) -> dict:
+    """The report's summary of ``run_cell`` rows (also for rows merged from several runs)."""
+    finite = [c for c in cells if c["finite"]]
+    recovered = [c for c in finite if c["scene"] == "impact" and in_scope(c)]
+    return {
+        "cells": len(cells),
+        "all_finite": len(finite) == len(cells),
+        "escaped_total": int(sum(c["escaped"] for c in cells)),
+        "max_energy_ratio": max((c["energy_ratio"] for c in finite), default=math.nan),
+        "energy_ratio_above_1.05": sum(1 for c in cells if not c["energy_ratio"] <= 1.05),
+        "min_J": min((c["min_J"] for c in finite), default=math.nan),
+        "cells_min_J_at_or_below_0": sum(1 for c in cells if not c["min_J"] > 0),
+        "max_crushed_fraction": max((c["crushed_fraction"] for c in finite), default=math.nan),
+        "cells_crushed": sum(1 for c in cells if not c["crushed_fraction"] == 0.0),
+        # hit at most twice their wave speed and carrying their own weight (in_scope): must be 0
+        "cells_crushed_in_scope": sum(1 for c in cells if in_scope(c) and not c["crushed_fraction"] == 0.0),
+        "cells_out_of_scope": sum(1 for c in cells if not in_scope(c)),
+        # issue 24's recovery after an impact, over the in-scope impact cells: volume and energy
+        "impact_cells_in_scope": len(recovered),
+        "impact_volume_off_by_more_than_5pct": sum(1 for c in recovered if abs(c["mean_J_end"] - 1) > 0.05),
+        "impact_max_elastic_left": max(
+            (c["elastic_end"] / c["energy_start"] for c in recovered), default=math.nan
+        ),  # elastic energy at the end / energy the cube came with
+        "mean_J_end_range": [
+            min((c["mean_J_end"] for c in finite), default=math.nan),
+            max((c["mean_J_end"] for c in finite), default=math.nan),
+        ],
+        "cells_with_retries": sum(1 for c in cells if c["retries"] > 0),
+        "seconds": round(seconds, 1),
+    }
+
+
 def main(argv: list[str] | None = None) -> dict:
     from physgm.sim.constitutive import MODELS
 
@@ -206,32 +238,6 @@ def main(argv: list[str] | None = None) -> dict:
                         file=sys.stderr,
                         flush=True,
                     )
-    report = {
-        "cells": cells,
-        "summary": {
-            "cells": len(cells),
-            "all_finite": all(c["finite"] for c in cells),
-            "escaped_total": int(sum(c["escaped"] for c in cells)),
-            "max_energy_ratio": max((c["energy_ratio"] for c in cells if c["finite"]), default=math.nan),
-            "energy_ratio_above_1.05": sum(1 for c in cells if not c["energy_ratio"] <= 1.05),
-            "min_J": min((c["min_J"] for c in cells if c["finite"]), default=math.nan),
-            "cells_min_J_at_or_below_0": sum(1 for c in cells if not c["min_J"] > 0),
-            "max_crushed_fraction": max(
-                (c["crushed_fraction"] for c in cells if c["finite"]), default=math.nan
-            ),
-            "cells_crushed": sum(1 for c in cells if not c["crushed_fraction"] == 0.0),
-            # hit at most twice their wave speed and carrying their own weight (in_scope): must be 0
-            "cells_crushed_in_scope": sum(
-                1 for c in cells if in_scope(c) and not c["crushed_fraction"] == 0.0
-            ),
-            "cells_out_of_scope": sum(1 for c in cells if not in_scope(c)),
-            "mean_J_end_range": [
-                min((c["mean_J_end"] for c in cells if c["finite"]), default=math.nan),
-                max((c["mean_J_end"] for c in cells if c["finite"]), default=math.nan),
-            ],
-            "cells_with_retries": sum(1 for c in cells if c["retries"] > 0),
-            "seconds": round(time.perf_counter() - start, 1),
-        },
-    }
+    report = {"cells": cells, "summary": summarize(cells, time.perf_counter() - start)}
     print(json.dumps(report))
     return report
