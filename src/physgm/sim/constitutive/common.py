@@ -39,7 +39,7 @@ SIGMA_MIN = wp.constant(1.0e-3)
 # keep. The StVK-Hencky energy mu ||eps||^2 + lam/2 tr(eps)^2 is not elliptic at large strain: its
 # acoustic tensor turns indefinite from ||dev eps|| = 1.09 (nu = 0.01, tr eps = 0.3; 1.65-1.95 at
 # nu = 0.49), measured over Lode angle, -2.3 <= tr eps <= 0.3 and nu in [0.01, 0.49]
-# (docs/measurements_sim.md, section 8). There the material softens under a growing stretch and
+# (docs/measurements_sim.md, section 9). There the material softens under a growing stretch and
 # the grid localises it into an inversion at any time step, so a yield radius or a Perzyna
 # overstress beyond this is returned to it rate-independently.
 HENCKY_DEV_MAX = wp.constant(1.0)
