@@ -254,6 +254,16 @@ def test_fluid_resets_F_to_isotropic():
     np.testing.assert_allclose(got["F"], np.cbrt(J)[:, None, None] * np.eye(3), rtol=2e-5, atol=2e-6)
 
 
+def test_fluid_pushes_back_harder_the_more_it_is_compressed():
+    """tau = K (J - 1): before, tau = K (J - 1) J peaked at K / 4 at J = 1/2 and fell to 0 at J -> 0."""
+    p = PARAMS["fluid"]
+    J = np.array([0.9, 0.5, 0.3, 0.1, 0.06])
+    got = run_warp(p, np.cbrt(J)[:, None, None] * np.eye(3), np.zeros(len(J)))
+    pressure = -np.trace(got["tau"], axis1=1, axis2=2) / 3  # Kirchhoff, Pa (positive: pushes out)
+    assert np.all(np.diff(pressure) > 0)
+    np.testing.assert_allclose(pressure, p.bulk * (1 - J), rtol=1e-5)
+
+
 def test_fixed_corotated_volume_barrier_pushes_back_and_is_c1():
     """Below J = 1/2 the pressure keeps growing in compression (Stomakhin's returns to 0 at J = 0)."""
     lam = 1.0

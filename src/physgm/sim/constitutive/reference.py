@@ -191,7 +191,7 @@ def von_mises(F, mu, lam, yield_stress, hardening, plastic, dt=0.0, viscosity=0.
 def fluid(F, bulk, plastic=None, dt=0.0):
     J = np.maximum(np.linalg.det(F), J_MIN_FLUID)
     F_new = np.cbrt(J)[:, None, None] * np.eye(3)
-    return F_new, (bulk * (J - 1) * J)[:, None, None] * np.eye(3), plastic
+    return F_new, (bulk * (J - 1))[:, None, None] * np.eye(3), plastic
 
 
 def energy_density(model: str, F: np.ndarray, mu: float, lam: float, bulk: float = 0.0) -> np.ndarray:
@@ -205,7 +205,8 @@ def energy_density(model: str, F: np.ndarray, mu: float, lam: float, bulk: float
         barrier = -(lam + 2 * mu) * nh_barrier_log(J) ** 3 / 6
         return 0.5 * mu * ((F**2).sum((1, 2)) - 3) - mu * g + 0.5 * lam * g**2 + barrier
     if model == "fluid":
-        return 0.5 * bulk * (J - 1) ** 2
+        Jc = np.maximum(J, J_MIN_FLUID)  # the states the solver keeps are clamped there
+        return bulk * (Jc - 1 - np.log(Jc))
     eps = _hencky(F)[2]
     return mu * (eps**2).sum(1) + 0.5 * lam * eps.sum(1) ** 2
 
