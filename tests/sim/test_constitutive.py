@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import warp as wp
@@ -119,9 +121,11 @@ def test_reference_stress_is_the_energy_gradient(model):
 
 
 def test_hencky_stress_is_the_energy_gradient_inside_the_yield_surface():
-    p = MaterialParams("von_mises", 1.0e6, 0.3, 1000.0, yield_stress=1.0e12)  # never yields
+    p = MaterialParams("von_mises", 1.0e6, 0.3, 1000.0, yield_stress=1.0e12)  # yields only at the cap
     F = random_F(20, seed=3)
     F = F[np.linalg.det(F) > 0.1]
+    F = F[deviatoric_strain(F) < ref.HENCKY_DEV_MAX]
+    assert len(F) > 30
     _, tau, _ = ref.update(p, F, np.zeros(len(F)), DT)
     h = 1e-6
     P = np.zeros_like(F)
@@ -134,6 +138,66 @@ def test_hencky_stress_is_the_energy_gradient_inside_the_yield_surface():
                 - ref.energy_density("von_mises", F - dF, p.mu, p.lam)
             ) / (2 * h)
     np.testing.assert_allclose(P @ np.swapaxes(F, 1, 2), tau, rtol=1e-5, atol=1e-5 * p.E)
+
+
+def deviatoric_strain(F: np.ndarray) -> np.ndarray:  # [N, 3, 3] -> [N], ||dev log stretch||
+    eps = np.log(np.abs(np.linalg.svd(F, compute_uv=False)))
+    return np.linalg.norm(eps - eps.mean(1, keepdims=True), axis=1)
+
+
+def min_acoustic_eigenvalue(params: MaterialParams, stretch: np.ndarray, normals: np.ndarray) -> float:
+    """Smallest eigenvalue of the acoustic tensor of the elastic Hencky law at F = diag(stretch), Pa."""
+    huge = dataclasses.replace(params, yield_stress=1e30 * params.E, viscosity=0.0)
+
+    def first_pk(F):  # [3, 3] -> [3, 3]; the numpy twin without the cap (radius far above it)
+        U, Vt, eps = ref._hencky(F[None])
+        _, tau = ref._hencky_out(U, Vt, eps, huge.mu, huge.lam)
+        return tau[0] @ np.linalg.inv(F).T
+
+    F, h = np.diag(stretch), 1e-6
+    A = np.zeros((3, 3, 3, 3))  # dP_iJ / dF_kL
+    for k in range(3):
+        for L in range(3):
+            dF = np.zeros((3, 3))
+            dF[k, L] = h * stretch[L]
+            A[:, :, k, L] = (first_pk(F + dF) - first_pk(F - dF)) / (2 * dF[k, L])
+    Q = np.einsum("iJkL,nJ,nL->nik", A, normals, normals)
+    return float(np.linalg.eigvalsh(Q)[:, 0].min())
+
+
+@pytest.mark.parametrize("nu", [0.01, 0.49])
+def test_hencky_energy_is_elliptic_up_to_the_cap_and_not_beyond(nu):
+    """HENCKY_DEV_MAX lies inside the region where the Hencky law's acoustic tensor is positive."""
+    p = MaterialParams("von_mises", 1.0e6, nu, 1000.0, yield_stress=1.0e3)
+    rng = np.random.default_rng(0)
+    normals = rng.standard_normal((800, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    e1, e2 = np.array([2.0, -1.0, -1.0]) / np.sqrt(6), np.array([0.0, 1.0, -1.0]) / np.sqrt(2)
+    for tr in (-2.3, 0.0, 0.5):
+        for lode in np.linspace(0.0, np.pi / 3, 4):
+            direction = np.cos(lode) * e1 + np.sin(lode) * e2
+            at_cap = np.exp(tr / 3 + ref.HENCKY_DEV_MAX * direction)
+            assert min_acoustic_eigenvalue(p, at_cap, normals) > 0.0, (tr, lode)
+    # and beyond 2.0 it is not (so the cap is not an arbitrary stiffness limit)
+    assert min_acoustic_eigenvalue(p, np.exp(2.0 * e2), normals) < 0.0
+
+
+@pytest.mark.parametrize("model", ["von_mises", "foam"])
+def test_elastic_strain_is_returned_to_the_hencky_cap(model):
+    """Yield radius or Perzyna overstress far above the cap: the elastic strain still ends on it."""
+    extra = dict(yield_stress=1.0e9) if model == "von_mises" else dict(yield_stress=1.0e4, viscosity=1.0e9)
+    p = MaterialParams(model, 1.0e6, 0.49, 1000.0, **extra)
+    F = np.stack([np.diag([a, 1.0, 1.0 / a]) for a in (1.5, 3.0, 30.0)])  # ||dev|| 0.57, 1.55, 4.8
+    got = run_warp(p, F, np.zeros(len(F)))
+    dev = deviatoric_strain(got["F"])
+    np.testing.assert_allclose(dev[1:], ref.HENCKY_DEV_MAX, rtol=1e-4)
+    np.testing.assert_allclose(np.linalg.det(got["F"]), 1.0, rtol=1e-4)  # the volume is kept
+    if model == "von_mises":
+        np.testing.assert_allclose(got["F"][0], F[0], atol=1e-6)  # inside: untouched
+    _, tau_ref, kappa_ref = ref.update(p, F, np.zeros(len(F)), DT)
+    # float32 log strains of a 30-fold stretch: the volumetric stress lam tr(eps) to ~1e-5 lam
+    np.testing.assert_allclose(got["tau"], tau_ref, rtol=1e-4, atol=1e-3 * p.mu)
+    np.testing.assert_allclose(got["plastic"], kappa_ref, rtol=1e-4, atol=1e-7)
 
 
 def test_projected_states_lie_on_or_inside_the_yield_surface():
@@ -188,6 +252,16 @@ def test_fluid_resets_F_to_isotropic():
     got = run_warp(PARAMS["fluid"], F, np.zeros(len(F)))
     J = np.maximum(np.linalg.det(F), ref.J_MIN_FLUID)
     np.testing.assert_allclose(got["F"], np.cbrt(J)[:, None, None] * np.eye(3), rtol=2e-5, atol=2e-6)
+
+
+def test_fluid_pushes_back_harder_the_more_it_is_compressed():
+    """tau = K (J - 1): before, tau = K (J - 1) J peaked at K / 4 at J = 1/2 and fell to 0 at J -> 0."""
+    p = PARAMS["fluid"]
+    J = np.array([0.9, 0.5, 0.3, 0.1, 0.06])
+    got = run_warp(p, np.cbrt(J)[:, None, None] * np.eye(3), np.zeros(len(J)))
+    pressure = -np.trace(got["tau"], axis1=1, axis2=2) / 3  # Kirchhoff, Pa (positive: pushes out)
+    assert np.all(np.diff(pressure) > 0)
+    np.testing.assert_allclose(pressure, p.bulk * (1 - J), rtol=1e-5)
 
 
 def test_fixed_corotated_volume_barrier_pushes_back_and_is_c1():

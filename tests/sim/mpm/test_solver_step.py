@@ -134,8 +134,12 @@ def test_particles_thrown_at_the_walls_stop_at_the_separating_walls():
     s = solver.state()
     lo, hi = np.asarray(grid.origin), np.asarray(grid.upper)
     assert np.isfinite(s.x).all() and np.isfinite(s.F).all()
-    # Particles move with the grid velocity, which the walls 3 cells inside the faces stop.
-    assert np.all(s.x >= lo + 2 * grid.dx) and np.all(s.x <= hi - 2 * grid.dx)
+    # Particles move with the grid velocity, which the walls 3 cells inside the faces stop; a
+    # particle 2 cells in still reaches a free node with its stencil, so splashing water creeps a
+    # little further (1.90 cells, measured). Before the fluid's pressure kept growing under
+    # compression, all 300 particles lay crushed at J = 0.05 against the walls, at 2.00 cells.
+    assert np.all(s.x >= lo + 1.5 * grid.dx) and np.all(s.x <= hi - 1.5 * grid.dx)
+    assert np.linalg.det(s.F).min() > 0.1  # splashed, not crushed
     assert solver.escaped == 0 and not s.escaped.any()
 
 

@@ -37,6 +37,15 @@ MOHR_COULOMB = wp.constant(6)
 # trial states are projected to this barely-positive stretch instead of producing log(<=0).
 SIGMA_MIN = wp.constant(1.0e-3)
 
+# Largest elastic deviatoric Hencky strain ||dev eps|| the von Mises and foam return mappings
+# keep. The StVK-Hencky energy mu ||eps||^2 + lam/2 tr(eps)^2 is not elliptic at large strain: its
+# acoustic tensor turns indefinite from ||dev eps|| = 1.09 (nu = 0.01, tr eps = 0.3; 1.65-1.95 at
+# nu = 0.49), measured over Lode angle, -2.3 <= tr eps <= 0.3 and nu in [0.01, 0.49]
+# (docs/measurements_sim.md, section 9). There the material softens under a growing stretch and
+# the grid localises it into an inversion at any time step, so a yield radius or a Perzyna
+# overstress beyond this is returned to it rate-independently.
+HENCKY_DEV_MAX = wp.constant(1.0)
+
 
 @wp.struct
 class MaterialStruct:

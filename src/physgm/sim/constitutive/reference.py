@@ -11,6 +11,7 @@ import math
 import numpy as np
 
 SIGMA_MIN = 1.0e-3
+HENCKY_DEV_MAX = 1.0  # largest elastic ||dev log stretch|| of von Mises / foam (common.HENCKY_DEV_MAX)
 J_E = 0.1
 J_MIN_FLUID = 0.05
 
@@ -178,8 +179,9 @@ def von_mises(F, mu, lam, yield_stress, hardening, plastic, dt=0.0, viscosity=0.
         dev = eps[n] - eps[n].sum() / 3
         norm = np.linalg.norm(dev)
         radius = math.sqrt(2 / 3) * (yield_stress + hardening * plastic[n]) / (2 * mu)
-        if norm > radius:
-            dg = (norm - radius) / (1 + hardening / (3 * mu) + viscous)
+        if norm > min(radius, HENCKY_DEV_MAX):
+            dg = max(norm - radius, 0.0) / (1 + hardening / (3 * mu) + viscous)
+            dg = max(dg, norm - HENCKY_DEV_MAX)
             out[n] = eps[n] - dg * dev / norm
             kappa[n] = plastic[n] + math.sqrt(2 / 3) * dg
     F_new, tau = _hencky_out(U, Vt, out, mu, lam)
@@ -189,7 +191,7 @@ def von_mises(F, mu, lam, yield_stress, hardening, plastic, dt=0.0, viscosity=0.
 def fluid(F, bulk, plastic=None, dt=0.0):
     J = np.maximum(np.linalg.det(F), J_MIN_FLUID)
     F_new = np.cbrt(J)[:, None, None] * np.eye(3)
-    return F_new, (bulk * (J - 1) * J)[:, None, None] * np.eye(3), plastic
+    return F_new, (bulk * (J - 1))[:, None, None] * np.eye(3), plastic
 
 
 def energy_density(model: str, F: np.ndarray, mu: float, lam: float, bulk: float = 0.0) -> np.ndarray:
@@ -203,7 +205,8 @@ def energy_density(model: str, F: np.ndarray, mu: float, lam: float, bulk: float
         barrier = -(lam + 2 * mu) * nh_barrier_log(J) ** 3 / 6
         return 0.5 * mu * ((F**2).sum((1, 2)) - 3) - mu * g + 0.5 * lam * g**2 + barrier
     if model == "fluid":
-        return 0.5 * bulk * (J - 1) ** 2
+        Jc = np.maximum(J, J_MIN_FLUID)  # the states the solver keeps are clamped there
+        return bulk * (Jc - 1 - np.log(Jc))
     eps = _hencky(F)[2]
     return mu * (eps**2).sum(1) + 0.5 * lam * eps.sum(1) ** 2
 

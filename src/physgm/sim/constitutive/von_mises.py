@@ -7,13 +7,15 @@ equivalent plastic strain kappa (the particle's ``plastic`` scalar):
     otherwise   -> dgamma = (||e|| - r) / (1 + H / (3 mu)),  e -= dgamma e/||e||,
                    kappa += sqrt(2/3) dgamma.
 The volumetric part stays elastic (metals and plasticine keep their volume when they yield).
+Whatever the yield radius, ||e|| never stays above ``common.HENCKY_DEV_MAX``, where the Hencky
+energy stops being elliptic.
 """
 
 from __future__ import annotations
 
 import warp as wp
 
-from physgm.sim.constitutive.common import MaterialStruct, hencky_decompose, hencky_finish
+from physgm.sim.constitutive.common import HENCKY_DEV_MAX, MaterialStruct, hencky_decompose, hencky_finish
 
 SQRT_2_3 = wp.constant(0.816496580927726)
 
@@ -25,9 +27,11 @@ def von_mises_project(eps: wp.vec3, mat: MaterialStruct, kappa: float, viscous_t
     dev = eps - wp.vec3(tr / 3.0)
     dev_norm = wp.length(dev)
     radius = SQRT_2_3 * (mat.yield_stress + mat.hardening * kappa) / (2.0 * mat.mu)
-    if dev_norm <= radius:
+    if dev_norm <= wp.min(radius, HENCKY_DEV_MAX):
         return eps, kappa
-    dgamma = (dev_norm - radius) / (1.0 + mat.hardening / (3.0 * mat.mu) + viscous_term)
+    dgamma = wp.max(dev_norm - radius, 0.0) / (1.0 + mat.hardening / (3.0 * mat.mu) + viscous_term)
+    # Never past the Hencky law's elliptic range, however high the yield stress or the viscosity.
+    dgamma = wp.max(dgamma, dev_norm - HENCKY_DEV_MAX)
     return eps - (dgamma / dev_norm) * dev, kappa + SQRT_2_3 * dgamma
 
 

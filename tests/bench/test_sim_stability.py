@@ -1,0 +1,43 @@
+"""The stability report: which cells issue 24 holds to "nothing crushed", and the summary of a run."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from physgm.bench import sim_stability
+
+
+def test_one_soft_impact_cell_reports_mach_weight_and_recovery(capsys):
+    report = sim_stability.main(
+        ["--models", "neo_hookean", "--E", "1e5", "--nu", "0.45", "--scenes", "impact", "--budget", "400"]
+    )
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == json.loads(json.dumps(report))
+    (cell,) = report["cells"]
+    assert cell["mach"] == pytest.approx(2.0) and cell["weight_ratio"] < sim_stability.WEIGHT_BEARING
+    summary = report["summary"]
+    assert summary["all_finite"] and summary["impact_cells_in_scope"] == 1
+    assert summary["min_J"] > 0 and summary["cells_crushed_in_scope"] == 0
+
+
+def row(**values) -> dict:
+    base = dict(
+        finite=True, escaped=0, energy_ratio=1.0, min_J=0.05, crushed_fraction=0.0, mean_J_end=1.0,
+        retries=0, scene="impact", mach=2.0, weight_ratio=1e-4, elastic_end=1.0, energy_start=100.0,
+    )  # fmt: skip
+    return base | values
+
+
+def test_summary_counts_crushed_cells_in_and_out_of_scope():
+    cells = [
+        row(),
+        row(crushed_fraction=0.01),  # in scope: counts against the issue
+        row(crushed_fraction=1.0, weight_ratio=2.9),  # a fluid lying crushed under its own weight
+        row(crushed_fraction=0.03, scene="drop", mach=5.0),  # hit at five times its wave speed
+        row(mean_J_end=0.93, elastic_end=4.0),  # in scope, volume 7 % off, 4 % elastic left
+    ]
+    s = sim_stability.summarize(cells, 1.0)
+    assert s["cells_crushed"] == 3 and s["cells_crushed_in_scope"] == 1 and s["cells_out_of_scope"] == 2
+    assert s["impact_cells_in_scope"] == 3 and s["impact_volume_off_by_more_than_5pct"] == 1
+    assert s["impact_max_elastic_left"] == pytest.approx(0.04)
