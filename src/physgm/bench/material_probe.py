@@ -97,12 +97,19 @@ def main(argv: list[str] | None = None) -> dict:
         "--test-data", default=None, help="take the test split from this folder instead (default: --data)"
     )
     p.add_argument("--seconds", type=float, default=900.0, help="training budget (wall clock)")
+    p.add_argument(
+        "--steps", type=int, default=None, help="also stop after this many steps (load cannot move it)"
+    )
     p.add_argument("--batch", type=int, default=64)
     p.add_argument("--lr", type=float, default=2e-3)
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
-    if not args.seconds > 0 or args.batch < 2:
-        raise SystemExit(f"--seconds must be > 0 and --batch >= 2, got {args.seconds} and {args.batch}")
+    if not args.seconds > 0 or args.batch < 2 or (args.steps is not None and args.steps < 1):
+        raise SystemExit(
+            f"--seconds must be > 0, --batch >= 2 and --steps >= 1, "
+            f"got {args.seconds}, {args.batch} and {args.steps}"
+        )
+    max_steps = args.steps if args.steps is not None else float("inf")
     torch.manual_seed(args.seed)
     train_x, train_y, train_ids = load_split(args.data, "train", eval_views=False)
     test_data = args.test_data or args.data
@@ -114,7 +121,7 @@ def main(argv: list[str] | None = None) -> dict:
     opt = torch.optim.AdamW(net.parameters(), lr=args.lr, weight_decay=0.05)
     gen = torch.Generator().manual_seed(args.seed)
     start, steps, curve = time.perf_counter(), 0, []
-    while time.perf_counter() - start < args.seconds:
+    while time.perf_counter() - start < args.seconds and steps < max_steps:
         a = torch.randint(0, len(train_y), (args.batch,), generator=gen)
         v = torch.randint(0, train_x.shape[1], (args.batch,), generator=gen)
         x = train_x[a, v]
