@@ -133,11 +133,13 @@ def summarise(rows: list[dict], names: list[str]) -> dict:
     return out
 
 
+def fmt(x: float | None, pct: bool = False) -> str:
+    """A table cell or caption value: three decimals, or a signed percentage; a dash when missing."""
+    return "—" if x is None else f"{100 * x:+.1f}%" if pct else f"{x:.3f}"
+
+
 def markdown(summary: dict, names: list[str]) -> str:
     """The summary as one markdown table (one row per material, then overall)."""
-
-    def fmt(x, pct=False):
-        return "—" if x is None else f"{100 * x:+.1f}%" if pct else f"{x:.3f}"
 
     cols = [
         ("traj dist", "mean_distance"),
@@ -158,11 +160,6 @@ def markdown(summary: dict, names: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _short(value: float | None) -> str:
-    """A distance for the sheet's caption: three decimals (the full value is in the JSON)."""
-    return "-" if value is None else f"{value:.3f}"
-
-
 def write_sheet(path: Path, scene, row: dict, reference: np.ndarray, clips: dict, fps: float) -> None:
     """One scene: its first input view, then reference / stage 1 / stage 2 keyframes, and the physics."""
     from physgm.pipeline.outputs import contact_sheet, keyframe_indices, save_png
@@ -173,7 +170,7 @@ def write_sheet(path: Path, scene, row: dict, reference: np.ndarray, clips: dict
     for name, frames in clips.items():
         r = row[name]
         label = f"{LABELS.get(name, name)}: {r['material']} log10E={r['log10_E']:.2f}"
-        lines += [label, f"  traj dist {_short(r['distance'])}, perceptual {_short(r['perceptual'])}"]
+        lines += [label, f"  traj dist {fmt(r['distance'])}, perceptual {fmt(r['perceptual'])}"]
         if frames is not None:
             rows.append((label, frames, keyframe_indices(len(frames), 6)))
     preview = scene.inputs.images[0].permute(1, 2, 0).numpy()
