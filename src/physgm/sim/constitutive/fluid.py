@@ -6,10 +6,8 @@ a sound speed sqrt(K / rho0) at every compression, so the CFL step stays right. 
 gradient is reset to J^(1/3) I every step: a fluid keeps no memory of shear. J is clamped below at
 J_MIN_FLUID so a collapsed particle cannot invert.
 
-Before issue 24 the pressure was p = K (1 - J) (psi = K/2 (J - 1)^2, tau = K (J - 1) J): its
-Kirchhoff stress, which is what pushes on the grid, peaks at K / 4 at J = 1/2 and falls to 0 as
-J -> 0, so a particle compressed below J = 1/2 softened, collapsed to the clamp and stayed there
-(the sweep's fluid at E = 1e5 Pa, nu = 0.01 dropped at 0.86 times its sound speed kept one).
+Not psi = K/2 (J - 1)^2: its Kirchhoff stress, which pushes on the grid, falls to 0 below J = 1/2, so
+compressed particles collapsed onto the clamp (docs/measurements_sim.md, section 9).
 """
 
 from __future__ import annotations

@@ -7,10 +7,8 @@ becomes
     dgamma = (||e|| - r) / (1 + H / (3 mu) + eta / (2 mu dt)),
 so eta -> 0 is rate-independent von Mises and eta -> infinity is purely elastic up to a deviatoric
 Hencky strain of ``common.HENCKY_DEV_MAX``, beyond which the return is rate-independent: the
-Hencky energy is not elliptic there, and a stiff foam hit faster than its relaxation time (1e9 Pa,
-nu = 0.49, viscosity 1e6 Pa s, at twice its wave speed) otherwise sheared its particles to
-stretches of 1e3 and inverted them at every time step. Foams squash and slowly keep their new
-shape, which is this behaviour; volumetric crushing is not modelled.
+Hencky energy is not elliptic there (docs/measurements_sim.md, section 9). Foams squash and
+slowly keep their new shape, which is this behaviour; volumetric crushing is not modelled.
 """
 
 from __future__ import annotations
