@@ -2,8 +2,17 @@
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
 import pytest
 import torch
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -35,3 +44,34 @@ def tiny_dataset(tmp_path_factory):
     summary = generate(cfg, root, workers=1, progress=False)
     assert summary["failed"] == 0, summary["failures"]
     return root
+
+
+def _run_python(*args: str, timeout_s: float = 600) -> subprocess.CompletedProcess:
+    """``python ARGS`` from the repository root, as a user types it (this checkout's src first).
+
+    It gets its own process group, killed whole at the timeout: a training run may have spawned
+    ranks or data workers, and a hung one ignores SIGTERM (Lightning traps it). A timeout fails the
+    test with the tail of stderr."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "src"), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen(
+        [sys.executable, *args],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        out, err = proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        out, err = proc.communicate()
+        pytest.fail(f"{' '.join(args)} did not finish in {timeout_s} s; stderr tail:\n{err[-3000:]}")
+    return subprocess.CompletedProcess(args, proc.returncode, out, err)
+
+
+@pytest.fixture(scope="session")
+def run_python() -> Callable[..., subprocess.CompletedProcess]:
+    """Runs ``python ARGS`` as a user would; see ``_run_python``."""
+    return _run_python

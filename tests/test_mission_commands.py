@@ -10,17 +10,13 @@ a 2-core CPU. The defaults do the rest: stage 1 generates its data set (the defa
 here by ``synth.*`` overrides), stage 2 starts from the shipped ``checkpoints/physgm_tiny.ckpt``.
 """
 
-import os
 import shutil
-import signal
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-TIMEOUT_S = 600
 # The default recipe at test size: 6 assets of 32 px, half with a reference drop video (the dpo split).
 TINY_SYNTH = [
     "synth.count=6",
@@ -29,26 +25,6 @@ TINY_SYNTH = [
     "synth.video_fraction=0.5",
     "synth.workers=1",
 ]
-
-
-def run(*args: str) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": str(ROOT / "src"), "OMP_NUM_THREADS": "1"}
-    proc = subprocess.Popen(
-        [sys.executable, *args],
-        cwd=ROOT,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-    )
-    try:
-        out, err = proc.communicate(timeout=TIMEOUT_S)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        out, err = proc.communicate()
-        pytest.fail(f"{' '.join(args)} did not finish in {TIMEOUT_S} s; stderr tail:\n{err[-3000:]}")
-    return subprocess.CompletedProcess(args, proc.returncode, out, err)
 
 
 def assert_clean(done: subprocess.CompletedProcess) -> None:
@@ -61,8 +37,8 @@ def data_dir(tmp_path_factory) -> Path:
     return tmp_path_factory.mktemp("mission") / "data"
 
 
-def test_train_stage_pretrain_generates_its_data_and_trains(data_dir, tmp_path):
-    done = run(
+def test_train_stage_pretrain_generates_its_data_and_trains(data_dir, tmp_path, run_python):
+    done = run_python(
         "train.py",
         "stage=pretrain",
         "+trainer.fast_dev_run=true",
@@ -79,8 +55,8 @@ def test_train_stage_pretrain_generates_its_data_and_trains(data_dir, tmp_path):
     assert "generating the synthetic data set" in done.stderr + done.stdout
 
 
-def test_train_stage_pretrain_without_data_or_recipe_says_what_to_add(tmp_path):
-    done = run(
+def test_train_stage_pretrain_without_data_or_recipe_says_what_to_add(tmp_path, run_python):
+    done = run_python(
         "train.py",
         "stage=pretrain",
         "synth=null",
@@ -96,10 +72,10 @@ def test_train_stage_pretrain_without_data_or_recipe_says_what_to_add(tmp_path):
     assert not (tmp_path / "none").exists()
 
 
-def test_train_stage_dpo_starts_from_the_shipped_checkpoint(data_dir, tmp_path):
+def test_train_stage_dpo_starts_from_the_shipped_checkpoint(data_dir, tmp_path, run_python):
     if not (data_dir / "synthetic" / "splits" / "dpo.txt").is_file():
         pytest.skip("needs the data set made by the stage=pretrain test")
-    done = run(
+    done = run_python(
         "train.py",
         "stage=dpo",
         "+trainer.fast_dev_run=true",
@@ -117,8 +93,8 @@ def test_train_stage_dpo_starts_from_the_shipped_checkpoint(data_dir, tmp_path):
     assert rounds, "no rollout was cached"
 
 
-def test_train_stage_dpo_without_a_checkpoint_says_what_to_add(tmp_path):
-    done = run(
+def test_train_stage_dpo_without_a_checkpoint_says_what_to_add(tmp_path, run_python):
+    done = run_python(
         "train.py", "stage=dpo", "stage.init_ckpt=missing.ckpt", f"paths.output_dir={tmp_path / 'run'}"
     )
     assert done.returncode != 0 and "Traceback" not in done.stderr
@@ -127,10 +103,10 @@ def test_train_stage_dpo_without_a_checkpoint_says_what_to_add(tmp_path):
     )
 
 
-def test_simulate_input_img_png(tmp_path):
+def test_simulate_input_img_png(tmp_path, run_python):
     shutil.copy(ROOT / "examples" / "jelly_cube.png", tmp_path / "img.png")
     out = tmp_path / "run"
-    done = run(
+    done = run_python(
         "simulate.py",
         f"input={tmp_path / 'img.png'}",
         "output.frames=6",

@@ -1,17 +1,11 @@
 """Stage 1 under DDP: two CPU processes (gloo) train, validate and stop, through ``python train.py``."""
 
 import csv
-import os
-import signal
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 import pytest
 import torch
 
-ROOT = Path(__file__).resolve().parents[2]
 TIMEOUT_S = (
     900  # a hang is a failure, not a stuck CI job; a loaded 2-core machine needs minutes to start two ranks
 )
@@ -21,7 +15,7 @@ TIMEOUT_S = (
 # above the default tier's ~60 s
 @pytest.mark.slow
 def test_pretrain_under_ddp_with_two_cpu_processes_finishes_with_metrics_from_both_ranks(
-    tiny_dataset, tmp_path
+    tiny_dataset, tmp_path, run_python
 ):
     """Under DDP each rank validates its own share of the assets, and a batch's view count (1 or 4)
     follows from its asset ids, so here rank 0 sees only 4-view batches and rank 1 also 1-view ones.
@@ -29,7 +23,6 @@ def test_pretrain_under_ddp_with_two_cpu_processes_finishes_with_metrics_from_bo
     the first validation. Rank 0 logs the v1 metrics only if it gathered them from rank 1."""
     out = tmp_path / "run"
     cmd = [
-        sys.executable,
         "train.py",
         "stage=pretrain",
         "trainer=ddp",
@@ -51,27 +44,10 @@ def test_pretrain_under_ddp_with_two_cpu_processes_finishes_with_metrics_from_bo
         "torch_threads=1",
         f"paths.output_dir={out}",
     ]
-    env = {**os.environ, "PYTHONPATH": str(ROOT / "src"), "OMP_NUM_THREADS": "1"}
     start = time.perf_counter()
-    # Own process group: rank 1 is a child of rank 0, and a hung rank ignores SIGTERM (Lightning traps it).
-    proc = subprocess.Popen(
-        cmd,
-        cwd=ROOT,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        start_new_session=True,
-    )
-    try:
-        log, _ = proc.communicate(timeout=TIMEOUT_S)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        log, _ = proc.communicate()
-        pytest.fail(
-            f"DDP training did not finish in {TIMEOUT_S} s (hung in a collective?); log tail:\n{log[-3000:]}"
-        )
-    assert proc.returncode == 0, log[-3000:]
+    done = run_python(*cmd, timeout_s=TIMEOUT_S)  # a hang fails here with the log's tail
+    log = done.stdout + done.stderr
+    assert done.returncode == 0, log[-3000:]
     print(f"DDP run: {time.perf_counter() - start:.1f} s")
     ckpt = torch.load(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
     assert ckpt["global_step"] == 4
