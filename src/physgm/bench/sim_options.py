@@ -23,7 +23,7 @@ from __future__ import annotations
 import sys
 
 from physgm.bench.drop_scene import DropBench, project
-from physgm.sim.gaussian_trajectory import GaussianTrajectory, plan_for, simulate
+from physgm.sim.gaussian_trajectory import GaussianTrajectory, prepare_simulation, simulate
 from physgm.sim.planner import PlannerConfig
 
 OFF = dict(allow_rigid=False, allow_bulk_cap=False, allow_stiffness_cap=False)
@@ -72,7 +72,9 @@ def option_table(
         ref, seen = None, {}
         for option, overrides in options(tuple(bulk_ratios)).items():
             cfg = PlannerConfig(**overrides, **grid)
-            probe = plan_for(gaussians, physics, "drop", cameras, bench.n_frames, cfg, scene_overrides)
+            probe = prepare_simulation(
+                gaussians, physics, "drop", cameras, bench.n_frames, cfg, scene_overrides=scene_overrides
+            ).plan
             key = (probe.mode, probe.E_used, probe.nu_used)
             row = {"material": name, "option": option, **physics.to_dict(), **grid, "mode": probe.mode}
             row.update(E_used=probe.E_used, nu_used=probe.nu_used)
