@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from physgm.render import rasterize
+from physgm.render.batch import SplatBatch
 from physgm.render.settings import RasterSettings
 from physgm.render.torch_backend import rasterize_torch
 from physgm.render.warp_backend import rasterize_warp
@@ -20,14 +21,14 @@ def run(scene: dict, kit, backend: str, dtype=torch.float32, **settings):
     backend "torch" or "warp:<layout>". Returns rgb, alpha, meta, {name: grad}.
     """
     s = kit.to(scene, dtype, requires_grad=True)
-    gauss = [s[k][None] for k in kit.GRAD_KEYS]  # add the batch dim the backends expect
-    cams = [s["viewmats"][None], s["Ks"][None]]
+    # add the batch dim the backends expect
+    batch = SplatBatch(*(s[k][None] for k in kit.GRAD_KEYS), s["viewmats"][None], s["Ks"][None])
     if backend == "torch":
-        rgb, alpha, meta = rasterize_torch(*gauss, *cams, RasterSettings(s["width"], s["height"]))
+        rgb, alpha, meta = rasterize_torch(batch, RasterSettings(s["width"], s["height"]))
     else:
         layout = backend.split(":")[1]
         st = RasterSettings(s["width"], s["height"], warp_layout=layout, **settings)
-        rgb, alpha, meta = rasterize_warp(*gauss, *cams, st)
+        rgb, alpha, meta = rasterize_warp(batch, st)
     gen = torch.Generator().manual_seed(7)
     w_rgb = torch.randn(rgb.shape, generator=gen, dtype=torch.float64).to(dtype)
     w_alpha = torch.randn(alpha.shape, generator=gen, dtype=torch.float64).to(dtype)
@@ -125,10 +126,10 @@ def test_torch_twin_matches_finite_differences(kit):
     def render(*params):
         # three random linear read-outs of rgb and alpha: the full Jacobian of 960 outputs
         # would need 960 backward passes, these need three
-        rgb, alpha, _ = rasterize_torch(*params, viewmats[None], Ks[None], settings)
+        rgb, alpha, _ = rasterize_torch(SplatBatch(*params, viewmats[None], Ks[None]), settings)
         return (w_rgb * rgb).sum((1, 2, 3, 4)) + (w_alpha * alpha).sum((1, 2, 3, 4))
 
-    _, alpha, _ = rasterize_torch(*inputs, viewmats[None], Ks[None], settings)
+    _, alpha, _ = rasterize_torch(SplatBatch(*inputs, viewmats[None], Ks[None]), settings)
     assert alpha.max() > 0.3
     assert torch.autograd.gradcheck(render, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
 

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from physgm.render import warp_backend
+from physgm.render.batch import SplatBatch
 from physgm.render.settings import RasterSettings
 from physgm.render.torch_backend import rasterize_torch
 
@@ -33,7 +34,7 @@ def render(scene: dict, fn, settings: RasterSettings):
     leaves = {
         k: scene[k].clone().requires_grad_() for k in ("means", "quats", "scales", "opacities", "colors")
     }
-    rgb, alpha, _ = fn(*leaves.values(), scene["viewmats"], scene["Ks"], settings)
+    rgb, alpha, _ = fn(SplatBatch(*leaves.values(), scene["viewmats"], scene["Ks"]), settings)
     gen = torch.Generator().manual_seed(3)
     loss = (rgb * torch.randn(rgb.shape, generator=gen)).sum() + (
         alpha * torch.randn(alpha.shape, generator=gen)

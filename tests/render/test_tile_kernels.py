@@ -8,6 +8,7 @@ import torch
 import warp as wp
 
 from physgm.render import warp_tile_kernels as T
+from physgm.render.batch import SplatBatch
 from physgm.render.settings import RasterSettings
 from physgm.render.warp_backend import rasterize_warp
 
@@ -36,9 +37,8 @@ def test_exp_clamps_below_minus_15():
 
 def render(scene: dict, kit, **settings):
     s = kit.to(scene, torch.float32, requires_grad=True)
-    gauss = [s[k][None] for k in kit.GRAD_KEYS]
-    st = RasterSettings(s["width"], s["height"], **settings)
-    rgb, alpha, _ = rasterize_warp(*gauss, s["viewmats"][None], s["Ks"][None], st)
+    batch = SplatBatch(*(s[k][None] for k in kit.GRAD_KEYS), s["viewmats"][None], s["Ks"][None])
+    rgb, alpha, _ = rasterize_warp(batch, RasterSettings(s["width"], s["height"], **settings))
     weights = torch.randn(rgb.shape, generator=torch.Generator().manual_seed(2))
     ((rgb * weights).sum() + alpha.sum()).backward()
     return rgb.detach(), alpha.detach(), {k: s[k].grad for k in kit.GRAD_KEYS}

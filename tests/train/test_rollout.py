@@ -508,7 +508,7 @@ def test_evaluate_command_compares_two_checkpoints(dpo_root, stage1_ckpt, tmp_pa
             abs(math.log10(physics.E) - truth[scene.id]), mode="stand-in", frames=reference
         )
 
-    monkeypatch.setattr(evaluate_dpo, "evaluate_physics", score)
+    monkeypatch.setattr(env, "evaluate_physics", score)
     out = tmp_path / "eval"
     argv = ["--pretrain", stage1_ckpt, "--dpo", str(dpo_path), "--data", str(dpo_root), "--split", "dpo"]
     assert evaluate_dpo.main([*argv, "--frames", "6", "--out", str(out), "--workers", "1"]) == 0

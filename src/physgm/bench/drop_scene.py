@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
 import torch
 
 from physgm.cameras import Cameras, orbit_cameras
 from physgm.gaussians import Gaussians
+from physgm.physics.materials import PhysicsSpec, get_material
 
 
 def hollow_cube_gaussians(n: int, side: float, bottom: float, seed: int = 0) -> Gaussians:
@@ -48,3 +52,29 @@ def project(cameras: Cameras, x: torch.Tensor) -> torch.Tensor:
     cam = x @ view[:3, :3].T + view[:3, 3]
     uvw = cam @ cameras.Ks[0].to(x).T
     return uvw[..., :2] / uvw[..., 2:3]
+
+
+@dataclass(frozen=True)
+class DropBench:
+    """The planned drops of ``python -m physgm.bench sim``: which materials fall, for how long, as
+    which hollow cube (its ``scenes`` and ``options`` parts drop the same one)."""
+
+    materials: tuple[str, ...]  # material table names, one drop each
+    n_frames: int = 50  # output frames, the rest frame 0 included
+    n_gaussians: int = 20_000  # Gaussians on the cube's surface
+    side: float = 0.15  # cube side, m
+    bottom: float = 0.5  # height of the cube's lowest face above the ground at the start, m
+    E_override: Mapping[str, float] = field(default_factory=dict)  # material -> E (Pa), else the table's
+
+    def gaussians(self) -> Gaussians:
+        return hollow_cube_gaussians(self.n_gaussians, self.side, self.bottom)
+
+    def camera(self) -> Cameras:
+        return bench_camera(self.side, self.bottom)
+
+    def physics(self, material: str) -> PhysicsSpec:
+        return PhysicsSpec(material, E=self.E_override.get(material, get_material(material).E))
+
+    def scene_overrides(self) -> dict[str, float]:
+        """Keyword arguments of the registered "drop" scene: the cube starts at ``bottom``."""
+        return {"height": self.bottom}

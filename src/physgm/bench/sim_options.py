@@ -22,9 +22,8 @@ from __future__ import annotations
 
 import sys
 
-from physgm.bench.drop_scene import bench_camera, hollow_cube_gaussians, project
-from physgm.physics.materials import PhysicsSpec, get_material
-from physgm.sim.gaussian_trajectory import GaussianTrajectory, plan_for, simulate
+from physgm.bench.drop_scene import DropBench, project
+from physgm.sim.gaussian_trajectory import GaussianTrajectory, prepare_simulation, simulate
 from physgm.sim.planner import PlannerConfig
 
 OFF = dict(allow_rigid=False, allow_bulk_cap=False, allow_stiffness_cap=False)
@@ -52,33 +51,30 @@ def errors_px(cameras, run: GaussianTrajectory, ref: GaussianTrajectory) -> dict
 
 
 def option_table(
-    materials: list[str],
-    n_frames: int,
-    n_gaussians: int,
-    side: float,
-    bottom: float,
-    E_override: dict[str, float],
+    bench: DropBench,
     max_reference_cost: float = 3e9,
     cells_across: int | None = None,
     bulk_ratios: tuple[float, ...] = (2.0,),
 ) -> list[dict]:
-    """One row per (material, option); see the module docstring.
+    """One row per (material, option) of the bench drop; see the module docstring.
 
     Args:
+        max_reference_cost: particle-substeps above which the explicit reference is not run.
         cells_across: grid cells across the object for every option (None: the planner default).
         bulk_ratios: c_p / c_s of the bulk-cap rows (one row each).
     """
     grid = {} if cells_across is None else {"cells_across": cells_across}
-    gaussians = hollow_cube_gaussians(n_gaussians, side, bottom)
-    cameras = bench_camera(side, bottom)
+    gaussians, cameras, scene_overrides = bench.gaussians(), bench.camera(), bench.scene_overrides()
     out = []
-    for name in materials:
-        physics = PhysicsSpec(name, E=E_override.get(name, get_material(name).E))
+    for name in bench.materials:
+        physics = bench.physics(name)
 
         ref, seen = None, {}
         for option, overrides in options(tuple(bulk_ratios)).items():
             cfg = PlannerConfig(**overrides, **grid)
-            probe = plan_for(gaussians, physics, "drop", cameras, n_frames, cfg, {"height": bottom})
+            probe = prepare_simulation(
+                gaussians, physics, "drop", cameras, bench.n_frames, cfg, scene_overrides=scene_overrides
+            ).plan
             key = (probe.mode, probe.E_used, probe.nu_used)
             row = {"material": name, "option": option, **physics.to_dict(), **grid, "mode": probe.mode}
             row.update(E_used=probe.E_used, nu_used=probe.nu_used)
@@ -94,7 +90,13 @@ def option_table(
                 print(f"[bench sim options] {name}: reference too costly, skipped", file=sys.stderr)
                 break
             traj = simulate(
-                gaussians, physics, "drop", cameras, n_frames, cfg, scene_overrides={"height": bottom}
+                gaussians,
+                physics,
+                "drop",
+                cameras,
+                n_frames=bench.n_frames,
+                planner=cfg,
+                scene_overrides=scene_overrides,
             )
             row.update(seconds=traj.seconds, substeps=traj.substeps, rest_frame=traj.rest_frame)
             if option == "explicit":

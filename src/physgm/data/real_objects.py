@@ -65,7 +65,9 @@ class RealObject:
         return SPLIT_OF_SOURCE[self.source]
 
 
-def _mw(id, material, reason, xml, deps, **kw) -> RealObject:
+def _mw(id, material, reason, xml, deps="", **kw) -> RealObject:
+    """A metaworld MJCF object; its dependencies file is ``<xml stem>_dependencies.xml`` unless named."""
+    deps = deps or xml.removesuffix(".xml") + "_dependencies.xml"
     return RealObject(id, "metaworld", material, reason, xml=MW + xml, deps=(MW + deps,), **kw)
 
 
@@ -150,13 +152,7 @@ OBJECTS: tuple[RealObject, ...] = (
         mesh="assets/objects/meshes/coffeemachine/cup.stl",
         rgba=(0.85, 0.85, 0.85),
     ),
-    _mw(
-        "mw_basketball",
-        "rubber",
-        "a basketball: orange rubber with black seams",
-        "basketball.xml",
-        "basketball_dependencies.xml",
-    ),
+    _mw("mw_basketball", "rubber", "a basketball: orange rubber with black seams", "basketball.xml"),
     _mw(
         "mw_soccer_ball",
         "leather",
@@ -193,76 +189,40 @@ OBJECTS: tuple[RealObject, ...] = (
         "plastic",
         "an open laptop, grey plastic shell and black screen",
         "laptop.xml",
-        "laptop_dependencies.xml",
         yaw_deg=90,
     ),
     _mw(
-        "mw_shelf",
-        "wood",
-        "a wooden shelf unit (wood texture) with white supports",
-        "shelf.xml",
-        "shelf_dependencies.xml",
-        yaw_deg=90,
+        "mw_shelf", "wood", "a wooden shelf unit (wood texture) with white supports", "shelf.xml", yaw_deg=90
     ),
     _mw(
         "mw_bin", "plastic", "a glossy red storage tray: moulded plastic", "binA.xml", "bin_dependencies.xml"
     ),
-    _mw("mw_box", "wood", "an open box with a wood texture", "box.xml", "box_dependencies.xml"),
-    _mw(
-        "mw_faucet",
-        "metal",
-        "a tap: metal body and spout with a red lever",
-        "faucet.xml",
-        "faucet_dependencies.xml",
-    ),
-    _mw(
-        "mw_thermos",
-        "metal",
-        "a steel thermos flask with a handle",
-        "thermos.xml",
-        "thermos_dependencies.xml",
-        yaw_deg=90,
-    ),
+    _mw("mw_box", "wood", "an open box with a wood texture", "box.xml"),
+    _mw("mw_faucet", "metal", "a tap: metal body and spout with a red lever", "faucet.xml"),
+    _mw("mw_thermos", "metal", "a steel thermos flask with a handle", "thermos.xml", yaw_deg=90),
     _mw(
         "mw_button_box",
         "plastic",
         "a yellow-and-black stop-button box with a red push button",
         "buttonbox.xml",
-        "buttonbox_dependencies.xml",
         yaw_deg=90,
     ),
-    _mw("mw_block", "wood", "a wooden toy cube (wood texture)", "block.xml", "block_dependencies.xml"),
-    _mw(
-        "mw_peg_block",
-        "wood",
-        "a wooden block with a red-lined peg hole",
-        "peg_block.xml",
-        "peg_block_dependencies.xml",
-        yaw_deg=90,
-    ),
-    _mw("mw_table", "wood", "a wooden table", "table.xml", "table_dependencies.xml"),
+    _mw("mw_block", "wood", "a wooden toy cube (wood texture)", "block.xml"),
+    _mw("mw_peg_block", "wood", "a wooden block with a red-lined peg hole", "peg_block.xml", yaw_deg=90),
+    _mw("mw_table", "wood", "a wooden table", "table.xml"),
     _mw(
         "mw_coffee_machine",
         "plastic",
         "a coffee machine with a moulded dark-red and black plastic body",
         "coffeemachine.xml",
-        "coffeemachine_dependencies.xml",
         yaw_deg=90,
     ),
-    _mw(
-        "mw_lever",
-        "metal",
-        "a metal lever arm on a metal base with a blue knob",
-        "lever.xml",
-        "lever_dependencies.xml",
-        yaw_deg=90,
-    ),
+    _mw("mw_lever", "metal", "a metal lever arm on a metal base with a blue knob", "lever.xml", yaw_deg=90),
     _mw(
         "mw_wall",
         "stone",
         "a brick wall section: fired-clay masonry, rigid, matte and rough like stone",
         "wall.xml",
-        "wall_dependencies.xml",
         yaw_deg=90,
     ),
     _mw(
@@ -270,7 +230,6 @@ OBJECTS: tuple[RealObject, ...] = (
         "glass",
         "a sash window: two large panes of glass in a thin frame",
         "window.xml",
-        "window_dependencies.xml",
         yaw_deg=90,
     ),
 )

@@ -11,15 +11,15 @@ from typing import Protocol
 import torch
 from torch import Tensor
 
+from physgm.render.batch import SplatBatch
 from physgm.render.gsplat_backend import rasterize_gsplat
 from physgm.render.settings import RasterSettings, single_threaded_torch
 from physgm.render.torch_backend import rasterize_torch
 from physgm.render.validate import validate_inputs
 from physgm.render.warp_backend import rasterize_warp
 
-# name -> backend(means [B,N,3], quats, scales, opacities [B,N], colors, viewmats [B,C,4,4],
-# Ks [B,C,3,3], settings) -> (rgb [B,C,H,W,3] without background, alpha [B,C,H,W,1], meta)
-BACKENDS: dict[str, Callable[..., tuple[Tensor, Tensor, dict]]] = {
+# name -> backend(batch, settings) -> (rgb [B,C,H,W,3] without background, alpha [B,C,H,W,1], meta)
+BACKENDS: dict[str, Callable[[SplatBatch, RasterSettings], tuple[Tensor, Tensor, dict]]] = {
     "warp": rasterize_warp,
     "torch": rasterize_torch,
     "gsplat": rasterize_gsplat,
@@ -89,16 +89,18 @@ def rasterize(
             width, height, float(near_plane), float(far_plane), float(eps2d), tile_size, num_threads
         )
         num_b = math.prod(lead)
-        gauss = [x.reshape(num_b, num_n, *x.shape[len(lead) + 1 :]) for x in gauss]
-        cams = [x.reshape(num_b, num_c, *x.shape[len(lead) + 1 :]) for x in cams]
+        batch = SplatBatch(
+            *(x.reshape(num_b, num_n, *x.shape[len(lead) + 1 :]) for x in gauss),
+            *(x.reshape(num_b, num_c, *x.shape[len(lead) + 1 :]) for x in cams),
+        )
 
         if num_n == 0 or num_c == 0:
             rgb = means.new_zeros(num_b, num_c, height, width, 3)
             alpha = means.new_zeros(num_b, num_c, height, width, 1)
             meta = _empty_meta(means, num_b, num_c, num_n)
         else:
-            rgb, alpha, meta = BACKENDS[backend](*gauss, *cams, settings)
-        rgb, alpha = _keep_graph(rgb, gauss), _keep_graph(alpha, gauss)
+            rgb, alpha, meta = BACKENDS[backend](batch, settings)
+        rgb, alpha = _keep_graph(rgb, batch.gaussians()), _keep_graph(alpha, batch.gaussians())
 
         if background is not None:
             bg = background if background.dim() == 1 else background.reshape(num_b, num_c, 1, 1, 3)
@@ -133,7 +135,7 @@ def rasterize_gaussians(
     )
 
 
-def _keep_graph(out: Tensor, inputs: list[Tensor]) -> Tensor:
+def _keep_graph(out: Tensor, inputs: tuple[Tensor, ...]) -> Tensor:
     """Keeps an output attached to the inputs when nothing was drawn (N = 0, all culled).
 
     Then it does not depend on them and `loss.backward()` would fail with "does not require

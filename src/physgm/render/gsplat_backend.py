@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from physgm.render.batch import SplatBatch
 from physgm.render.settings import RasterSettings
 
 _HOW_TO_SWITCH = (
@@ -13,21 +14,12 @@ _HOW_TO_SWITCH = (
 )
 
 
-def rasterize_gsplat(
-    means: Tensor,  # [B, N, 3]
-    quats: Tensor,  # [B, N, 4]
-    scales: Tensor,  # [B, N, 3]
-    opacities: Tensor,  # [B, N]
-    colors: Tensor,  # [B, N, 3]
-    viewmats: Tensor,  # [B, C, 4, 4]
-    Ks: Tensor,  # [B, C, 3, 3]
-    settings: RasterSettings,
-) -> tuple[Tensor, Tensor, dict]:
+def rasterize_gsplat(batch: SplatBatch, settings: RasterSettings) -> tuple[Tensor, Tensor, dict]:
     """Renders with `gsplat.rasterization` (classic mode, no background: the caller adds it)."""
-    if means.device.type != "cuda":
+    if batch.means.device.type != "cuda":
         raise ValueError(
             f"the gsplat backend needs CUDA tensors (gsplat's kernels are CUDA-only), got "
-            f"device {means.device}. {_HOW_TO_SWITCH}"
+            f"device {batch.means.device}. {_HOW_TO_SWITCH}"
         )
     try:
         import gsplat
@@ -38,15 +30,15 @@ def rasterize_gsplat(
 
     rgbs, alphas, metas = [], [], []
     # one call per batch element: works with every gsplat release (batch dims came in 1.5)
-    for b in range(means.shape[0]):
+    for b in range(batch.num_b):
         rgb, alpha, meta = gsplat.rasterization(
-            means[b],
-            quats[b],
-            scales[b],
-            opacities[b],
-            colors[b],
-            viewmats[b],
-            Ks[b],
+            batch.means[b],
+            batch.quats[b],
+            batch.scales[b],
+            batch.opacities[b],
+            batch.colors[b],
+            batch.viewmats[b],
+            batch.Ks[b],
             settings.width,
             settings.height,
             near_plane=settings.near_plane,

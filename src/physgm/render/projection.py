@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from physgm.render.batch import SplatBatch
 from physgm.render.settings import (
     ALPHA_MIN,
     EXTENT_MARGIN_ABS,
@@ -58,22 +59,15 @@ def quat_to_rotmat(quats: Tensor) -> Tensor:
     return torch.stack([torch.stack(r, dim=-1) for r in rows], dim=-2)
 
 
-def project_gaussians(
-    means: Tensor,  # [B, N, 3] world (m)
-    quats: Tensor,  # [B, N, 4] (w, x, y, z)
-    scales: Tensor,  # [B, N, 3] linear std (m)
-    opacities: Tensor,  # [B, N]
-    viewmats: Tensor,  # [B, C, 4, 4] world-to-camera, OpenCV
-    Ks: Tensor,  # [B, C, 3, 3] pixel intrinsics
-    settings: RasterSettings,
-) -> Projection:
+def project_gaussians(batch: SplatBatch, settings: RasterSettings) -> Projection:
     """Projects every Gaussian into every camera of its batch element (EWA splatting)."""
+    means, quats, scales, viewmats, Ks = batch.means, batch.quats, batch.scales, batch.viewmats, batch.Ks
     rot_w = viewmats[..., :3, :3]  # [B, C, 3, 3]
     trans_w = viewmats[..., :3, 3]  # [B, C, 3]
     p_cam = torch.einsum("bcij,bnj->bcni", rot_w, means) + trans_w[:, :, None]  # [B, C, N, 3]
     x, y, z = p_cam.unbind(-1)
     visible = (z >= settings.near_plane) & (z <= settings.far_plane)
-    visible = visible & (opacities[:, None] >= ALPHA_MIN)
+    visible = visible & (batch.opacities[:, None] >= ALPHA_MIN)
     z = torch.where(visible, z, torch.ones_like(z))  # culled pairs: finite values, no NaN grads
 
     fx, fy = Ks[..., 0, 0, None], Ks[..., 1, 1, None]  # [B, C, 1]

@@ -12,6 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from physgm.render.batch import SplatBatch
 from physgm.render.projection import extents_from_cov, project_gaussians, radii_px, tile_rects
 from physgm.render.settings import ALPHA_MAX, ALPHA_MIN, T_MIN, RasterSettings
 
@@ -34,22 +35,13 @@ def composite(
     return weights @ colors, weights.sum(dim=1)
 
 
-def rasterize_torch(
-    means: Tensor,  # [B, N, 3]
-    quats: Tensor,  # [B, N, 4]
-    scales: Tensor,  # [B, N, 3]
-    opacities: Tensor,  # [B, N]
-    colors: Tensor,  # [B, N, 3]
-    viewmats: Tensor,  # [B, C, 4, 4]
-    Ks: Tensor,  # [B, C, 3, 3]
-    settings: RasterSettings,
-) -> tuple[Tensor, Tensor, dict]:
+def rasterize_torch(batch: SplatBatch, settings: RasterSettings) -> tuple[Tensor, Tensor, dict]:
     """Renders B x C images; returns rgb [B, C, H, W, 3] (no background), alpha [B, C, H, W, 1]."""
-    num_b, num_c = viewmats.shape[:2]
-    num_n = means.shape[1]
+    num_b, num_c, num_n = batch.num_b, batch.num_c, batch.num_n
+    means = batch.means  # [B, N, 3]; also gives the outputs' device and dtype
     width, height, tile = settings.width, settings.height, settings.tile_size
-    proj = project_gaussians(means, quats, scales, opacities, viewmats, Ks, settings)
-    opac = opacities[:, None].expand(num_b, num_c, num_n)  # [B, C, N]
+    proj = project_gaussians(batch, settings)
+    opac = batch.opacities[:, None].expand(num_b, num_c, num_n)  # [B, C, N]
     extents = extents_from_cov(proj.cov_diag, opac)
     rect, nonempty = tile_rects(proj.means2d, extents, proj.visible, settings)
 
@@ -60,7 +52,7 @@ def rasterize_torch(
     rect = rect.reshape(num_images, num_n, 4)
     nonempty = nonempty.reshape(num_images, num_n)
     opac = opac.reshape(num_images, num_n)
-    cols = colors[:, None].expand(num_b, num_c, num_n, 3).reshape(num_images, num_n, 3)
+    cols = batch.colors[:, None].expand(num_b, num_c, num_n, 3).reshape(num_images, num_n, 3)
 
     pieces_rgb, pieces_alpha, pieces_index = [], [], []
     n_isect = torch.zeros(num_images, dtype=torch.int64, device=means.device)

@@ -29,6 +29,7 @@ from physgm.parallel import helpers_for_this_thread, run_split
 from physgm.render import warp_kernels as K
 from physgm.render import warp_raster_kernels as R
 from physgm.render import warp_tile_kernels as T
+from physgm.render.batch import SplatBatch
 from physgm.render.projection import radii_px
 from physgm.render.settings import RasterSettings, single_threaded_torch
 from physgm.warp_runtime import ensure_loaded
@@ -394,29 +395,19 @@ class _RasterizeWarp(torch.autograd.Function):
         return v_means, v_quats, v_scales, v_opac, v_colors, None, None, None, None
 
 
-def rasterize_warp(
-    means: Tensor,  # [B, N, 3]
-    quats: Tensor,  # [B, N, 4]
-    scales: Tensor,  # [B, N, 3]
-    opacities: Tensor,  # [B, N]
-    colors: Tensor,  # [B, N, 3]
-    viewmats: Tensor,  # [B, C, 4, 4]
-    Ks: Tensor,  # [B, C, 3, 3]
-    settings: RasterSettings,
-) -> tuple[Tensor, Tensor, dict]:
+def rasterize_warp(batch: SplatBatch, settings: RasterSettings) -> tuple[Tensor, Tensor, dict]:
     """Renders B x C images in one pass; returns rgb [B, C, H, W, 3] (no background), alpha."""
     wp.init()  # no-op after the first call
-    num_b, num_c = viewmats.shape[:2]
-    num_n = means.shape[1]
-    dtype = means.dtype
+    num_b, num_c, num_n = batch.num_b, batch.num_c, batch.num_n
+    dtype = batch.means.dtype
 
     def flat(x: Tensor, *tail: int) -> Tensor:
         # float32 is the kernels' type; the cast is part of the autograd graph
         return x.reshape(-1, *tail).to(torch.float32).contiguous()
 
     rgb, alpha, means2d, depths, extents, counts = _RasterizeWarp.apply(
-        flat(means, 3), flat(quats, 4), flat(scales, 3), flat(opacities), flat(colors, 3),
-        flat(viewmats, 4, 4), flat(Ks, 3, 3), settings, num_c,
+        flat(batch.means, 3), flat(batch.quats, 4), flat(batch.scales, 3), flat(batch.opacities),
+        flat(batch.colors, 3), flat(batch.viewmats, 4, 4), flat(batch.Ks, 3, 3), settings, num_c,
     )  # fmt: skip
     shape = (num_b, num_c, settings.height, settings.width)
     nonempty = counts.reshape(num_b, num_c, num_n) > 0

@@ -222,7 +222,20 @@ def prepare_simulation(
     solver: SolverConfig | None = None,
     scene_overrides: dict | None = None,
 ) -> PreparedSimulation:
-    """Sample particles, apply the scene and plan; see ``simulate`` for the arguments."""
+    """Samples particles, applies the scene and plans: all of ``simulate`` before the solver starts.
+
+    Args:
+        gaussians: [N] object Gaussians in SI metres, +z up, placed where the scene starts.
+        physics: a ``PhysicsSpec`` (material of the table, E, nu, density, restitution), or
+            ``MaterialParams`` simulated as given.
+        scene: registered scene name (conf/sim/scene), a Scene, a SceneSetup, or (Scene, v0 [P, 3]
+            or [3]).
+        cameras: output cameras and resolution (the pixel bound is measured there).
+        n_frames: output frames T including the rest frame 0.
+        planner: planner settings (conf/sim/planner/default.yaml).
+        solver: MPM solver settings (frame_dt, cfl, ...).
+        scene_overrides: keyword arguments of a registered scene (e.g. the drop's height, m).
+    """
     start = time.perf_counter()
     cfg = PlannerConfig(**planner) if isinstance(planner, dict) else planner or PlannerConfig()
     solver_cfg = solver or SolverConfig()
@@ -257,23 +270,6 @@ def prepare_simulation(
     return PreparedSimulation(
         plan, gaussians, sample, setup.scene, v0, material, cfg, solver_cfg, time.perf_counter() - start
     )
-
-
-def plan_for(
-    gaussians: Gaussians,
-    physics: PhysicsSpec | MaterialParams,
-    scene: str | Scene | tuple,
-    cameras: Cameras,
-    n_frames: int = 50,
-    planner: PlannerConfig | None = None,
-    scene_overrides: dict | None = None,
-    frame_dt: float = SolverConfig.frame_dt,
-) -> Plan:
-    """The plan ``simulate`` would run with these arguments, without simulating."""
-    solver = SolverConfig(frame_dt=frame_dt)
-    return prepare_simulation(
-        gaussians, physics, scene, cameras, n_frames, planner, solver, scene_overrides
-    ).plan
 
 
 def run_prepared(
@@ -339,29 +335,17 @@ def simulate(
     physics: PhysicsSpec | MaterialParams,
     scene: str | Scene | tuple,
     cameras: Cameras,
-    n_frames: int = 50,
-    planner: PlannerConfig | dict | None = None,
-    solver: SolverConfig | None = None,
-    scene_overrides: dict | None = None,
+    *,
     device: str = "cpu",
+    **options,
 ) -> GaussianTrajectory:
-    """Plan and run the cheapest simulation that stays within the pixel bound.
+    """Plans and runs the cheapest simulation that stays within the pixel bound.
 
-    Args:
-        gaussians: [N] object Gaussians in SI metres, +z up, placed where the scene starts.
-        physics: a ``PhysicsSpec`` (material of the table, E, nu, density, restitution), or
-            ``MaterialParams`` simulated as given.
-        scene: registered scene name (conf/sim/scene), a Scene, or (Scene, v0 [P, 3] or [3]).
-        cameras: output cameras and resolution (the pixel bound is measured there).
-        n_frames: output frames T including the rest frame 0.
-        planner: planner settings (conf/sim/planner/default.yaml).
-        solver: MPM solver settings (frame_dt, cfl, ...).
-        device: Warp device of the MPM solver.
+    ``prepare_simulation`` then ``run_prepared``: the arguments and the ``options`` (n_frames,
+    planner, solver, scene_overrides) are ``prepare_simulation``'s; ``device`` is the Warp device
+    of the MPM solver.
     """
-    prepared = prepare_simulation(
-        gaussians, physics, scene, cameras, n_frames, planner, solver, scene_overrides
-    )
-    return run_prepared(prepared, device)
+    return run_prepared(prepare_simulation(gaussians, physics, scene, cameras, **options), device)
 
 
 def _run_rigid(

@@ -30,14 +30,7 @@ from physgm.metrics.perceptual import perceptual_distance
 from physgm.metrics.trajectory import score_videos
 from physgm.model.checkpoint import load_model
 from physgm.physics.materials import MATERIAL_NAMES
-from physgm.train.rollout_env import (
-    SimSettings,
-    evaluate_physics,
-    load_scenes,
-    physics_spec,
-    predict,
-    reference_frames,
-)
+from physgm.train import rollout_env
 from physgm.warp_runtime import preload
 
 KEY_MATERIALS = ("metal", "jelly", "plasticine", "snow", "sand", "rubber")  # always reported
@@ -55,13 +48,13 @@ def input_settings(hparams: dict, model) -> dict:
     return inputs
 
 
-def evaluate_scene(models: dict, scene, settings: SimSettings, workers: int) -> tuple[dict, dict]:
+def evaluate_scene(models: dict, scene, settings: rollout_env.SimSettings, workers: int) -> tuple[dict, dict]:
     """Both models' mean-physics rollouts of one scene: (row, {name: scored frames or None})."""
-    reference = reference_frames(scene, settings.n_frames)
+    reference = rollout_env.reference_frames(scene, settings.n_frames)
     row = {**scene.truth(), "true_known": scene.true_known}
 
     def run(name: str) -> tuple[str, dict, np.ndarray | None]:
-        gaussians, posterior = predict(models[name], scene.inputs)
+        gaussians, posterior = rollout_env.predict(models[name], scene.inputs)
         mean = posterior.mean()
         out = {
             "material": MATERIAL_NAMES[int(mean.material[0, 0])],
@@ -70,8 +63,10 @@ def evaluate_scene(models: dict, scene, settings: SimSettings, workers: int) -> 
         }
         start, frames = time.perf_counter(), None
         try:
-            physics = physics_spec(mean)
-            result = evaluate_physics(scene, gaussians, physics, reference, settings, keep_frames=True)
+            physics = rollout_env.physics_spec(mean)
+            result = rollout_env.evaluate_physics(
+                scene, gaussians, physics, reference, settings, keep_frames=True
+            )
             frames = result.frames
             out.update(score=result.distance, mode=result.mode, skipped=result.skipped, terms=result.terms)
         except (ValueError, RuntimeError) as err:
@@ -219,10 +214,12 @@ def main(argv: list[str] | None = None) -> int:
     scenes = [
         s
         for split in a.split.split(",")
-        for s in load_scenes(a.data, split.strip(), a.video, views, res, float(inputs["background"]), a.seed)
+        for s in rollout_env.load_scenes(
+            a.data, split.strip(), a.video, views, res, float(inputs["background"]), a.seed
+        )
     ]
     scenes = scenes[: a.max_scenes]
-    settings = SimSettings(
+    settings = rollout_env.SimSettings(
         resolution=a.resolution,
         n_frames=a.frames,
         backend=a.backend,
@@ -238,7 +235,9 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(row)
         if scene.material not in {m for m, _ in sheets}:
             sheet = out_dir / f"sheet_{scene.material}.png"
-            write_sheet(sheet, scene, row, reference_frames(scene, settings.n_frames), clips, scene.fps)
+            write_sheet(
+                sheet, scene, row, rollout_env.reference_frames(scene, settings.n_frames), clips, scene.fps
+            )
             sheets.append((scene.material, str(sheet)))
         print(
             f"[{i + 1}/{len(scenes)}] {scene.id} ({scene.material}): "
