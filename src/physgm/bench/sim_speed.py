@@ -185,8 +185,8 @@ def speed_vs_error(n_frames: int, n_gaussians: int, side: float, bottom: float, 
         )
     for density in [1.0, 8.0] if quick else [1.0, 4.0, 8.0, 27.0]:
         traj = run(jelly, particles_per_cell=density)
-        out.append(_row("density", jelly, traj, ref, cameras, cells_across=base.cells_across, cfl=0.4,
-                        particles_per_cell=density))  # fmt: skip
+        settings = dict(cells_across=base.cells_across, cfl=0.4, particles_per_cell=density)
+        out.append(_row("density", jelly, traj, ref, cameras, **settings))
     for cfl in [0.2, 0.4, 0.8]:
         traj = run(jelly, cfl=cfl)
         out.append(

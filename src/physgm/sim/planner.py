@@ -474,10 +474,10 @@ def plan_simulation(
             return (d.sag + d.impact) * px_per_m
 
         share = cfg.bound_px * (1.0 - (cfg.cap_budget if caps_E else 0.0))
+        object_px = size * px_per_m
         bulk = choose_bulk_cap(
-            material, deformation_px, size * px_per_m, elastic_impact, share, cfg.bulk_wave_ratio,
-            cfg.force_caps,
-        )  # fmt: skip
+            material, deformation_px, object_px, elastic_impact, share, cfg.bulk_wave_ratio, cfg.force_caps
+        )
         bulk_steps = bulk and substeps_per_frame(grid_dx, [bulk.material], v_max, cfg.cfl, frame_dt)
         if bulk is not None and (cfg.force_caps or n_steps >= cfg.min_cap_gain * bulk_steps):
             notes.append(
