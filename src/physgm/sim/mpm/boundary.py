@@ -1,18 +1,21 @@
 """Boundary conditions acting on the grid: ground plane and moving velocity boxes.
 
 Where the ground acts (issue 24): a grid node's velocity reaches every particle within 1.5 cells
-(quadratic B-splines), and a particle feels a node firmly once it is within about a cell. A
-condition on the nodes at the plane (``held_depth=0``, the default) therefore holds a body about
-a cell above it: impacts begin while the surface is ~1.25 cells up and bodies rest a cell high.
-With ``held_depth=SURFACE_DEPTH`` the ground acts on the nodes 7/8 cell or more below the plane,
-and the solver aligns its grid so that a node plane lies exactly there (``GridSpec.aligned``):
-impacts begin when the material's surface (a quarter cell below the lowest particles) reaches
-the plane, bodies rest with their lowest particles within a quarter cell of it, and the
-elastic ball keeps its restitution (0.946 -> 0.940). It is not the default because the held
-nodes then reach the bottom particles only through the tails of their stencils, which weakens
-friction and stickiness: the sticky sand pile's slope fell from 31.3 to 29.1 degrees (for 35),
-and a rubber block pushed along a mu = 0.4 floor did not come to rest within 1.2 s. Making the
-tangential condition act at the surface too is the missing piece (docs/measurements_sim.md).
+(quadratic B-splines), so a condition on the nodes at the plane (``held_depth=0``) holds a body
+about a cell above it: impacts begin while its surface is ~1.25 cells up and it rests a cell
+high. By default the ground holds the nodes 7/8 cell or more below the plane
+(``held_depth=SURFACE_DEPTH``) and the solver aligns its grid so that a node plane lies exactly
+there (``GridSpec.aligned``): impacts begin when the material's surface (a quarter cell below
+the lowest particles) reaches the plane, bodies rest with their lowest particles within a
+quarter cell of it, and an elastic ball keeps its restitution. Held that deep, the nodes reach
+the lowest particles only through the tails of their stencils, so on a Coulomb ground the node
+layer just above the held one also takes the friction the held nodes' normal impulse allows
+(``surface_friction``).
+
+Sticky grounds keep ``held_depth=0`` by default: the granular verification cases on a rough
+(sticky) base do not hold at the surface. A sand heap's slope comes out 28-29 degrees for 35
+(tolerance 5), and gluing the surface layer or the particles that touch it steepens the heap
+but cuts a collapsing column's run-out below the experiments' band (docs/measurements_sim.md).
 """
 
 from __future__ import annotations
@@ -54,24 +57,26 @@ class BoxStruct:
 class GroundPlane:
     """Plane z = ``height`` acting on the grid nodes ``held_depth`` cells or more below it.
 
-    held_depth: 0 (default) holds the nodes at or below the plane: contact starts ~1.25 cells
-    up and bodies rest a cell high. ``SURFACE_DEPTH`` puts contact and rest at the plane but
-    weakens friction and stickiness (module docstring), so it is not the default yet.
+    held_depth: ``SURFACE_DEPTH`` puts contact and rest at the plane; 0 holds the nodes at or
+    below the plane (contact starts ~1.25 cells up, bodies rest a cell high). Default (None):
+    ``SURFACE_DEPTH``, except 0 for sticky grounds (module docstring).
 
     mode: "separate" (Coulomb friction ``friction``, lift-off allowed), "slip" (frictionless,
-    lift-off allowed) or "sticky" (nodes below the plane do not move).
+    lift-off allowed) or "sticky" (held nodes do not move).
     """
 
     height: float = 0.0
     friction: float = 0.3
     mode: str = "separate"
-    held_depth: float = 0.0  # cells; SURFACE_DEPTH: contact at the surface
+    held_depth: float | None = None  # cells; None: SURFACE_DEPTH, 0 for sticky
 
     def __post_init__(self) -> None:
         if self.mode not in _GROUND_MODES:
             raise ValueError(f"ground mode {self.mode!r} unknown; use one of {', '.join(_GROUND_MODES)}")
         if not (math.isfinite(self.friction) and self.friction >= 0.0):
             raise ValueError(f"ground friction={self.friction!r} must be finite and >= 0")
+        if self.held_depth is None:
+            object.__setattr__(self, "held_depth", 0.0 if self.mode == "sticky" else SURFACE_DEPTH)
         if not (math.isfinite(self.held_depth) and 0.0 <= self.held_depth < 1.5):
             raise ValueError(
                 f"ground held_depth={self.held_depth!r} cells must be in [0, 1.5); try 0 or 0.875"
@@ -174,3 +179,18 @@ def ground_velocity(ground: GroundStruct, pos: wp.vec3, dx: float, v: wp.vec3) -
     if vt_norm <= -ground.friction * vn:
         return wp.vec3(0.0)
     return vt * (1.0 + ground.friction * vn / vt_norm)
+
+
+@wp.func
+def ground_grip(ground: GroundStruct, m: float, v_free: wp.vec3, vel: wp.vec3) -> float:
+    """Friction impulse a held node of mass ``m`` leaves for the surface layer above it, N s.
+
+    Coulomb grounds only (``surface_friction``): what its normal impulse allows, less what its
+    own sliding used; 0 for slip and sticky grounds.
+    """
+    if ground.mode != GROUND_SEPARATE:
+        return 0.0
+    normal = m * (vel[2] - v_free[2])
+    used = m * wp.length(wp.vec3(vel[0] - v_free[0], vel[1] - v_free[1], 0.0))
+    return wp.max(ground.friction * normal - used, 0.0)
+
