@@ -1,5 +1,5 @@
-"""Ground contact at the surface, the default (issue 24 item 3): where impacts begin, where bodies
-rest, and friction on the surface layer (``boundary``, ``surface_friction``)."""
+"""Ground contact at the surface, ``held_depth=SURFACE_DEPTH`` (issue 24 item 3): where impacts
+begin, where bodies rest, and friction on the surface layer (``boundary``, ``surface_friction``)."""
 
 from __future__ import annotations
 
@@ -41,16 +41,9 @@ def _block(
     return MPMSolver(p, [mat], grid, scene, SolverConfig(frame_dt=frame_dt, threads=1))
 
 
-def test_contact_at_the_surface_is_the_default():
-    assert GroundPlane().held_depth == GroundPlane(mode="slip").held_depth == SURFACE_DEPTH
-    # Sticky grounds keep the nodes at the plane: the granular cases on a rough base need it
-    # (boundary module docstring, docs/measurements_sim.md section 7).
-    assert GroundPlane(mode="sticky").held_depth == 0.0
-
-
 @pytest.mark.parametrize("mode, friction", [("slip", 0.0), ("separate", 0.5), ("sticky", 0.0)])
 def test_dropped_block_rests_with_its_lowest_particles_on_the_plane(mode, friction):
-    # Dropped 3 cm; a drag settles the bounce. With held_depth = 0 it rests about a cell high.
+    # Dropped 3 cm; a drag settles the bounce.
     ground = GroundPlane(0.0, friction=friction, mode=mode, held_depth=SURFACE_DEPTH)
     solver = _block(0.03, ground, 0.04, damping=15.0)
     for _ in range(20):
@@ -59,8 +52,10 @@ def test_dropped_block_rests_with_its_lowest_particles_on_the_plane(mode, fricti
     assert abs(z_low) <= 0.25 * DX, f"lowest particle {z_low / DX:.3f} dx from the plane"
 
 
-def test_held_depth_zero_keeps_the_old_ground_a_cell_high():
-    solver = _block(0.03, GroundPlane(0.0, friction=0.0, mode="slip", held_depth=0.0), 0.04, damping=15.0)
+def test_default_ground_holds_bodies_a_cell_high():
+    # held_depth = 0, the default (boundary module docstring says why): the nodes at the plane
+    # hold the block about a cell above it.
+    solver = _block(0.03, GroundPlane(0.0, friction=0.0, mode="slip"), 0.04, damping=15.0)
     for _ in range(20):
         solver.step_frame()
     assert float(solver.state().x[:, 2].min()) > 0.75 * DX
@@ -69,7 +64,7 @@ def test_held_depth_zero_keeps_the_old_ground_a_cell_high():
 def test_grid_is_aligned_to_the_ground_and_rest_height_does_not_depend_on_it():
     # A grid is lowered by a fraction of a cell to put a node plane SURFACE_DEPTH cells under the
     # ground; the result does not depend on where the given grid's nodes were.
-    ground = GroundPlane(0.0, friction=0.0, mode="slip")
+    ground = GroundPlane(0.0, friction=0.0, mode="slip", held_depth=SURFACE_DEPTH)
     lows = []
     for origin_z in (0.0, -0.37 * DX):
         solver = _block(0.03, ground, 0.04, damping=15.0, origin_z=origin_z)
@@ -87,7 +82,7 @@ def test_impact_begins_when_the_bottom_face_reaches_the_plane():
     # lowest particles) is then within a quarter cell of the plane. At held_depth = 0 it is ~1 cell up.
     bottom = 0.04
     frame_dt = 0.001
-    solver = _block(bottom, GroundPlane(0.0, friction=0.0, mode="slip"), frame_dt)
+    solver = _block(bottom, GroundPlane(0.0, friction=0.0, mode="slip", held_depth=SURFACE_DEPTH), frame_dt)
     face = bottom - SP / 2
     v_hit = math.sqrt(2 * G * face)
     t, dev = [0.0], [0.0]
@@ -106,7 +101,7 @@ def test_impact_begins_when_the_bottom_face_reaches_the_plane():
 def test_block_pushed_along_a_coulomb_floor_slides_the_coulomb_distance():
     # A stiff block resting on the plane, thrown sideways at 0.3 m/s on a mu = 0.4 floor: it
     # stops after v^2 / (2 mu g) = 11.5 mm, at the surface.
-    solver = _block(0.2 * DX, GroundPlane(0.0, friction=0.4), 0.01, E=1e6, vx=0.3)
+    solver = _block(0.2 * DX, GroundPlane(0.0, friction=0.4, held_depth=SURFACE_DEPTH), 0.01, E=1e6, vx=0.3)
     x0 = solver.state().x[:, 0].mean()
     for _ in range(20):
         solver.step_frame()
@@ -137,7 +132,7 @@ def test_surface_friction_matches_the_numpy_twin(monkeypatch):
     p = Particles.lattice((-0.02, -0.02, 0.1 * DX), (0.02, 0.02, 0.1 * DX + 0.03), SP)
     p.v = np.tile([0.5, 0.1, -2.0], (len(p), 1))  # an impact: the held nodes stick and leave grip
     mat = MaterialParams("fixed_corotated", 1e5, 0.3, 1000.0)
-    scene = Scene(ground=GroundPlane(0.0, friction=0.4))
+    scene = Scene(ground=GroundPlane(0.0, friction=0.4, held_depth=SURFACE_DEPTH))
     grid = GridSpec.fit((-0.05, -0.05, 0.0), (0.05, 0.05, 0.05), DX)
     solver = MPMSolver(p, [mat], grid, scene, SolverConfig(flip=0.0, threads=1))
     s0 = solver.state()
@@ -164,5 +159,5 @@ def test_surface_friction_matches_the_numpy_twin(monkeypatch):
 
 
 def test_elastic_ball_keeps_its_restitution():
-    result = V.ball_restitution(fast=True, E=1e5)
+    result = V.ball_restitution(fast=True, E=1e5, held_depth=SURFACE_DEPTH)
     assert result["restitution"] >= 0.9, result

@@ -1,21 +1,23 @@
 """Boundary conditions acting on the grid: ground plane and moving velocity boxes.
 
 Where the ground acts (issue 24): a grid node's velocity reaches every particle within 1.5 cells
-(quadratic B-splines), so a condition on the nodes at the plane (``held_depth=0``) holds a body
-about a cell above it: impacts begin while its surface is ~1.25 cells up and it rests a cell
-high. By default the ground holds the nodes 7/8 cell or more below the plane
-(``held_depth=SURFACE_DEPTH``) and the solver aligns its grid so that a node plane lies exactly
-there (``GridSpec.aligned``): impacts begin when the material's surface (a quarter cell below
-the lowest particles) reaches the plane, bodies rest with their lowest particles within a
+(quadratic B-splines), so a condition on the nodes at the plane (``held_depth=0``, the default)
+holds a body about a cell above it: impacts begin while its surface is ~1.25 cells up and it
+rests a cell high. With ``held_depth=SURFACE_DEPTH`` the ground holds the nodes 7/8 cell or
+more below the plane and the solver aligns its grid so that a node plane lies exactly there
+(``GridSpec.aligned``): impacts begin when the material's surface (a quarter cell below the
+lowest particles) reaches the plane, light bodies rest with their lowest particles within a
 quarter cell of it, and an elastic ball keeps its restitution. Held that deep, the nodes reach
 the lowest particles only through the tails of their stencils, so on a Coulomb ground the node
-layer just above the held one also takes the friction the held nodes' normal impulse allows
+layer just above the held one also takes the friction the held nodes' normal impulse leaves
 (``surface_friction``).
 
-Sticky grounds keep ``held_depth=0`` by default: the granular verification cases on a rough
-(sticky) base do not hold at the surface. A sand heap's slope comes out 28-29 degrees for 35
-(tolerance 5), and gluing the surface layer or the particles that touch it steepens the heap
-but cuts a collapsing column's run-out below the experiments' band (docs/measurements_sim.md).
+SURFACE_DEPTH is not the default because the support through the stencil tails is compliant:
+the bottom particles must come close enough to weigh on the held nodes, so soft or heavy bodies
+sink below the plane (a bulk-capped rubber block 0.4 cell lower than the uncapped one, twice
+what the planner's sag model predicts; a sand heap 0.6 cell under the plane), and on a sticky
+base no variant kept both the sand heap's slope and the column collapses' run-out
+(docs/measurements_sim.md, section 7).
 """
 
 from __future__ import annotations
@@ -57,9 +59,10 @@ class BoxStruct:
 class GroundPlane:
     """Plane z = ``height`` acting on the grid nodes ``held_depth`` cells or more below it.
 
-    held_depth: ``SURFACE_DEPTH`` puts contact and rest at the plane; 0 holds the nodes at or
-    below the plane (contact starts ~1.25 cells up, bodies rest a cell high). Default (None):
-    ``SURFACE_DEPTH``, except 0 for sticky grounds (module docstring).
+    held_depth: 0 (default) holds the nodes at or below the plane: contact starts ~1.25 cells
+    up and bodies rest a cell high. ``SURFACE_DEPTH`` puts contact and the rest of light bodies
+    at the plane, with Coulomb friction on the surface node layer, but lets soft or heavy bodies
+    sink (module docstring).
 
     mode: "separate" (Coulomb friction ``friction``, lift-off allowed), "slip" (frictionless,
     lift-off allowed) or "sticky" (held nodes do not move).
@@ -68,15 +71,13 @@ class GroundPlane:
     height: float = 0.0
     friction: float = 0.3
     mode: str = "separate"
-    held_depth: float | None = None  # cells; None: SURFACE_DEPTH, 0 for sticky
+    held_depth: float = 0.0  # cells; SURFACE_DEPTH: contact at the surface
 
     def __post_init__(self) -> None:
         if self.mode not in _GROUND_MODES:
             raise ValueError(f"ground mode {self.mode!r} unknown; use one of {', '.join(_GROUND_MODES)}")
         if not (math.isfinite(self.friction) and self.friction >= 0.0):
             raise ValueError(f"ground friction={self.friction!r} must be finite and >= 0")
-        if self.held_depth is None:
-            object.__setattr__(self, "held_depth", 0.0 if self.mode == "sticky" else SURFACE_DEPTH)
         if not (math.isfinite(self.held_depth) and 0.0 <= self.held_depth < 1.5):
             raise ValueError(
                 f"ground held_depth={self.held_depth!r} cells must be in [0, 1.5); try 0 or 0.875"
