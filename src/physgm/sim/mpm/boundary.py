@@ -14,10 +14,9 @@ layer just above the held one also takes the friction the held nodes' normal imp
 
 SURFACE_DEPTH is not the default because the support through the stencil tails is compliant:
 the bottom particles must come close enough to weigh on the held nodes, so soft or heavy bodies
-sink below the plane (a bulk-capped rubber block 0.4 cell lower than the uncapped one, twice
-what the planner's sag model predicts; a sand heap 0.6 cell under the plane), and on a sticky
-base no variant kept both the sand heap's slope and the column collapses' run-out
-(docs/measurements_sim.md, section 7).
+sink by a load- and stiffness-dependent depth (up to about half a cell), beyond what the
+planner's sag model allows for a bulk-capped material; and on a sticky base no variant kept both
+a sand heap's slope and a column collapse's run-out (docs/measurements_sim.md, section 7).
 """
 
 from __future__ import annotations
