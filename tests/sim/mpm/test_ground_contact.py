@@ -1,4 +1,5 @@
-"""Ground contact with held_depth=SURFACE_DEPTH (issue 24 item 3): where impacts begin, where bodies rest."""
+"""Ground contact at the surface, ``held_depth=SURFACE_DEPTH`` (issue 24 item 3): where impacts
+begin, where bodies rest, and friction on the surface layer (``boundary``, ``surface_friction``)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import pytest
 
 from physgm.bench.verification import analytic as V
 from physgm.sim.constitutive import MaterialParams
+from physgm.sim.mpm import reference_mpm
 from physgm.sim.mpm.boundary import SURFACE_DEPTH, GroundPlane
 from physgm.sim.mpm.grid import GridSpec
 from physgm.sim.mpm.scene import Scene
@@ -21,24 +23,42 @@ DX = 0.02
 SP = DX / 2  # particle spacing: the lowest particles sit SP / 2 above the block's bottom face
 
 
-def _block(bottom: float, ground: GroundPlane, frame_dt: float, damping: float = 0.0, origin_z: float = 0.0):
+def _block(
+    bottom: float,
+    ground: GroundPlane,
+    frame_dt: float,
+    damping: float = 0.0,
+    origin_z: float = 0.0,
+    E: float = 5e4,
+    vx: float = 0.0,
+):
     """An 8 x 8 x 5 cm elastic block (lowest particles at ``bottom``) above the plane z = 0."""
     p = Particles.lattice((-0.04, -0.04, bottom - SP / 2), (0.04, 0.04, bottom - SP / 2 + 0.05), SP)
-    mat = MaterialParams("fixed_corotated", 5e4, 0.3, 1000.0)
-    grid = GridSpec.fit((-0.08, -0.08, origin_z), (0.08, 0.08, bottom + 0.08), DX)
+    p.v = np.tile([vx, 0.0, 0.0], (len(p), 1))
+    mat = MaterialParams("fixed_corotated", E, 0.3, 1000.0)
+    grid = GridSpec.fit((-0.08, -0.08, origin_z), (0.08 + 2 * vx, 0.08, bottom + 0.08), DX)
     scene = Scene(ground=ground, damping=damping)
     return MPMSolver(p, [mat], grid, scene, SolverConfig(frame_dt=frame_dt, threads=1))
 
 
 @pytest.mark.parametrize("mode, friction", [("slip", 0.0), ("separate", 0.5), ("sticky", 0.0)])
 def test_dropped_block_rests_with_its_lowest_particles_on_the_plane(mode, friction):
-    # Dropped 3 cm; a drag settles the bounce. At the default held_depth = 0 it rests about a cell high.
+    # Dropped 3 cm; a drag settles the bounce.
     ground = GroundPlane(0.0, friction=friction, mode=mode, held_depth=SURFACE_DEPTH)
     solver = _block(0.03, ground, 0.04, damping=15.0)
     for _ in range(20):
         solver.step_frame()
     z_low = float(solver.state().x[:, 2].min())
     assert abs(z_low) <= 0.25 * DX, f"lowest particle {z_low / DX:.3f} dx from the plane"
+
+
+def test_default_ground_holds_bodies_a_cell_high():
+    # held_depth = 0, the default (boundary module docstring says why): the nodes at the plane
+    # hold the block about a cell above it.
+    solver = _block(0.03, GroundPlane(0.0, friction=0.0, mode="slip"), 0.04, damping=15.0)
+    for _ in range(20):
+        solver.step_frame()
+    assert float(solver.state().x[:, 2].min()) > 0.75 * DX
 
 
 def test_grid_is_aligned_to_the_ground_and_rest_height_does_not_depend_on_it():
@@ -76,6 +96,66 @@ def test_impact_begins_when_the_bottom_face_reaches_the_plane():
     t_contact = t[k - 1] + (0.01 * v_hit - dev[k - 1]) / (dev[k] - dev[k - 1]) * frame_dt
     height = face - 0.5 * G * t_contact**2  # the bottom face's height at first contact, m
     assert abs(height) <= 0.25 * DX, f"contact began with the bottom face {height / DX:.3f} dx from the plane"
+
+
+def test_block_pushed_along_a_coulomb_floor_slides_the_coulomb_distance():
+    # A stiff block resting on the plane, thrown sideways at 0.3 m/s on a mu = 0.4 floor: it
+    # stops after v^2 / (2 mu g) = 11.5 mm, at the surface.
+    solver = _block(0.2 * DX, GroundPlane(0.0, friction=0.4, held_depth=SURFACE_DEPTH), 0.01, E=1e6, vx=0.3)
+    x0 = solver.state().x[:, 0].mean()
+    for _ in range(20):
+        solver.step_frame()
+    x = solver.state().x
+    slide = float(x[:, 0].mean() - x0)
+    assert slide == pytest.approx(0.3**2 / (2 * 0.4 * G), rel=0.1)
+    assert float(np.abs(solver.state().v[:, 0]).max()) < 0.01  # it stopped
+    assert abs(float(x[:, 2].min())) <= 0.25 * DX
+
+
+def test_block_pushed_along_a_sticky_floor_does_not_slide_or_lift():
+    # The block of the Coulomb test on a sticky ground at the surface: its lowest particles
+    # stop within 0.1 dx (2 mm; on the mu = 0.4 floor they slide 11.5 mm) and stay down.
+    ground = GroundPlane(0.0, mode="sticky", held_depth=SURFACE_DEPTH)
+    solver = _block(0.2 * DX, ground, 0.01, E=1e6, vx=0.3)
+    x0 = solver.state().x
+    bottom = x0[:, 2] < x0[:, 2].min() + 0.1 * SP  # the lowest layer of particles
+    for _ in range(10):
+        solver.step_frame()
+    x = solver.state().x
+    assert float(np.abs(x[bottom, 0] - x0[bottom, 0]).max()) < 0.1 * DX
+    assert float(np.abs(x[bottom, 2] - x0[bottom, 2]).max()) < 0.1 * DX
+
+
+def test_surface_friction_matches_the_numpy_twin(monkeypatch):
+    # A block sliding at the surface of a Coulomb ground: three sub-steps against the twin,
+    # which also shows that the surface layer's friction acts (the twin without it differs).
+    p = Particles.lattice((-0.02, -0.02, 0.1 * DX), (0.02, 0.02, 0.1 * DX + 0.03), SP)
+    p.v = np.tile([0.5, 0.1, -2.0], (len(p), 1))  # an impact: the held nodes stick and leave grip
+    mat = MaterialParams("fixed_corotated", 1e5, 0.3, 1000.0)
+    scene = Scene(ground=GroundPlane(0.0, friction=0.4, held_depth=SURFACE_DEPTH))
+    grid = GridSpec.fit((-0.05, -0.05, 0.0), (0.05, 0.05, 0.05), DX)
+    solver = MPMSolver(p, [mat], grid, scene, SolverConfig(flip=0.0, threads=1))
+    s0 = solver.state()
+    state = {
+        "x": s0.x, "v": s0.v, "C": s0.C, "F": s0.F, "plastic": s0.plastic,
+        "mass": 1000.0 * np.broadcast_to(p.volume, len(p)), "vol0": np.broadcast_to(p.volume, len(p)),
+    }
+    state = {k: np.asarray(val, dtype=np.float64) for k, val in state.items()}
+    state["material"] = p.material
+    bound = SolverConfig().boundary_cells
+    for _ in range(3):
+        out = reference_mpm.substep(state, [mat], solver.grid, scene, 2e-4, solver.time, 0.0, bound)
+        solver.substep(2e-4)
+        state.update({k: out[k] for k in ("x", "v", "C", "F", "plastic")})
+    s1 = solver.state()
+    solver.close()
+    np.testing.assert_allclose(s1.v, state["v"], rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(s1.x, state["x"], rtol=1e-6, atol=1e-6)
+    low = s1.x[:, 2] < s1.x[:, 2].min() + 0.5 * SP  # the lowest layer of particles
+    held = reference_mpm.substep(state, [mat], solver.grid, scene, 2e-4, solver.time, 0.0, bound)
+    monkeypatch.setattr(reference_mpm, "_surface_friction", lambda *args: None)
+    free = reference_mpm.substep(state, [mat], solver.grid, scene, 2e-4, solver.time, 0.0, bound)
+    assert held["v"][low, 0].mean() < free["v"][low, 0].mean() - 0.005  # m/s, in one sub-step
 
 
 def test_elastic_ball_keeps_its_restitution():

@@ -31,7 +31,8 @@ cohesion=0, viscosity=0)``                          (``physgm.sim.constitutive``
 (scene.py, boundary.py, walls.py)
     ``GroundPlane(height=0.0, friction=0.3, mode="separate"|"slip"|"sticky", held_depth=0.0)``
     acts on grid nodes at or below the plane; ``held_depth=SURFACE_DEPTH`` (7/8 cell, on a grid
-    the solver lowers by under a cell) makes bodies touch and rest at the plane (boundary.py).
+    the solver lowers by under a cell) makes light bodies touch and rest at the plane, with
+    Coulomb friction also on the node layer at the surface (boundary.py, surface_friction.py).
     ``VelocityBox(lo, hi, velocity, start=0, stop=inf, hold=True)`` prescribes the velocity of
     grid nodes and particles inside a box that moves with it (grips, clamps with velocity 0,
     pushers); after ``stop`` a held box fixes its contents.

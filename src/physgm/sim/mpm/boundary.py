@@ -1,18 +1,22 @@
 """Boundary conditions acting on the grid: ground plane and moving velocity boxes.
 
 Where the ground acts (issue 24): a grid node's velocity reaches every particle within 1.5 cells
-(quadratic B-splines), and a particle feels a node firmly once it is within about a cell. A
-condition on the nodes at the plane (``held_depth=0``, the default) therefore holds a body about
-a cell above it: impacts begin while the surface is ~1.25 cells up and bodies rest a cell high.
-With ``held_depth=SURFACE_DEPTH`` the ground acts on the nodes 7/8 cell or more below the plane,
-and the solver aligns its grid so that a node plane lies exactly there (``GridSpec.aligned``):
-impacts begin when the material's surface (a quarter cell below the lowest particles) reaches
-the plane, bodies rest with their lowest particles within a quarter cell of it, and the
-elastic ball keeps its restitution (0.946 -> 0.940). It is not the default because the held
-nodes then reach the bottom particles only through the tails of their stencils, which weakens
-friction and stickiness: the sticky sand pile's slope fell from 31.3 to 29.1 degrees (for 35),
-and a rubber block pushed along a mu = 0.4 floor did not come to rest within 1.2 s. Making the
-tangential condition act at the surface too is the missing piece (docs/measurements_sim.md).
+(quadratic B-splines), so a condition on the nodes at the plane (``held_depth=0``, the default)
+holds a body about a cell above it: impacts begin while its surface is ~1.25 cells up and it
+rests a cell high. With ``held_depth=SURFACE_DEPTH`` the ground holds the nodes 7/8 cell or
+more below the plane and the solver aligns its grid so that a node plane lies exactly there
+(``GridSpec.aligned``): impacts begin when the material's surface (a quarter cell below the
+lowest particles) reaches the plane, light bodies rest with their lowest particles within a
+quarter cell of it, and an elastic ball keeps its restitution. Held that deep, the nodes reach
+the lowest particles only through the tails of their stencils, so on a Coulomb ground the node
+layer just above the held one also takes the friction the held nodes' normal impulse leaves
+(``surface_friction``).
+
+SURFACE_DEPTH is not the default because the support through the stencil tails is compliant:
+the bottom particles must come close enough to weigh on the held nodes, so soft or heavy bodies
+sink by a load- and stiffness-dependent depth (up to about half a cell), beyond what the
+planner's sag model allows for a bulk-capped material; and on a sticky base no variant kept both
+a sand heap's slope and a column collapse's run-out (docs/measurements_sim.md, section 7).
 """
 
 from __future__ import annotations
@@ -55,11 +59,12 @@ class GroundPlane:
     """Plane z = ``height`` acting on the grid nodes ``held_depth`` cells or more below it.
 
     held_depth: 0 (default) holds the nodes at or below the plane: contact starts ~1.25 cells
-    up and bodies rest a cell high. ``SURFACE_DEPTH`` puts contact and rest at the plane but
-    weakens friction and stickiness (module docstring), so it is not the default yet.
+    up and bodies rest a cell high. ``SURFACE_DEPTH`` puts contact and the rest of light bodies
+    at the plane, with Coulomb friction on the surface node layer, but lets soft or heavy bodies
+    sink (module docstring).
 
     mode: "separate" (Coulomb friction ``friction``, lift-off allowed), "slip" (frictionless,
-    lift-off allowed) or "sticky" (nodes below the plane do not move).
+    lift-off allowed) or "sticky" (held nodes do not move).
     """
 
     height: float = 0.0
@@ -174,3 +179,18 @@ def ground_velocity(ground: GroundStruct, pos: wp.vec3, dx: float, v: wp.vec3) -
     if vt_norm <= -ground.friction * vn:
         return wp.vec3(0.0)
     return vt * (1.0 + ground.friction * vn / vt_norm)
+
+
+@wp.func
+def ground_grip(ground: GroundStruct, m: float, v_free: wp.vec3, vel: wp.vec3) -> float:
+    """Friction impulse a held node of mass ``m`` leaves for the surface layer above it, N s.
+
+    Coulomb grounds only (``surface_friction``): what its normal impulse allows, less what its
+    own sliding used; 0 for slip and sticky grounds.
+    """
+    if ground.mode != GROUND_SEPARATE:
+        return 0.0
+    normal = m * (vel[2] - v_free[2])
+    used = m * wp.length(wp.vec3(vel[0] - v_free[0], vel[1] - v_free[1], 0.0))
+    return wp.max(ground.friction * normal - used, 0.0)
+

@@ -34,7 +34,7 @@ import warp as wp
 
 from physgm.sim.constitutive.common import EYE, MaterialStruct, det_minus_one
 from physgm.sim.constitutive.dispatch import constitutive_update
-from physgm.sim.mpm.boundary import BoxStruct, GroundStruct, box_velocity, ground_velocity
+from physgm.sim.mpm.boundary import BoxStruct, GroundStruct, box_velocity, ground_grip, ground_velocity
 
 wp.set_module_options({"enable_backward": False})
 
@@ -237,8 +237,10 @@ def update_node(
         wp.atomic_add(work, slot, WORK_DRIVER, wp.float64(m * wp.dot(vel - v_free, vel)))
     v_free = vel
     vel = ground_velocity(ground, pos, dx, vel)
+    grip = float(0.0)  # noqa: UP018 (Warp: set in a branch); N s left for the surface layer above
     if wp.length_sq(vel - v_free) > 0.0:
         add_impulse(work, slot, WORK_GROUND, m * (vel - v_free))
+        grip = ground_grip(ground, m, v_free, vel)
     # Separating walls in the margin keep particles off the grid edge. A scene whose grid holds
     # what it can reach never needs them, so each time they act it is counted (face contacts).
     v_free = vel
@@ -252,7 +254,7 @@ def update_node(
         add_impulse(work, slot, WORK_FACE, m * (vel - v_free))
         wp.atomic_add(work, slot, WORK_FACE_CONTACTS, wp.float64(1.0))
     dv = vel - v_transfer
-    grid_v[i, j, k] = vec8(vel[0], vel[1], vel[2], m, dv[0], dv[1], dv[2], 0.0)
+    grid_v[i, j, k] = vec8(vel[0], vel[1], vel[2], m, dv[0], dv[1], dv[2], grip)
 
 
 @wp.func

@@ -21,6 +21,7 @@ from physgm.sim.mpm.grid_arrays import GridArrays
 from physgm.sim.mpm.particle_store import ParticleStore
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.stepping import SolverConfig
+from physgm.sim.mpm.surface_friction import surface_friction
 from physgm.warp_runtime import ensure_loaded
 
 
@@ -161,6 +162,19 @@ class SubstepLaunches:
             device=dev,
             record_cmd=True,
         )
+        # Coulomb friction on the node layer at the surface (surface_friction).
+        self.friction = None
+        gp = scene.ground
+        if gp is not None and gp.held_depth > 0 and gp.mode == "separate":
+            layer = round((gp.height - gp.held_depth * g.dx - g.origin[2]) / g.dx)
+            if 0 <= layer < g.res[2] - 1:
+                self.friction = wp.launch(
+                    surface_friction,
+                    (g.res[0], g.res[1]),
+                    [a.grid_v, a.touched, 0, wp.vec2i(0, 0), layer, a.work],
+                    device=dev,
+                    record_cmd=True,
+                )
 
     def invalidate(self) -> None:
         """The particle state was replaced: clear the accumulators, scatter afresh next sub-step."""
@@ -189,6 +203,9 @@ class SubstepLaunches:
         bhi = [int(v) // K.BLOCK for v in hi]
         self.grid_update.set_dim(tuple(h - l + 1 for l, h in zip(blo, bhi, strict=True)))
         self.grid_update.set_param_by_name("lo", wp.vec3i(*blo))
+        if self.friction is not None:
+            self.friction.set_dim((int(hi[0] - lo[0]) + 1, int(hi[1] - lo[1]) + 1))
+            self.friction.set_param_by_name("lo", wp.vec2i(int(lo[0]), int(lo[1])))
         for launch in self.g2p:
             launch.set_param_by_name("active_lo", wp.vec3(*inner_lo))
             launch.set_param_by_name("active_hi", wp.vec3(*inner_hi))
@@ -199,6 +216,8 @@ class SubstepLaunches:
             for launch in self.p2g:
                 launch.set_param_by_name("stamp", self.stamp)
         self.grid_update.set_param_by_name("stamp", self.stamp)
+        if self.friction is not None:
+            self.friction.set_param_by_name("stamp", self.stamp)
         for launch in self.g2p:
             launch.set_param_by_name("stamp", self.stamp + 1)
 
@@ -212,6 +231,8 @@ class SubstepLaunches:
             if before is not None:
                 before()
             self.grid_update.launch()
+            if self.friction is not None:
+                self.friction.launch()
             between()
             self.g2p[0].launch()
         else:
@@ -220,6 +241,8 @@ class SubstepLaunches:
             if before is not None:
                 before()
             self.grid_update.launch()
+            if self.friction is not None:
+                self.friction.launch()
             between()
             worker.run(self.g2p[1].launch, self.g2p[0].launch)
         self.scattered = True

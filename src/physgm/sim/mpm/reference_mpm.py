@@ -48,6 +48,33 @@ def _ground_velocity(ground, pos, dx, v):
     return vt * (1 + ground.friction * v[2] / n)
 
 
+def _grip(ground, m, v_free, vel):
+    if ground is None or ground.mode != "separate" or np.array_equal(vel, v_free):
+        return 0.0
+    used = m * np.linalg.norm((vel - v_free)[:2])
+    return max(ground.friction * m * (vel[2] - v_free[2]) - used, 0.0)
+
+
+def _surface_friction(ground, grid, gm, gv, gdv, grip):
+    """The ground's tangential condition on the node layer above the held one (``surface_friction``)."""
+    if ground is None or ground.held_depth == 0 or ground.mode != "separate":
+        return
+    layer = round((ground.height - ground.held_depth * grid.dx - grid.origin[2]) / grid.dx)
+    if not 0 <= layer < grid.res[2] - 1:
+        return
+    for i, j in np.ndindex(*grid.res[:2]):
+        m, node = gm[i, j, layer + 1], (i, j, layer + 1)
+        if m <= 0 or gm[i, j, layer] <= 0 or grip[i, j, layer] <= 0:
+            continue
+        sliding = m * np.linalg.norm(gv[node][:2])
+        if sliding <= 0:
+            continue
+        keep = 0.0 if sliding <= grip[i, j, layer] else 1 - grip[i, j, layer] / sliding
+        vel = np.array([keep * gv[node][0], keep * gv[node][1], gv[node][2]])
+        gdv[node] += vel - gv[node]
+        gv[node] = vel
+
+
 def substep(state: dict, params: list, grid, scene, dt: float, t: float, flip: float, bound: int) -> dict:
     """One sub-step. ``state``: x [P,3], v [P,3], C [P,3,3], F [P,3,3], plastic [P], mass [P],
     vol0 [P], material [P]; ``params``: [M] MaterialParams. Returns the new state and ``grid_v``."""
@@ -82,6 +109,7 @@ def substep(state: dict, params: list, grid, scene, dt: float, t: float, flip: f
             gm[node] += wi * mass[p]
     gv = np.zeros((*res, 3))
     gdv = np.zeros((*res, 3))
+    grip = np.zeros(tuple(res))
     g = np.asarray(scene.gravity, float)
     for node in zip(*np.nonzero(gm > 0), strict=True):
         m = gm[node]
@@ -90,11 +118,14 @@ def substep(state: dict, params: list, grid, scene, dt: float, t: float, flip: f
         pos = origin + np.array(node) * dx
         for box in scene.boxes:
             vel = _box_velocity(box, pos, t, vel)
+        v_free = vel
         vel = _ground_velocity(scene.ground, pos, dx, vel)
+        grip[node] = _grip(scene.ground, m, v_free, vel)
         for a in range(3):
             if (node[a] < bound and vel[a] < 0) or (node[a] >= res[a] - bound and vel[a] > 0):
                 vel[a] = 0.0
         gv[node], gdv[node] = vel, vel - v_transfer
+    _surface_friction(scene.ground, grid, gm, gv, gdv, grip)
     out = {k: np.array(val, dtype=np.float64, copy=True) for k, val in state.items()}
     out["grid_v"] = gv
     for p in range(n):
