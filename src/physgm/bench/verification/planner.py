@@ -75,8 +75,9 @@ def cube_gaussians(side: float, n: int = 20_000, seed: int = 0) -> Gaussians:
 
 
 def _camera(side: float) -> Cameras:
-    return orbit_cameras([30.0], [15.0], radius=8 * side, fov_deg=40.0, width=256, height=256,
-                         target=(0.0, 0.0, side))  # fmt: skip
+    return orbit_cameras(
+        [30.0], [15.0], radius=8 * side, fov_deg=40.0, width=256, height=256, target=(0.0, 0.0, side)
+    )
 
 
 def cube_heights(traj: GaussianTrajectory, side: float) -> np.ndarray:
@@ -109,8 +110,8 @@ def elastic_cube(
     n_frames = int(round(seconds / frame_dt)) + 1
     # No early stop: the averaging window must see the wobble, not a held frame.
     cfg = planner or PlannerConfig(rest_frames=10**6)
-    traj = simulate(gaussians, material, scene, _camera(side), n_frames=n_frames, planner=cfg,
-                    solver=SolverConfig(frame_dt=frame_dt))  # fmt: skip
+    solver = SolverConfig(frame_dt=frame_dt)
+    traj = simulate(gaussians, material, scene, _camera(side), n_frames=n_frames, planner=cfg, solver=solver)
     h = cube_heights(traj, side)
     last = max(1, int(round(window / frame_dt)))
     settled = float(h[-last:].mean())
