@@ -62,3 +62,25 @@ def test_coverage_of_calibrated_gaussian_is_ninety_percent():
     s_E, s_nu = 0.7 / ((LOG10_E_RANGE[1] - LOG10_E_RANGE[0]) / 2), 0.05 / 0.25
     expected = math.log(2) + sum(0.5 * math.log(2 * math.pi * s * s) + 0.5 for s in (s_E, s_nu))
     assert out["nll"].item() == pytest.approx(expected, abs=0.03)
+
+
+def test_calibration_offset_widens_an_over_confident_posterior_to_ninety_percent():
+    """Errors drawn with twice the predicted std: the offset is 2 log 2, and applied, it covers 90 %."""
+    g = torch.Generator().manual_seed(1)
+    n = 20000
+    mean_E = torch.rand(n, generator=g) * 6 + 4
+    true_E = mean_E + 1.0 * torch.randn(n, generator=g)  # true spread 1.0 decade
+    true_nu = 0.25 + 0.025 * torch.randn(n, generator=g)  # nu: half the predicted 0.05, under-confident
+
+    def scores(E_std):
+        post = posterior(torch.zeros(n, 2), mean_E, E_std, torch.full((n,), 0.25), torch.full((n,), 0.05))
+        m = PhysicsMetrics(num_materials=2)
+        m.update(post, torch.zeros(n, dtype=torch.long), true_E, true_nu)
+        return m.compute()
+
+    out = scores(torch.full((n,), 0.5))  # predicted 0.5: over-confident by 2x
+    assert out["coverage90_E"].item() == pytest.approx(0.59, abs=0.02)  # P(|N(0,1)| < 0.82)
+    assert out["calibration_logvar_offset_E"].item() == pytest.approx(2 * math.log(2.0), abs=0.05)
+    assert out["calibration_logvar_offset_nu"].item() == pytest.approx(2 * math.log(0.5), abs=0.05)
+    widened = 0.5 * math.exp(out["calibration_logvar_offset_E"].item() / 2)
+    assert scores(torch.full((n,), widened))["coverage90_E"].item() == pytest.approx(0.9, abs=0.005)

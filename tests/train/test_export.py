@@ -1,6 +1,7 @@
 """``python -m physgm.train.export``: a slim checkpoint that predicts exactly what the training one does."""
 
 import json
+import math
 
 import pytest
 import torch
@@ -126,3 +127,21 @@ def test_export_sets_the_semantic_prior_weight(tmp_path, capsys):
     with pytest.raises(SystemExit, match="mobilenet_v2"):  # a ViT model has no ImageNet classes to read
         training_checkpoint(tmp_path / "vit.ckpt")
         main([str(tmp_path / "vit.ckpt"), str(tmp_path / "v.ckpt"), "--prior-weight", "1"])
+
+
+def test_export_sets_the_calibration_offsets_of_the_log_variances(tmp_path):
+    """The exported head adds the offsets to its log-variances and leaves the means alone."""
+    module = training_checkpoint(tmp_path / "t.ckpt")
+    assert main([str(tmp_path / "t.ckpt"), str(tmp_path / "c.ckpt"), "--logvar-offsets", "1.2", "-0.5"]) == 0
+    model, _ = load_model(tmp_path / "c.ckpt")
+    head = model.config.physics_head
+    assert (head.E_logvar_offset, head.nu_logvar_offset) == (1.2, -0.5)
+    cams = orbit_cameras([0], [0], 1.5, 40.0, 16, 16)
+    images, masks = torch.rand(1, 1, 3, 16, 16), torch.ones(1, 1, 1, 16, 16)
+    with torch.no_grad():
+        before = module.model.eval()(images, masks, cams.c2w[None], cams.Ks[None]).physics
+        after = model(images, masks, cams.c2w[None], cams.Ks[None]).physics
+    torch.testing.assert_close(after.z_E_logvar, before.z_E_logvar + 1.2)
+    torch.testing.assert_close(after.z_nu_logvar, before.z_nu_logvar - 0.5)
+    torch.testing.assert_close(after.z_E_mean, before.z_E_mean)
+    torch.testing.assert_close(after.log10_E_std, before.log10_E_std * math.exp(0.6))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import torch
 from torch import Tensor
 from torchmetrics import Metric
 from torchmetrics.classification import MulticlassConfusionMatrix
@@ -12,6 +13,20 @@ from physgm.physics.behaviour import behaviour_index
 
 # Two-sided 90 % interval of a Gaussian: mean +- 1.6449 std.
 Z90 = 1.6448536269514722
+
+
+def calibration_logvar_offset(z: Tensor, level: float = 0.9) -> Tensor:  # z [N] -> scalar
+    """The log-variance offset that makes the ``level`` interval cover that share of these errors.
+
+    ``z`` holds |error| / predicted std. Scaling every std by s = quantile(z, level) / z_level puts
+    exactly ``level`` of the errors inside mean +- z_level * s * std; in log-variance that is
+    + 2 log s. Positive: the posterior was over-confident.
+    """
+    z_level = float(torch.special.ndtri(torch.tensor(0.5 + level / 2, dtype=torch.float64)))
+    return 2.0 * torch.log(torch.quantile(z.double(), level) / z_level).to(z.dtype)
+
+
+STATES = ("correct", "correct_behaviour", "err_E", "err_nu", "nll", "z_E", "z_nu")
 
 
 class PhysicsMetrics(Metric):
@@ -25,7 +40,7 @@ class PhysicsMetrics(Metric):
     def __init__(self, num_materials: int) -> None:
         super().__init__()
         self.confusion = MulticlassConfusionMatrix(num_classes=num_materials)
-        for name in ["correct", "correct_behaviour", "err_E", "err_nu", "nll", "in90_E", "in90_nu"]:
+        for name in STATES:
             self.add_state(name, default=[], dist_reduce_fx="cat")
         self.behaviour = behaviour_index()
 
@@ -46,12 +61,11 @@ class PhysicsMetrics(Metric):
         self.err_nu.append((posterior.nu_mean - nu).abs())
         truth = PhysicsSample(material[:, None], log10_E[:, None], nu[:, None])
         self.nll.append(-posterior.log_prob(truth)[:, 0])
-        self.in90_E.append(((posterior.log10_E_mean - log10_E).abs() <= Z90 * posterior.log10_E_std).float())
-        self.in90_nu.append(((posterior.nu_mean - nu).abs() <= Z90 * posterior.nu_std).float())
+        self.z_E.append((posterior.log10_E_mean - log10_E).abs() / posterior.log10_E_std)
+        self.z_nu.append((posterior.nu_mean - nu).abs() / posterior.nu_std)
 
     def compute(self) -> dict[str, Tensor]:
-        names = ["correct", "correct_behaviour", "err_E", "err_nu", "nll", "in90_E", "in90_nu"]
-        cat = {name: dim_zero_cat(getattr(self, name)) for name in names}
+        cat = {name: dim_zero_cat(getattr(self, name)) for name in STATES}
         return {
             "material_acc": cat["correct"].mean(),
             "behaviour_acc": cat["correct_behaviour"].mean(),
@@ -60,8 +74,10 @@ class PhysicsMetrics(Metric):
             "abs_nu_median": cat["err_nu"].median(),
             "abs_nu_mean": cat["err_nu"].mean(),
             "nll": cat["nll"].mean(),
-            "coverage90_E": cat["in90_E"].mean(),
-            "coverage90_nu": cat["in90_nu"].mean(),
+            "coverage90_E": (cat["z_E"] <= Z90).float().mean(),
+            "coverage90_nu": (cat["z_nu"] <= Z90).float().mean(),
+            "calibration_logvar_offset_E": calibration_logvar_offset(cat["z_E"]),
+            "calibration_logvar_offset_nu": calibration_logvar_offset(cat["z_nu"]),
             "confusion": self.confusion.compute(),
         }
 

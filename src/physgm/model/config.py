@@ -84,6 +84,12 @@ class PhysicsHeadConfig:
     # mobilenet_v2 encoder; physgm.model.semantic_prior). Training keeps 0, so the head learns from
     # the data alone; w is then chosen on real validation objects (physgm.train.choose_prior_weight).
     semantic_prior_weight: float = 0.0
+    # Post-hoc calibration: added to the head's log-variances of normalised log10 E and nu, so that
+    # 90 % intervals cover 90 % of validation assets. Training keeps 0 (a head trained to convergence
+    # is over-confident off its training set); ``physgm.train.export --logvar-offsets`` sets them from
+    # ``physgm.train.evaluate``'s ``calibration_logvar_offset_*`` on a validation split.
+    E_logvar_offset: float = 0.0
+    nu_logvar_offset: float = 0.0
 
 
 @dataclass

@@ -43,9 +43,9 @@ class PhysicsHead(nn.Module):
         return PhysicsPosterior(
             material_logits=self.material(global_tokens[:, 0]),
             z_E_mean=E_mean,
-            z_E_logvar=self._logvar(E_raw),
+            z_E_logvar=self._logvar(E_raw) + self.cfg.E_logvar_offset,
             z_nu_mean=nu_mean,
-            z_nu_logvar=self._logvar(nu_raw),
+            z_nu_logvar=self._logvar(nu_raw) + self.cfg.nu_logvar_offset,
         )
 
     def _logvar(self, raw: Tensor) -> Tensor:

@@ -1,7 +1,8 @@
 """Slim a training checkpoint down to what inference needs, e.g. the shipped ``checkpoints/physgm_tiny.ckpt``.
 
     python -m physgm.train.export outputs/<run>/checkpoints/last.ckpt checkpoints/physgm_tiny.ckpt \
-        [--recipe "python train.py experiment=tiny_cpu ..."] [--metrics test_metrics.json]
+        [--recipe "python train.py experiment=tiny_cpu ..."] [--metrics test_metrics.json] \
+        [--prior-weight W] [--logvar-offsets E NU]
 
 Keeps the model weights, the hyper-parameters that rebuild the model (and the renderer and input
 settings evaluation reads), the step count and a ``physgm`` record of where the file came from;
@@ -45,26 +46,31 @@ def slim(
     recipe: str | None = None,
     metrics: dict | None = None,
     prior_weight: float | None = None,
+    logvar_offsets: tuple[float, float] | None = None,
 ) -> dict:
     """The inference part of a Lightning checkpoint of ``LitPretrain`` or ``LitDPO``.
 
     ``prior_weight`` sets the semantic prior's weight w in the exported model (chosen on real
-    validation objects with ``python -m physgm.train.evaluate --prior-sweep``).
+    validation objects with ``python -m physgm.train.evaluate --prior-sweep``); ``logvar_offsets``
+    the (E, nu) calibration of the physics head (evaluate's ``calibration_logvar_offset_*`` on a
+    validation split).
     """
     hparams = ckpt.hparams
     state = {PREFIX + k: v.detach().clone() for k, v in ckpt.state.items()}
     kept = {k: hparams[k] for k in KEEP_HPARAMS if k in hparams}
+    head = {}
     if prior_weight is not None:
-        model = copy.deepcopy(dict(kept["model"]))
-        if (model.get("backbone") or {}).get("encoder", {}).get("kind") != "mobilenet_v2":
+        if (kept["model"].get("backbone") or {}).get("encoder", {}).get("kind") != "mobilenet_v2":
             raise ValueError(
                 "--prior-weight needs a model with the mobilenet_v2 encoder (the prior reads its "
                 "ImageNet classes)"
             )
-        model["physics_head"] = {
-            **model.get("physics_head", {}),
-            "semantic_prior_weight": float(prior_weight),
-        }
+        head["semantic_prior_weight"] = float(prior_weight)
+    if logvar_offsets is not None:
+        head["E_logvar_offset"], head["nu_logvar_offset"] = (float(x) for x in logvar_offsets)
+    if head:
+        model = copy.deepcopy(dict(kept["model"]))
+        model["physics_head"] = {**model.get("physics_head", {}), **head}
         kept["model"] = model
     kept.setdefault("format_version", physgm.CHECKPOINT_FORMAT_VERSION)
     return {
@@ -95,12 +101,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--prior-weight", type=float, default=None, help="semantic prior weight w of the exported model"
     )
+    p.add_argument(
+        "--logvar-offsets",
+        type=float,
+        nargs=2,
+        default=None,
+        metavar=("E", "NU"),
+        help="calibration added to the physics head's log-variances (evaluate's calibration_logvar_offset_*)",
+    )
     a = p.parse_args(argv)
     if not a.ckpt.is_file():
         raise SystemExit(f"checkpoint {a.ckpt} not found")
     metrics = json.loads(a.metrics.read_text()) if a.metrics else None
     try:
-        out = slim(read_checkpoint(a.ckpt), str(a.ckpt), a.recipe, metrics, a.prior_weight)
+        out = slim(read_checkpoint(a.ckpt), str(a.ckpt), a.recipe, metrics, a.prior_weight, a.logvar_offsets)
     except (UserError, ValueError) as err:
         raise SystemExit(str(err)) from None
     a.out.parent.mkdir(parents=True, exist_ok=True)
