@@ -42,6 +42,7 @@ def test_accuracy_errors_and_confusion_by_hand():
         0.5
     )  # errors 0, 0.1, 0, 0.1 against a half-width of 0.082
     assert out["confusion"].tolist() == [[2, 0, 0], [0, 1, 1], [0, 0, 0]]
+    assert "abs_log10E_simulated_median" not in out  # 3 classes: not the material table's
 
 
 def test_coverage_of_calibrated_gaussian_is_ninety_percent():
@@ -84,3 +85,26 @@ def test_calibration_offset_widens_an_over_confident_posterior_to_ninety_percent
     assert out["calibration_logvar_offset_nu"].item() == pytest.approx(2 * math.log(0.5), abs=0.05)
     widened = 0.5 * math.exp(out["calibration_logvar_offset_E"].item() / 2)
     assert scores(torch.full((n,), widened))["coverage90_E"].item() == pytest.approx(0.9, abs=0.005)
+
+
+def test_simulated_E_is_the_mean_projected_onto_the_predicted_materials_range():
+    """simulate.py runs the predicted material at the mean E clipped to that material's range."""
+    from physgm.physics.materials import MATERIAL_NAMES, log10_E_range
+
+    M = len(MATERIAL_NAMES)
+    jelly, metal = MATERIAL_NAMES.index("jelly"), MATERIAL_NAMES.index("metal")
+    lo_j, hi_j = log10_E_range("jelly")
+    lo_m, _ = log10_E_range("metal")
+    logits = torch.zeros(3, M)
+    logits[0, jelly] = logits[1, jelly] = logits[2, metal] = 5.0
+    # jelly predicted 2 decades above its range; jelly inside it; metal predicted below its range
+    means = torch.tensor([hi_j + 2.0, lo_j + 0.5, lo_m - 1.0])
+    truth = torch.tensor([hi_j - 0.3, lo_j + 0.2, lo_m - 1.0])
+    m = PhysicsMetrics(num_materials=M)
+    post = posterior(logits, means, [0.5] * 3, [0.3] * 3, [0.05] * 3)
+    m.update(post, torch.tensor([jelly, jelly, 0]), truth, torch.full((3,), 0.3))
+    out = m.compute()
+    # raw errors 2.3, 0.3, 0; simulated errors 0.3, 0.3, 1.0 (the third is clipped up into metal's range)
+    assert out["abs_log10E_mean"].item() == pytest.approx(2.6 / 3, abs=1e-4)
+    assert out["abs_log10E_simulated_mean"].item() == pytest.approx(1.6 / 3, abs=1e-4)
+    assert out["abs_log10E_simulated_median"].item() == pytest.approx(0.3, abs=1e-4)

@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from physgm.model.posterior import PhysicsPosterior
-from physgm.physics.materials import MATERIAL_NAMES
+from physgm.physics.materials import MATERIAL_NAMES, log10_E_range
 from physgm.train.dpo import DPOLossConfig, LitDPO, dpo_loss
 from physgm.train.pairs import Candidate, SceneInputs, collate_pairs
-from physgm.train.proposal import ProposalSettings, log10_E_range, propose
+from physgm.train.proposal import ProposalSettings, propose
 
 JELLY = MATERIAL_NAMES.index("jelly")
 

@@ -10,6 +10,7 @@ from torchmetrics.utilities import dim_zero_cat
 
 from physgm.model.posterior import PhysicsPosterior, PhysicsSample
 from physgm.physics.behaviour import behaviour_index
+from physgm.physics.materials import MATERIAL_NAMES, log10_E_range
 
 # Two-sided 90 % interval of a Gaussian: mean +- 1.6449 std.
 Z90 = 1.6448536269514722
@@ -26,7 +27,7 @@ def calibration_logvar_offset(z: Tensor, level: float = 0.9) -> Tensor:  # z [N]
     return 2.0 * torch.log(torch.quantile(z.double(), level) / z_level).to(z.dtype)
 
 
-STATES = ("correct", "correct_behaviour", "err_E", "err_nu", "nll", "z_E", "z_nu")
+STATES = ("correct", "correct_behaviour", "err_E", "err_E_simulated", "err_nu", "nll", "z_E", "z_nu")
 
 
 class PhysicsMetrics(Metric):
@@ -43,6 +44,13 @@ class PhysicsMetrics(Metric):
         for name in STATES:
             self.add_state(name, default=[], dist_reduce_fx="cat")
         self.behaviour = behaviour_index()
+        # [M, 2] log10 E range of each material: what simulate.py projects the predicted E onto
+        # (pipeline.physics_choice); only with the table's materials, in its order.
+        self.E_ranges = (
+            torch.tensor([log10_E_range(m) for m in MATERIAL_NAMES])
+            if num_materials == len(MATERIAL_NAMES)
+            else None
+        )
 
     def update(
         self,
@@ -58,6 +66,10 @@ class PhysicsMetrics(Metric):
         behaviour = self.behaviour.to(pred.device)
         self.correct_behaviour.append((behaviour[pred] == behaviour[material]).float())
         self.err_E.append((posterior.log10_E_mean - log10_E).abs())
+        if self.E_ranges is not None:
+            lo, hi = self.E_ranges.to(pred.device, posterior.log10_E_mean.dtype)[pred].unbind(-1)
+            simulated = torch.minimum(torch.maximum(posterior.log10_E_mean, lo), hi)
+            self.err_E_simulated.append((simulated - log10_E).abs())
         self.err_nu.append((posterior.nu_mean - nu).abs())
         truth = PhysicsSample(material[:, None], log10_E[:, None], nu[:, None])
         self.nll.append(-posterior.log_prob(truth)[:, 0])
@@ -65,12 +77,21 @@ class PhysicsMetrics(Metric):
         self.z_nu.append((posterior.nu_mean - nu).abs() / posterior.nu_std)
 
     def compute(self) -> dict[str, Tensor]:
-        cat = {name: dim_zero_cat(getattr(self, name)) for name in STATES}
+        names = [n for n in STATES if self.E_ranges is not None or n != "err_E_simulated"]
+        cat = {name: dim_zero_cat(getattr(self, name)) for name in names}
         return {
             "material_acc": cat["correct"].mean(),
             "behaviour_acc": cat["correct_behaviour"].mean(),
             "abs_log10E_median": cat["err_E"].median(),
             "abs_log10E_mean": cat["err_E"].mean(),
+            **(
+                {  # the E simulate.py runs: the mean projected onto the predicted material's range
+                    "abs_log10E_simulated_median": cat["err_E_simulated"].median(),
+                    "abs_log10E_simulated_mean": cat["err_E_simulated"].mean(),
+                }
+                if self.E_ranges is not None
+                else {}
+            ),
             "abs_nu_median": cat["err_nu"].median(),
             "abs_nu_mean": cat["err_nu"].mean(),
             "nll": cat["nll"].mean(),
@@ -101,6 +122,13 @@ class LabelMetrics(Metric):
         self.add_state("correct", default=[], dist_reduce_fx="cat")
         self.add_state("correct_behaviour", default=[], dist_reduce_fx="cat")
         self.behaviour = behaviour_index()
+        # [M, 2] log10 E range of each material: what simulate.py projects the predicted E onto
+        # (pipeline.physics_choice); only with the table's materials, in its order.
+        self.E_ranges = (
+            torch.tensor([log10_E_range(m) for m in MATERIAL_NAMES])
+            if num_materials == len(MATERIAL_NAMES)
+            else None
+        )
 
     def update(
         self,

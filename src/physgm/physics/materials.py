@@ -204,3 +204,9 @@ def get_material(name: str) -> Material:
     if name not in table:
         raise ValueError(f"unknown material {name!r}; known materials: {', '.join(MATERIAL_NAMES)}")
     return table[name]
+
+
+def log10_E_range(material: int | str) -> tuple[float, float]:
+    """The table's E range of a material (its index in ``MATERIAL_NAMES`` or its name), log10 Pa."""
+    lo, hi = get_material(MATERIAL_NAMES[material] if isinstance(material, int) else material).E_range
+    return math.log10(lo), math.log10(hi)

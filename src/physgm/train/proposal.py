@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import torch
 
 from physgm.model.posterior import LOG10_E_RANGE, NU_RANGE, PhysicsPosterior, PhysicsSample
-from physgm.physics.materials import MATERIAL_NAMES, get_material
+from physgm.physics.materials import log10_E_range
 
 
 @dataclass
@@ -73,12 +73,6 @@ def policy_proposal(
         mode = proposal.material_logits.argmax(-1, keepdim=True).expand_as(draws.material).clone()
         draws = PhysicsSample(mode, draws.log10_E, draws.nu)
     return Draws(draws, ["policy"] * k)
-
-
-def log10_E_range(material: int) -> tuple[float, float]:
-    """The material table's E range of class ``material``, log10 Pa."""
-    lo, hi = get_material(MATERIAL_NAMES[material]).E_range
-    return math.log10(lo), math.log10(hi)
 
 
 def wide_proposal(
