@@ -23,7 +23,7 @@ from __future__ import annotations
 import sys
 
 from physgm.bench.drop_scene import DropBench, project
-from physgm.sim.gaussian_trajectory import GaussianTrajectory, prepare_simulation, simulate
+from physgm.sim.gaussian_trajectory import GaussianTrajectory, prepare_simulation, run_prepared
 from physgm.sim.planner import PlannerConfig
 
 OFF = dict(allow_rigid=False, allow_bulk_cap=False, allow_stiffness_cap=False)
@@ -72,9 +72,10 @@ def option_table(
         ref, seen = None, {}
         for option, overrides in options(tuple(bulk_ratios)).items():
             cfg = PlannerConfig(**overrides, **grid)
-            probe = prepare_simulation(
+            prepared = prepare_simulation(
                 gaussians, physics, "drop", cameras, bench.n_frames, cfg, scene_overrides=scene_overrides
-            ).plan
+            )
+            probe = prepared.plan
             key = (probe.mode, probe.E_used, probe.nu_used)
             row = {"material": name, "option": option, **physics.to_dict(), **grid, "mode": probe.mode}
             row.update(E_used=probe.E_used, nu_used=probe.nu_used)
@@ -89,15 +90,7 @@ def option_table(
                 out.append({**row, "skipped": f"predicted cost {probe.predicted_cost:.3g} particle-substeps"})
                 print(f"[bench sim options] {name}: reference too costly, skipped", file=sys.stderr)
                 break
-            traj = simulate(
-                gaussians,
-                physics,
-                "drop",
-                cameras,
-                n_frames=bench.n_frames,
-                planner=cfg,
-                scene_overrides=scene_overrides,
-            )
+            traj = run_prepared(prepared)
             row.update(seconds=traj.seconds, substeps=traj.substeps, rest_frame=traj.rest_frame)
             if option == "explicit":
                 ref = traj
