@@ -225,24 +225,22 @@ class SubstepLaunches:
         """One sub-step: [p2g,] ``before()`` (periodic folds), grid_update, ``between()`` (grid
         hooks), g2p (which scatters)."""
         self._set_stamp()
-        if worker is None:
-            if not self.scattered:
-                self.p2g[0].launch()
-            if before is not None:
-                before()
-            self.grid_update.launch()
-            if self.friction is not None:
-                self.friction.launch()
-            between()
-            self.g2p[0].launch()
-        else:
-            if not self.scattered:
-                worker.run(self.p2g[1].launch, self.p2g[0].launch)
-            if before is not None:
-                before()
-            self.grid_update.launch()
-            if self.friction is not None:
-                self.friction.launch()
-            between()
-            worker.run(self.g2p[1].launch, self.g2p[0].launch)
+        if not self.scattered:
+            _launch_halves(self.p2g, worker)
+        if before is not None:
+            before()
+        self.grid_update.launch()
+        if self.friction is not None:
+            self.friction.launch()
+        between()
+        _launch_halves(self.g2p, worker)
         self.scattered = True
+
+
+def _launch_halves(launches: list, worker) -> None:
+    """The whole launch on this thread (``launches[0]`` without a worker), or its two halves on
+    this thread and the worker's."""
+    if worker is None:
+        launches[0].launch()
+    else:
+        worker.run(launches[1].launch, launches[0].launch)
