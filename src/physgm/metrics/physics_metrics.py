@@ -68,7 +68,7 @@ class PhysicsMetrics(Metric):
         self.err_E.append((posterior.log10_E_mean - log10_E).abs())
         if self.E_ranges is not None:
             lo, hi = self.E_ranges.to(pred.device, posterior.log10_E_mean.dtype)[pred].unbind(-1)
-            simulated = torch.minimum(torch.maximum(posterior.log10_E_mean, lo), hi)
+            simulated = posterior.log10_E_mean.clamp(lo, hi)
             self.err_E_simulated.append((simulated - log10_E).abs())
         self.err_nu.append((posterior.nu_mean - nu).abs())
         truth = PhysicsSample(material[:, None], log10_E[:, None], nu[:, None])
@@ -122,13 +122,6 @@ class LabelMetrics(Metric):
         self.add_state("correct", default=[], dist_reduce_fx="cat")
         self.add_state("correct_behaviour", default=[], dist_reduce_fx="cat")
         self.behaviour = behaviour_index()
-        # [M, 2] log10 E range of each material: what simulate.py projects the predicted E onto
-        # (pipeline.physics_choice); only with the table's materials, in its order.
-        self.E_ranges = (
-            torch.tensor([log10_E_range(m) for m in MATERIAL_NAMES])
-            if num_materials == len(MATERIAL_NAMES)
-            else None
-        )
 
     def update(
         self,
