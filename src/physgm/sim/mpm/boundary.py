@@ -27,6 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from physgm.sim.mpm.grid import GridSpec
+
 GROUND_SEPARATE = wp.constant(0)  # Coulomb friction, may lift off
 GROUND_SLIP = wp.constant(1)  # frictionless, may lift off
 GROUND_STICKY = wp.constant(2)  # nodes below the plane are fixed
@@ -81,6 +83,14 @@ class GroundPlane:
             raise ValueError(
                 f"ground held_depth={self.held_depth!r} cells must be in [0, 1.5); try 0 or 0.875"
             )
+
+    def surface_friction_layer(self, grid: GridSpec) -> int | None:
+        """k of the top held node layer of ``grid``, whose layer above takes the friction at the
+        surface (``surface_friction``), or None: only a Coulomb ground held at depth has one."""
+        if self.held_depth <= 0 or self.mode != "separate":
+            return None
+        layer = round((self.height - self.held_depth * grid.dx - grid.origin[2]) / grid.dx)
+        return layer if 0 <= layer < grid.res[2] - 1 else None
 
     def pack(self) -> GroundStruct:
         s = GroundStruct()
@@ -185,12 +195,11 @@ def ground_velocity(ground: GroundStruct, pos: wp.vec3, dx: float, v: wp.vec3) -
 def ground_grip(ground: GroundStruct, m: float, v_free: wp.vec3, vel: wp.vec3) -> float:
     """Friction impulse a held node of mass ``m`` leaves for the surface layer above it, N s.
 
-    Coulomb grounds only (``surface_friction``): what its normal impulse allows, less what its
-    own sliding used; 0 for slip and sticky grounds.
+    Coulomb grounds held at depth only (``surface_friction``): what its normal impulse allows, less
+    what its own sliding used; 0 otherwise.
     """
-    if ground.mode != GROUND_SEPARATE:
+    if ground.mode != GROUND_SEPARATE or ground.depth <= 0.0:
         return 0.0
     normal = m * (vel[2] - v_free[2])
     used = m * wp.length(wp.vec3(vel[0] - v_free[0], vel[1] - v_free[1], 0.0))
     return wp.max(ground.friction * normal - used, 0.0)
-

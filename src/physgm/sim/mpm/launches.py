@@ -164,17 +164,15 @@ class SubstepLaunches:
         )
         # Coulomb friction on the node layer at the surface (surface_friction).
         self.friction = None
-        gp = scene.ground
-        if gp is not None and gp.held_depth > 0 and gp.mode == "separate":
-            layer = round((gp.height - gp.held_depth * g.dx - g.origin[2]) / g.dx)
-            if 0 <= layer < g.res[2] - 1:
-                self.friction = wp.launch(
-                    surface_friction,
-                    (g.res[0], g.res[1]),
-                    [a.grid_v, a.touched, 0, wp.vec2i(0, 0), layer, a.work],
-                    device=dev,
-                    record_cmd=True,
-                )
+        layer = None if scene.ground is None else scene.ground.surface_friction_layer(g)
+        if layer is not None:
+            self.friction = wp.launch(
+                surface_friction,
+                (g.res[0], g.res[1]),
+                [a.grid_v, a.touched, 0, wp.vec2i(0, 0), layer, a.work],
+                device=dev,
+                record_cmd=True,
+            )
 
     def invalidate(self) -> None:
         """The particle state was replaced: clear the accumulators, scatter afresh next sub-step."""

@@ -49,7 +49,7 @@ def _ground_velocity(ground, pos, dx, v):
 
 
 def _grip(ground, m, v_free, vel):
-    if ground is None or ground.mode != "separate" or np.array_equal(vel, v_free):
+    if ground is None or ground.mode != "separate" or ground.held_depth <= 0 or np.array_equal(vel, v_free):
         return 0.0
     used = m * np.linalg.norm((vel - v_free)[:2])
     return max(ground.friction * m * (vel[2] - v_free[2]) - used, 0.0)
@@ -57,10 +57,8 @@ def _grip(ground, m, v_free, vel):
 
 def _surface_friction(ground, grid, gm, gv, gdv, grip):
     """The ground's tangential condition on the node layer above the held one (``surface_friction``)."""
-    if ground is None or ground.held_depth == 0 or ground.mode != "separate":
-        return
-    layer = round((ground.height - ground.held_depth * grid.dx - grid.origin[2]) / grid.dx)
-    if not 0 <= layer < grid.res[2] - 1:
+    layer = None if ground is None else ground.surface_friction_layer(grid)
+    if layer is None:
         return
     for i, j in np.ndindex(*grid.res[:2]):
         m, node = gm[i, j, layer + 1], (i, j, layer + 1)
