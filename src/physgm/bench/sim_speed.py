@@ -228,6 +228,13 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument(
         "--bulk-ratios", type=float, nargs="+", default=[2.0], help="options: c_p / c_s of the bulk-cap rows"
     )
+    parser.add_argument(
+        "--implicit",
+        nargs="*",
+        default=["10:1", "10:0.5"],
+        metavar="DT_MS:THETA",
+        help="options: implicit rows, sub-step in ms and theta (1 backward Euler, 0.5 midpoint)",
+    )
     args = parser.parse_args(argv)
     parts = set(args.only or ["throughput", "scenes", "speed_vs_error", "options"])
     torch.set_num_threads(2)
@@ -243,7 +250,10 @@ def main(argv: list[str] | None = None) -> dict:
     if "scenes" in parts:
         result["scenes"] = drop_scenes(drop)
     if "options" in parts:
-        result["options"] = option_table(drop, 3e9, args.cells, tuple(args.bulk_ratios))
+        implicit = tuple(
+            (float(dt) * 1e-3, float(theta)) for dt, theta in (s.split(":") for s in args.implicit)
+        )
+        result["options"] = option_table(drop, 3e9, args.cells, tuple(args.bulk_ratios), implicit)
     if "speed_vs_error" in parts:
         frames = 10 if args.quick else 25
         result["speed_vs_error"] = speed_vs_error(frames, drop.n_gaussians, drop.side, 0.3, args.quick)

@@ -21,7 +21,7 @@ import warp as wp
 
 from physgm.sim.constitutive.common import EYE, MaterialStruct
 from physgm.sim.constitutive.dispatch import constitutive_update, energy_density
-from physgm.sim.mpm.boundary import GroundStruct, ground_velocity
+from physgm.sim.mpm.boundary import GROUND_STICKY, GroundStruct, ground_velocity
 from physgm.sim.mpm.kernels import block_reached, stencil, vec8
 
 wp.set_module_options({"enable_backward": False})
@@ -192,6 +192,7 @@ def init_nodes(
     mass: wp.array3d(dtype=float),  # out, kg
     diag: wp.array3d(dtype=float),  # out: zeroed for the preconditioner pass
     grad: wp.array3d(dtype=wp.vec3),  # out: zeroed
+    region: wp.array3d(dtype=int),  # out: 1 where the ground may hold or release the node (not sticky)
 ):
     n = nodes[wp.tid()]
     i, j, k = n[0], n[1], n[2]
@@ -219,6 +220,13 @@ def init_nodes(
     if (k < bound and v0[2] < 0.0) or (k >= nz - bound and v0[2] > 0.0):
         f[2] = 0.0
         v0[2] = 0.0
+    region[i, j, k] = 0
+    if (
+        ground.enabled == 1
+        and ground.mode != GROUND_STICKY
+        and ground_velocity(ground, pos, dx, wp.vec3(0.0, 0.0, -1.0))[2] == 0.0
+    ):
+        region[i, j, k] = 1
     v_transfer[i, j, k] = vt
     target[i, j, k] = target_v
     u[i, j, k] = v0
@@ -237,12 +245,15 @@ def finish_gradient(
     free: wp.array3d(dtype=wp.vec3),
     grad: wp.array3d(dtype=wp.vec3),  # in: elastic part; out: full gradient on the free components
     sums: wp.array(dtype=wp.float64),  # [3] out (accumulated): kinetic term J, sum |g|^2 / m, sum m
+    normal: wp.array3d(dtype=float),  # out: z of the full gradient; < 0 where a held node would lift off
 ):
     n = nodes[wp.tid()]
     i, j, k = n[0], n[1], n[2]
     m = mass[i, j, k]
     du = u[i, j, k] - target[i, j, k]
-    g = wp.cw_mul(free[i, j, k], grad[i, j, k] + m * du)
+    full = grad[i, j, k] + m * du
+    normal[i, j, k] = full[2]
+    g = wp.cw_mul(free[i, j, k], full)
     grad[i, j, k] = g
     wp.atomic_add(sums, 0, wp.float64(0.5 * m * wp.dot(du, du)))
     wp.atomic_add(sums, 1, wp.float64(wp.dot(g, g) / m))
@@ -263,93 +274,6 @@ def finish_hessian(
     v = wp.cw_mul(free[i, j, k], q[i, j, k] + mass[i, j, k] * d[i, j, k])
     q[i, j, k] = v
     wp.atomic_add(dq, 0, wp.float64(wp.dot(d[i, j, k], v)))
-
-
-@wp.kernel
-def zero_nodes(nodes: wp.array(dtype=wp.vec3i), a: wp.array3d(dtype=wp.vec3)):
-    n = nodes[wp.tid()]
-    a[n[0], n[1], n[2]] = wp.vec3(0.0)
-
-
-@wp.kernel
-def cg_start(
-    nodes: wp.array(dtype=wp.vec3i),
-    grad: wp.array3d(dtype=wp.vec3),
-    mass: wp.array3d(dtype=float),
-    diag: wp.array3d(dtype=float),
-    r: wp.array3d(dtype=wp.vec3),  # out: -grad
-    z: wp.array3d(dtype=wp.vec3),  # out: preconditioned r
-    p: wp.array3d(dtype=wp.vec3),  # out: = z
-    d: wp.array3d(dtype=wp.vec3),  # out: solution, 0
-    rz: wp.array(dtype=wp.float64),  # [1] out (accumulated): r . z
-):
-    n = nodes[wp.tid()]
-    i, j, k = n[0], n[1], n[2]
-    rr = -grad[i, j, k]
-    zz = rr / (mass[i, j, k] + diag[i, j, k])
-    r[i, j, k] = rr
-    z[i, j, k] = zz
-    p[i, j, k] = zz
-    d[i, j, k] = wp.vec3(0.0)
-    wp.atomic_add(rz, 0, wp.float64(wp.dot(rr, zz)))
-
-
-@wp.kernel
-def cg_update(
-    nodes: wp.array(dtype=wp.vec3i),
-    alpha: float,
-    p: wp.array3d(dtype=wp.vec3),
-    q: wp.array3d(dtype=wp.vec3),
-    mass: wp.array3d(dtype=float),
-    diag: wp.array3d(dtype=float),
-    d: wp.array3d(dtype=wp.vec3),  # in/out: d += alpha p
-    r: wp.array3d(dtype=wp.vec3),  # in/out: r -= alpha q
-    z: wp.array3d(dtype=wp.vec3),  # out: preconditioned r
-    sums: wp.array(dtype=wp.float64),  # [2] out (accumulated): r . z, r . r / m
-):
-    n = nodes[wp.tid()]
-    i, j, k = n[0], n[1], n[2]
-    d[i, j, k] = d[i, j, k] + alpha * p[i, j, k]
-    rr = r[i, j, k] - alpha * q[i, j, k]
-    m = mass[i, j, k]
-    zz = rr / (m + diag[i, j, k])
-    r[i, j, k] = rr
-    z[i, j, k] = zz
-    wp.atomic_add(sums, 0, wp.float64(wp.dot(rr, zz)))
-    wp.atomic_add(sums, 1, wp.float64(wp.dot(rr, rr) / m))
-
-
-@wp.kernel
-def cg_direction(
-    nodes: wp.array(dtype=wp.vec3i), beta: float, z: wp.array3d(dtype=wp.vec3), p: wp.array3d(dtype=wp.vec3)
-):
-    n = nodes[wp.tid()]
-    i, j, k = n[0], n[1], n[2]
-    p[i, j, k] = z[i, j, k] + beta * p[i, j, k]
-
-
-@wp.kernel
-def axpy_nodes(
-    nodes: wp.array(dtype=wp.vec3i),
-    alpha: float,
-    d: wp.array3d(dtype=wp.vec3),
-    u0: wp.array3d(dtype=wp.vec3),
-    u: wp.array3d(dtype=wp.vec3),  # out: u0 + alpha d
-):
-    n = nodes[wp.tid()]
-    i, j, k = n[0], n[1], n[2]
-    u[i, j, k] = u0[i, j, k] + alpha * d[i, j, k]
-
-
-@wp.kernel
-def dot_nodes(
-    nodes: wp.array(dtype=wp.vec3i),
-    a: wp.array3d(dtype=wp.vec3),
-    b: wp.array3d(dtype=wp.vec3),
-    out: wp.array(dtype=wp.float64),  # [1] out (accumulated)
-):
-    n = nodes[wp.tid()]
-    wp.atomic_add(out, 0, wp.float64(wp.dot(a[n[0], n[1], n[2]], b[n[0], n[1], n[2]])))
 
 
 @wp.kernel
@@ -390,53 +314,34 @@ def clear_stress_channels(lo: wp.vec3i, acc: wp.array3d(dtype=vec8)):
         acc[i + lo[0], j + lo[1], k + lo[2]] = a
 
 
-# Coarse space of the preconditioner: the 12 affine velocity fields u = a + B (x - centre),
-# numbered 4 a + b for component a and monomial b of (1, X, Y, Z) (coordinates scaled to ~1).
-COARSE = 12
-
-
-@wp.func
-def monomials(n: wp.vec3i, centre: wp.vec3, scale: float) -> wp.vec4:
-    y = (wp.vec3(float(n[0]), float(n[1]), float(n[2])) - centre) * scale
-    return wp.vec4(1.0, y[0], y[1], y[2])
-
-
 @wp.kernel
-def coarse_restrict(
+def update_contacts(
     nodes: wp.array(dtype=wp.vec3i),
-    r: wp.array3d(dtype=wp.vec3),
-    free: wp.array3d(dtype=wp.vec3),
-    centre: wp.vec3,  # node index coordinates of the coarse space's origin
-    scale: float,  # 1 / node index half-extent
-    out: wp.array(dtype=wp.float64),  # [COARSE] out (accumulated): Z^T r
+    region: wp.array3d(dtype=int),
+    normal: wp.array3d(dtype=float),
+    origin: wp.vec3,
+    dx: float,
+    ground: GroundStruct,
+    u: wp.array3d(dtype=wp.vec3),  # in/out
+    free: wp.array3d(dtype=wp.vec3),  # in/out
+    changes: wp.array(dtype=int),  # [1] out (accumulated)
 ):
-    n = nodes[wp.tid()]
-    mono = monomials(n, centre, scale)
-    rv = wp.cw_mul(free[n[0], n[1], n[2]], r[n[0], n[1], n[2]])
-    for a in range(3):
-        for b in range(4):
-            wp.atomic_add(out, 4 * a + b, wp.float64(rv[a] * mono[b]))
+    """The ground's active set at the solution: a held node whose reaction pulls it down (the
+    body would lift it) is released; a free node the solution moves into the ground is held.
 
-
-@wp.kernel
-def coarse_prolong(
-    nodes: wp.array(dtype=wp.vec3i),
-    y: wp.array(dtype=float),  # [COARSE] coarse coefficients
-    free: wp.array3d(dtype=wp.vec3),
-    centre: wp.vec3,
-    scale: float,
-    add: int,  # 1: z += Z y; 0: z = Z y
-    z: wp.array3d(dtype=wp.vec3),  # in/out
-):
+    The predictor alone holds the nodes that were moving down, so without this the ground keeps
+    the bottom of a rebounding body for a whole step (an adhesion that took 2/3 of a bounce's
+    energy at steps of a few ms)."""
     n = nodes[wp.tid()]
-    mono = monomials(n, centre, scale)
-    v = wp.vec3(0.0)
-    for a in range(3):
-        s = float(0.0)  # noqa: UP018 (Warp: a dynamic loop variable)
-        for b in range(4):
-            s += y[4 * a + b] * mono[b]
-        v[a] = s
-    v = wp.cw_mul(free[n[0], n[1], n[2]], v)
-    if add == 1:
-        v = v + z[n[0], n[1], n[2]]
-    z[n[0], n[1], n[2]] = v
+    i, j, k = n[0], n[1], n[2]
+    if region[i, j, k] == 0:
+        return
+    if free[i, j, k][2] == 0.0:
+        if normal[i, j, k] < 0.0:
+            free[i, j, k] = wp.vec3(1.0)
+            wp.atomic_add(changes, 0, 1)
+    elif u[i, j, k][2] < 0.0:
+        pos = origin + wp.vec3(float(i), float(j), float(k)) * dx
+        u[i, j, k] = ground_velocity(ground, pos, dx, u[i, j, k])
+        free[i, j, k] = wp.vec3(0.0)
+        wp.atomic_add(changes, 0, 1)
