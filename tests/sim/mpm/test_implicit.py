@@ -10,6 +10,7 @@ from physgm.sim.constitutive import MaterialParams
 from physgm.sim.mpm.boundary import GroundPlane, VelocityBox
 from physgm.sim.mpm.grid import GridSpec
 from physgm.sim.mpm.implicit import ImplicitMPMSolver
+from physgm.sim.mpm.implicit_newton import NewtonSettings
 from physgm.sim.mpm.integrators import make_solver
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.state import Particles
@@ -146,3 +147,23 @@ def test_thrown_block_rebounds_with_the_midpoint_rule():
     euler = SolverConfig(threads=1, integrator="implicit", implicit_dt=0.01, implicit_theta=1.0, cfl=1.0)
     com_be, _, _, _ = _run(jelly, euler, frames, drop_speed=2.0)
     assert com_be[:, 2].max() < com[:, 2].max() - 0.01
+
+
+def test_unconverged_solves_are_retried_only_when_asked():
+    # No Newton iteration allowed: every solve of the thrown block's impact stays unconverged. With
+    # retry_unconverged the guard retries the frame down to its last attempt, which it keeps.
+    dx = SIDE / 6
+    p = Particles.lattice((-SIDE / 2, -SIDE / 2, 0.0), (SIDE / 2, SIDE / 2, SIDE), dx / 2)
+    p = Particles(
+        p.x + np.array([0.0, 0.0, 0.5 * dx]), p.volume, p.material, v=np.tile([0, 0, -2.0], (len(p), 1))
+    )
+    grid = GridSpec.fit((-SIDE, -SIDE, 0.0), (SIDE, SIDE, 1.3 * SIDE), dx)
+    scene = Scene(ground=GroundPlane(0.0, friction=0.3))
+    cfg = SolverConfig(threads=1, integrator="implicit", max_retries=2, cfl=1.0, frame_dt=0.01)
+    for retry, expected in [(False, 0), (True, 2)]:
+        settings = NewtonSettings(max_newton=0, retry_unconverged=retry)
+        solver = ImplicitMPMSolver(p, [SOFT_RUBBER], grid, scene, cfg, "cpu", settings)
+        stats = solver.step_frame()
+        assert stats.retries == expected and stats.cfl == pytest.approx(1.0 / 2**expected)
+        assert not solver.implicit.log[-1].converged
+        solver.close()
