@@ -74,7 +74,8 @@ class ImplicitMPMSolver(MPMSolver):
     unconverged solve a failed frame for the divergence guard). ``implicit.log`` holds one
     ``SolveStats`` per sub-step, retried attempts included. Grid hooks added to ``hooks`` run after
     the solve and override it where they act. The ground and face impulses the observers see are
-    those of the predictor.
+    those of the predictor, and a ground held at depth gets no friction on its surface node layer
+    (``surface_friction`` acts on the predictor, which the solve replaces).
     """
 
     def __init__(

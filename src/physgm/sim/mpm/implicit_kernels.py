@@ -1,5 +1,6 @@
 """Warp kernels of the implicit elastic step (``implicit.py``): the energy, its gradient and
-Hessian-vector products over the grid velocities, and the vector algebra of the Newton-CG solve.
+Hessian-vector products over the grid velocities, the step's node set-up and the ground's active
+set (the Newton-CG vector algebra is ``implicit_algebra``).
 
 The unknown is the grid velocity u (one vec3 per node, dense [nx, ny, nz] arrays; only the
 nodes of the step's node list take part). With MLS weights, a particle's velocity gradient is
@@ -220,6 +221,7 @@ def init_nodes(
     if (k < bound and v0[2] < 0.0) or (k >= nz - bound and v0[2] > 0.0):
         f[2] = 0.0
         v0[2] = 0.0
+    # A downward probe velocity is stopped exactly where the ground holds nodes.
     region[i, j, k] = 0
     if (
         ground.enabled == 1
