@@ -12,15 +12,19 @@ found by Newton's method with a Jacobi-preconditioned conjugate gradient on the 
 energy (``implicit_newton``). The ground acts on the predictor as in the explicit grid_update: a
 node it holds keeps the ground's velocity for the step (normal stopped, Coulomb friction on the
 tangent); after a solve, held nodes the body would lift are released and free nodes pushed into
-the ground are held, and Newton continues (an active set). Particles
-then move and deform with u over the whole step dt, and take the velocity change of
-v^{n+1} = v^n + (u - v^n) / theta: theta = 1 is backward Euler (stable at any dt, damps what the
-step cannot resolve), theta = 1/2 the implicit midpoint rule (keeps the energy of linear
-elasticity). Only elastic models whose stress is the gradient of their ``energy`` take part
-(``IMPLICIT_MODELS``); plastic, granular and fluid materials stay explicit.
+the ground are held, and Newton continues (an active set). Particles then move and deform with u
+over the whole step dt, and take the velocity change of v^{n+1} = v^n + (u - v^n) / theta: theta
+= 1 is backward Euler (stable at any dt, damps what the step cannot resolve), theta = 1/2 the
+implicit midpoint rule (keeps the energy of linear elasticity). Only elastic models whose stress
+is the gradient of their ``energy`` take part (``IMPLICIT_MODELS``); plastic, granular and fluid
+materials stay explicit.
 
 The sub-step is ``SolverConfig.implicit_dt`` while the body is slow, and the advective limit
 cfl dx / |v|max (particles cross at most ``cfl`` cells a step) when it is fast.
+
+On this project's bench drops (docs/measurements_sim.md, section 10) it is an option, not a
+default: every setting measured missed the 0.5 px bound (backward Euler takes the rebound, the
+midpoint rule drifts in phase) and, but for one, took longer than the explicit step.
 """
 
 from __future__ import annotations
