@@ -65,7 +65,8 @@ def test_implicit_refuses_what_it_cannot_integrate():
 @pytest.mark.parametrize("model", ["fixed_corotated", "neo_hookean"])
 def test_gradient_and_hessian_are_those_of_the_energy(model):
     # At a random velocity field the kernels' gradient must be the energy's directional derivative
-    # and the Hessian product the gradient's (central differences in float64 sums).
+    # and the Hessian product the gradient's (central differences in float64 sums). Measured:
+    # 6e-5 / 3e-6 (gradient) and 1e-5 (Hessian) relative for fixed_corotated / neo_hookean.
     material = MaterialParams(model, E=1e6, nu=0.45, density=1100.0)
     _, solver = _block(material, SolverConfig(integrator="implicit", threads=1), drop_speed=1.0)
     try:
@@ -88,12 +89,12 @@ def test_gradient_and_hessian_are_those_of_the_energy(model):
         ep, gp = energy_and_grad(u0 + eps * d)
         em, gm = energy_and_grad(u0 - eps * d)
         slope = float((g0 * d).sum())
-        assert (ep - em) / (2 * eps) == pytest.approx(slope, rel=2e-3)
+        assert (ep - em) / (2 * eps) == pytest.approx(slope, rel=5e-4)
         energy_and_grad(u0)  # H_new back at u0
         step._hessian(solver, h, nodes, wp.array(d, dtype=wp.vec3, device=solver.device))
         hd = step.q.numpy().astype(np.float64)
         fd = (gp - gm) / (2 * eps)
-        assert np.linalg.norm(hd - fd) <= 2e-3 * np.linalg.norm(fd)
+        assert np.linalg.norm(hd - fd) <= 2e-4 * np.linalg.norm(fd)
         assert float((d * hd).sum()) > 0  # at these strains the step's Hessian is positive
     finally:
         solver.close()
