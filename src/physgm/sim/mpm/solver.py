@@ -209,11 +209,10 @@ class MPMSolver:
             self._fit_active(dt)
         self._since_fit += 1
         self._launches.set_dt(dt, self.scene.damping)
-        if self._launches.timed:
-            self._launches.set_time(self.time)
+        self._launches.set_time(self.time)
 
         before = self._impulses() if self.observers else None
-        stamp = self._launches.stamp + 1  # the number _launches.run gives this sub-step
+        stamp = self._launches.next_stamp  # the number _launches.run gives this sub-step
 
         def hooks() -> None:
             self._walls.after_grid_update(stamp, self.active_box)
@@ -227,6 +226,33 @@ class MPMSolver:
         self.time += dt
         if before is not None:
             self._observe(dt, before)
+
+    def _graph_run(self, dt: float, t_end: float, frame_dt: float) -> int:
+        """Sub-steps of ``dt`` the next launch-graph replay can take (0: step in Python).
+
+        A replay takes ``cfl_check_every`` sub-steps, exactly those ``_advance`` would take one at
+        a time: nothing needs Python between them, and none is the frame's shortened last step.
+        """
+        n = self.config.cfl_check_every
+        if not self.config.graphs or self.threads != 1 or self.hooks or self.observers or self._walls:
+            return 0
+        t = self.time
+        for _ in range(n):
+            if t_end - t < dt or t_end - t <= 1e-9 * frame_dt:
+                return 0
+            t += dt
+        return n
+
+    def _substeps_graph(self, dt: float, count: int) -> None:
+        """``count`` sub-steps of ``dt`` replayed from a launch graph (``launches.run_graph``)."""
+        if self._since_fit + count > self.config.cfl_check_every:
+            self._fit_active(dt)
+        self._since_fit += count
+        self._launches.set_dt(dt, self.scene.damping)
+        self._launches.set_time(self.time)
+        self._launches.run_graph(count)
+        for _ in range(count):  # the same float64 sums as stepping one at a time
+            self.time += dt
 
     # ----------------------------------------------------------------------------- observables
     def _impulses(self) -> np.ndarray:
@@ -289,8 +315,12 @@ class MPMSolver:
                 dt = remaining / math.ceil(remaining / dt_cfl - 1e-9)
                 self._fit_active(dt)
             dt = min(dt, remaining)
-            self.substep(dt)
-            steps += 1
+            count = self._graph_run(dt, t_end, frame_dt) if steps % cfg.cfl_check_every == 0 else 0
+            if count:
+                self._substeps_graph(dt, count)
+            else:
+                self.substep(dt)
+            steps += count or 1
             dt_min, dt_max = min(dt_min, dt), max(dt_max, dt)
             if steps >= cfg.max_substeps:
                 raise SimulationDiverged(
