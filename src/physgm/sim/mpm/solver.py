@@ -171,20 +171,33 @@ class MPMSolver:
         dev, res = self.device, self.grid.res
         self._energy = wp.zeros(3, dtype=wp.float64, device=dev)
         self._bounds = wp.zeros(2, dtype=wp.vec3, device=dev)
+        # Recorded once: a re-fit every cfl_check_every sub-steps is a visible share of a small
+        # sub-step's fixed cost (docs/measurements.md).
+        self._bounds_launches = [
+            wp.launch(ops.reset_bounds, 1, [self._bounds], device=dev, record_cmd=True),
+            wp.launch(
+                ops.bounds, self.num_particles, [self.particles.x, self._bounds], device=dev, record_cmd=True
+            ),
+        ]
         self._observed = wp.zeros(4, dtype=wp.float64, device=dev)
         self._dynamic = [*self.particles.dynamic, self.arrays.work, self._walls.impulse]
         self._backup = [wp.empty_like(a) for a in self._dynamic]
         self.active_box = (np.zeros(3, int), np.array(res) - 1)  # node index range grid_update covers
 
-    def _fit_active(self, dt: float) -> None:
-        """Limit grid_update to the nodes particles can reach in the next ``cfl_check_every`` steps."""
+    def _fit_active(self, dt: float, stats_read: bool = False) -> None:
+        """Limit grid_update to the nodes particles can reach in the next ``cfl_check_every`` steps.
+
+        ``stats_read``: ``self._vmax`` already holds the speed the statistics have seen.
+        """
         g, cfg = self.grid, self.config
         self._since_fit = 0
-        self._bounds.assign(np.array([[np.inf] * 3, [-np.inf] * 3], np.float32))
-        wp.launch(ops.bounds, self.num_particles, [self.particles.x, self._bounds], device=self.device)
+        for launch in self._bounds_launches:
+            launch.launch()
         b = self._bounds.numpy().astype(np.float64)
-        seen = self._read_stats().max_speed
-        vmax = max(self._vmax, seen) if math.isfinite(seen) else self._vmax
+        vmax = self._vmax
+        if not stats_read:
+            seen = self._read_stats().max_speed
+            vmax = max(self._vmax, seen) if math.isfinite(seen) else self._vmax
         reach = 2.0 * vmax * dt * cfg.cfl_check_every + 3.0 * g.dx  # doubled speed, 3-cell stencil pad
         origin, res = np.asarray(g.origin), np.asarray(g.res)
         lo = np.clip(np.floor((b[0] - reach - origin) / g.dx).astype(int), 0, res - 1)
@@ -313,7 +326,8 @@ class MPMSolver:
                     self._vmax = max(self._vmax, s.max_speed)
                 dt_cfl = cfl * self.grid.dx / (self._c_max + self._vmax)
                 dt = remaining / math.ceil(remaining / dt_cfl - 1e-9)
-                self._fit_active(dt)
+                # The statistics were reset at the frame start or read just above.
+                self._fit_active(dt, stats_read=True)
             dt = min(dt, remaining)
             count = self._graph_run(dt, t_end, frame_dt) if steps % cfg.cfl_check_every == 0 else 0
             if count:

@@ -3,10 +3,11 @@
 dt, time, damping, the sub-step's number (the scatter's block stamp) and the active grid box
 live in a one-element array that the kernels read, not in launch arguments. So a sequence of
 recorded launches means the same thing every time it runs: ``advance_clock`` moves time and
-the stamp on at the end of each sub-step, and the host writes the array only when dt or the
-active box change (every ``cfl_check_every`` sub-steps at most). That is what lets the solver
-capture the sub-step once as a launch graph (``wp.capture_begin``: a CUDA graph, or Warp's C++
-replay of recorded CPU launches) and replay it without returning to Python (``launches.py``).
+the stamp on at the end of each sub-step, and the host writes the array (through numpy views of
+its fields) only when dt or the active box change, every ``cfl_check_every`` sub-steps at most.
+That is what lets the solver capture the sub-step once as a launch graph (``wp.capture_begin``:
+a CUDA graph, or Warp's C++ replay of recorded CPU launches) and replay it without returning to
+Python (``launches.py``).
 """
 
 from __future__ import annotations
@@ -28,11 +29,6 @@ class SubstepParams:
     node_hi: wp.vec3i
     inner_lo: wp.vec3  # m: g2p flags particles that leave [inner_lo, inner_hi] before the re-fit
     inner_hi: wp.vec3
-
-
-@wp.kernel
-def write_params(params: wp.array(dtype=SubstepParams), value: SubstepParams):
-    params[0] = value
 
 
 @wp.kernel

@@ -1,0 +1,128 @@
+"""``python -m physgm.bench sim-substep``: the cost of one small MPM sub-step, per stepping mode.
+
+A block of P particles (8 per cell) resting on the ground is stepped through ``step_frame`` with
+each mode in turn, in one process, round after round, so that the host's load swings hit every
+mode alike:
+
+    python:   one thread, each sub-step's launches from Python (``SolverConfig(graphs=False)``);
+    graph:    one thread, runs of ``cfl_check_every`` sub-steps replayed from a captured launch
+              graph (``graphs=True``, the default);
+    threads2: two threads, launches from Python (the only mode with two threads).
+
+Prints one JSON object: per material and size, the median microseconds per sub-step of each mode
+(and their spread over the rounds), the median of the per-round ratios python / graph, and a
+least-squares fit us = fixed + per_particle x P per mode over the sizes. The file also runs as a
+script against a tree without graph replay (``PYTHONPATH=<tree>/src python sim_substep.py``),
+which then times the modes it has. Wall-clock on a shared CPU; nothing asserts on it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import statistics
+import time
+from dataclasses import fields
+
+import numpy as np
+import warp as wp
+
+from physgm.physics.materials import get_material
+from physgm.sim.mpm import GridSpec, GroundPlane, MPMSolver, Particles, Scene, SolverConfig, cfl_dt
+
+E_BENCH = {"jelly": 1e5}  # the jelly of the drop benchmark (the table default is 1e4 Pa)
+SIDE = 0.1  # m, block edge
+MODES = {
+    "python": dict(threads=1, graphs=False),
+    "graph": dict(threads=1, graphs=True),
+    "threads2": dict(threads=2),
+}
+
+
+def block(n: int) -> tuple[Particles, float]:
+    """The first ``n`` particles of a cubic lattice filling a SIDE-wide block (a partial top layer),
+    and the grid spacing that puts 8 of them in a cell."""
+    per_side = math.ceil(n ** (1 / 3))
+    spacing = SIDE / per_side
+    full = Particles.lattice((0.0, 0.0, 0.0), (SIDE, SIDE, SIDE), spacing)
+    keep = np.argsort(full.x[:, 2], kind="stable")[:n]  # lowest layers first
+    x = full.x[keep] + np.array([0.0, 0.0, 0.5 * spacing])
+    return Particles(x=x, volume=spacing**3, material=0), 2.0 * spacing
+
+
+def time_mode(particles: Particles, dx: float, material, mode: dict, substeps: int) -> float:
+    """Microseconds per sub-step of ``step_frame`` over frames of ~64 sub-steps, after one warm-up
+    frame (which also captures the graph)."""
+    frame_dt = 64 * cfl_dt(dx, [material], 0.0, SolverConfig().cfl)
+    known = {f.name for f in fields(SolverConfig)}
+    config = SolverConfig(frame_dt=frame_dt, **{k: v for k, v in mode.items() if k in known})
+    grid = GridSpec.fit((-0.05, -0.05, 0.0), (SIDE + 0.05, SIDE + 0.05, SIDE + 0.05), dx)
+    solver = MPMSolver(particles, [material], grid, Scene(ground=GroundPlane()), config)
+    try:
+        solver.step_frame()
+        steps, start = 0, time.perf_counter()
+        while steps < substeps:
+            steps += solver.step_frame().substeps
+        return 1e6 * (time.perf_counter() - start) / steps
+    finally:
+        solver.close()
+
+
+def fit(sizes: list[int], us: list[float]) -> dict[str, float]:
+    """us = fixed + per_particle x P, least squares."""
+    per_particle, fixed = np.polyfit(np.asarray(sizes, float), np.asarray(us, float), 1)
+    return {"fixed_us": round(float(fixed), 1), "per_particle_us": round(float(per_particle), 4)}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(
+        prog="python -m physgm.bench sim-substep", description=__doc__.splitlines()[0]
+    )
+    parser.add_argument("--sizes", type=int, nargs="+", default=[649, 2000, 8000])
+    parser.add_argument("--materials", nargs="+", default=["jelly", "rubber"])
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--substeps", type=int, default=256, help="timed sub-steps per mode and round")
+    parser.add_argument("--modes", nargs="+", default=list(MODES), choices=list(MODES))
+    args = parser.parse_args(argv)
+    wp.config.quiet = True
+    has_graphs = "graphs" in {f.name for f in fields(SolverConfig)}
+    modes = [m for m in args.modes if has_graphs or m != "graph"]
+    rows = []
+    for name in args.materials:
+        spec = get_material(name)
+        material = spec.params(E=E_BENCH.get(name, spec.E))
+        for n in args.sizes:
+            particles, dx = block(n)
+            times: dict[str, list[float]] = {m: [] for m in modes}
+            for _ in range(args.rounds):
+                for m in modes:
+                    times[m].append(time_mode(particles, dx, material, MODES[m], args.substeps))
+            row = {"material": name, "E": material.E, "particles": n, "dx": round(dx, 5)}
+            for m in modes:
+                row[f"{m}_us"] = round(statistics.median(times[m]), 1)
+                row[f"{m}_us_range"] = [round(min(times[m]), 1), round(max(times[m]), 1)]
+            if "python" in modes and "graph" in modes:
+                ratios = [a / b for a, b in zip(times["python"], times["graph"], strict=True)]
+                row["python_over_graph"] = round(statistics.median(ratios), 3)
+            rows.append(row)
+    fits = {}
+    for name in args.materials:
+        mine = [r for r in rows if r["material"] == name]
+        if len(mine) >= 2:
+            fits[name] = {m: fit([r["particles"] for r in mine], [r[f"{m}_us"] for r in mine]) for m in modes}
+    result = {
+        "rows": rows,
+        "fits": fits,
+        "rounds": args.rounds,
+        "substeps_per_timing": args.substeps,
+        "loadavg": [round(x, 2) for x in os.getloadavg()],
+        "cpu_note": "wall-clock on a shared 2-core CPU: compare modes within a row (same rounds), not runs",
+    }
+    print(json.dumps(result, indent=1))
+    return result
+
+
+if __name__ == "__main__":
+    main()
