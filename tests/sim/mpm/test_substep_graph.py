@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from types import SimpleNamespace
 
 import numpy as np
@@ -94,3 +95,12 @@ def test_cuda_graph_replay_matches_python_stepping_on_cuda():
     np.testing.assert_allclose(fast.state().x, ref.state().x, atol=1e-5)
     cpu = _drop("cpu", True, scene, materials)[0]
     np.testing.assert_allclose(fast.state().x, cpu.state().x, atol=1e-4)
+
+
+def test_a_solver_in_a_worker_thread_steps_in_python():
+    """A capture records every CPU launch of every thread, so only the main thread captures."""
+    scene, materials = SCENES["friction_ground"]
+    with ThreadPoolExecutor(1) as pool:
+        solver, _ = pool.submit(_drop, "cpu", True, scene, materials, 1).result()
+    assert solver.launches.replayed == 0
+    solver.close()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol
@@ -245,9 +246,14 @@ class MPMSolver:
 
         A replay takes ``cfl_check_every`` sub-steps, exactly those ``_advance`` would take one at
         a time: nothing needs Python between them, and none is the frame's shortened last step.
+        Only on the main thread: a Warp capture records (instead of running) every launch on its
+        device from any thread, so a solver in a worker thread (DPO rollouts run several at once)
+        could swallow another's launches; those solvers step in Python.
         """
         n = self.config.cfl_check_every
         if not self.config.graphs or self.threads != 1 or self.hooks or self.observers or self._walls:
+            return 0
+        if threading.current_thread() is not threading.main_thread():
             return 0
         t = self.time
         for _ in range(n):
