@@ -62,6 +62,8 @@ def test_graph_replay_gives_the_same_particles_as_python_stepping(name):
     for field in ("x", "v", "F", "C", "plastic"):  # same kernels in the same order: bit-identical
         np.testing.assert_array_equal(getattr(b, field), getattr(a, field), err_msg=field)
     assert fast.time == ref.time and fast.driver_work == ref.driver_work
+    if name == "timed_box":
+        assert ref.driver_work != 0.0  # the box acted (holding the block back: -6 mJ)
     ref.close()
     fast.close()
 
@@ -91,10 +93,12 @@ def test_cuda_graph_replay_matches_python_stepping_on_cuda():
     ref = _drop("cuda:0", False, scene, materials)[0]
     fast = _drop("cuda:0", True, scene, materials)[0]
     assert fast.launches.replayed > 0
-    # Atomic adds on a GPU sum in no fixed order, so two runs differ by float round-off.
-    np.testing.assert_allclose(fast.state().x, ref.state().x, atol=1e-5)
+    # Atomic adds on a GPU sum in no fixed order, so two runs differ by round-off, which three
+    # frames of contact can grow; a replay that skipped or repeated launches would move the block
+    # by millimetres (dx = 1 cm).
+    np.testing.assert_allclose(fast.state().x, ref.state().x, atol=2e-4)
     cpu = _drop("cpu", True, scene, materials)[0]
-    np.testing.assert_allclose(fast.state().x, cpu.state().x, atol=1e-4)
+    np.testing.assert_allclose(fast.state().x, cpu.state().x, atol=1e-3)
 
 
 def test_a_solver_in_a_worker_thread_steps_in_python():
