@@ -31,7 +31,8 @@ from physgm.warp_runtime import ensure_loaded
 
 
 class SubstepLaunches:
-    """p2g and g2p launches for ``threads`` particle slices, and one grid_update.
+    """p2g and g2p launches for ``threads`` particle slices, one grid_update, the surface friction
+    and the clock; ``run`` launches one sub-step from Python, ``run_graph`` replays several.
 
     Args:
         particles: the solver's particle arrays (the launches read and write them in place).
