@@ -47,6 +47,7 @@ KERNEL_MODULES = (
     "physgm.sim.mpm.walls",
     "physgm.sim.mpm.observables",
     "physgm.sim.mpm.surface_friction",
+    "physgm.sim.mpm.substep_params",
     "physgm.render.warp_tile_kernels",
 )
 # Modules whose kernels only ever run on the CPU (C++ snippets written for the host compiler).
