@@ -49,6 +49,7 @@ KERNEL_MODULES = (
     "physgm.sim.mpm.surface_friction",
     "physgm.sim.mpm.implicit_kernels",
     "physgm.sim.mpm.implicit_algebra",
+    "physgm.sim.mpm.substep_params",
     "physgm.render.warp_tile_kernels",
 )
 # Modules whose kernels only ever run on the CPU (C++ snippets written for the host compiler).

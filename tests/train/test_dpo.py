@@ -34,10 +34,21 @@ def tiny_model_config() -> dict:
     return PhysGMConfig(backbone=backbone, gaussian_head=head).to_dict()
 
 
-def stage1_checkpoint(path, seed: int = 0) -> str:
+def features_head_config() -> dict:
+    """The tiny model on the frozen MobileNetV2, its material read from the pooled pyramid."""
+    cfg = tiny_model_config()
+    cfg["backbone"]["encoder"] = {
+        "kind": "mobilenet_v2", "patch_size": 16, "embed_dim": 448, "freeze": True, "img_size": 32
+    }
+    cfg["physics_head"]["material_input"] = "features"
+    cfg["physics_head"]["feature_hidden"] = 16
+    return cfg
+
+
+def stage1_checkpoint(path, seed: int = 0, model: dict | None = None) -> str:
     """A stage-1 checkpoint as Lightning writes it (state_dict + plain-dict hyper_parameters)."""
     torch.manual_seed(seed)
-    lit = LitPretrain(model=tiny_model_config())
+    lit = LitPretrain(model=model or tiny_model_config())
     torch.save({"state_dict": lit.state_dict(), "hyper_parameters": dict(lit.hparams)}, path)
     return str(path)
 
@@ -124,15 +135,18 @@ def test_reference_is_a_frozen_copy_outside_the_module_tree(tmp_path):
     assert trainable == {id(p) for p in lit.model.physics_head.parameters()}
 
 
-def test_cached_tokens_give_the_full_forward_posteriors(tmp_path):
-    lit = LitDPO(init_ckpt=stage1_checkpoint(tmp_path / "s1.ckpt"), loss={"beta": 0.5})
+@pytest.mark.parametrize("material_input", ["token", "features"])
+def test_cached_head_inputs_give_the_full_forward_posteriors(tmp_path, material_input):
+    model = features_head_config() if material_input == "features" else None
+    lit = LitDPO(init_ckpt=stage1_checkpoint(tmp_path / "s1.ckpt", model=model), loss={"beta": 0.5})
     records, inputs = fake_pairs(n=4)
     with torch.no_grad():
         lit.model.physics_head.young[-1].bias += 0.3  # policy != reference
     batch = collate_pairs([PairDataset(records, inputs)[i] for i in (2, 0, 3)])
     policy, reference = lit.posteriors(batch)
     lit.posteriors(collate_pairs([PairDataset(records, inputs)[i] for i in (1, 0)]))  # partly cached
-    assert set(lit._tokens) == {"s0", "s1", "s2", "s3"}
+    assert set(lit._head_inputs) == {"s0", "s1", "s2", "s3"}
+    assert all((pooled is None) == (material_input == "token") for _, pooled in lit._head_inputs.values())
     with torch.no_grad():
         full = lit.model(batch.images, batch.masks, batch.c2w, batch.Ks).physics
         full_ref = lit.reference(batch.images, batch.masks, batch.c2w, batch.Ks).physics

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from types import SimpleNamespace
@@ -23,7 +24,7 @@ import physgm.train.rollout_env as env
 from physgm.data.synth import SynthConfig, asset_id, generate
 from physgm.data.video import VideoConfig, place_object, render_frames, video_camera, write_mp4
 from physgm.data.writer import camera_entry, write_json
-from physgm.gaussians import Gaussians
+from physgm.gaussians import Gaussians, read_ply
 from physgm.model import BackboneConfig, EncoderConfig, GaussianHeadConfig, PhysGMConfig
 from physgm.model.physgm import PhysGM
 from physgm.physics.materials import PhysicsSpec
@@ -542,3 +543,34 @@ def test_evaluate_command_compares_two_checkpoints(dpo_root, stage1_ckpt, tmp_pa
     text = (out / "evaluate_dpo.md").read_text()
     assert text.count("\n") == len(summary) + 2 and "| overall |" in text and "| rubber |" in text
     assert "stage 1 perceptual" in text and "stage 2 traj dist" in text
+
+
+def test_asset_gaussians_are_what_candidates_simulate(dpo_root, policy, tmp_path, monkeypatch):
+    seen: dict[str, int] = {}
+
+    def record(scene, gaussians, physics, reference, settings, device="cpu"):
+        seen[scene.id] = len(gaussians)
+        return env.ClipResult(abs(math.log10(physics.E) - 5.0), mode="stand-in")
+
+    monkeypatch.setattr(rollout, "evaluate_physics", record)
+    predicted = make_callback(dpo_root)
+    predicted.setup(None, None, "fit")
+    predicted.refresh(fake_trainer(tmp_path / "a"), policy, 0, "p0")
+    from_model = dict(seen)
+    asset = make_callback(dpo_root, gaussians="asset")
+    asset.setup(None, None, "fit")
+    assert asset.settings != predicted.settings  # the pair cache tells the two apart
+    asset.refresh(fake_trainer(tmp_path / "b"), policy, 0, "p0")
+    for aid in from_model:
+        assert seen[aid] == len(read_ply(dpo_root / aid / "gaussians.ply")) != from_model[aid]
+
+
+def test_asset_gaussians_need_a_gaussians_file_per_scene(dpo_root, tmp_path):
+    with pytest.raises(ValueError, match="rollout.gaussians must be one of"):
+        make_callback(dpo_root, gaussians="mesh")
+    root = tmp_path / "data"
+    shutil.copytree(dpo_root, root)
+    (root / asset_id(1) / "gaussians.ply").unlink()
+    cb = make_callback(root, gaussians="asset")
+    with pytest.raises(ValueError, match=f"1 scenes .* have none \\({asset_id(1)}\\)"):
+        cb.setup(None, None, "fit")

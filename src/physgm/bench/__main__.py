@@ -11,6 +11,7 @@ SUITES = {
     "sim": "physgm.bench.sim_speed",
     "sim-verify": "physgm.bench.sim_verify",
     "sim-stability": "physgm.bench.sim_stability",
+    "sim-substep": "physgm.bench.sim_substep",
     "e2e": "physgm.bench.e2e",
     "model": "physgm.bench.model_speed",
     "dpo-landscape": "physgm.bench.dpo_landscape",

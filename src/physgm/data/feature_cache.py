@@ -176,7 +176,8 @@ class FeatureStore:
                 f"physgm.data.feature_cache"
             )
 
-    def load(self, asset_id: str, views: list[int]) -> ImageFeatures:  # [V, ...] float16 tensors
+    def load(self, asset_id: str, views: list[int] | None = None) -> ImageFeatures:  # [V, ...] float16
+        """The cached features of ``views`` (indices into the asset's cameras; None: every cached view)."""
         path = self.folder / f"{asset_id}.npz"
         if not path.exists():
             raise FileNotFoundError(
@@ -184,6 +185,7 @@ class FeatureStore:
             )
         with np.load(path) as data:
             stored = [int(v) for v in data["views"]]
+            views = stored if views is None else views
             missing = [v for v in views if v not in stored]
             if missing:
                 raise ValueError(

@@ -90,6 +90,12 @@ class PhysicsHeadConfig:
     # ``physgm.train.evaluate``'s ``calibration_logvar_offset_*`` on a validation split.
     E_logvar_offset: float = 0.0
     nu_logvar_offset: float = 0.0
+    # What the material classifier reads: "token" (global token 0, the paper's design) or
+    # "features" (the frozen CNN encoder's pyramid pooled over space and the views; mobilenet_v2
+    # only). On the synthetic assets a classifier of the pooled features beats one of the trained
+    # tokens by 0.1-0.15 (docs/model.md); ``python -m physgm.train.refit_material`` fits it.
+    material_input: str = "token"
+    feature_hidden: int = 256  # hidden size of the "features" material MLP
 
 
 @dataclass

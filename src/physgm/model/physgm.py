@@ -14,7 +14,7 @@ from physgm.model.backbone import Backbone
 from physgm.model.cnn_encoder import LEVEL_CHANNELS, ImageFeatures, MobileNetEncoder
 from physgm.model.config import PhysGMConfig
 from physgm.model.gaussian_head import GaussianHead, GaussianPrediction
-from physgm.model.physics_head import PhysicsHead, fuse_material_logits
+from physgm.model.physics_head import PhysicsHead, fuse_material_logits, pooled_features
 from physgm.model.posterior import PhysicsPosterior
 from physgm.model.semantic_prior import semantic_log_prior
 
@@ -47,6 +47,11 @@ class PhysGM(nn.Module):
         self.gaussian_head = GaussianHead(
             config.gaussian_head, config.backbone.width, self.backbone.patch_size, skips
         )
+        if config.physics_head.material_input == "features" and not cnn:
+            raise ValueError(
+                "physics_head.material_input='features' reads the frozen CNN encoder's pyramid: it "
+                f"needs backbone.encoder.kind='mobilenet_v2', got {config.backbone.encoder.kind!r}"
+            )
         self.physics_head = PhysicsHead(
             config.physics_head, config.backbone.width, config.backbone.num_global_tokens
         )
@@ -83,7 +88,10 @@ class PhysGM(nn.Module):
         log_prior = None
         if out.features is not None:  # the views show one object: average their ImageNet logits
             log_prior = semantic_log_prior(out.features.imagenet_logits.float().reshape(b, v, -1).mean(dim=1))
-        head = self.physics_head(out.global_tokens)
+        pooled = None
+        if self.config.physics_head.material_input == "features":
+            pooled = pooled_features(out.features, b)
+        head = self.physics_head(out.global_tokens, pooled)
         weight = self.config.physics_head.semantic_prior_weight
         fused = fuse_material_logits(head.material_logits, log_prior, weight)
         physics = dataclasses.replace(head, material_logits=fused)

@@ -2,7 +2,10 @@
 
 One token per quantity, as in the paper: token 0 gives the material logits, token 1 the mean and
 log-variance of normalised log10 E, token 2 those of normalised nu (normalisation in
-``physgm.model.posterior``). This is the only module the DPO stage trains.
+``physgm.model.posterior``). With ``material_input="features"`` the material logits come instead
+from the frozen CNN encoder's pyramid, pooled over space and views (``pooled_features``): on the
+synthetic assets that reads the material better than the jointly trained token does, while the
+tokens read E better (docs/model.md). This is the only module the DPO stage trains.
 """
 
 from __future__ import annotations
@@ -10,8 +13,46 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from physgm.model.cnn_encoder import LEVEL_CHANNELS, ImageFeatures
 from physgm.model.config import PhysicsHeadConfig
 from physgm.model.posterior import PhysicsPosterior
+
+MATERIAL_INPUTS = ("token", "features")
+# Per-channel mean of all four levels and standard deviation of the two coarsest (the fine levels'
+# spread is mostly the silhouette's edge).
+POOLED_DIM = sum(LEVEL_CHANNELS.values()) + LEVEL_CHANNELS["s16"] + LEVEL_CHANNELS["s32"]
+
+
+def pooled_features(
+    features: ImageFeatures,  # [B * V, ...] or [B, V, ...] frozen-encoder outputs
+    batch: int,  # B
+) -> Tensor:  # [B, POOLED_DIM]
+    """One vector per scene: the pyramid pooled over space, then averaged over the scene's views."""
+    levels = [t.float().flatten(0, -4) for t in features.levels()]  # [B * V, C, h, w]
+    parts = [t.mean((-2, -1)) for t in levels] + [t.std((-2, -1), correction=0) for t in levels[2:]]
+    return torch.cat(parts, -1).reshape(batch, -1, POOLED_DIM).mean(1)
+
+
+class PooledMaterialClassifier(nn.Module):
+    """Material logits from ``pooled_features``: standardise, then a one-hidden-layer MLP.
+
+    ``shift`` / ``scale`` are the training set's per-feature mean and standard deviation
+    (buffers, set by ``physgm.train.refit_material``). ``dropout`` (input, hidden) is 0 outside
+    that fit, so the DPO stage's log-probabilities stay deterministic.
+    """
+
+    def __init__(self, num_materials: int, hidden: int) -> None:
+        super().__init__()
+        self.register_buffer("shift", torch.zeros(POOLED_DIM))
+        self.register_buffer("scale", torch.ones(POOLED_DIM))
+        self.hidden = nn.Linear(POOLED_DIM, hidden)
+        self.out = nn.Linear(hidden, num_materials)
+        self.dropout = (0.0, 0.0)
+
+    def forward(self, pooled: Tensor) -> Tensor:  # [B, POOLED_DIM] -> [B, M]
+        x = nn.functional.dropout((pooled - self.shift) / self.scale, self.dropout[0], self.training)
+        h = nn.functional.dropout(nn.functional.gelu(self.hidden(x)), self.dropout[1], self.training)
+        return self.out(h)
 
 
 class PhysicsHead(nn.Module):
@@ -27,21 +68,40 @@ class PhysicsHead(nn.Module):
             raise ValueError(
                 f"physics_head needs logvar_min < logvar_max, got {cfg.logvar_min}, {cfg.logvar_max}"
             )
+        if cfg.material_input not in MATERIAL_INPUTS:
+            raise ValueError(
+                f"physics_head.material_input must be one of {MATERIAL_INPUTS}, got {cfg.material_input!r}"
+            )
         self.cfg = cfg
-        self.material = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, cfg.num_materials))
+        if cfg.material_input == "features":
+            self.material = PooledMaterialClassifier(cfg.num_materials, cfg.feature_hidden)
+            last = self.material.out
+        else:
+            self.material = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, cfg.num_materials))
+            last = self.material[-1]
         self.young = _mean_logvar_mlp(dim, cfg.hidden)
         self.poisson = _mean_logvar_mlp(dim, cfg.hidden)
-        nn.init.normal_(self.material[-1].weight, std=0.02)
-        nn.init.zeros_(self.material[-1].bias)
+        nn.init.normal_(last.weight, std=0.02)
+        nn.init.zeros_(last.bias)
 
     def forward(
         self,
         global_tokens: Tensor,  # [B, G >= 3, D]
+        pooled: Tensor | None = None,  # [B, POOLED_DIM] pooled_features, for material_input "features"
     ) -> PhysicsPosterior:
+        if self.cfg.material_input == "features":
+            if pooled is None:
+                raise ValueError(
+                    "this physics head reads the material from the CNN encoder's pooled features; "
+                    "pass physics_head(global_tokens, pooled_features(features, B))"
+                )
+            material_logits = self.material(pooled)
+        else:
+            material_logits = self.material(global_tokens[:, 0])
         E_mean, E_raw = self.young(global_tokens[:, 1]).unbind(-1)
         nu_mean, nu_raw = self.poisson(global_tokens[:, 2]).unbind(-1)
         return PhysicsPosterior(
-            material_logits=self.material(global_tokens[:, 0]),
+            material_logits=material_logits,
             z_E_mean=E_mean,
             z_E_logvar=self._logvar(E_raw) + self.cfg.E_logvar_offset,
             z_nu_mean=nu_mean,

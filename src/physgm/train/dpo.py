@@ -143,7 +143,8 @@ class LitDPO(L.LightningModule):
             self._reference.append(freeze(copy.deepcopy(self.model)))
         freeze(self.model.backbone)
         freeze(self.model.gaussian_head)
-        self._tokens: dict[str, Tensor] = {}  # scene id -> frozen global tokens [G, D] (not saved)
+        # scene id -> what the frozen backbone hands the physics head: tokens [G, D], pooled [P] or None
+        self._head_inputs: dict[str, tuple[Tensor, Tensor | None]] = {}  # (not saved)
         self.loss_cfg = DPOLossConfig(**(loss or {}))
         self.optim_cfg = OptimConfig(**(optim or {}))
         self.total_steps = total_steps
@@ -193,18 +194,18 @@ class LitDPO(L.LightningModule):
     ) -> DPOBatch:
         return batch.to(device)
 
-    def global_tokens(self, batch: DPOBatch) -> Tensor:  # [B, G, D]
-        """The frozen backbone's global tokens of the batch's scenes, computed once per scene.
+    def head_inputs(self, batch: DPOBatch) -> tuple[Tensor, Tensor | None]:  # [B, G, D], [B, P] | None
+        """What the physics head reads for the batch's scenes, computed once per scene: the frozen
+        backbone's global tokens, and the pooled encoder features when the head's material
+        classifier reads them (``material_input="features"``; else None).
 
         Exact, not an approximation: the backbone is frozen and in eval mode, and the reference's
-        backbone is a bit-identical copy of it, so both physics heads read the same tokens.
+        backbone is a bit-identical copy of it, so both physics heads read the same inputs.
         """
-        missing = [i for i, s in enumerate(batch.scenes) if s not in self._tokens]
+        missing = [i for i, s in enumerate(batch.scenes) if s not in self._head_inputs]
         if missing:
-            seen: list[Tensor] = []
-            hook = self.model.physics_head.register_forward_hook(
-                lambda mod, args, out: seen.append(args[0].detach())
-            )
+            seen: list[tuple] = []
+            hook = self.model.physics_head.register_forward_hook(lambda mod, args, out: seen.append(args))
             try:
                 with torch.no_grad():
                     self.model(
@@ -212,16 +213,21 @@ class LitDPO(L.LightningModule):
                     )
             finally:
                 hook.remove()
-            for i, tokens in zip(missing, seen[0], strict=True):
-                self._tokens[batch.scenes[i]] = tokens
-        return torch.stack([self._tokens[s] for s in batch.scenes]).to(self.device)
+            tokens, pooled = seen[0][0].detach(), seen[0][1]
+            for k, i in enumerate(missing):
+                scene_pooled = None if pooled is None else pooled[k].detach()
+                self._head_inputs[batch.scenes[i]] = (tokens[k], scene_pooled)
+        inputs = [self._head_inputs[s] for s in batch.scenes]
+        tokens = torch.stack([t for t, _ in inputs]).to(self.device)
+        pooled = None if inputs[0][1] is None else torch.stack([p for _, p in inputs]).to(self.device)
+        return tokens, pooled
 
     def posteriors(self, batch: DPOBatch) -> tuple[PhysicsPosterior, PhysicsPosterior]:
         """(policy, reference) physics posteriors [B] of the batch's scenes."""
-        tokens = self.global_tokens(batch)
-        policy = self.model.physics_head(tokens)
+        tokens, pooled = self.head_inputs(batch)
+        policy = self.model.physics_head(tokens, pooled)
         with torch.no_grad():
-            reference = self.reference.physics_head(tokens)
+            reference = self.reference.physics_head(tokens, pooled)
         return policy, reference
 
     def log_prob(self, posterior: PhysicsPosterior, sample, batch: DPOBatch) -> Tensor:  # [B]

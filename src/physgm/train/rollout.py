@@ -24,6 +24,7 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader
 
+from physgm.gaussians import read_ply
 from physgm.model.posterior import PhysicsPosterior
 from physgm.physics.materials import MATERIAL_NAMES
 from physgm.train.pairs import (
@@ -50,6 +51,8 @@ from physgm.train.rollout_env import (
     warp_device,
 )
 from physgm.warp_runtime import preload
+
+GAUSSIAN_SOURCES = ("predicted", "asset")
 
 
 @dataclass
@@ -79,6 +82,11 @@ class RolloutConfig:
     num_workers: int = 0  # DataLoader workers
     cache_dir: str = "pairs"  # the pair cache (one folder per round)
     progress: bool = True  # one line per scene on stderr: scenes done, seconds, pairs written
+    # What the candidates are simulated on: "predicted", the policy's own Gaussians (the paper's), or
+    # "asset", the scene's gaussians.ply that its reference video was made from (synthetic data sets
+    # have them). With the model's blurry Gaussians a stiffer E than the truth often tracks the video
+    # best; with the asset's own, the score is lowest at the true E (docs/model.md).
+    gaussians: str = "predicted"
     sim: SimSettings = field(default_factory=SimSettings)
 
     def __post_init__(self) -> None:
@@ -86,6 +94,10 @@ class RolloutConfig:
             self.sim = SimSettings(**self.sim)
         if self.material not in ("sample", "mode"):
             raise ValueError(f"rollout.material must be 'sample' or 'mode', got {self.material!r}")
+        if self.gaussians not in GAUSSIAN_SOURCES:
+            raise ValueError(
+                f"rollout.gaussians must be one of {', '.join(GAUSSIAN_SOURCES)}, got {self.gaussians!r}"
+            )
         if self.proposal not in PROPOSALS:
             raise ValueError(f"rollout.proposal must be one of {', '.join(PROPOSALS)}, got {self.proposal!r}")
         if not 0.0 <= self.wide_fraction <= 1.0:
@@ -118,6 +130,8 @@ def rollout_scene(
 ) -> SceneRecord:
     """Propose K candidates for one scene, simulate and score each within the budget, pick the pair."""
     gaussians, posterior = predict(model, scene.inputs)
+    if cfg.gaussians == "asset":
+        gaussians = read_ply(asset_gaussians_path(cfg, scene), keep_sh=False)
     generator = scene_generator(cfg.seed, round_, scene.id)
     drawn = propose(cfg.proposal, _cpu(posterior), cfg.num_candidates, cfg.proposal_settings, generator)
     draws = drawn.sample
@@ -157,6 +171,10 @@ def rollout_scene(
     return SceneRecord(
         scene.id, scene.index, round_, settings, policy, candidates, winner, loser, global_step, note
     )
+
+
+def asset_gaussians_path(cfg: RolloutConfig, scene: RolloutScene) -> Path:
+    return Path(cfg.data_root) / scene.id / "gaussians.ply"
 
 
 def _cpu(p: PhysicsPosterior) -> PhysicsPosterior:
@@ -229,6 +247,14 @@ class RolloutCallback(L.Callback):
                 self.cfg.seed,
                 limit,
             )
+            if self.cfg.gaussians == "asset":
+                missing = [s.id for s in self.scenes if not asset_gaussians_path(self.cfg, s).is_file()]
+                if missing:
+                    raise ValueError(
+                        f"rollout.gaussians=asset simulates each scene's gaussians.ply, and {len(missing)} "
+                        f"scenes of {self.cfg.data_root} have none ({', '.join(missing[:3])}); use "
+                        "rollout.gaussians=predicted for data sets without them"
+                    )
 
     def train_dataloader(self, trainer: L.Trainer, pl_module: L.LightningModule) -> DataLoader:
         """Pairs of the round the current epoch belongs to, rolled out (or read back) on first use."""

@@ -51,9 +51,10 @@ cohesion=0, viscosity=0)``                          (``physgm.sim.constitutive``
 ``SolverConfig`` (stepping.py; conf/sim/solver/default.yaml)
     frame_dt 0.04 s, cfl 0.4, flip 0.95 (affine-FLIP share of the particle (v, C) update, 0 = pure
     APIC; positions always move with the grid velocity), max_retries, j_min / j_max (divergence
-    guard), boundary_cells, threads (0 = auto: 2 CPU threads from 8k particles), cfl_check_every,
-    sort_every, max_substeps; integrator "explicit" | "implicit", implicit_dt 0.01 s,
-    implicit_theta 1.0 (the implicit step's settings, below).
+    guard), boundary_cells, threads (0 = auto: 2 CPU threads from 2k particles), cfl_check_every,
+    graphs (replay runs of sub-steps from a captured launch graph), sort_every, max_substeps;
+    integrator "explicit" | "implicit", implicit_dt 0.01 s, implicit_theta 1.0 (the implicit
+    step's settings, below).
     ``SolverConfig.load("default")`` reads the YAML.
 
 ``make_solver(particles, materials, grid, scene=None, config=None, device="cpu")`` (integrators.py)
@@ -101,6 +102,11 @@ Design notes (why the code looks the way it does)
   F update, return mapping, stress, advection, clamp, statistics), recorded once and replayed
   (launches.py). On the CPU, particles are split over two threads (a launch releases the GIL),
   each p2g thread with its own accumulator grid; particles are re-sorted by cell every frame.
+* dt, time, the block stamp and the active box live in a one-element device array
+  (substep_params.py), so the launches never change: with one thread (small scenes, any CUDA
+  run) and no hooks, side walls or observers, each run of ``cfl_check_every`` sub-steps is
+  replayed from a launch graph captured once (``wp.capture_begin``; Warp replays CPU graphs in
+  C++), bit-identical to stepping in Python.
 * grid_update only covers the active box around the particles (re-fitted every
   ``cfl_check_every`` steps); a particle that outruns it is flagged and the frame retried.
 * The deformation state is H = F - I and every constitutive model works in H (b - I, det F - 1,

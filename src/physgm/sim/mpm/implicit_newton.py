@@ -215,7 +215,7 @@ class ImplicitStep:
         wp.launch(
             IK.collect_nodes,
             tuple(int(b - a) + 1 for a, b in zip(lo, hi, strict=True)),
-            [solver.grid_v, solver.arrays.touched, solver.launches.stamp, wp.vec3i(*lo)]
+            [solver.grid_v, solver.arrays.touched, solver.launches.next_stamp, wp.vec3i(*lo)]
             + [self.all_nodes, self.count],
             device=dev,
         )

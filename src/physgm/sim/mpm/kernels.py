@@ -21,10 +21,13 @@ a node velocity adds the same change to components 4-6 (``set_node_velocity``).
 Particle kernels take an ``offset`` so the CPU solver can split the particles over threads,
 each thread scattering into its own accumulator. The scatter also stamps the 4^3-node block of
 the particle's base node with the number of the sub-step it feeds (``touched``); grid_update runs
-one thread per block of the active box (``lo`` + launch dims, the only region particles can reach
-before the next re-fit) and skips blocks no stencil reached, so empty space costs a few reads per
-64 nodes instead of 64 node updates (most nodes of a falling object's active box hold no mass).
-Particle stencils are clamped inside the grid, so no index can leave an array whatever the state.
+one thread per block of the grid, returns at once outside the active box (the only region
+particles can reach before the next re-fit) and skips blocks no stencil reached, so empty space
+costs a few reads per 64 nodes instead of 64 node updates (most nodes of a falling object's
+active box hold no mass). dt, time, the stamp and the active box come from a one-element device
+array (``substep_params``), so the same recorded launches serve every sub-step and can be
+captured as a graph. Particle stencils are clamped inside the grid, so no index can leave an
+array whatever the state.
 The numpy twin of one sub-step is ``physgm.sim.mpm.reference_mpm`` (tests only).
 """
 
@@ -35,6 +38,7 @@ import warp as wp
 from physgm.sim.constitutive.common import EYE, MaterialStruct, det_minus_one
 from physgm.sim.constitutive.dispatch import constitutive_update
 from physgm.sim.mpm.boundary import BoxStruct, GroundStruct, box_velocity, ground_grip, ground_velocity
+from physgm.sim.mpm.substep_params import SubstepParams
 
 wp.set_module_options({"enable_backward": False})
 
@@ -181,10 +185,11 @@ def p2g(
     offset: int,
     shape: wp.vec3i,  # grid node counts
     touched: wp.array3d(dtype=wp.int32),  # [bx, by, bz] out: blocks reached (``scatter_particle``)
-    stamp: wp.int32,
+    params: wp.array(dtype=SubstepParams),  # [1] stamps with this sub-step's number
     grid: wp.array(dtype=vec8),  # [G] flat (i ny + j) nz + k: momentum, mass, stress force
 ):
     p = wp.tid() + offset
+    stamp = params[0].stamp
     scatter_particle(grid, x[p], v[p], C[p], stress[p], mass[p], origin, dx, shape, touched, stamp)
 
 
@@ -277,14 +282,10 @@ def grid_update(
     acc0: wp.array3d(dtype=vec8),  # [nx, ny, nz] first thread's accumulator, cleared here
     acc1: wp.array3d(dtype=vec8),  # [nx, ny, nz] second thread's accumulator (zeros if unused)
     touched: wp.array3d(dtype=wp.int32),  # [bx, by, bz] blocks reached by this sub-step's scatter
-    stamp: wp.int32,  # this sub-step's number
-    lo: wp.vec3i,  # first block of the launched (active) box
+    params: wp.array(dtype=SubstepParams),  # [1] dt, time, damping, stamp, active box
     origin: wp.vec3,
     dx: float,
-    dt: float,
-    t: float,
     gravity: wp.vec3,
-    damping: float,  # velocity kept per step, exp(-k dt) of a drag rate k (1/s); 1 = none
     bound: int,
     ground: GroundStruct,
     boxes: wp.array(dtype=BoxStruct),
@@ -295,14 +296,19 @@ def grid_update(
     ),  # [threads, WORK_ROW] running sums: box work, ground and face impulse, face contacts (WORK_*)
     grid_v: wp.array3d(dtype=vec8),  # [nx, ny, nz] out: velocity, mass, velocity change
 ):
-    """One thread per 4^3-node block; blocks no stencil reached are left as they are (no particle
-    reads them this sub-step)."""
+    """One thread per 4^3-node block of the grid; blocks outside the active box and blocks no
+    stencil reached are left as they are (no particle reads them this sub-step)."""
     bi, bj, bk = wp.tid()
-    bi += lo[0]
-    bj += lo[1]
-    bk += lo[2]
-    if not block_reached(touched, bi, bj, bk, stamp):
+    sp = params[0]
+    lo = sp.block_lo
+    hi = sp.block_hi
+    if bi < lo[0] or bj < lo[1] or bk < lo[2] or bi > hi[0] or bj > hi[1] or bk > hi[2]:
         return
+    if not block_reached(touched, bi, bj, bk, sp.stamp):
+        return
+    dt = float(sp.dt)
+    t = float(sp.t)
+    damping = sp.damping
     for i in range(bi * BLOCK, wp.min((bi + 1) * BLOCK, grid_v.shape[0])):
         for j in range(bj * BLOCK, wp.min((bj + 1) * BLOCK, grid_v.shape[1])):
             for k in range(bk * BLOCK, wp.min((bk + 1) * BLOCK, grid_v.shape[2])):
@@ -359,12 +365,9 @@ def g2p(
     shape: wp.vec3i,  # grid node counts
     origin: wp.vec3,
     dx: float,
-    dt: float,
+    params: wp.array(dtype=SubstepParams),  # [1] dt, time, the active box's inner bounds, stamp
     clamp_lo: wp.vec3,  # particles are kept inside [clamp_lo, clamp_hi], m
     clamp_hi: wp.vec3,
-    active_lo: wp.vec3,  # particles must stay inside the active grid box until the next re-fit, m
-    active_hi: wp.vec3,
-    t: float,
     boxes: wp.array(dtype=BoxStruct),
     num_boxes: int,
     flip: float,  # affine-FLIP share of the particle (v, C) update; 0 = pure APIC
@@ -386,10 +389,15 @@ def g2p(
         dtype=wp.float64
     ),  # [threads, WORK_ROW] energy put in by the velocity boxes (column 0), J
     touched: wp.array3d(dtype=wp.int32),  # [bx, by, bz] out: blocks reached by the next scatter
-    stamp: wp.int32,  # number of the next sub-step
     acc: wp.array(dtype=vec8),  # [G] flat, out: this thread's scatter for the next sub-step
 ):
     p = wp.tid() + offset
+    sp = params[0]
+    dt = float(sp.dt)
+    t = float(sp.t)
+    active_lo = sp.inner_lo  # particles must stay inside the active grid box until the next re-fit
+    active_hi = sp.inner_hi
+    stamp = sp.stamp + 1  # the next sub-step's number
     inv_dx = 1.0 / dx
     xp = x[p]
     base, fx, w = stencil((xp - origin) * inv_dx, shape)

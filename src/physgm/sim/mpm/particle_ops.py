@@ -118,9 +118,15 @@ def evaluate_constitutive(
 
 
 @wp.kernel
+def reset_bounds(out: wp.array(dtype=wp.vec3)):  # [2] out: +inf, -inf, for ``bounds``
+    out[0] = wp.vec3(wp.inf)
+    out[1] = wp.vec3(-wp.inf)
+
+
+@wp.kernel
 def bounds(
     x: wp.array(dtype=wp.vec3),  # [P] m
-    out: wp.array(dtype=wp.vec3),  # [2] in/out: running min and max (preset to +-inf)
+    out: wp.array(dtype=wp.vec3),  # [2] in/out: running min and max (preset by ``reset_bounds``)
 ):
     """Bounding box of the particles (atomic min / max)."""
     p = wp.tid()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol
@@ -171,20 +172,33 @@ class MPMSolver:
         dev, res = self.device, self.grid.res
         self._energy = wp.zeros(3, dtype=wp.float64, device=dev)
         self._bounds = wp.zeros(2, dtype=wp.vec3, device=dev)
+        # Recorded once: a re-fit every cfl_check_every sub-steps is a visible share of a small
+        # sub-step's fixed cost (docs/measurements.md).
+        self._bounds_launches = [
+            wp.launch(ops.reset_bounds, 1, [self._bounds], device=dev, record_cmd=True),
+            wp.launch(
+                ops.bounds, self.num_particles, [self.particles.x, self._bounds], device=dev, record_cmd=True
+            ),
+        ]
         self._observed = wp.zeros(4, dtype=wp.float64, device=dev)
         self._dynamic = [*self.particles.dynamic, self.arrays.work, self._walls.impulse]
         self._backup = [wp.empty_like(a) for a in self._dynamic]
         self.active_box = (np.zeros(3, int), np.array(res) - 1)  # node index range grid_update covers
 
-    def _fit_active(self, dt: float) -> None:
-        """Limit grid_update to the nodes particles can reach in the next ``cfl_check_every`` steps."""
+    def _fit_active(self, dt: float, stats_read: bool = False) -> None:
+        """Limit grid_update to the nodes particles can reach in the next ``cfl_check_every`` steps.
+
+        ``stats_read``: ``self._vmax`` already holds the speed the statistics have seen.
+        """
         g, cfg = self.grid, self.config
         self._since_fit = 0
-        self._bounds.assign(np.array([[np.inf] * 3, [-np.inf] * 3], np.float32))
-        wp.launch(ops.bounds, self.num_particles, [self.particles.x, self._bounds], device=self.device)
+        for launch in self._bounds_launches:
+            launch.launch()
         b = self._bounds.numpy().astype(np.float64)
-        seen = self._read_stats().max_speed
-        vmax = max(self._vmax, seen) if math.isfinite(seen) else self._vmax
+        vmax = self._vmax
+        if not stats_read:
+            seen = self._read_stats().max_speed
+            vmax = max(self._vmax, seen) if math.isfinite(seen) else self._vmax
         reach = 2.0 * vmax * dt * cfg.cfl_check_every + 3.0 * g.dx  # doubled speed, 3-cell stencil pad
         origin, res = np.asarray(g.origin), np.asarray(g.res)
         lo = np.clip(np.floor((b[0] - reach - origin) / g.dx).astype(int), 0, res - 1)
@@ -209,11 +223,10 @@ class MPMSolver:
             self._fit_active(dt)
         self._since_fit += 1
         self._launches.set_dt(dt, self.scene.damping)
-        if self._launches.timed:
-            self._launches.set_time(self.time)
+        self._launches.set_time(self.time)
 
         before = self._impulses() if self.observers else None
-        stamp = self._launches.stamp + 1  # the number _launches.run gives this sub-step
+        stamp = self._launches.next_stamp  # the number _launches.run gives this sub-step
 
         def hooks() -> None:
             self._walls.after_grid_update(stamp, self.active_box)
@@ -227,6 +240,38 @@ class MPMSolver:
         self.time += dt
         if before is not None:
             self._observe(dt, before)
+
+    def _graph_run(self, dt: float, t_end: float, frame_dt: float) -> int:
+        """Sub-steps of ``dt`` the next launch-graph replay can take (0: step in Python).
+
+        A replay takes ``cfl_check_every`` sub-steps, exactly those ``_advance`` would take one at
+        a time: nothing needs Python between them, and none is the frame's shortened last step.
+        Only on the main thread: a Warp capture records (instead of running) every launch on its
+        device from any thread, so a solver in a worker thread (DPO rollouts run several at once)
+        could swallow another's launches; those solvers step in Python.
+        """
+        n = self.config.cfl_check_every
+        if not self.config.graphs or self.threads != 1 or self.hooks or self.observers or self._walls:
+            return 0
+        if threading.current_thread() is not threading.main_thread():
+            return 0
+        t = self.time
+        for _ in range(n):
+            if t_end - t < dt or t_end - t <= 1e-9 * frame_dt:
+                return 0
+            t += dt
+        return n
+
+    def _substeps_graph(self, dt: float, count: int) -> None:
+        """``count`` sub-steps of ``dt`` replayed from a launch graph (``launches.run_graph``)."""
+        if self._since_fit + count > self.config.cfl_check_every:
+            self._fit_active(dt)
+        self._since_fit += count
+        self._launches.set_dt(dt, self.scene.damping)
+        self._launches.set_time(self.time)
+        self._launches.run_graph(count)
+        for _ in range(count):  # the same float64 sums as stepping one at a time
+            self.time += dt
 
     # ----------------------------------------------------------------------------- observables
     def _impulses(self) -> np.ndarray:
@@ -287,10 +332,15 @@ class MPMSolver:
                     self._vmax = max(self._vmax, s.max_speed)
                 dt_cfl = cfl * self.grid.dx / (self._c_max + self._vmax)
                 dt = remaining / math.ceil(remaining / dt_cfl - 1e-9)
-                self._fit_active(dt)
+                # The statistics were reset at the frame start or read just above.
+                self._fit_active(dt, stats_read=True)
             dt = min(dt, remaining)
-            self.substep(dt)
-            steps += 1
+            count = self._graph_run(dt, t_end, frame_dt) if steps % cfg.cfl_check_every == 0 else 0
+            if count:
+                self._substeps_graph(dt, count)
+            else:
+                self.substep(dt)
+            steps += count or 1
             dt_min, dt_max = min(dt_min, dt), max(dt_max, dt)
             if steps >= cfg.max_substeps:
                 raise SimulationDiverged(

@@ -16,20 +16,22 @@ from __future__ import annotations
 import warp as wp
 
 from physgm.sim.mpm.kernels import BLOCK, WORK_GROUND, add_impulse, block_reached, set_node_velocity, vec8
+from physgm.sim.mpm.substep_params import SubstepParams
 
 
 @wp.kernel
 def surface_friction(
     grid_v: wp.array3d(dtype=vec8),  # [nx, ny, nz] in/out: velocity, mass, velocity change, grip
     touched: wp.array3d(dtype=wp.int32),  # [bx, by, bz] blocks reached by this sub-step's scatter
-    stamp: wp.int32,  # this sub-step's number
-    lo: wp.vec2i,  # first node (i, j) of the launched columns
+    params: wp.array(dtype=SubstepParams),  # [1] this sub-step's number and the active box
     layer: int,  # k of the top held node layer; the surface layer is layer + 1
     work: wp.array2d(dtype=wp.float64),  # [threads, WORK_ROW] running sums; the ground impulse is added
 ):
-    i, j = wp.tid()
-    i += lo[0]
-    j += lo[1]
+    i, j = wp.tid()  # one thread per grid column; columns outside the active box return at once
+    sp = params[0]
+    if i < sp.node_lo[0] or j < sp.node_lo[1] or i > sp.node_hi[0] or j > sp.node_hi[1]:
+        return
+    stamp = sp.stamp
     k = layer + 1
     # Nodes of blocks no stencil reached hold a stale state (kernels.grid_update).
     if not block_reached(touched, i // BLOCK, j // BLOCK, k // BLOCK, stamp):

@@ -1,0 +1,40 @@
+"""The values that change between sub-steps, held on the device for the sub-step kernels.
+
+dt, time, damping, the sub-step's number (the scatter's block stamp) and the active grid box
+live in a one-element array that the kernels read, not in launch arguments. So a sequence of
+recorded launches means the same thing every time it runs: ``advance_clock`` moves time and
+the stamp on at the end of each sub-step, and the host writes the array (through numpy views of
+its fields) only when dt or the active box change, every ``cfl_check_every`` sub-steps at most.
+That is what lets the solver capture the sub-step once as a launch graph (``wp.capture_begin``:
+a CUDA graph, or Warp's C++ replay of recorded CPU launches) and replay it without returning to
+Python (``launches.py``).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.struct
+class SubstepParams:
+    dt: wp.float64  # s, this sub-step's step (float64 so time adds up exactly as on the host)
+    t: wp.float64  # s, time at the start of this sub-step
+    damping: float  # velocity kept per step, exp(-k dt) of the scene's drag rate k; 1 = none
+    stamp: wp.int32  # this sub-step's number (kernels.scatter_particle stamps blocks with it)
+    block_lo: wp.vec3i  # first and last 4^3-node block grid_update covers (the active box)
+    block_hi: wp.vec3i
+    node_lo: wp.vec3i  # first and last node of the active box (the surface-friction columns)
+    node_hi: wp.vec3i
+    inner_lo: wp.vec3  # m: g2p flags particles that leave [inner_lo, inner_hi] before the re-fit
+    inner_hi: wp.vec3
+
+
+@wp.kernel
+def advance_clock(params: wp.array(dtype=SubstepParams)):
+    """End of a sub-step: time moves on by dt and the next sub-step gets the next number."""
+    p = params[0]
+    p.t = p.t + p.dt
+    p.stamp = p.stamp + 1
+    params[0] = p

@@ -1,0 +1,218 @@
+"""Refit the physics head's material classifier on the frozen encoder's pooled features.
+
+    python -m physgm.train.refit_material CKPT --data ROOT --out OUT [--epochs 60] [--seed 0]
+
+Stage 1 trains the material classifier on global token 0, jointly with everything else. On the
+synthetic assets a classifier of the frozen MobileNetV2's pyramid, pooled over space and views,
+reads the material better than that token does (docs/model.md). This tool keeps every other
+weight of CKPT, switches its head to ``material_input="features"`` and fits that classifier by
+cross-entropy against the annotated material (stage 1's target) of the train split. Each epoch
+draws one random set of 1 or 4 of every asset's cached views (the two input counts of training);
+the epoch kept is the one with the best validation accuracy (true material where known, else the
+annotation), scored on single views and on fixed sets of 4. Only the feature cache is read, so a
+fit takes minutes on the CPU. OUT keeps CKPT's hyper-parameters (prior weight, calibration
+offsets) and is written atomically.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from physgm.data.datamodule import PhysAssetsDataModule
+from physgm.data.format import load_asset, read_split
+from physgm.errors import UserError
+from physgm.model.checkpoint import PREFIX, input_size, load_model, read_checkpoint
+from physgm.model.config import PhysGMConfig
+from physgm.model.physgm import PhysGM
+from physgm.model.physics_head import PooledMaterialClassifier, pooled_features
+from physgm.physics.materials import MATERIAL_NAMES
+from physgm.train.export import slim
+
+
+@dataclass
+class RefitConfig:
+    epochs: int = 60
+    batch_size: int = 128
+    lr: float = 1e-3
+    weight_decay: float = 1e-2
+    hidden: int = 256
+    dropout: tuple[float, float] = (0.2, 0.3)  # on the standardised input, on the hidden layer
+    p_single: float = 0.5  # share of 1-view draws; the rest average 4 views
+    seed: int = 0
+
+
+@dataclass
+class PooledSplit:
+    """Every cached view of a split's assets, pooled one view at a time."""
+
+    ids: list[str]
+    views: Tensor  # [A, V, POOLED_DIM]
+    annotated: Tensor  # [A] material index the annotator gave (stage 1's target)
+    truth: Tensor  # [A] true material where known, else the annotation
+
+
+def pooled_split(root: Path, split: str, store) -> PooledSplit:
+    ids, views, annotated, truth = [], [], [], []
+    for aid in read_split(root, split):
+        phys = load_asset(root / aid).physical
+        feats = store.load(aid)  # [V, ...] every cached view
+        views.append(pooled_features(feats, batch=len(feats.s4)))  # one "scene" per view
+        ids.append(aid)
+        annotated.append(MATERIAL_NAMES.index(phys.annotation.material))
+        truth.append(MATERIAL_NAMES.index(phys.material if phys.true_known else phys.annotation.material))
+    if not ids:
+        raise UserError(f"split {split!r} of {root} has no assets to refit on")
+    counts = {len(v) for v in views}
+    if len(counts) != 1 or min(counts) < 4:
+        raise UserError(
+            f"the feature cache of {root} holds {sorted(counts)} views per asset; the refit needs the "
+            "same number, at least 4, for every asset: rebuild it with python -m physgm.data.feature_cache"
+        )
+    return PooledSplit(ids, torch.stack(views), torch.tensor(annotated), torch.tensor(truth))
+
+
+def draw_scenes(views: Tensor, p_single: float, gen: torch.Generator) -> Tensor:  # [A, V, P] -> [A, P]
+    """One random input set per asset: a single view with probability p_single, else 4 views averaged."""
+    a, v, _ = views.shape
+    order = torch.argsort(torch.rand(a, v, generator=gen), dim=1)[:, :4]  # 4 distinct views per asset
+    four = torch.gather(views, 1, order[..., None].expand(-1, -1, views.shape[-1])).mean(1)
+    one = views[torch.arange(a), order[:, 0]]
+    single = (torch.rand(a, generator=gen) < p_single)[:, None]
+    return torch.where(single, one, four)
+
+
+def accuracy(
+    classifier: PooledMaterialClassifier,
+    views: Tensor,  # [A, V, POOLED_DIM]
+    labels: Tensor,  # [A]
+) -> dict[str, float]:
+    """Accuracy on every single view, and on the views taken 4 at a time in cache order."""
+    a, v, p = views.shape
+    with torch.no_grad():
+        one = classifier(views.reshape(a * v, p)).argmax(-1).reshape(a, v)
+        sets = views[:, : v // 4 * 4].reshape(a, v // 4, 4, p).mean(2)
+        four = classifier(sets.reshape(-1, p)).argmax(-1).reshape(a, -1)
+    return {
+        "views1": float((one == labels[:, None]).float().mean()),
+        "views4": float((four == labels[:, None]).float().mean()),
+    }
+
+
+def fit(
+    classifier: PooledMaterialClassifier, train: PooledSplit, val: PooledSplit, cfg: RefitConfig, log=print
+) -> list[dict]:
+    """Train ``classifier`` in place; it ends holding the epoch with the best mean validation accuracy."""
+    gen = torch.Generator().manual_seed(cfg.seed)
+    torch.manual_seed(cfg.seed)
+    flat = train.views.flatten(0, 1)
+    with torch.no_grad():
+        classifier.shift.copy_(flat.mean(0))
+        classifier.scale.copy_(flat.std(0) + 1e-3)  # a constant feature must not divide by ~0
+    opt = torch.optim.AdamW(classifier.parameters(), cfg.lr, weight_decay=cfg.weight_decay)
+    history, best, best_state = [], -1.0, None
+    for epoch in range(cfg.epochs):
+        classifier.train()
+        classifier.dropout = cfg.dropout
+        x = draw_scenes(train.views, cfg.p_single, gen)
+        perm = torch.randperm(len(x), generator=gen)
+        total = 0.0
+        for i in range(0, len(x), cfg.batch_size):
+            b = perm[i : i + cfg.batch_size]
+            loss = torch.nn.functional.cross_entropy(classifier(x[b]), train.annotated[b])
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            total += float(loss.detach()) * len(b)
+        classifier.eval()
+        classifier.dropout = (0.0, 0.0)
+        scores = accuracy(classifier, val.views, val.truth)
+        row = {"epoch": epoch + 1, "loss": total / len(x), **{f"val_{k}": v for k, v in scores.items()}}
+        history.append(row)
+        score = (row["val_views1"] + row["val_views4"]) / 2
+        if score > best:
+            best, best_state = score, copy.deepcopy(classifier.state_dict())
+        if (epoch + 1) % 10 == 0:
+            log(json.dumps(row))
+    classifier.load_state_dict(best_state)
+    return history
+
+
+def refit(ckpt_path: Path, root: Path, out: Path, cfg: RefitConfig, log=print) -> dict:
+    """Fit the features classifier for the model in ``ckpt_path`` and write the refitted model to ``out``."""
+    old, ckpt = load_model(ckpt_path)
+    if old.config.backbone.encoder.kind != "mobilenet_v2":
+        raise UserError(
+            f"{ckpt_path} has the {old.config.backbone.encoder.kind!r} encoder; the refit reads the "
+            "frozen mobilenet_v2's cached features"
+        )
+    config = PhysGMConfig.from_dict(old.config.to_dict())
+    config.physics_head.material_input, config.physics_head.feature_hidden = "features", cfg.hidden
+    model = PhysGM(config, load_pretrained=False)
+    kept = {k: v for k, v in old.state_dict().items() if not k.startswith("physics_head.material.")}
+    missing, unexpected = model.load_state_dict(kept, strict=False)
+    if unexpected or not all(k.startswith("physics_head.material.") for k in missing):
+        raise RuntimeError(f"refit lost weights other than the material classifier: {missing} {unexpected}")
+    store = PhysAssetsDataModule(
+        str(root), input_resolution=input_size(old, ckpt.hparams), feature_cache="mobilenet_v2"
+    ).feature_store()
+    start = time.perf_counter()
+    train, val = pooled_split(root, "train", store), pooled_split(root, "val", store)
+    log(f"refit: {len(train.ids)} train / {len(val.ids)} val assets, {train.views.shape[1]} views each")
+    history = fit(model.physics_head.material, train, val, cfg, log)
+    best = max(history, key=lambda r: (r["val_views1"] + r["val_views4"]) / 2)
+    record = {
+        "source": str(ckpt_path),
+        "data": str(root),
+        "config": asdict(cfg),
+        "best": best,
+        "train_accuracy_annotated": accuracy(model.physics_head.material, train.views, train.annotated),
+        "seconds": round(time.perf_counter() - start, 1),
+    }
+    recipe = f"python -m physgm.train.refit_material {ckpt_path} --data {root} --epochs {cfg.epochs}"
+    exported = slim(ckpt, str(ckpt_path), recipe=recipe)
+    exported["hyper_parameters"]["model"] = config.to_dict()
+    exported["state_dict"] = {PREFIX + k: v.detach().clone() for k, v in model.state_dict().items()}
+    exported["physgm"]["refit_material"] = record
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".tmp")
+    torch.save(exported, tmp)
+    tmp.replace(out)  # never a half-written checkpoint under the final name
+    read_checkpoint(out)  # the layout check every reader does
+    return record
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="python -m physgm.train.refit_material", description=__doc__.split("\n")[0]
+    )
+    p.add_argument("ckpt", type=Path, help="stage-1 checkpoint with the mobilenet_v2 encoder")
+    p.add_argument("--data", type=Path, required=True, help="PhysAssets root with train and val splits")
+    p.add_argument("--out", type=Path, required=True, help="refitted checkpoint to write")
+    p.add_argument("--epochs", type=int, default=RefitConfig.epochs)
+    p.add_argument("--seed", type=int, default=RefitConfig.seed)
+    a = p.parse_args(argv)
+    if a.out.resolve() == a.ckpt.resolve():
+        raise SystemExit(f"--out {a.out} would overwrite the checkpoint being refitted; write elsewhere")
+    try:
+        record = refit(a.ckpt, a.data, a.out, RefitConfig(epochs=a.epochs, seed=a.seed), log=_stderr)
+    except UserError as err:
+        raise SystemExit(str(err)) from None
+    print(json.dumps(record))
+    return 0
+
+
+def _stderr(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)  # stdout is for the JSON record
+
+
+if __name__ == "__main__":
+    sys.exit(main())
