@@ -47,6 +47,8 @@ KERNEL_MODULES = (
     "physgm.sim.mpm.walls",
     "physgm.sim.mpm.observables",
     "physgm.sim.mpm.surface_friction",
+    "physgm.sim.mpm.implicit_kernels",
+    "physgm.sim.mpm.implicit_algebra",
     "physgm.sim.mpm.substep_params",
     "physgm.render.warp_tile_kernels",
 )

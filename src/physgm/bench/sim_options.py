@@ -8,7 +8,11 @@ in the bench camera (256 px):
     bulk_cap       shear modulus kept, nu lowered to c_p = r c_s (sim/bulk_cap.py; r = 2, or one
                    row bulk_cap_r<r> per ratio given);
     stiffness_cap  E lowered within cap_budget of the bound, also after elastic impacts;
-    planner        what the default planner chooses (rigid, caps or none) under its bound.
+    planner        what the default planner chooses (rigid, caps or none) under its bound;
+    implicit_<dt>ms_theta<theta>
+                   the explicit run's plan with the implicit elastic integrator (sim/mpm/implicit.py):
+                   sub-step dt while slow, the advective limit dx / |v| when fast (cfl 1); theta 1
+                   backward Euler, 0.5 midpoint. Elastic models only; others are listed as skipped.
 
 A row gives seconds, sub-steps, the planner's predicted error and the measured error: mean over
 frames and Gaussians, the worst frame's mean, and the largest single Gaussian's distance.
@@ -24,6 +28,8 @@ import sys
 
 from physgm.bench.drop_scene import DropBench, project
 from physgm.sim.gaussian_trajectory import GaussianTrajectory, prepare_simulation, run_prepared
+from physgm.sim.mpm.implicit import IMPLICIT_MODELS
+from physgm.sim.mpm.stepping import SolverConfig
 from physgm.sim.planner import PlannerConfig
 
 OFF = dict(allow_rigid=False, allow_bulk_cap=False, allow_stiffness_cap=False)
@@ -38,6 +44,16 @@ def options(bulk_ratios: tuple[float, ...] = (2.0,)) -> dict[str, dict]:
     out["stiffness_cap"] = {**OFF, "allow_stiffness_cap": True, "force_caps": True}
     out["planner"] = {}
     return out
+
+
+def implicit_options(steps: tuple[tuple[float, float], ...]) -> dict[str, SolverConfig]:
+    """Option name -> solver settings of the implicit rows; ``steps`` holds (dt s, theta) pairs."""
+    return {
+        f"implicit_{dt * 1e3:g}ms_theta{theta:g}": SolverConfig(
+            integrator="implicit", implicit_dt=dt, implicit_theta=theta, cfl=1.0
+        )
+        for dt, theta in steps
+    }
 
 
 def errors_px(cameras, run: GaussianTrajectory, ref: GaussianTrajectory) -> dict[str, float]:
@@ -55,6 +71,7 @@ def option_table(
     max_reference_cost: float = 3e9,
     cells_across: int | None = None,
     bulk_ratios: tuple[float, ...] = (2.0,),
+    implicit_steps: tuple[tuple[float, float], ...] = (),
 ) -> list[dict]:
     """One row per (material, option) of the bench drop; see the module docstring.
 
@@ -62,6 +79,7 @@ def option_table(
         max_reference_cost: particle-substeps above which the explicit reference is not run.
         cells_across: grid cells across the object for every option (None: the planner default).
         bulk_ratios: c_p / c_s of the bulk-cap rows (one row each).
+        implicit_steps: (dt s, theta) of the implicit rows (one row each).
     """
     grid = {} if cells_across is None else {"cells_across": cells_across}
     gaussians, cameras, scene_overrides = bench.gaussians(), bench.camera(), bench.scene_overrides()
@@ -100,4 +118,36 @@ def option_table(
                 f"[bench sim options] {name} {option}: {traj.seconds:.1f} s, {row['error_px']:.3g} px",
                 file=sys.stderr,
             )
+        if ref is not None:
+            out += _implicit_rows(bench, name, gaussians, cameras, scene_overrides, grid, ref, implicit_steps)
     return out
+
+
+def _implicit_rows(bench, name, gaussians, cameras, scene_overrides, grid, ref, steps) -> list[dict]:
+    """The implicit integrator on the explicit reference's plan, one row per (dt, theta)."""
+    physics, rows = bench.physics(name), []
+    for option, solver in implicit_options(tuple(steps)).items():
+        row = {"material": name, "option": option, **physics.to_dict(), **grid}
+        row.update(implicit_dt=solver.implicit_dt, implicit_theta=solver.implicit_theta, cfl=solver.cfl)
+        prepared = prepare_simulation(
+            gaussians,
+            physics,
+            "drop",
+            cameras,
+            bench.n_frames,
+            PlannerConfig(**OFF, **grid),
+            solver=solver,
+            scene_overrides=scene_overrides,
+        )
+        if prepared.plan.mode != "mpm" or prepared.material.model not in IMPLICIT_MODELS:
+            rows.append({**row, "skipped": f"{prepared.material.model} is not an implicit (elastic) model"})
+            continue
+        traj = run_prepared(prepared)
+        row.update(seconds=traj.seconds, substeps=traj.substeps, rest_frame=traj.rest_frame)
+        row.update(errors_px(cameras, traj, ref))
+        rows.append(row)
+        print(
+            f"[bench sim options] {name} {option}: {traj.seconds:.1f} s, {row['error_px']:.3g} px",
+            file=sys.stderr,
+        )
+    return rows

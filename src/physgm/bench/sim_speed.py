@@ -8,8 +8,9 @@ Prints one JSON object:
                     the grid resolution, the particle density (particles per cell), the CFL
                     number and the planner on / off; every row names its particles_per_cell;
     options:        per material, seconds and pixel error (mean, worst frame, largest) of each
-                    planner option against the explicit full-stiffness reference for the same
-                    drop as ``scenes`` (bench/sim_options.py).
+                    planner option, and of the implicit elastic integrator (``--implicit``), against
+                    the explicit full-stiffness reference for the same drop as ``scenes``
+                    (bench/sim_options.py).
 Wall-clock numbers are noisy when other jobs share the CPU; nothing here asserts on them.
 """
 
@@ -228,6 +229,14 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument(
         "--bulk-ratios", type=float, nargs="+", default=[2.0], help="options: c_p / c_s of the bulk-cap rows"
     )
+    parser.add_argument(
+        "--implicit",
+        nargs="*",
+        default=["2:0.5"],
+        metavar="DT_MS:THETA",
+        help="options: implicit rows, sub-step in ms and theta (1 backward Euler, 0.5 midpoint); "
+        "the default is the row nearest the bound in docs/measurements_sim.md section 10",
+    )
     args = parser.parse_args(argv)
     parts = set(args.only or ["throughput", "scenes", "speed_vs_error", "options"])
     torch.set_num_threads(2)
@@ -243,7 +252,10 @@ def main(argv: list[str] | None = None) -> dict:
     if "scenes" in parts:
         result["scenes"] = drop_scenes(drop)
     if "options" in parts:
-        result["options"] = option_table(drop, 3e9, args.cells, tuple(args.bulk_ratios))
+        implicit = tuple(
+            (float(dt) * 1e-3, float(theta)) for dt, theta in (s.split(":") for s in args.implicit)
+        )
+        result["options"] = option_table(drop, 3e9, args.cells, tuple(args.bulk_ratios), implicit)
     if "speed_vs_error" in parts:
         frames = 10 if args.quick else 25
         result["speed_vs_error"] = speed_vs_error(frames, drop.n_gaussians, drop.side, 0.3, args.quick)

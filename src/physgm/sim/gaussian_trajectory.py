@@ -25,8 +25,8 @@ from physgm.physics.materials import PhysicsSpec
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.coupling import follow_and_deform, rigid_transform_gaussians
 from physgm.sim.mpm.grid import GridSpec
+from physgm.sim.mpm.integrators import make_solver
 from physgm.sim.mpm.scene import Scene
-from physgm.sim.mpm.solver import MPMSolver
 from physgm.sim.mpm.state import Particles
 from physgm.sim.mpm.stepping import SolverConfig
 from physgm.sim.planner import Plan, PlannerConfig, choose_spacing, plan_simulation
@@ -406,7 +406,7 @@ def _run_mpm(
     t0 = (k0 - 1) * frame_dt
     grid = GridSpec.fit(plan.grid_lo, plan.grid_hi, plan.dx, margin_cells=solver_cfg.boundary_cells)
     particles = Particles(x=xs[k0 - 1], volume=sample.volume.cpu().numpy(), material=0, v=v0 + g * t0)
-    solver = MPMSolver(particles, [material], grid, scene, solver_cfg, device)
+    solver = make_solver(particles, [material], grid, scene, solver_cfg, device)
     substeps, quiet, rest_frame = 0, 0, None
     try:
         for k in range(k0, T):

@@ -52,8 +52,18 @@ cohesion=0, viscosity=0)``                          (``physgm.sim.constitutive``
     frame_dt 0.04 s, cfl 0.4, flip 0.95 (affine-FLIP share of the particle (v, C) update, 0 = pure
     APIC; positions always move with the grid velocity), max_retries, j_min / j_max (divergence
     guard), boundary_cells, threads (0 = auto: 2 CPU threads from 2k particles), cfl_check_every,
-    graphs (replay runs of sub-steps from a captured launch graph), sort_every, max_substeps.
+    graphs (replay runs of sub-steps from a captured launch graph), sort_every, max_substeps;
+    integrator "explicit" | "implicit", implicit_dt 0.01 s, implicit_theta 1.0 (the implicit
+    step's settings, below).
     ``SolverConfig.load("default")`` reads the YAML.
+
+``make_solver(particles, materials, grid, scene=None, config=None, device="cpu")`` (integrators.py)
+    The solver class of ``config.integrator`` from the ``INTEGRATORS`` registry: ``MPMSolver``
+    (explicit) or ``ImplicitMPMSolver`` (implicit.py: elastic models fixed_corotated and
+    neo_hookean, gravity and a ground plane only, else a ValueError; sub-step implicit_dt while
+    slow and cfl dx / |v|max when fast; Newton on the incremental potential, theta method with
+    1 = backward Euler, 0.5 = implicit midpoint; ``solver.implicit.log`` one ``SolveStats`` per
+    sub-step). docs/measurements_sim.md section 10 measures it against the explicit step.
 
 ``MPMSolver(particles, materials, grid, scene=None, config=None, device="cpu")``  (solver.py)
     Allocates every array once, then only launches kernels.
