@@ -31,7 +31,6 @@ from physgm.data.datamodule import PhysAssetsDataModule
 from physgm.data.format import load_asset, read_split
 from physgm.errors import UserError
 from physgm.model.checkpoint import PREFIX, input_size, load_model, read_checkpoint
-from physgm.model.config import PhysGMConfig
 from physgm.model.physgm import PhysGM
 from physgm.model.physics_head import PooledMaterialClassifier, pooled_features
 from physgm.physics.materials import MATERIAL_NAMES
@@ -109,8 +108,9 @@ def accuracy(
 
 def fit(
     classifier: PooledMaterialClassifier, train: PooledSplit, val: PooledSplit, cfg: RefitConfig, log=print
-) -> list[dict]:
-    """Train ``classifier`` in place; it ends holding the epoch with the best mean validation accuracy."""
+) -> dict:
+    """Train ``classifier`` in place; it ends holding the epoch with the best mean validation accuracy,
+    whose row (epoch, loss, validation accuracies) it returns."""
     gen = torch.Generator().manual_seed(cfg.seed)
     torch.manual_seed(cfg.seed)
     flat = train.views.flatten(0, 1)
@@ -118,7 +118,7 @@ def fit(
         classifier.shift.copy_(flat.mean(0))
         classifier.scale.copy_(flat.std(0) + 1e-3)  # a constant feature must not divide by ~0
     opt = torch.optim.AdamW(classifier.parameters(), cfg.lr, weight_decay=cfg.weight_decay)
-    history, best, best_state = [], -1.0, None
+    best, best_score, best_state = {}, -1.0, None
     for epoch in range(cfg.epochs):
         classifier.train()
         classifier.dropout = cfg.dropout
@@ -136,14 +136,13 @@ def fit(
         classifier.dropout = (0.0, 0.0)
         scores = accuracy(classifier, val.views, val.truth)
         row = {"epoch": epoch + 1, "loss": total / len(x), **{f"val_{k}": v for k, v in scores.items()}}
-        history.append(row)
         score = (row["val_views1"] + row["val_views4"]) / 2
-        if score > best:
-            best, best_state = score, copy.deepcopy(classifier.state_dict())
+        if score > best_score:
+            best, best_score, best_state = row, score, copy.deepcopy(classifier.state_dict())
         if (epoch + 1) % 10 == 0:
             log(json.dumps(row))
     classifier.load_state_dict(best_state)
-    return history
+    return best
 
 
 def refit(ckpt_path: Path, root: Path, out: Path, cfg: RefitConfig, log=print) -> dict:
@@ -154,7 +153,7 @@ def refit(ckpt_path: Path, root: Path, out: Path, cfg: RefitConfig, log=print) -
             f"{ckpt_path} has the {old.config.backbone.encoder.kind!r} encoder; the refit reads the "
             "frozen mobilenet_v2's cached features"
         )
-    config = PhysGMConfig.from_dict(old.config.to_dict())
+    config = copy.deepcopy(old.config)
     config.physics_head.material_input, config.physics_head.feature_hidden = "features", cfg.hidden
     model = PhysGM(config, load_pretrained=False)
     kept = {k: v for k, v in old.state_dict().items() if not k.startswith("physics_head.material.")}
@@ -167,8 +166,7 @@ def refit(ckpt_path: Path, root: Path, out: Path, cfg: RefitConfig, log=print) -
     start = time.perf_counter()
     train, val = pooled_split(root, "train", store), pooled_split(root, "val", store)
     log(f"refit: {len(train.ids)} train / {len(val.ids)} val assets, {train.views.shape[1]} views each")
-    history = fit(model.physics_head.material, train, val, cfg, log)
-    best = max(history, key=lambda r: (r["val_views1"] + r["val_views4"]) / 2)
+    best = fit(model.physics_head.material, train, val, cfg, log)
     record = {
         "source": str(ckpt_path),
         "data": str(root),
