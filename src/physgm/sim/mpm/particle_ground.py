@@ -1,0 +1,125 @@
+"""Ground contact on the particles: a conservative penalty spring at each particle's surface.
+
+A grid condition reaches a body through 1.5-cell stencils, so it acts a cell early (``boundary``).
+Here the ground pushes the particles themselves: a particle of spacing s = V0^(1/3) (its rest
+volume's side) carries the material down to s / 2 below its centre, and when that surface is a
+depth d under the plane it gets the normal force
+
+    f_n = k d,   k = kappa M s   (N/m),
+
+M = lam + 2 mu (or the fluid's bulk modulus) of its material as the solver runs it (after any
+bulk cap), kappa = ``GroundPlane.stiffness``. Per particle column of cross-section s^2, the
+ground is then as stiff as a layer s / kappa of the material itself: a body of height H rests
+with its surface rho g H s / (kappa M) under the plane (under 1e-3 dx for the bodies in scope),
+and, the spring being conservative, an elastic body keeps its bounce. On a Coulomb ground a
+tangential force opposes the particle's sliding velocity v_t, at most mu f_n and at most
+m |v_t| / tau, tau = 2 / omega below. The solver's step never exceeds tau (next paragraph), so
+friction never reverses the motion; a slow particle is stopped within a few sub-steps. The cap
+uses tau, not the sub-step dt, because the scatter runs before the next sub-step's dt is known
+(``kernels``: the fused scatter must not depend on dt).
+
+The force enters the scatter like the stress force (``kernels.scatter_particle``), so it reaches
+the grid as gravity does; ``pending`` sums what the particles got, and the next grid_update
+adds it times that step's dt to the ground impulse (``kernels.WORK_GROUND``), which the
+observables report as the ground's force.
+
+Stability: alone on its mass m = rho s^3 the spring rings at omega = sqrt(k / m) = sqrt(kappa)
+c_p / s. The solver's step dt = cfl dx / c is taken with c >= sqrt(kappa) c_p dx / (2 s)
+(``contact_wave_speed``), so omega dt <= 2 cfl = 0.8 at the default cfl (and dt <= cfl tau <=
+tau, as cfl <= 1), under the explicit limit 2; at kappa = 1 and 2 particles per cell axis
+(s = dx / 2) that c is the material's own c_p, so the step does not change.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import warp as wp
+
+from physgm.sim.constitutive import MODELS, MaterialParams
+from physgm.sim.mpm.boundary import GROUND_SLIP, GroundPlane, GroundStruct
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.func
+def particle_ground_force(
+    ground: GroundStruct,
+    k_mat: wp.vec2,  # (kappa M, Pa; sqrt(kappa) c_p / 2, m/s) of the particle's material
+    xp: wp.vec3,  # m
+    vp: wp.vec3,  # m/s
+    m: float,  # kg
+    vol0: float,  # rest volume, m^3
+) -> wp.vec3:
+    """Force of the ground on one particle, N (module docstring); zero off the ground."""
+    if ground.enabled == 0 or ground.particles == 0:
+        return wp.vec3(0.0)
+    h = xp[2] - ground.height
+    if h > 0.0 and 8.0 * h * h * h >= vol0:  # surface (s / 2 below) above the plane: no cube root
+        return wp.vec3(0.0)
+    s = wp.pow(vol0, 1.0 / 3.0)
+    depth = 0.5 * s - h
+    if depth <= 0.0:
+        return wp.vec3(0.0)
+    fn = k_mat[0] * s * depth
+    if ground.mode == GROUND_SLIP:
+        return wp.vec3(0.0, 0.0, fn)
+    speed = wp.sqrt(vp[0] * vp[0] + vp[1] * vp[1])
+    if speed <= 0.0:
+        return wp.vec3(0.0, 0.0, fn)
+    ft = wp.min(ground.friction * fn, m * speed * k_mat[1] / s) / speed  # k_mat[1] / s = 1 / tau
+    return wp.vec3(-ft * vp[0], -ft * vp[1], fn)
+
+
+@wp.func
+def add_ground_force(pending: wp.array2d(dtype=wp.float64), slot: int, f: wp.vec3):
+    """Add a particle's ground force (N) to this thread's row of ``pending``."""
+    if f[2] != 0.0:
+        for a in range(3):
+            wp.atomic_add(pending, slot, a, wp.float64(f[a]))
+
+
+@wp.func
+def fold_ground_force(
+    pending: wp.array2d(dtype=wp.float64),  # [2, 4] forces scattered for this sub-step, N; cleared
+    work: wp.array2d(dtype=wp.float64),  # [threads, WORK_ROW] running sums
+    col: int,  # first column of the ground impulse in ``work``
+    dt: float,
+):
+    """Ground impulse of this sub-step's particle contact: dt x the forces its scatter used."""
+    for row in range(2):
+        for a in range(3):
+            work[0, col + a] = work[0, col + a] + wp.float64(dt) * pending[row, a]
+            pending[row, a] = wp.float64(0.0)
+
+
+def ground_stiffness(ground: GroundPlane | None, materials: Sequence[MaterialParams]) -> np.ndarray:
+    """[M, 2] per material (kappa M, Pa; sqrt(kappa) c_p / 2, m/s); zeros unless the ground acts on
+    the particles."""
+    if ground is None or not ground.on_particles:
+        return np.zeros((len(materials), 2), dtype=np.float32)
+    kappa = ground.stiffness
+    rows = [(kappa * MODELS[m.model].stiffness(m), 0.5 * math.sqrt(kappa) * m.wave_speed()) for m in materials]
+    return np.array(rows, dtype=np.float32)
+
+
+def contact_wave_speed(
+    ground: GroundPlane | None,
+    materials: Sequence[MaterialParams],
+    volume: np.ndarray,  # [P] rest volumes, m^3
+    material: np.ndarray,  # [P] int
+    dx: float,
+) -> float:
+    """Speed c the contact springs need in dt = cfl dx / c (module docstring), m/s; 0 without them."""
+    if ground is None or not ground.on_particles:
+        return 0.0
+    volume = np.broadcast_to(np.asarray(volume, dtype=np.float64), np.shape(material))
+    c = 0.0
+    for index, m in enumerate(materials):
+        sel = material == index
+        if sel.any():
+            s = float(volume[sel].min()) ** (1.0 / 3.0)
+            c = max(c, math.sqrt(ground.stiffness) * m.wave_speed() * dx / (2.0 * s))
+    return c
