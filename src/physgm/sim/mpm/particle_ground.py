@@ -5,29 +5,32 @@ Here the ground pushes the particles themselves: a particle of spacing s = V0^(1
 volume's side) carries the material down to s / 2 below its centre, and when that surface is a
 depth d under the plane it gets the normal force
 
-    f_n = k d,   k = kappa M s   (N/m),
+    f_n = k d,   k = X s   (N/m),   X = min(kappa G, M),
 
-M = lam + 2 mu (or the fluid's bulk modulus) of its material as the solver runs it (after any
-bulk cap), kappa = ``GroundPlane.stiffness``. Per particle column of cross-section s^2, the
-ground is then as stiff as a layer s / kappa of the material itself: a body of height H rests
-with its surface rho g H s / (kappa M) under the plane (under 1e-3 dx for the bodies in scope),
-and, the spring being conservative, an elastic body keeps its bounce. On a Coulomb ground a
-tangential force opposes the particle's sliding velocity v_t, at most mu f_n and at most
-m |v_t| / tau, tau = 2 / omega below. The solver's step never exceeds tau (next paragraph), so
-friction never reverses the motion; a slow particle is stopped within a few sub-steps. The cap
-uses tau, not the sub-step dt, because the scatter runs before the next sub-step's dt is known
-(``kernels``: the fused scatter must not depend on dt).
+G the shear modulus of its material (a fluid, which has none: its bulk modulus), M = lam + 2 mu
+its P-wave modulus, kappa = ``GroundPlane.stiffness`` (1). Per particle column of cross-section
+s^2 the ground is as stiff as a layer s / kappa of a material of modulus kappa G: a body of
+height H rests with its surface rho g H s / X under the plane (0.01 dx for the 5 cm test block,
+0.07 dx for the planner's 10 cm jelly at E = 1e4 Pa, docs/measurements_sim.md section 11), and,
+the spring being conservative, an elastic body keeps its bounce. G, not M: the bulk cap (issue
+25) lowers M and keeps G, so the ground does not sink a capped body deeper than the uncapped one;
+and a spring as stiff as M made the bouncing ball's bottom layer chatter (restitution 0.908
+against 0.938 with G). On a Coulomb ground a tangential force opposes the particle's sliding
+velocity v_t, at most mu f_n and at most m |v_t| / tau, tau = 2 / omega below. The solver's step
+never exceeds tau (next paragraph), so friction never reverses the motion; a slow particle is
+stopped within a few sub-steps. The cap uses tau, not the sub-step dt, because the scatter runs
+before the next sub-step's dt is known (``kernels``: the fused scatter must not depend on dt).
 
 The force enters the scatter like the stress force (``kernels.scatter_particle``), so it reaches
 the grid as gravity does; ``pending`` sums what the particles got, and the next grid_update
 adds it times that step's dt to the ground impulse (``kernels.WORK_GROUND``), which the
 observables report as the ground's force.
 
-Stability: alone on its mass m = rho s^3 the spring rings at omega = sqrt(k / m) = sqrt(kappa)
-c_p / s. The solver's step dt = cfl dx / c is taken with c >= sqrt(kappa) c_p dx / (2 s)
+Stability: alone on its mass m = rho s^3 the spring rings at omega = sqrt(k / m) = c_X / s, c_X =
+sqrt(X / rho) <= c_p. The solver's step dt = cfl dx / c is taken with c >= c_X dx / (2 s)
 (``contact_wave_speed``), so omega dt <= 2 cfl = 0.8 at the default cfl (and dt <= cfl tau <=
-tau, as cfl <= 1), under the explicit limit 2; at kappa = 1 and 2 particles per cell axis
-(s = dx / 2) that c is the material's own c_p, so the step does not change.
+tau, as cfl <= 1), under the explicit limit 2. With 2 particles per cell axis (s = dx / 2) that
+c is at most the material's own c_p, so the step does not change.
 """
 
 from __future__ import annotations
@@ -95,14 +98,39 @@ def fold_ground_force(
             pending[row, a] = wp.float64(0.0)
 
 
+def contact_modulus(ground: GroundPlane, material: MaterialParams) -> float:
+    """X of the contact spring, Pa: kappa x the material's shear modulus (a fluid, which has none:
+    its bulk modulus), at most its P-wave modulus M (module docstring)."""
+    p_wave = MODELS[material.model].stiffness(material)
+    if material.model == "fluid":
+        return p_wave
+    return min(ground.stiffness * material.mu, p_wave)
+
+
 def ground_stiffness(ground: GroundPlane | None, materials: Sequence[MaterialParams]) -> np.ndarray:
-    """[M, 2] per material (kappa M, Pa; sqrt(kappa) c_p / 2, m/s); zeros unless the ground acts on
-    the particles."""
+    """[M, 2] per material (X, Pa; sqrt(X / rho) / 2, m/s) of the contact spring (module
+    docstring); zeros unless the ground acts on the particles."""
     if ground is None or not ground.on_particles:
         return np.zeros((len(materials), 2), dtype=np.float32)
-    kappa = ground.stiffness
-    rows = [(kappa * MODELS[m.model].stiffness(m), 0.5 * math.sqrt(kappa) * m.wave_speed()) for m in materials]
+    rows = []
+    for m in materials:
+        x = contact_modulus(ground, m)
+        rows.append((x, 0.5 * math.sqrt(x / m.density)))
     return np.array(rows, dtype=np.float32)
+
+
+def contact_plane(ground: GroundPlane, x: np.ndarray, volume: np.ndarray) -> float:
+    """Height of the plane the contact springs push from, m (x [P, 3] m, volume [P] m^3 at the start).
+
+    The ground's own height, lowered by the deepest overlap of a starting particle's surface with
+    it (at most half that particle's spacing): scenes that put the lowest particle centres on the
+    floor (``physgm.sim.scenes``: push, two_objects) would otherwise start with the springs
+    compressed by half a spacing, which throws the body off the ground (a 10 cm wood block
+    jumped 8 cm). Such a body rests with its lowest particles on the plane instead.
+    """
+    half = 0.5 * np.cbrt(np.asarray(volume, dtype=np.float64))
+    overlap = np.minimum(ground.height + half - np.asarray(x, dtype=np.float64)[:, 2], half)
+    return ground.height - max(float(overlap.max()), 0.0)
 
 
 def contact_wave_speed(
@@ -121,5 +149,5 @@ def contact_wave_speed(
         sel = material == index
         if sel.any():
             s = float(volume[sel].min()) ** (1.0 / 3.0)
-            c = max(c, math.sqrt(ground.stiffness) * m.wave_speed() * dx / (2.0 * s))
+            c = max(c, math.sqrt(contact_modulus(ground, m) / m.density) * dx / (2.0 * s))
     return c
