@@ -5,10 +5,11 @@ Where the ground acts (issue 24): a grid node's velocity reaches every particle 
 it: impacts begin while its surface is ~1.25 cells up and it rests a cell high. Slip and Coulomb
 grounds therefore act on the particles by default (``contact="particles"``,
 ``physgm.sim.mpm.particle_ground``): each particle whose material surface (half a particle
-spacing below it) is under the plane is pushed out by a conservative penalty spring whose
-stiffness scales with its material's P-wave modulus, so impacts begin at the surface, bodies rest
-there whatever their load, and an elastic ball keeps its bounce. The nodes two cells or more
-below the plane stay held as a safety net that a resting body never reaches.
+spacing below it) is under the plane is pushed out by a conservative penalty spring as stiff as
+a layer one particle spacing thick of its material's shear modulus, so impacts begin at the
+surface, bodies rest there (sinking rho g H s / G: under a tenth of a cell for the bodies in
+scope), and an elastic ball keeps its bounce. The nodes two cells or more below the plane stay
+held as a safety net that a resting body never reaches.
 
 ``contact="nodes"`` is the grid condition: the nodes at or below the plane (``held_depth=0``,
 always so for sticky grounds) or, with ``held_depth=SURFACE_DEPTH``, 7/8 cell or more below it on
@@ -71,8 +72,8 @@ class GroundPlane:
     contact: "particles" (the default for slip and Coulomb grounds: a penalty spring on each
     particle's material surface, ``particle_ground``) or "nodes" (the grid condition; the default
     for sticky grounds and whenever ``held_depth`` > 0).
-    stiffness: kappa of the particle contact: a particle of spacing s gets kappa M s N/m, M its
-    material's P-wave modulus, i.e. the ground is as stiff as a layer s / kappa of the material.
+    stiffness: kappa of the particle contact: a particle of spacing s gets min(kappa G, M) s N/m,
+    G and M its material's shear and P-wave moduli (``particle_ground``).
     held_depth: nodes contact only: 0 holds the nodes at or below the plane (contact starts ~1.25
     cells up, bodies rest a cell high); ``SURFACE_DEPTH`` puts contact and the rest of light bodies
     at the plane but lets soft or heavy bodies sink (module docstring).
