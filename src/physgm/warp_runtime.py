@@ -39,7 +39,8 @@ def ensure_loaded(kernel, device) -> None:
 
 # Every Python module of physgm that defines Warp kernels (each is one Warp module).
 KERNEL_MODULES = (
-    "physgm.render.warp_kernels",
+    "physgm.render.warp_project_kernels",
+    "physgm.render.warp_bin_kernels",
     "physgm.render.warp_raster_kernels",
     "physgm.sim.mpm.kernels",
     "physgm.sim.mpm.particle_ops",

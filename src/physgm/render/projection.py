@@ -1,6 +1,6 @@
 """EWA projection of 3D Gaussians to screen space, in plain differentiable torch.
 
-This is the reference for the Warp projection kernel (`warp_kernels.project_kernel`), which
+This is the reference for the Warp projection kernel (`warp_project_kernels.project_kernel`), which
 mirrors it line by line. The 2D covariance of a Gaussian is J W R S S^T R^T W^T J^T + eps2d I,
 with W the camera rotation and J the Jacobian of the perspective projection at the mean.
 """

@@ -1,7 +1,7 @@
 """Tiled Warp rasteriser with an explicit backward pass, wrapped as a torch autograd Function.
 
-Pipeline (kernels in `warp_kernels.py`, `warp_raster_kernels.py` and `warp_tile_kernels.py`, torch
-ops in between):
+Pipeline (kernels in `warp_project_kernels.py` and `warp_bin_kernels.py`, both reached through
+`warp_kernels`, then `warp_raster_kernels.py` and `warp_tile_kernels.py`; torch ops in between):
 project, box and tiles per pair (I*N pairs, one kernel), entries per tile -> prefix sum -> entries
 in (image, tile, depth) order with their data gathered contiguously -> raster forward. The ordering
 step is a counting sort on the CPU (pairs sorted by depth append themselves to their tiles in

@@ -152,9 +152,10 @@ def test_thrown_block_rebounds_with_the_midpoint_rule():
     assert com_be[:, 2].max() < com[:, 2].max() - 0.01
 
 
-def test_unconverged_solves_are_retried_only_when_asked():
-    # No Newton iteration allowed: every solve of the thrown block's impact stays unconverged. With
-    # retry_unconverged the guard retries the frame down to its last attempt, which it keeps.
+def test_unconverged_solves_keep_the_frame():
+    # No Newton iteration allowed: every solve of the thrown block's impact stays unconverged. The
+    # frame is still accepted at the first attempt (retrying it measured 2.2x the cost for < 0.1 mm,
+    # docs/measurements_sim.md section 10), and the log says its last solve did not converge.
     dx = SIDE / 6
     p = Particles.lattice((-SIDE / 2, -SIDE / 2, 0.0), (SIDE / 2, SIDE / 2, SIDE), dx / 2)
     p = Particles(
@@ -163,10 +164,10 @@ def test_unconverged_solves_are_retried_only_when_asked():
     grid = GridSpec.fit((-SIDE, -SIDE, 0.0), (SIDE, SIDE, 1.3 * SIDE), dx)
     scene = Scene(ground=GroundPlane(0.0, friction=0.3))
     cfg = SolverConfig(threads=1, integrator="implicit", max_retries=2, cfl=1.0, frame_dt=0.01)
-    for retry, expected in [(False, 0), (True, 2)]:
-        settings = NewtonSettings(max_newton=0, retry_unconverged=retry)
-        solver = ImplicitMPMSolver(p, [SOFT_RUBBER], grid, scene, cfg, "cpu", settings)
+    solver = ImplicitMPMSolver(p, [SOFT_RUBBER], grid, scene, cfg, "cpu", NewtonSettings(max_newton=0))
+    try:
         stats = solver.step_frame()
-        assert stats.retries == expected and stats.cfl == pytest.approx(1.0 / 2**expected)
+        assert stats.retries == 0 and stats.cfl == pytest.approx(1.0)
         assert not solver.implicit.log[-1].converged
+    finally:
         solver.close()

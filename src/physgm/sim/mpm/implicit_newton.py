@@ -30,11 +30,6 @@ class NewtonSettings:
     cg_tolerance: float = 1.0e-2  # CG stops at this fraction of the Newton residual's norm
     max_halvings: int = 12  # line-search step halvings before the iteration gives up
     max_contact_rounds: int = 4  # re-solves after the ground's active set changed
-    # True: a frame with an unconverged solve is retried with half the sub-step (the divergence guard's
-    # retry), except on the guard's last attempt, which is kept (and logged as unconverged). Off:
-    # on an 8 cm cube of E = 5e6 Pa thrown at 2 m/s (midpoint, 10 ms) it cost 2.2x and moved the
-    # CoM error by < 0.1 mm (docs/measurements_sim.md, section 10).
-    retry_unconverged: bool = False
 
 
 @dataclass(frozen=True)
@@ -83,7 +78,6 @@ class ImplicitStep:
         self.sums = wp.zeros(3, dtype=wp.float64, device=dev)
         self.total_mass = 0.0  # kg on the step's nodes
         self.log: list[SolveStats] = []
-        self.unconverged = 0  # unconverged solves since the solver last reset it
         self._counts = [0, 0]  # products, gradients of the current sub-step
 
     # ------------------------------------------------------------------ passes
@@ -260,7 +254,6 @@ class ImplicitStep:
             if not changed or newton >= cfg.max_newton:
                 break
         products, gradients = self._counts
-        self.unconverged += not converged
         self.log.append(
             SolveStats(solver.time, dt, n, newton, products, gradients, changes, res, first, converged)
         )

@@ -1,0 +1,67 @@
+"""Simulation planner: the cheapest simulation whose visual error stays under a pixel bound.
+
+Inputs are the object (rest particles), its physics (material, E, nu, density), the scene
+(gravity, ground, prescribed boxes, initial velocities) and the output cameras. The planner
+converts physical deformation estimates to pixels with the cameras' focal length over depth and
+chooses, in order of cost:
+
+1. **rigid**: if the elastic + plastic deformation the scene can cause stays under the bound
+   (a steel or ceramic object dropped on the floor or thrown at a still wall); granular and fluid
+   materials never go rigid, nor do scenes that prescribe motion (grips, clamps).
+2. **MPM with a stiffness cap**: the explicit step scales as dx / c_p with the P-wave speed
+   c_p ~ sqrt(E / rho), so a stiff object costs many sub-steps. The cap is the smallest E' whose
+   *extra* deformation over the true E stays under (a share of) the bound; E' = min(E, cap) is
+   simulated and reported. Not after an elastic impact, whose rebound depends on E (see the
+   comment in ``plan_simulation``).
+   Before it, a **bulk cap** (``physgm.sim.bulk_cap``) lowers only the bulk modulus of a nearly
+   incompressible solid (rubber, jelly) so its P-wave is at most ``bulk_wave_ratio`` times its
+   shear wave, within its own share of the bound (that one also counts the rebound).
+3. **MPM at full stiffness** (the reference).
+
+Modules, in the order a reader needs them:
+    config.py       ``PlannerConfig``, the knobs (conf/sim/planner/default.yaml)
+    domain.py       grid cell size and particle spacing (``choose_spacing``) and the region the
+                    grid must hold (``reachable_region``, ``grid_region``)
+    deformation.py  the error models: deformation estimates in metres, the stiffness cap, and
+                    the metres-to-pixels scale of the output cameras
+    plan.py         ``Plan``, the choice with its predicted cost and error, and its JSON summary
+    choose.py       ``plan_simulation``, which weighs the options above
+"""
+
+from physgm.sim.planner.choose import FLOWING_MODELS, NEVER_RIGID_MATERIALS, plan_simulation
+from physgm.sim.planner.config import PlannerConfig
+from physgm.sim.planner.deformation import (
+    Deformation,
+    deformation_estimate,
+    impact_speed,
+    pixels_per_metre,
+    stiffness_cap,
+)
+from physgm.sim.planner.domain import (
+    GRANULAR_MODELS,
+    choose_spacing,
+    granular_runout,
+    grid_region,
+    heap_radius,
+    reachable_region,
+)
+from physgm.sim.planner.plan import Plan
+
+__all__ = [
+    "FLOWING_MODELS",
+    "GRANULAR_MODELS",
+    "NEVER_RIGID_MATERIALS",
+    "Deformation",
+    "Plan",
+    "PlannerConfig",
+    "choose_spacing",
+    "deformation_estimate",
+    "granular_runout",
+    "grid_region",
+    "heap_radius",
+    "impact_speed",
+    "pixels_per_metre",
+    "plan_simulation",
+    "reachable_region",
+    "stiffness_cap",
+]

@@ -1,0 +1,209 @@
+"""``plan_simulation``: the choice between rigid, MPM with capped stiffness, and full MPM.
+
+See the package docstring (``physgm.sim.planner``) for the order of the options; the error model
+of each is in ``deformation.py`` (and ``physgm.sim.bulk_cap``), the grid in ``domain.py``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from torch import Tensor
+
+from physgm.cameras import Cameras
+from physgm.sim.bulk_cap import choose_bulk_cap, rebound_px
+from physgm.sim.constitutive import MODELS, MaterialParams
+from physgm.sim.mpm.scene import Scene
+from physgm.sim.mpm.stepping import substeps_per_frame
+from physgm.sim.planner.config import PlannerConfig
+from physgm.sim.planner.deformation import deformation_estimate, impact_speed, pixels_per_metre, stiffness_cap
+from physgm.sim.planner.domain import grid_region
+from physgm.sim.planner.plan import Plan
+from physgm.sim.rigid import static_walls
+
+# Constitutive models whose material flows instead of springing back: never rigid.
+FLOWING_MODELS = frozenset({"drucker_prager", "mohr_coulomb", "fluid"})
+
+# Materials that never go rigid whatever their stiffness (granular: they pour and heap).
+NEVER_RIGID_MATERIALS = frozenset({"sand", "snow"})
+
+
+def plan_simulation(
+    x: Tensor,  # [P, 3] rest particles, m
+    volume: Tensor,  # [P] rest volumes, m^3
+    v0: Tensor,  # [P, 3] initial velocities, m/s
+    name: str,
+    material: MaterialParams,
+    scene: Scene,
+    cameras: Cameras,
+    n_frames: int,
+    frame_dt: float,
+    dx: float,
+    particle_spacing: float,
+    config: PlannerConfig | None = None,
+) -> Plan:
+    """Choose rigid / MPM with capped E / MPM, fit the grid and set early stop; see module doc.
+
+    Args:
+        name: material name (granular names never go rigid).
+        n_frames: output frames including the rest frame 0.
+        dx, particle_spacing: from ``choose_spacing`` (dx may grow to respect ``max_cells``).
+    """
+    cfg = config or PlannerConfig()
+    if n_frames < 1 or frame_dt <= 0:
+        raise ValueError(f"need n_frames >= 1 and frame_dt > 0, got {n_frames} and {frame_dt}")
+    pts = x.detach().double().cpu()
+    lo, hi = pts.min(0).values.numpy(), pts.max(0).values.numpy()
+    size = float((hi - lo).max())
+    gravity = np.asarray(scene.gravity, dtype=np.float64)
+    g = float(np.linalg.norm(gravity))
+    ground = None if scene.ground is None else float(scene.ground.height)
+    vel = v0.detach().double().cpu().numpy().reshape(-1, 3)
+    duration = (n_frames - 1) * frame_dt  # frame 0 is the rest state
+    box_speed = max((float(np.linalg.norm(b.velocity)) for b in scene.boxes), default=0.0)
+    v_impact = impact_speed(float(lo[2]), ground, float(vel[:, 2].min(initial=0.0)), g)
+    v_throw = float(np.linalg.norm(vel, axis=1).max(initial=0.0))
+    # The loading speed: an impact on the ground or a wall, or grips pulling (the elastic lag is
+    # the same v L / c).
+    v_load = max(v_impact, box_speed, v_throw)
+    v_max = max(v_load, float(np.linalg.norm(vel, axis=1).max(initial=0.0)))
+
+    # Pixel scale: the object where it starts and where it lands, seen by the closest camera.
+    landed = pts.clone()
+    if ground is not None:
+        landed[:, 2] -= float(lo[2]) - ground
+    px_per_m = max(pixels_per_metre(cameras, pts.float()), pixels_per_metre(cameras, landed.float()))
+
+    flows = material.model in FLOWING_MODELS or name in NEVER_RIGID_MATERIALS
+    yield_stress = (
+        material.yield_stress if MODELS[material.model].plastic and material.yield_stress > 0 else None
+    )
+    wave_factor = material.wave_speed() ** 2 * material.density / material.E
+    deform = deformation_estimate(
+        material.E, material.density, size, v_load, g, yield_stress, flows, wave_factor
+    )
+    terms = {"sag_px": deform.sag * px_per_m, "impact_px": deform.impact * px_per_m}
+    terms["plastic_px"] = deform.plastic * px_per_m
+
+    g_lo, g_hi, grid_dx = grid_region(cfg, material, x, v0, volume, scene, duration, dx, ground)
+    n_nodes = int(np.prod(np.ceil((g_hi - g_lo) / grid_dx) + 9))  # + boundary margins of GridSpec.fit
+    steps = {"mpm": substeps_per_frame(grid_dx, [material], v_max, cfg.cfl, frame_dt)}
+    steps["rigid"] = max(1, math.ceil(frame_dt / cfg.rigid_dt - 1e-9))
+    P = len(pts)
+    cost = {"mpm": float((n_frames - 1) * steps["mpm"] * P), "rigid": float((n_frames - 1) * steps["rigid"])}
+    common = dict(
+        material=name,
+        E_requested=material.E,
+        nu_requested=material.nu,
+        px_per_m=px_per_m,
+        grid_lo=g_lo,
+        grid_hi=g_hi,
+        dx=grid_dx,
+        particle_spacing=particle_spacing,
+        n_particles=P,
+        frame_dt=frame_dt,
+        n_frames=n_frames,
+        rest_px=cfg.rest_px,
+        rest_frames=cfg.rest_frames,
+        restitution=cfg.restitution,
+        alternatives=cost,
+    )
+    rigid_px = deform.total * px_per_m
+    walls = static_walls(scene.boxes, lo, hi)  # still walls are contact planes of the rigid path
+    if walls is not None:  # side walls too; a periodic axis has no rigid counterpart
+        walls = None if scene.periodic else walls + [w.plane() for w in scene.walls]
+    if cfg.allow_rigid and walls is not None and rigid_px <= cfg.bound_px:
+        parts = ", ".join(f"{k[:-3]} {v:.2g}" for k, v in terms.items())
+        reason = (
+            f"{name} (E={material.E:.3g} Pa) deforms ~{rigid_px:.3g} px <= {cfg.bound_px} px ({parts}): "
+            "rigid body"
+        )
+        return Plan(
+            "rigid",
+            E_used=material.E,
+            nu_used=material.nu,
+            predicted_error_px=rigid_px,
+            error_terms=terms,
+            substeps_per_frame=steps["rigid"],
+            predicted_cost=cost["rigid"],
+            reason=reason,
+            walls=walls,
+            **common,
+        )
+    if flows:
+        why = "it flows (granular / fluid)"
+    elif walls is None:
+        why = "the scene prescribes motion"
+    elif not cfg.allow_rigid:
+        why = "rigid mode is disabled"
+    else:
+        why = f"it deforms ~{rigid_px:.3g} px > {cfg.bound_px} px"
+
+    # Stiffness cap (see module doc). It may use only ``cap_budget`` of the bound: the deformation
+    # estimate does not see that a softer body also rebounds differently. After an elastic impact
+    # (a drop or a push without a visible dent) the rebound decides the trajectory, and E moves it
+    # far more than the squash: measured on a bouncing 15 cm plastic block (E = 5e7 Pa, 256 px),
+    # E 20 % lower moved it 1.3 px on average, the capped 2.4e7 Pa 3.2 px, while the deformation
+    # estimate promised 0.25 px. So an elastic impact is never capped; quasi-static loading
+    # (grips) and impacts that end in a plastic dent (the rebound is small) are.
+    # (A body resting on the ground, its lowest particles half a spacing up, does not impact; nor
+    # does one a cell up: the grid does not resolve the gap, and sqrt(2 g dx) is a tap.)
+    falls = ground is not None and float(lo[2]) - ground > dx
+    elastic_impact = (falls or v_throw > 0.0) and deform.plastic * px_per_m <= cfg.bound_px
+    simulated, n_steps, notes, cap_px, bulk_px = material, steps["mpm"], [], 0.0, 0.0
+    cap_impacts = cfg.cap_elastic_impacts or cfg.force_caps
+    caps_E = cfg.allow_stiffness_cap and (cap_impacts or not elastic_impact)
+    if cfg.allow_bulk_cap and not flows:
+
+        def deformation_px(modulus: float) -> float:
+            d = deformation_estimate(modulus, material.density, size, v_load, g)
+            return (d.sag + d.impact) * px_per_m
+
+        share = cfg.bound_px * (1.0 - (cfg.cap_budget if caps_E else 0.0))
+        object_px = size * px_per_m
+        bulk = choose_bulk_cap(
+            material, deformation_px, object_px, elastic_impact, share, cfg.bulk_wave_ratio, cfg.force_caps
+        )
+        bulk_steps = bulk and substeps_per_frame(grid_dx, [bulk.material], v_max, cfg.cfl, frame_dt)
+        if bulk is not None and (cfg.force_caps or n_steps >= cfg.min_cap_gain * bulk_steps):
+            notes.append(
+                f"bulk capped to nu={bulk.material.nu:.3g} (c_p = {bulk.ratio:.3g} c_s; {n_steps} -> "
+                f"{bulk_steps} sub-steps/frame, ~{bulk.predicted_px:.2g} px)"
+            )
+            simulated, n_steps, bulk_px = bulk.material, bulk_steps, bulk.predicted_px
+            terms["bulk_cap_rebound_px"] = bulk.rebound_px
+    terms["bulk_cap_px"] = bulk_px
+    if cfg.allow_stiffness_cap and not caps_E:
+        notes.append(
+            "E not capped (an elastic impact: the rebound depends on E; planner.cap_elastic_impacts)"
+        )
+    elif caps_E:
+        bound = cfg.cap_budget * cfg.bound_px / px_per_m
+        cap = stiffness_cap(simulated.E, material.density, size, v_load, bound, g)
+        cap_steps = substeps_per_frame(grid_dx, [simulated.with_elasticity(E=cap)], v_max, cfg.cfl, frame_dt)
+        if n_steps >= cfg.min_cap_gain * cap_steps:
+            notes.append(f"E capped to {cap:.3g} Pa ({n_steps} -> {cap_steps} sub-steps/frame)")
+            soft = deformation_estimate(cap, material.density, size, v_load, g)
+            hard = deformation_estimate(simulated.E, material.density, size, v_load, g)
+            cap_px = (soft.sag + soft.impact - hard.sag - hard.impact) * px_per_m
+            softer = simulated.with_elasticity(E=cap)
+            if elastic_impact:  # opted in: the rebound error is predicted, not bounded
+                terms["stiffness_cap_rebound_px"] = rebound_px(simulated, softer, size * px_per_m)
+                cap_px += terms["stiffness_cap_rebound_px"]
+            simulated, n_steps = softer, cap_steps
+    terms["stiffness_cap_px"] = cap_px
+    cost["mpm_capped"] = float((n_frames - 1) * n_steps * P)
+    note = "".join(f"; {n}" for n in notes)
+    reason = f"MPM because {why}{note}; grid {n_nodes} nodes, dx={grid_dx:.3g} m"
+    return Plan(
+        "mpm",
+        E_used=simulated.E,
+        nu_used=simulated.nu,
+        predicted_error_px=cap_px + bulk_px,
+        error_terms=terms,
+        substeps_per_frame=n_steps,
+        predicted_cost=cost["mpm_capped"],
+        reason=reason,
+        **common,
+    )

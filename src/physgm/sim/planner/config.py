@@ -1,0 +1,55 @@
+"""The planner's settings (conf/sim/planner/default.yaml)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class PlannerConfig:
+    """Planner knobs (conf/sim/planner/default.yaml)."""
+
+    bound_px: float = 0.5  # largest visual error allowed, pixels at the output resolution
+    cells_across: int = 12  # grid cells across the object's largest extent
+    max_cells: int = 96  # cap on grid cells per axis (dx grows to respect it)
+    # MPM particles per grid cell: 8 (2 per axis) is MPM practice; at 1 per cell or fewer a soft
+    # body loses its shape. Sets the particle spacing dx / ppc^(1/3); the lattice through the
+    # object's bounding box then holds at most (cells_across ppc^(1/3))^3 particles (13,824).
+    particles_per_cell: float = 8.0
+    min_opacity: float = 0.05  # Gaussians fainter than this carry no mass
+    fill_interior: bool = True  # fill the inside of closed Gaussian shells with particles (sampling.py)
+    follower_k: int = 8  # nearest particles each Gaussian follows
+    allow_rigid: bool = True  # rigid-body path for objects that would not deform visibly
+    allow_stiffness_cap: bool = True  # lower E while the extra deformation stays under the bound
+    min_cap_gain: float = 1.25  # cap only if it saves at least this factor of sub-steps
+    cap_budget: float = 0.5  # fraction of bound_px the stiffness cap may use (rebound changes too)
+    # Bulk cap (sim/bulk_cap.py): keep the shear modulus, lower nu until c_p <= ratio c_s. It may
+    # use bound_px minus the stiffness cap's share, and counts the rebound of an elastic impact.
+    allow_bulk_cap: bool = True
+    bulk_wave_ratio: float = 2.0  # smallest c_p / c_s the bulk cap may reach (2: nu = 1/3)
+    force_caps: bool = False  # benchmarks: take each allowed cap whatever its predicted error
+    # Cap E after an elastic impact too: far fewer sub-steps for stiff objects thrown at a wall,
+    # but the rebound then differs by pixels (measured 3 px) beyond the bound: predicted_error_px
+    # counts them (bulk_cap.rebound_px), the bound does not limit them.
+    cap_elastic_impacts: bool = False
+    cfl: float = 0.4  # CFL number for predicting sub-steps (the solver's config runs)
+    rigid_dt: float = 1e-3  # rigid-body step, s
+    restitution: float = 0.6  # rigid-path ground restitution (the material table has none)
+    rest_px: float = 0.05  # a frame is still when no particle moved more than this, pixels
+    rest_frames: int = 5  # still frames in a row before the remaining frames are held
+    spread_factor: float = 0.5  # horizontal grid margin for sagging / splashing, object sizes
+    ballistic: bool = True  # free flight before the first contact in closed form
+    fit_grid: bool = True  # False: a fixed cube of domain_size on the ground (naive baseline)
+    domain_size: float = 1.0  # m, only with fit_grid = False
+
+    def __post_init__(self) -> None:
+        positive = ("bound_px", "cells_across", "max_cells", "particles_per_cell", "cfl", "rigid_dt")
+        for name in (*positive, "domain_size"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"planner setting {name}={getattr(self, name)!r} must be > 0")
+        if not self.bulk_wave_ratio > 1.0:
+            raise ValueError(f"planner bulk_wave_ratio={self.bulk_wave_ratio!r} must be > 1 (c_p > c_s)")
+        if not 0.0 <= self.cap_budget <= 1.0:
+            raise ValueError(f"planner cap_budget={self.cap_budget!r} must be in [0, 1]")
+        if not 0.0 <= self.restitution <= 1.0:
+            raise ValueError(f"planner restitution={self.restitution!r} must be in [0, 1]")
