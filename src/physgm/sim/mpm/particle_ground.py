@@ -50,38 +50,32 @@ wp.set_module_options({"enable_backward": False})
 @wp.func
 def particle_ground_force(
     ground: GroundStruct,
-    k_mat: wp.vec2,  # (kappa M, Pa; sqrt(kappa) c_p / 2, m/s) of the particle's material
+    ground_k: wp.array(dtype=wp.vec2),  # [M] (X, Pa; sqrt(X / rho) / 2, m/s) per material
+    material: int,  # the particle's index into ground_k
     xp: wp.vec3,  # m
     vp: wp.vec3,  # m/s
     m: float,  # kg
     vol0: float,  # rest volume, m^3
+    pending: wp.array2d(dtype=wp.float64),  # [2, 4] out: the force is added to row ``slot``, N
+    slot: int,
 ) -> wp.vec3:
     """Force of the ground on one particle, N (module docstring); zero off the ground."""
-    if ground.enabled == 0 or ground.particles == 0:
-        return wp.vec3(0.0)
     h = xp[2] - ground.height
-    if h > 0.0 and 8.0 * h * h * h >= vol0:  # surface (s / 2 below) above the plane: no cube root
+    if ground.particles == 0 or (h > 0.0 and 8.0 * h * h * h >= vol0):  # surface s / 2 above: no cube root
         return wp.vec3(0.0)
     s = wp.pow(vol0, 1.0 / 3.0)
     depth = 0.5 * s - h
     if depth <= 0.0:
         return wp.vec3(0.0)
-    fn = k_mat[0] * s * depth
-    if ground.mode == GROUND_SLIP:
-        return wp.vec3(0.0, 0.0, fn)
+    k_mat = ground_k[material]
+    f = wp.vec3(0.0, 0.0, k_mat[0] * s * depth)
     speed = wp.sqrt(vp[0] * vp[0] + vp[1] * vp[1])
-    if speed <= 0.0:
-        return wp.vec3(0.0, 0.0, fn)
-    ft = wp.min(ground.friction * fn, m * speed * k_mat[1] / s) / speed  # k_mat[1] / s = 1 / tau
-    return wp.vec3(-ft * vp[0], -ft * vp[1], fn)
-
-
-@wp.func
-def add_ground_force(pending: wp.array2d(dtype=wp.float64), slot: int, f: wp.vec3):
-    """Add a particle's ground force (N) to this thread's row of ``pending``."""
-    if f[2] != 0.0:
-        for a in range(3):
-            wp.atomic_add(pending, slot, a, wp.float64(f[a]))
+    if ground.mode != GROUND_SLIP and speed > 0.0:
+        ft = wp.min(ground.friction * f[2], m * speed * k_mat[1] / s) / speed  # k_mat[1] / s = 1 / tau
+        f = wp.vec3(-ft * vp[0], -ft * vp[1], f[2])
+    for a in range(3):
+        wp.atomic_add(pending, slot, a, wp.float64(f[a]))
+    return f
 
 
 @wp.func
