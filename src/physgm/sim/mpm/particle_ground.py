@@ -9,9 +9,9 @@ depth d under the plane it gets the normal force
 
 G the shear modulus of its material (a fluid, which has none: its bulk modulus), M = lam + 2 mu
 its P-wave modulus, kappa = ``GroundPlane.stiffness`` (1). Per particle column of cross-section
-s^2 the ground is as stiff as a layer s / kappa of a material of modulus kappa G: a body of
-height H rests with its surface rho g H s / X under the plane (0.01 dx for the 5 cm test block,
-0.07 dx for the planner's 10 cm jelly at E = 1e4 Pa, docs/measurements_sim.md section 11), and,
+s^2 the ground is as stiff as a layer s / kappa thick of a material of modulus G: a body of
+height H rests with its surface rho g H s / X under the plane (0.013 dx for the 5 cm test block,
+0.14 dx for a 10 cm jelly cube at E = 1e4 Pa, nu = 0.45; docs/measurements_sim.md section 11), and,
 the spring being conservative, an elastic body keeps its bounce. G, not M: the bulk cap (issue
 25) lowers M and keeps G, so the ground does not sink a capped body deeper than the uncapped one;
 and a spring as stiff as M made the bouncing ball's bottom layer chatter (restitution 0.908
