@@ -30,7 +30,7 @@ cohesion=0, viscosity=0)``                          (``physgm.sim.constitutive``
 ``Scene(gravity=(0, 0, -9.81), ground=None, boxes=(), damping=0.0, walls=(), periodic=())``
 (scene.py, boundary.py, walls.py)
     ``GroundPlane(height=0.0, friction=0.3, mode="separate"|"slip"|"sticky", held_depth=0.0,
-    contact=None, stiffness=0.5)``: slip and Coulomb grounds act on the particles by default
+    contact=None, stiffness=1.0)``: slip and Coulomb grounds act on the particles by default
     (``contact="particles"``: a conservative penalty spring at each particle's material surface,
     half a particle spacing below it, with Coulomb friction on the particle, particle_ground.py;
     impacts begin and bodies rest at the plane, the ground's force is reported as for the grid

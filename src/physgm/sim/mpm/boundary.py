@@ -5,12 +5,11 @@ Where the ground acts (issue 24): a grid node's velocity reaches every particle 
 it: impacts begin while its surface is ~1.25 cells up and it rests a cell high. Slip and Coulomb
 grounds therefore act on the particles by default (``contact="particles"``,
 ``physgm.sim.mpm.particle_ground``): each particle whose material surface (half a particle
-spacing s below it) is under the plane is pushed out by a conservative penalty spring as stiff
-as a layer s thick of half its material's indentation modulus E / (1 - nu^2), so impacts begin
-at the surface, bodies rest there (their surface sinks rho g H s / X: 0.08 cell for a 10 cm
-jelly cube at E = 1e4 Pa, 0.16 cell for a 20 cm one), and an elastic ball keeps its bounce.
-The nodes two cells or more below the plane stay held as a safety net that a resting body never
-reaches.
+spacing below it) is under the plane is pushed out by a conservative penalty spring as stiff as
+a layer one particle spacing thick of its material's shear modulus, so impacts begin at the
+surface, bodies rest there (their surface sinks rho g H s / G: 0.14 cell for a 10 cm jelly
+cube at E = 1e4 Pa, 0.28 cell for a 20 cm one), and an elastic ball keeps its bounce. The nodes two cells or more below the plane stay
+held as a safety net that a resting body never reaches.
 
 ``contact="nodes"`` is the grid condition: the nodes at or below the plane (``held_depth=0``,
 always so for sticky grounds) or, with ``held_depth=SURFACE_DEPTH``, 7/8 cell or more below it on
@@ -73,8 +72,8 @@ class GroundPlane:
     contact: "particles" (the default for slip and Coulomb grounds: a penalty spring on each
     particle's material surface, ``particle_ground``) or "nodes" (the grid condition; the default
     for sticky grounds and whenever ``held_depth`` > 0).
-    stiffness: kappa of the particle contact: a particle of spacing s gets min(kappa E*, M) s N/m,
-    E* = E / (1 - nu^2) and M its material's indentation and P-wave moduli (``particle_ground``).
+    stiffness: kappa of the particle contact: a particle of spacing s gets min(kappa G, M) s N/m,
+    G and M its material's shear and P-wave moduli (``particle_ground``).
     held_depth: nodes contact only: 0 holds the nodes at or below the plane (contact starts ~1.25
     cells up, bodies rest a cell high); ``SURFACE_DEPTH`` puts contact and the rest of light bodies
     at the plane but lets soft or heavy bodies sink (module docstring).
@@ -85,7 +84,7 @@ class GroundPlane:
     mode: str = "separate"
     held_depth: float = 0.0  # cells, nodes contact; SURFACE_DEPTH: contact at the surface
     contact: str | None = None  # None: "nodes" if sticky or held_depth > 0, else "particles"
-    stiffness: float = 0.5  # kappa of the particle contact (particle_ground)
+    stiffness: float = 1.0  # kappa of the particle contact (particle_ground)
 
     def __post_init__(self) -> None:
         if self.mode not in _GROUND_MODES:
@@ -97,7 +96,7 @@ class GroundPlane:
                 f"ground held_depth={self.held_depth!r} cells must be in [0, 1.5); try 0 or 0.875"
             )
         if not (math.isfinite(self.stiffness) and self.stiffness > 0.0):
-            raise ValueError(f"ground stiffness={self.stiffness!r} must be finite and > 0; try 0.5")
+            raise ValueError(f"ground stiffness={self.stiffness!r} must be finite and > 0; try 1")
         contact = self.contact
         if contact is None:
             contact = "nodes" if self.mode == "sticky" or self.held_depth > 0 else "particles"

@@ -5,24 +5,21 @@ Here the ground pushes the particles themselves: a particle of spacing s = V0^(1
 volume's side) carries the material down to s / 2 below its centre, and when that surface is a
 depth d under the plane it gets the normal force
 
-    f_n = k d,   k = X s   (N/m),   X = min(kappa E*, M),   E* = E / (1 - nu^2),
+    f_n = k d,   k = X s   (N/m),   X = min(kappa G, M),
 
-E* the plane-strain (indentation) modulus of its material, M = lam + 2 mu its P-wave modulus (a
-fluid's bulk modulus), kappa = ``GroundPlane.stiffness`` (0.5). Per particle column of
-cross-section s^2 the ground is as stiff as a layer s thick of modulus X: a body of height H
-rests with its surface rho g H s / X under the plane (0.01 dx for the 5 cm test block, 0.08 dx
-for a 10 cm jelly cube at E = 1e4 Pa, nu = 0.45; docs/measurements_sim.md section 11), and, the
-spring being conservative, an elastic body keeps its bounce. Why E*/2 (section 11): a spring as
-stiff as M made the bouncing ball's bottom layer ring (restitution 0.908 against 0.933) and,
-since the bulk cap lowers M, let a capped body sink deeper than the uncapped one; the shear
-modulus G alone (the cap keeps it) let soft jellies sink twice as deep and moved the DPO
-landscape of a jelly drop off its test's bounds.
-
-On a Coulomb ground a tangential force opposes the particle's sliding velocity v_t, at most
-mu f_n and at most m |v_t| / tau, tau = 2 / omega below. The solver's step never exceeds tau
-(below), so friction never reverses the motion; a slow particle is stopped within a few
-sub-steps. The cap uses tau, not the sub-step dt, because the scatter runs before the next
-sub-step's dt is known (``kernels``: the fused scatter must not depend on dt).
+G the shear modulus of its material (a fluid, which has none: its bulk modulus), M = lam + 2 mu
+its P-wave modulus, kappa = ``GroundPlane.stiffness`` (1). Per particle column of cross-section
+s^2 the ground is as stiff as a layer s / kappa thick of a material of modulus G: a body of
+height H rests with its surface rho g H s / X under the plane (0.013 dx for the 5 cm test block,
+0.14 dx for a 10 cm jelly cube at E = 1e4 Pa, nu = 0.45; docs/measurements_sim.md section 11), and,
+the spring being conservative, an elastic body keeps its bounce. G, not M: the bulk cap (issue
+25) lowers M and keeps G, so the ground does not sink a capped body deeper than the uncapped one;
+and a spring as stiff as M made the bouncing ball's bottom layer chatter (restitution 0.908
+against 0.938 with G). On a Coulomb ground a tangential force opposes the particle's sliding
+velocity v_t, at most mu f_n and at most m |v_t| / tau, tau = 2 / omega below. The solver's step
+never exceeds tau (next paragraph), so friction never reverses the motion; a slow particle is
+stopped within a few sub-steps. The cap uses tau, not the sub-step dt, because the scatter runs
+before the next sub-step's dt is known (``kernels``: the fused scatter must not depend on dt).
 
 The force enters the scatter like the stress force (``kernels.scatter_particle``), so it reaches
 the grid as gravity does; ``pending`` sums what the particles got, and the next grid_update
@@ -96,12 +93,12 @@ def fold_ground_force(
 
 
 def contact_modulus(ground: GroundPlane, material: MaterialParams) -> float:
-    """X of the contact spring, Pa: kappa E / (1 - nu^2) of the material (a fluid: its bulk
-    modulus), at most its P-wave modulus M (module docstring)."""
+    """X of the contact spring, Pa: kappa x the material's shear modulus (a fluid, which has none:
+    its bulk modulus), at most its P-wave modulus M (module docstring)."""
     p_wave = MODELS[material.model].stiffness(material)
     if material.model == "fluid":
         return p_wave
-    return min(ground.stiffness * material.E / (1.0 - material.nu**2), p_wave)
+    return min(ground.stiffness * material.mu, p_wave)
 
 
 def ground_stiffness(ground: GroundPlane | None, materials: Sequence[MaterialParams]) -> np.ndarray:
