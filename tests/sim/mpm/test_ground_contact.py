@@ -1,6 +1,6 @@
 """Ground contact at the surface (issue 24 item 3): where impacts begin and bodies rest, friction
-and restitution, for the default particle contact (``particle_ground``) and the grid condition
-held at ``SURFACE_DEPTH`` (``boundary``, ``surface_friction``)."""
+and restitution, for the particle contact (``particle_ground``) and the grid condition held at
+``SURFACE_DEPTH`` (``boundary``, ``surface_friction``)."""
 
 from __future__ import annotations
 
@@ -42,8 +42,8 @@ def _block(
     return MPMSolver(p, [mat], grid, scene, SolverConfig(frame_dt=frame_dt, threads=1))
 
 
-GROUNDS = {  # name -> GroundPlane(mode, friction): the default particle contact and the held nodes
-    "particles": lambda mode, friction: GroundPlane(0.0, friction=friction, mode=mode),
+GROUNDS = {  # name -> GroundPlane(mode, friction): the particle contact and the held nodes
+    "particles": lambda mode, friction: GroundPlane(0.0, friction=friction, mode=mode, contact="particles"),
     "nodes_at_surface": lambda mode, friction: GroundPlane(
         0.0, friction=friction, mode=mode, held_depth=SURFACE_DEPTH
     ),
@@ -70,10 +70,10 @@ def test_dropped_block_rests_with_its_lowest_particles_on_the_plane(contact, mod
         assert z_low == pytest.approx(0.25 * DX, abs=0.02 * DX)
 
 
-def test_nodes_at_the_plane_hold_bodies_a_cell_high():
-    # The grid condition at the plane (held_depth = 0, sticky grounds' default): the nodes at the
-    # plane hold the block about a cell above it.
-    solver = _block(0.03, GroundPlane(0.0, friction=0.0, mode="slip", contact="nodes"), 0.04, damping=15.0)
+def test_default_ground_holds_bodies_a_cell_high():
+    # The default grid condition at the plane (held_depth = 0; boundary module docstring says why
+    # it stays the default): the nodes at the plane hold the block about a cell above it.
+    solver = _block(0.03, GroundPlane(0.0, friction=0.0, mode="slip"), 0.04, damping=15.0)
     for _ in range(20):
         solver.step_frame()
     assert float(solver.state().x[:, 2].min()) > 0.75 * DX
@@ -182,7 +182,7 @@ def test_surface_friction_matches_the_numpy_twin(monkeypatch):
     assert held["v"][low, 0].mean() < free["v"][low, 0].mean() - 0.005  # m/s, in one sub-step
 
 
-@pytest.mark.parametrize("held_depth", [0.0, SURFACE_DEPTH])  # 0: the default particle contact
-def test_elastic_ball_keeps_its_restitution(held_depth):
-    result = V.ball_restitution(fast=True, E=1e5, held_depth=held_depth)
+@pytest.mark.parametrize("contact, held_depth", [("particles", 0.0), ("nodes", SURFACE_DEPTH)])
+def test_elastic_ball_keeps_its_restitution(contact, held_depth):
+    result = V.ball_restitution(fast=True, E=1e5, held_depth=held_depth, contact=contact)
     assert result["restitution"] >= 0.9, result

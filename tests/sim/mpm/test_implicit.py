@@ -27,9 +27,7 @@ def _block(material: MaterialParams, config: SolverConfig, drop_speed: float = 0
         v = np.tile([0.0, 0.0, -drop_speed], (len(p), 1))
         p = Particles(p.x + np.array([0.0, 0.0, 0.5 * dx]), p.volume, p.material, v=v)
     grid = GridSpec.fit((-SIDE, -SIDE, 0.0), (SIDE, SIDE, 1.3 * SIDE), dx)
-    # The implicit step holds the nodes at the plane (``Scene.with_ground_on_nodes``): the explicit
-    # references get the same ground, not the default particle contact.
-    scene = Scene(ground=GroundPlane(0.0, friction=0.3, contact="nodes"))
+    scene = Scene(ground=GroundPlane(0.0, friction=0.3))
     return p, make_solver(p, [material], grid, scene, config, "cpu")
 
 

@@ -41,7 +41,7 @@ def test_contact_matches_the_numpy_twin_and_reports_its_force(mode):
     # the ground impulse is dt x the twin's contact forces, step by step.
     p = Particles.lattice((-0.02, -0.02, 0.005 * DX), (0.02, 0.02, 0.005 * DX + 0.03), SP)
     p.v = np.tile([0.5, 0.1, -2.0], (len(p), 1))
-    scene = Scene(ground=GroundPlane(0.0, friction=0.4, mode=mode))
+    scene = Scene(ground=GroundPlane(0.0, friction=0.4, mode=mode, contact="particles"))
     grid = GridSpec.fit((-0.05, -0.05, 0.0), (0.05, 0.05, 0.05), DX)
     solver = MPMSolver(p, [JELLY], grid, scene, SolverConfig(flip=0.0, threads=1))
     assert solver.launches.contact_height == 0.0  # nothing started under the plane
@@ -80,7 +80,7 @@ def test_heavy_sand_heap_on_a_coulomb_floor_does_not_sink():
     p = Particles.lattice((-radius, -radius, 0.0), (radius, radius, height), sp, inside=inside)
     sand = MaterialParams("mohr_coulomb", 3.5e5, 0.3, 1600.0, friction_angle=35.0)
     reach = radius + 2 * height
-    scene = Scene(ground=GroundPlane(0.0, friction=0.5), damping=20.0)
+    scene = Scene(ground=GroundPlane(0.0, friction=0.5, contact="particles"), damping=20.0)
     solver = V._solver(p, sand, (-reach, -reach, 0.0), (reach, reach, height), 2 * sp, scene)
     for _ in range(15):
         solver.step_frame()
@@ -95,7 +95,8 @@ def test_body_placed_with_its_particles_on_the_plane_stays_down():
     p = Particles.lattice((-0.04, -0.04, -SP / 2), (0.04, 0.04, 0.05 - SP / 2), SP)
     wood = MaterialParams("fixed_corotated", 5e6, 0.3, 600.0)
     grid = GridSpec.fit((-0.08, -0.08, 0.0), (0.08, 0.08, 0.1), DX)
-    solver = MPMSolver(p, [wood], grid, Scene(ground=GroundPlane(0.0, friction=0.3)), SolverConfig(threads=1))
+    scene = Scene(ground=GroundPlane(0.0, friction=0.3, contact="particles"))
+    solver = MPMSolver(p, [wood], grid, scene, SolverConfig(threads=1))
     assert solver.launches.contact_height == pytest.approx(-SP / 2, abs=1e-6)
     top = []
     for _ in range(5):
@@ -108,7 +109,7 @@ def test_body_placed_with_its_particles_on_the_plane_stays_down():
 def test_step_allows_for_the_springs_only_when_they_need_it():
     # omega dt <= 2 cfl needs c >= c_X dx / (2 s): with 2 particles per cell axis the material's
     # own c_p already covers it; 4 per axis halve s and need c_X dx / (2 s) = 2 c_X.
-    ground = GroundPlane(0.0)
+    ground = GroundPlane(0.0, contact="particles")
     for per_axis, expected in [(2, wave_speed([JELLY])), (4, 2.0 * np.sqrt(JELLY.mu / 1000.0))]:
         s = DX / per_axis
         p = Particles.lattice((0.0, 0.0, 0.0), (0.04, 0.04, 0.04), s)

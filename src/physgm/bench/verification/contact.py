@@ -106,6 +106,7 @@ def drop_drift(
     seconds: float = 2.0,
     E: float = 1e4,  # Pa (jelly)
     friction: float = 0.3,
+    contact: str = "nodes",  # GroundPlane.contact
 ) -> dict:
     """Sideways drift of a symmetric jelly box dropped 5 cm flat, through the planner (module docstring)."""
     camera = orbit_cameras(
@@ -114,7 +115,7 @@ def drop_drift(
     traj = simulate(
         box_gaussians(size),
         MaterialParams("fixed_corotated", E, 0.45, 1000.0),
-        Scene(ground=GroundPlane(0.0, friction=friction, mode="separate")),
+        Scene(ground=GroundPlane(0.0, friction=friction, mode="separate", contact=contact)),
         camera,
         n_frames=int(round(seconds / 0.04)) + 1,
         planner=PlannerConfig(rest_frames=10**6, cells_across=cells_across),

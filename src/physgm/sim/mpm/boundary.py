@@ -1,24 +1,26 @@
 """Boundary conditions: the ground plane and moving velocity boxes.
 
 Where the ground acts (issue 24): a grid node's velocity reaches every particle within 1.5 cells
-(quadratic B-splines), so a condition on the nodes at the plane holds a body about a cell above
-it: impacts begin while its surface is ~1.25 cells up and it rests a cell high. Slip and Coulomb
-grounds therefore act on the particles by default (``contact="particles"``,
-``physgm.sim.mpm.particle_ground``): each particle whose material surface (half a particle
-spacing below it) is under the plane is pushed out by a conservative penalty spring as stiff as
-a layer one particle spacing thick of its material's shear modulus, so impacts begin at the
-surface, bodies rest there (their surface sinks rho g H s / G: 0.14 cell for a 10 cm jelly
-cube at E = 1e4 Pa, 0.28 cell for a 20 cm one), and an elastic ball keeps its bounce. The nodes two cells or more below the plane stay
-held as a safety net that a resting body never reaches.
+(quadratic B-splines), so the default condition, on the nodes at or below the plane
+(``contact="nodes"``, ``held_depth=0``), holds a body about a cell above it: impacts begin while
+its surface is ~1.25 cells up and it rests a cell high. With ``held_depth=SURFACE_DEPTH`` the
+nodes 7/8 cell or more below it are held, on a grid aligned so a node plane lies there
+(``GridSpec.aligned``); held that deep, the nodes reach the lowest particles only through the
+tails of their stencils, so a Coulomb ground also takes friction on the node layer above
+(``surface_friction``), and the support is compliant: soft or heavy bodies sink by a load- and
+stiffness-dependent depth.
 
-``contact="nodes"`` is the grid condition: the nodes at or below the plane (``held_depth=0``,
-always so for sticky grounds) or, with ``held_depth=SURFACE_DEPTH``, 7/8 cell or more below it on
-a grid aligned so a node plane lies there (``GridSpec.aligned``); held that deep, the nodes reach
-the lowest particles only through the tails of their stencils, so a Coulomb ground also takes
-friction on the node layer above (``surface_friction``), and the support is compliant: soft or
-heavy bodies sink by a load- and stiffness-dependent depth. Sticky grounds stay on the nodes at
-the plane: no surface variant kept both a sand heap's slope and a column collapse's run-out
-(docs/measurements_sim.md, section 7).
+``contact="particles"`` (slip and Coulomb grounds; ``physgm.sim.mpm.particle_ground``) acts on
+the particles instead: each particle whose material surface (half a particle spacing s below it)
+is under the plane is pushed out by a conservative penalty spring as stiff as a layer s thick of
+its material's shear modulus G, so impacts begin at the surface, bodies rest there (their
+surface sinks rho g H s / G: 0.14 cell for a 10 cm jelly cube at E = 1e4 Pa), and an elastic
+ball keeps its bounce; the nodes two cells or more below the plane stay held as a safety net that
+a resting body never reaches. It is not the default because the bouncier contact moved two
+chaotic test observables out of their bounds (a jelly hit at twice its wave speed is still
+bouncing at 0.5 s; a DPO landscape bound; docs/measurements_sim.md, section 11). Sticky grounds
+stay on the nodes at the plane: no surface variant kept both a sand heap's slope and a column
+collapse's run-out (section 7).
 """
 
 from __future__ import annotations
@@ -65,13 +67,13 @@ class BoxStruct:
 
 @dataclass(frozen=True)
 class GroundPlane:
-    """Plane z = ``height``; slip and Coulomb grounds act on the particles, sticky ones on the nodes.
+    """Plane z = ``height`` acting on the grid nodes (default) or on the particles (module docstring).
 
     mode: "separate" (Coulomb friction ``friction``, lift-off allowed), "slip" (frictionless,
     lift-off allowed) or "sticky" (held nodes do not move).
-    contact: "particles" (the default for slip and Coulomb grounds: a penalty spring on each
-    particle's material surface, ``particle_ground``) or "nodes" (the grid condition; the default
-    for sticky grounds and whenever ``held_depth`` > 0).
+    contact: "nodes" (the grid condition) or "particles" (slip and Coulomb grounds, held_depth 0: a
+    penalty spring on each particle's material surface, ``particle_ground``; contact and rest at
+    the plane).
     stiffness: kappa of the particle contact: a particle of spacing s gets min(kappa G, M) s N/m,
     G and M its material's shear and P-wave moduli (``particle_ground``).
     held_depth: nodes contact only: 0 holds the nodes at or below the plane (contact starts ~1.25
@@ -83,7 +85,7 @@ class GroundPlane:
     friction: float = 0.3
     mode: str = "separate"
     held_depth: float = 0.0  # cells, nodes contact; SURFACE_DEPTH: contact at the surface
-    contact: str | None = None  # None: "nodes" if sticky or held_depth > 0, else "particles"
+    contact: str = "nodes"  # "particles": contact at the surface (particle_ground)
     stiffness: float = 1.0  # kappa of the particle contact (particle_ground)
 
     def __post_init__(self) -> None:
@@ -97,17 +99,13 @@ class GroundPlane:
             )
         if not (math.isfinite(self.stiffness) and self.stiffness > 0.0):
             raise ValueError(f"ground stiffness={self.stiffness!r} must be finite and > 0; try 1")
-        contact = self.contact
-        if contact is None:
-            contact = "nodes" if self.mode == "sticky" or self.held_depth > 0 else "particles"
-        if contact not in _CONTACTS:
-            raise ValueError(f"ground contact {contact!r} unknown; use one of {', '.join(_CONTACTS)}")
-        if contact == "particles" and (self.mode == "sticky" or self.held_depth > 0):
+        if self.contact not in _CONTACTS:
+            raise ValueError(f"ground contact {self.contact!r} unknown; use one of {', '.join(_CONTACTS)}")
+        if self.contact == "particles" and (self.mode == "sticky" or self.held_depth > 0):
             raise ValueError(
                 f"a {self.mode} ground with held_depth={self.held_depth} acts on the grid nodes; "
                 "use contact='nodes' (particle contact is for slip and Coulomb grounds, held_depth 0)"
             )
-        object.__setattr__(self, "contact", contact)
 
     @property
     def on_particles(self) -> bool:
