@@ -38,7 +38,7 @@ import warp as wp
 from physgm.sim.constitutive.common import EYE, MaterialStruct, det_minus_one
 from physgm.sim.constitutive.dispatch import constitutive_update
 from physgm.sim.mpm.boundary import BoxStruct, GroundStruct, box_velocity, ground_grip, ground_velocity
-from physgm.sim.mpm.particle_ground import fold_ground_force, particle_ground_force
+from physgm.sim.mpm.particle_ground import fold_ground_force, particle_ground_force, touches_ground
 from physgm.sim.mpm.substep_params import SubstepParams
 
 wp.set_module_options({"enable_backward": False})
@@ -198,7 +198,9 @@ def p2g(
 ):
     p = wp.tid() + offset
     sp = params[0]
-    fg = particle_ground_force(ground, ground_k, material[p], x[p], v[p], mass[p], vol0[p], pending, slot)
+    fg = wp.vec3(0.0)
+    if touches_ground(ground.particles, ground.height, x[p][2], vol0[p]):
+        fg = particle_ground_force(ground, ground_k, material[p], x[p], v[p], mass[p], vol0[p], pending, slot)
     scatter_particle(grid, x[p], v[p], C[p], stress[p], mass[p], origin, dx, shape, touched, sp.stamp, fg)
 
 
@@ -489,9 +491,11 @@ def g2p(
         wp.atomic_max(stats, slot, STAT_VMAX, wp.dot(v_new, v_new))  # squared; the solver takes the root
         wp.atomic_min(stats, slot, STAT_JMIN, J)
         wp.atomic_max(stats, slot, STAT_JMAX, J)
-        fg = particle_ground_force(
-            ground, ground_k, material[p], x_new, v_new, mass[p], vol0[p], pending, slot
-        )
+        fg = wp.vec3(0.0)
+        if touches_ground(ground.particles, ground.height, x_new[2], vol0[p]):
+            fg = particle_ground_force(
+                ground, ground_k, material[p], x_new, v_new, mass[p], vol0[p], pending, slot
+            )
         tau_v = vol0[p] * tau
         scatter_particle(acc, x_new, v_new, c_new, tau_v, mass[p], origin, dx, shape, touched, stamp, fg)
     x[p] = x_new
