@@ -40,6 +40,7 @@ def hertz_contact(
     gap_cells: float = 2.0,  # gap between sphere and floor at t = 0, cells
     frame_dt: float = 5e-4,  # s, sampling of the mean velocity
     tolerance: float = 0.005,  # change of the mean velocity that counts as contact, x speed
+    contact: str = "nodes",  # GroundPlane.contact
 ) -> dict:
     """Contact duration of an elastic sphere on a slip floor against Hertz (module docstring)."""
     dx = radius / cells
@@ -56,7 +57,8 @@ def hertz_contact(
     # Tall enough that the rebounding sphere never reaches the top face within the window.
     top = 2.0 * radius + gap_cells * dx + 3.5 * t_hertz * speed
     grid = GridSpec.fit((-1.3 * radius, -1.3 * radius, 0.0), (1.3 * radius, 1.3 * radius, top), dx)
-    scene = Scene(gravity=(0.0, 0.0, 0.0), ground=GroundPlane(0.0, friction=0.0, mode="slip"))
+    ground = GroundPlane(0.0, friction=0.0, mode="slip", contact=contact)
+    scene = Scene(gravity=(0.0, 0.0, 0.0), ground=ground)
     solver = MPMSolver(
         p, [MaterialParams("fixed_corotated", E, nu, density)], grid, scene, SolverConfig(frame_dt=frame_dt)
     )

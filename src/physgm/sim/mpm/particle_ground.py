@@ -1,5 +1,8 @@
 """Ground contact on the particles: a conservative penalty spring at each particle's surface.
 
+``GroundPlane(contact="particles")``, an option for slip and Coulomb grounds (why it is not the
+default: ``boundary``).
+
 A grid condition reaches a body through 1.5-cell stencils, so it acts a cell early (``boundary``).
 Here the ground pushes the particles themselves: a particle of spacing s = V0^(1/3) (its rest
 volume's side) carries the material down to s / 2 below its centre, and when that surface is a
