@@ -1,5 +1,6 @@
-"""Ground contact at the surface, ``held_depth=SURFACE_DEPTH`` (issue 24 item 3): where impacts
-begin, where bodies rest, and friction on the surface layer (``boundary``, ``surface_friction``)."""
+"""Ground contact at the surface (issue 24 item 3): where impacts begin and bodies rest, friction
+and restitution, for the particle contact (``particle_ground``) and the grid condition held at
+``SURFACE_DEPTH`` (``boundary``, ``surface_friction``)."""
 
 from __future__ import annotations
 
@@ -41,20 +42,37 @@ def _block(
     return MPMSolver(p, [mat], grid, scene, SolverConfig(frame_dt=frame_dt, threads=1))
 
 
-@pytest.mark.parametrize("mode, friction", [("slip", 0.0), ("separate", 0.5), ("sticky", 0.0)])
-def test_dropped_block_rests_with_its_lowest_particles_on_the_plane(mode, friction):
-    # Dropped 3 cm; a drag settles the bounce.
-    ground = GroundPlane(0.0, friction=friction, mode=mode, held_depth=SURFACE_DEPTH)
-    solver = _block(0.03, ground, 0.04, damping=15.0)
+GROUNDS = {  # name -> GroundPlane(mode, friction): the particle contact and the held nodes
+    "particles": lambda mode, friction: GroundPlane(0.0, friction=friction, mode=mode, contact="particles"),
+    "nodes_at_surface": lambda mode, friction: GroundPlane(
+        0.0, friction=friction, mode=mode, held_depth=SURFACE_DEPTH
+    ),
+}
+CASES = [
+    ("particles", "slip", 0.0),
+    ("particles", "separate", 0.5),
+    ("nodes_at_surface", "slip", 0.0),
+    ("nodes_at_surface", "separate", 0.5),
+    ("nodes_at_surface", "sticky", 0.0),
+]
+
+
+@pytest.mark.parametrize("contact, mode, friction", CASES)
+def test_dropped_block_rests_with_its_lowest_particles_on_the_plane(contact, mode, friction):
+    # Dropped 3 cm; a drag settles the bounce. The lowest particles lie half a particle spacing
+    # (a quarter cell) above the block's bottom face, so at rest on the plane they are at 0.25 dx.
+    solver = _block(0.03, GROUNDS[contact](mode, friction), 0.04, damping=15.0)
     for _ in range(20):
         solver.step_frame()
     z_low = float(solver.state().x[:, 2].min())
     assert abs(z_low) <= 0.25 * DX, f"lowest particle {z_low / DX:.3f} dx from the plane"
+    if contact == "particles":  # the surface on the plane: the particles at 0.25 dx within 0.02 dx
+        assert z_low == pytest.approx(0.25 * DX, abs=0.02 * DX)
 
 
 def test_default_ground_holds_bodies_a_cell_high():
-    # held_depth = 0, the default (boundary module docstring says why): the nodes at the plane
-    # hold the block about a cell above it.
+    # The default grid condition at the plane (held_depth = 0; boundary module docstring says why
+    # it stays the default): the nodes at the plane hold the block about a cell above it.
     solver = _block(0.03, GroundPlane(0.0, friction=0.0, mode="slip"), 0.04, damping=15.0)
     for _ in range(20):
         solver.step_frame()
@@ -76,13 +94,14 @@ def test_grid_is_aligned_to_the_ground_and_rest_height_does_not_depend_on_it():
     assert lows[0] == pytest.approx(lows[1], abs=0.02 * DX)
 
 
-def test_impact_begins_when_the_bottom_face_reaches_the_plane():
+@pytest.mark.parametrize("contact", sorted(GROUNDS))
+def test_impact_begins_when_the_bottom_face_reaches_the_plane(contact):
     # Free fall until the ground acts: the first frame whose mean velocity leaves the ballistic
     # one (by 1 % of the impact speed) dates the first contact; the bottom face (SP / 2 below the
-    # lowest particles) is then within a quarter cell of the plane. At held_depth = 0 it is ~1 cell up.
+    # lowest particles) is then within a quarter cell of the plane. Nodes at the plane: ~1 cell up.
     bottom = 0.04
     frame_dt = 0.001
-    solver = _block(bottom, GroundPlane(0.0, friction=0.0, mode="slip", held_depth=SURFACE_DEPTH), frame_dt)
+    solver = _block(bottom, GROUNDS[contact]("slip", 0.0), frame_dt)
     face = bottom - SP / 2
     v_hit = math.sqrt(2 * G * face)
     t, dev = [0.0], [0.0]
@@ -98,10 +117,15 @@ def test_impact_begins_when_the_bottom_face_reaches_the_plane():
     assert abs(height) <= 0.25 * DX, f"contact began with the bottom face {height / DX:.3f} dx from the plane"
 
 
-def test_block_pushed_along_a_coulomb_floor_slides_the_coulomb_distance():
+@pytest.mark.parametrize("contact", sorted(GROUNDS))
+def test_block_pushed_along_a_coulomb_floor_slides_the_coulomb_distance(contact):
     # A stiff block resting on the plane, thrown sideways at 0.3 m/s on a mu = 0.4 floor: it
-    # stops after v^2 / (2 mu g) = 11.5 mm, at the surface.
-    solver = _block(0.2 * DX, GroundPlane(0.0, friction=0.4, held_depth=SURFACE_DEPTH), 0.01, E=1e6, vx=0.3)
+    # stops after v^2 / (2 mu g) = 11.5 mm, at the surface. It starts where each ground holds it
+    # at rest: its surface on the plane (particle contact: a start 0.05 dx lower would compress
+    # the contact springs by 1 mm, 500 times their load, and throw the block up) or its lowest
+    # particles at 0.2 dx (held nodes).
+    bottom = 0.25 * DX if contact == "particles" else 0.2 * DX
+    solver = _block(bottom, GROUNDS[contact]("separate", 0.4), 0.01, E=1e6, vx=0.3)
     x0 = solver.state().x[:, 0].mean()
     for _ in range(20):
         solver.step_frame()
@@ -158,6 +182,7 @@ def test_surface_friction_matches_the_numpy_twin(monkeypatch):
     assert held["v"][low, 0].mean() < free["v"][low, 0].mean() - 0.005  # m/s, in one sub-step
 
 
-def test_elastic_ball_keeps_its_restitution():
-    result = V.ball_restitution(fast=True, E=1e5, held_depth=SURFACE_DEPTH)
+@pytest.mark.parametrize("contact, held_depth", [("particles", 0.0), ("nodes", SURFACE_DEPTH)])
+def test_elastic_ball_keeps_its_restitution(contact, held_depth):
+    result = V.ball_restitution(fast=True, E=1e5, held_depth=held_depth, contact=contact)
     assert result["restitution"] >= 0.9, result

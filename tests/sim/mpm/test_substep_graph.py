@@ -36,6 +36,8 @@ SCENES = {
         Scene(ground=GroundPlane(0.0, friction=0.4, held_depth=SURFACE_DEPTH), damping=2.0),
         [JELLY],
     ),
+    # contact on the particles: the contact forces are summed on the device into the ground impulse
+    "particle_ground": (Scene(ground=GroundPlane(0.0, friction=0.4, contact="particles")), [JELLY]),
     # a velocity box that starts pushing mid-run: the kernels read time from the device clock
     "timed_box": (
         Scene(
@@ -62,6 +64,7 @@ def test_graph_replay_gives_the_same_particles_as_python_stepping(name):
     for field in ("x", "v", "F", "C", "plastic"):  # same kernels in the same order: bit-identical
         np.testing.assert_array_equal(getattr(b, field), getattr(a, field), err_msg=field)
     assert fast.time == ref.time and fast.driver_work == ref.driver_work
+    np.testing.assert_array_equal(fast.arrays.work.numpy(), ref.arrays.work.numpy())  # ground impulse too
     if name == "timed_box":
         assert ref.driver_work != 0.0  # the box acted (holding the block back: -6 mJ)
     ref.close()

@@ -279,7 +279,9 @@ def colliding_spheres(fast: bool = True) -> dict:
     )
 
 
-def ball_restitution(fast: bool = True, E: float = 1e5, held_depth: float = 0.0) -> dict:
+def ball_restitution(
+    fast: bool = True, E: float = 1e5, held_depth: float = 0.0, contact: str = "nodes"
+) -> dict:
     """Elastic ball dropped on a slip, separating floor bounces back with restitution >= 0.7."""
     sp = 0.0125 if fast else 0.00625
     r, height = 0.1, 0.2
@@ -291,7 +293,7 @@ def ball_restitution(fast: bool = True, E: float = 1e5, held_depth: float = 0.0)
         (-0.2, -0.2, 0.0),
         (0.2, 0.2, 2 * r + height),
         2 * sp,
-        Scene(ground=GroundPlane(0.0, friction=0.0, mode="slip", held_depth=held_depth)),
+        Scene(ground=GroundPlane(0.0, friction=0.0, mode="slip", held_depth=held_depth, contact=contact)),
         frame_dt=0.005,
     )
     vz = []

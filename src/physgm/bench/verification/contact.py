@@ -40,6 +40,7 @@ def hertz_contact(
     gap_cells: float = 2.0,  # gap between sphere and floor at t = 0, cells
     frame_dt: float = 5e-4,  # s, sampling of the mean velocity
     tolerance: float = 0.005,  # change of the mean velocity that counts as contact, x speed
+    contact: str = "nodes",  # GroundPlane.contact
 ) -> dict:
     """Contact duration of an elastic sphere on a slip floor against Hertz (module docstring)."""
     dx = radius / cells
@@ -56,7 +57,8 @@ def hertz_contact(
     # Tall enough that the rebounding sphere never reaches the top face within the window.
     top = 2.0 * radius + gap_cells * dx + 3.5 * t_hertz * speed
     grid = GridSpec.fit((-1.3 * radius, -1.3 * radius, 0.0), (1.3 * radius, 1.3 * radius, top), dx)
-    scene = Scene(gravity=(0.0, 0.0, 0.0), ground=GroundPlane(0.0, friction=0.0, mode="slip"))
+    ground = GroundPlane(0.0, friction=0.0, mode="slip", contact=contact)
+    scene = Scene(gravity=(0.0, 0.0, 0.0), ground=ground)
     solver = MPMSolver(
         p, [MaterialParams("fixed_corotated", E, nu, density)], grid, scene, SolverConfig(frame_dt=frame_dt)
     )
@@ -106,6 +108,7 @@ def drop_drift(
     seconds: float = 2.0,
     E: float = 1e4,  # Pa (jelly)
     friction: float = 0.3,
+    contact: str = "nodes",  # GroundPlane.contact
 ) -> dict:
     """Sideways drift of a symmetric jelly box dropped 5 cm flat, through the planner (module docstring)."""
     camera = orbit_cameras(
@@ -114,7 +117,7 @@ def drop_drift(
     traj = simulate(
         box_gaussians(size),
         MaterialParams("fixed_corotated", E, 0.45, 1000.0),
-        Scene(ground=GroundPlane(0.0, friction=friction, mode="separate")),
+        Scene(ground=GroundPlane(0.0, friction=friction, mode="separate", contact=contact)),
         camera,
         n_frames=int(round(seconds / 0.04)) + 1,
         planner=PlannerConfig(rest_frames=10**6, cells_across=cells_across),

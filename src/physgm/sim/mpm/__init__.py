@@ -29,10 +29,15 @@ cohesion=0, viscosity=0)``                          (``physgm.sim.constitutive``
 
 ``Scene(gravity=(0, 0, -9.81), ground=None, boxes=(), damping=0.0, walls=(), periodic=())``
 (scene.py, boundary.py, walls.py)
-    ``GroundPlane(height=0.0, friction=0.3, mode="separate"|"slip"|"sticky", held_depth=0.0)``
-    acts on grid nodes at or below the plane; ``held_depth=SURFACE_DEPTH`` (7/8 cell, on a grid
-    the solver lowers by under a cell) makes light bodies touch and rest at the plane, with
-    Coulomb friction also on the node layer at the surface (boundary.py, surface_friction.py).
+    ``GroundPlane(height=0.0, friction=0.3, mode="separate"|"slip"|"sticky", held_depth=0.0,
+    contact="nodes", stiffness=1.0)`` acts on grid nodes at or below the plane (bodies rest a cell
+    high); ``held_depth=SURFACE_DEPTH`` (7/8 cell, on a grid the solver lowers by under a cell)
+    makes light bodies touch and rest at the plane, with Coulomb friction also on the node layer
+    at the surface (boundary.py, surface_friction.py). ``contact="particles"`` (slip and Coulomb
+    grounds) acts on the particles instead: a conservative penalty spring at each particle's
+    material surface, half a particle spacing below it, with Coulomb friction on the particle
+    (particle_ground.py): impacts begin and bodies rest at the plane, and the ground's force is
+    reported as for the grid condition. The implicit step always uses the node condition.
     ``VelocityBox(lo, hi, velocity, start=0, stop=inf, hold=True)`` prescribes the velocity of
     grid nodes and particles inside a box that moves with it (grips, clamps with velocity 0,
     pushers); after ``stop`` a held box fixes its contents.
@@ -113,6 +118,10 @@ Design notes (why the code looks the way it does)
   log1p / expm1): stiff materials strain ~1e-5 per step, which float32 loses near 1.
 * Particle updates blend APIC with an affine FLIP increment (``flip``): pure APIC loses energy
   per transfer; incrementing C with v keeps angular momentum exact.
+* The ground's particle contact (particle_ground.py) is an external force in the scatter, as the
+  stress force is, so the fused scatter stays independent of dt; its springs are no stiffer than
+  the material (``stepping.step_wave_speed``: with 2 particles per cell axis the CFL step is
+  unchanged), and its friction is capped by the springs' period, not by dt.
 * Verification against analytic results: ``physgm.bench.verification`` (python -m physgm.bench
   sim-verify); the stiffness sweep: python -m physgm.bench sim-stability.
 """

@@ -1,28 +1,32 @@
-"""Boundary conditions acting on the grid: ground plane and moving velocity boxes.
+"""Boundary conditions: the ground plane and moving velocity boxes.
 
 Where the ground acts (issue 24): a grid node's velocity reaches every particle within 1.5 cells
-(quadratic B-splines), so a condition on the nodes at the plane (``held_depth=0``, the default)
-holds a body about a cell above it: impacts begin while its surface is ~1.25 cells up and it
-rests a cell high. With ``held_depth=SURFACE_DEPTH`` the ground holds the nodes 7/8 cell or
-more below the plane and the solver aligns its grid so that a node plane lies exactly there
-(``GridSpec.aligned``): impacts begin when the material's surface (a quarter cell below the
-lowest particles) reaches the plane, light bodies rest with their lowest particles within a
-quarter cell of it, and an elastic ball keeps its restitution. Held that deep, the nodes reach
-the lowest particles only through the tails of their stencils, so on a Coulomb ground the node
-layer just above the held one also takes the friction the held nodes' normal impulse leaves
-(``surface_friction``).
+(quadratic B-splines), so the default condition, on the nodes at or below the plane
+(``contact="nodes"``, ``held_depth=0``), holds a body about a cell above it: impacts begin while
+its surface is ~1.25 cells up and it rests a cell high. With ``held_depth=SURFACE_DEPTH`` the
+nodes 7/8 cell or more below it are held, on a grid aligned so a node plane lies there
+(``GridSpec.aligned``); held that deep, the nodes reach the lowest particles only through the
+tails of their stencils, so a Coulomb ground also takes friction on the node layer above
+(``surface_friction``), and the support is compliant: soft or heavy bodies sink by a load- and
+stiffness-dependent depth.
 
-SURFACE_DEPTH is not the default because the support through the stencil tails is compliant:
-the bottom particles must come close enough to weigh on the held nodes, so soft or heavy bodies
-sink by a load- and stiffness-dependent depth (up to about half a cell), beyond what the
-planner's sag model allows for a bulk-capped material; and on a sticky base no variant kept both
-a sand heap's slope and a column collapse's run-out (docs/measurements_sim.md, section 7).
+``contact="particles"`` (slip and Coulomb grounds; ``physgm.sim.mpm.particle_ground``) acts on
+the particles instead: each particle whose material surface (half a particle spacing s below it)
+is under the plane is pushed out by a conservative penalty spring as stiff as a layer s thick of
+its material's shear modulus G, so impacts begin at the surface, bodies rest there (their
+surface sinks rho g H s / G: 0.14 cell for a 10 cm jelly cube at E = 1e4 Pa), and an elastic
+ball keeps its bounce; the nodes two cells or more below the plane stay held as a safety net that
+a resting body never reaches. It is not the default because the bouncier contact moved two
+chaotic test observables out of their bounds (a jelly hit at twice its wave speed is still
+bouncing at 0.5 s; a DPO landscape bound; docs/measurements_sim.md, section 11). Sticky grounds
+stay on the nodes at the plane: no surface variant kept both a sand heap's slope and a column
+collapse's run-out (section 7).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import warp as wp
@@ -35,6 +39,10 @@ GROUND_STICKY = wp.constant(2)  # nodes below the plane are fixed
 _GROUND_MODES = {"separate": 0, "slip": 1, "sticky": 2}
 # ``GroundPlane.held_depth`` that puts contact at the surface (module docstring), cells.
 SURFACE_DEPTH = 0.875
+# With contact on the particles, the nodes this many cells or more below the plane are held too: a
+# safety net that a resting body's stencils (1.5 cells below its lowest particles) never reach.
+NET_DEPTH = 2.0
+_CONTACTS = ("particles", "nodes")
 
 
 @wp.struct
@@ -44,6 +52,7 @@ class GroundStruct:
     friction: float  # Coulomb coefficient
     mode: int  # GROUND_SEPARATE / GROUND_SLIP / GROUND_STICKY
     depth: float  # held_depth, cells
+    particles: int  # 1: penalty contact on the particles (particle_ground), nodes held from NET_DEPTH down
 
 
 @wp.struct
@@ -58,21 +67,26 @@ class BoxStruct:
 
 @dataclass(frozen=True)
 class GroundPlane:
-    """Plane z = ``height`` acting on the grid nodes ``held_depth`` cells or more below it.
-
-    held_depth: 0 (default) holds the nodes at or below the plane: contact starts ~1.25 cells
-    up and bodies rest a cell high. ``SURFACE_DEPTH`` puts contact and the rest of light bodies
-    at the plane, with Coulomb friction on the surface node layer, but lets soft or heavy bodies
-    sink (module docstring).
+    """Plane z = ``height`` acting on the grid nodes (default) or on the particles (module docstring).
 
     mode: "separate" (Coulomb friction ``friction``, lift-off allowed), "slip" (frictionless,
     lift-off allowed) or "sticky" (held nodes do not move).
+    contact: "nodes" (the grid condition) or "particles" (slip and Coulomb grounds, held_depth 0: a
+    penalty spring on each particle's material surface, ``particle_ground``; contact and rest at
+    the plane).
+    stiffness: kappa of the particle contact: a particle of spacing s gets min(kappa G, M) s N/m,
+    G and M its material's shear and P-wave moduli (``particle_ground``).
+    held_depth: nodes contact only: 0 holds the nodes at or below the plane (contact starts ~1.25
+    cells up, bodies rest a cell high); ``SURFACE_DEPTH`` puts contact and the rest of light bodies
+    at the plane but lets soft or heavy bodies sink (module docstring).
     """
 
     height: float = 0.0
     friction: float = 0.3
     mode: str = "separate"
-    held_depth: float = 0.0  # cells; SURFACE_DEPTH: contact at the surface
+    held_depth: float = 0.0  # cells, nodes contact; SURFACE_DEPTH: contact at the surface
+    contact: str = "nodes"  # "particles": contact at the surface (particle_ground)
+    stiffness: float = 1.0  # kappa of the particle contact (particle_ground)
 
     def __post_init__(self) -> None:
         if self.mode not in _GROUND_MODES:
@@ -83,6 +97,25 @@ class GroundPlane:
             raise ValueError(
                 f"ground held_depth={self.held_depth!r} cells must be in [0, 1.5); try 0 or 0.875"
             )
+        if not (math.isfinite(self.stiffness) and self.stiffness > 0.0):
+            raise ValueError(f"ground stiffness={self.stiffness!r} must be finite and > 0; try 1")
+        if self.contact not in _CONTACTS:
+            raise ValueError(f"ground contact {self.contact!r} unknown; use one of {', '.join(_CONTACTS)}")
+        if self.contact == "particles" and (self.mode == "sticky" or self.held_depth > 0):
+            raise ValueError(
+                f"a {self.mode} ground with held_depth={self.held_depth} acts on the grid nodes; "
+                "use contact='nodes' (particle contact is for slip and Coulomb grounds, held_depth 0)"
+            )
+
+    @property
+    def on_particles(self) -> bool:
+        """Penalty contact on the particles (``particle_ground``)."""
+        return self.contact == "particles"
+
+    def on_nodes(self) -> GroundPlane:
+        """This ground with the grid condition at the plane (for steps that replace the scatter's
+        forces, such as the implicit solve)."""
+        return replace(self, contact="nodes") if self.on_particles else self
 
     def surface_friction_layer(self, grid: GridSpec) -> int | None:
         """k of the top held node layer of ``grid``, whose layer above takes the friction at the
@@ -99,6 +132,7 @@ class GroundPlane:
         s.friction = float(self.friction)
         s.mode = _GROUND_MODES[self.mode]
         s.depth = float(self.held_depth)
+        s.particles = int(self.on_particles)
         return s
 
 
@@ -141,6 +175,7 @@ class VelocityBox:
 def no_ground() -> GroundStruct:
     s = GroundStruct()
     s.enabled = 0
+    s.particles = 0
     return s
 
 
@@ -170,10 +205,13 @@ def ground_velocity(ground: GroundStruct, pos: wp.vec3, dx: float, v: wp.vec3) -
 
     With ``held_depth`` 0 the nodes at or below the plane are held; otherwise the nodes from
     ``held_depth`` cells below it down, tested half a cell above that node plane so that
-    rounding on the aligned grid cannot matter (module docstring).
+    rounding on the aligned grid cannot matter; with contact on the particles, the safety net
+    from NET_DEPTH cells down (module docstring).
     """
     limit = ground.height
-    if ground.depth > 0.0:
+    if ground.particles != 0:
+        limit = ground.height - NET_DEPTH * dx
+    elif ground.depth > 0.0:
         limit = ground.height - (ground.depth - 0.5) * dx
     if ground.enabled == 0 or pos[2] > limit:
         return v

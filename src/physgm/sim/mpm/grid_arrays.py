@@ -24,6 +24,7 @@ class GridArrays:
     touched: wp.array  # [bx, by, bz] int32 stamps of the blocks a scatter reached (kernels.scatter_particle)
     stats: wp.array  # [2, STATS_ROW] per-thread running reductions of g2p (kernels.STAT_*)
     work: wp.array  # [2, WORK_ROW] float64 per-thread driver work, J, and impulses (kernels.WORK_*)
+    pending: wp.array  # [2, 4] float64 per-thread ground force the last scatter gave, N (particle_ground)
     boxes: wp.array  # [max(B, 1)] BoxStruct, the scene's velocity boxes
 
     @classmethod
@@ -34,5 +35,6 @@ class GridArrays:
             touched=wp.zeros(K.block_res(res), dtype=wp.int32, device=device),
             stats=wp.zeros((2, K.STATS_ROW), dtype=float, device=device),
             work=wp.zeros((2, K.WORK_ROW), dtype=wp.float64, device=device),
+            pending=wp.zeros((2, 4), dtype=wp.float64, device=device),
             boxes=wp.array([b.pack() for b in boxes] or [BoxStruct()], dtype=BoxStruct, device=device),
         )

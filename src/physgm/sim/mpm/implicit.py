@@ -94,7 +94,8 @@ class ImplicitMPMSolver(MPMSolver):
         device: str | wp.Device | None = "cpu",
         settings: NewtonSettings | None = None,
     ) -> None:
-        check_implicit(materials, scene or Scene())
+        scene = (scene or Scene()).with_ground_on_nodes()  # the solve drops the scatter's contact forces
+        check_implicit(materials, scene)
         super().__init__(particles, materials, grid, scene, config, device)
         self.implicit = ImplicitStep(self, self.config.implicit_theta, settings or NewtonSettings())
         self.hooks.append(self.implicit)

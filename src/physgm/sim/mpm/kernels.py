@@ -38,6 +38,7 @@ import warp as wp
 from physgm.sim.constitutive.common import EYE, MaterialStruct, det_minus_one
 from physgm.sim.constitutive.dispatch import constitutive_update
 from physgm.sim.mpm.boundary import BoxStruct, GroundStruct, box_velocity, ground_grip, ground_velocity
+from physgm.sim.mpm.particle_ground import fold_ground_force, particle_ground_force, touches_ground
 from physgm.sim.mpm.substep_params import SubstepParams
 
 wp.set_module_options({"enable_backward": False})
@@ -135,8 +136,9 @@ def scatter_particle(
     shape: wp.vec3i,
     touched: wp.array3d(dtype=wp.int32),  # [bx, by, bz] sub-step number that last reached each block
     stamp: wp.int32,  # number of the sub-step whose grid_update consumes this scatter
+    f_ext: wp.vec3,  # N, external force on the particle (its ground contact, particle_ground)
 ):
-    """Add one particle's APIC momentum, mass and stress force to its 27 stencil nodes.
+    """Add one particle's APIC momentum, mass, stress force and ``f_ext`` to its 27 stencil nodes.
 
     The stencil (base .. base + 2 per axis) lies in the base node's block and the next one along
     each axis, so stamping the base block tells grid_update about all of them.
@@ -150,7 +152,7 @@ def scatter_particle(
     force = -(4.0 * inv_dx * inv_dx) * stress_p
     affine = m * cp
     q = m * vp - affine * (fx * dx)
-    f = -(force * (fx * dx))
+    f = f_ext - force * (fx * dx)
     a = affine * dx
     s = force * dx
     ax = wp.vec3(a[0, 0], a[1, 0], a[2, 0])
@@ -180,17 +182,26 @@ def p2g(
     C: wp.array(dtype=wp.mat33),  # [P] 1/s, APIC affine velocity
     stress: wp.array(dtype=wp.mat33),  # [P] rest volume x Kirchhoff stress, N m
     mass: wp.array(dtype=float),  # [P] kg
+    vol0: wp.array(dtype=float),  # [P] rest volume, m^3
+    material: wp.array(dtype=int),  # [P] index into ground_k
+    ground: GroundStruct,
+    ground_k: wp.array(dtype=wp.vec2),  # [M] the particle contact's stiffness (particle_ground)
     origin: wp.vec3,
     dx: float,
     offset: int,
+    slot: int,
     shape: wp.vec3i,  # grid node counts
     touched: wp.array3d(dtype=wp.int32),  # [bx, by, bz] out: blocks reached (``scatter_particle``)
     params: wp.array(dtype=SubstepParams),  # [1] stamps with this sub-step's number
+    pending: wp.array2d(dtype=wp.float64),  # [2, 4] out: ground force on the particles, N
     grid: wp.array(dtype=vec8),  # [G] flat (i ny + j) nz + k: momentum, mass, stress force
 ):
     p = wp.tid() + offset
-    stamp = params[0].stamp
-    scatter_particle(grid, x[p], v[p], C[p], stress[p], mass[p], origin, dx, shape, touched, stamp)
+    sp = params[0]
+    fg = wp.vec3(0.0)
+    if touches_ground(ground.particles, ground.height, x[p][2], vol0[p]):
+        fg = particle_ground_force(ground, ground_k, material[p], x[p], v[p], mass[p], vol0[p], pending, slot)
+    scatter_particle(grid, x[p], v[p], C[p], stress[p], mass[p], origin, dx, shape, touched, sp.stamp, fg)
 
 
 @wp.func
@@ -291,15 +302,19 @@ def grid_update(
     boxes: wp.array(dtype=BoxStruct),
     num_boxes: int,
     slot: int,
+    pending: wp.array2d(dtype=wp.float64),  # [2, 4] ground force the scatter gave the particles, N; cleared
     work: wp.array2d(
         dtype=wp.float64
     ),  # [threads, WORK_ROW] running sums: box work, ground and face impulse, face contacts (WORK_*)
     grid_v: wp.array3d(dtype=vec8),  # [nx, ny, nz] out: velocity, mass, velocity change
 ):
     """One thread per 4^3-node block of the grid; blocks outside the active box and blocks no
-    stencil reached are left as they are (no particle reads them this sub-step)."""
+    stencil reached are left as they are (no particle reads them this sub-step). The first
+    thread adds the particles' ground contact to the ground impulse (``particle_ground``)."""
     bi, bj, bk = wp.tid()
     sp = params[0]
+    if bi == 0 and bj == 0 and bk == 0 and ground.particles != 0:
+        fold_ground_force(pending, work, WORK_GROUND, float(sp.dt))
     lo = sp.block_lo
     hi = sp.block_hi
     if bi < lo[0] or bj < lo[1] or bk < lo[2] or bi > hi[0] or bj > hi[1] or bk > hi[2]:
@@ -388,6 +403,9 @@ def g2p(
     work: wp.array2d(
         dtype=wp.float64
     ),  # [threads, WORK_ROW] energy put in by the velocity boxes (column 0), J
+    ground: GroundStruct,
+    ground_k: wp.array(dtype=wp.vec2),  # [M] the particle contact's stiffness (particle_ground)
+    pending: wp.array2d(dtype=wp.float64),  # [2, 4] out: ground force on the particles, N
     touched: wp.array3d(dtype=wp.int32),  # [bx, by, bz] out: blocks reached by the next scatter
     acc: wp.array(dtype=vec8),  # [G] flat, out: this thread's scatter for the next sub-step
 ):
@@ -473,7 +491,13 @@ def g2p(
         wp.atomic_max(stats, slot, STAT_VMAX, wp.dot(v_new, v_new))  # squared; the solver takes the root
         wp.atomic_min(stats, slot, STAT_JMIN, J)
         wp.atomic_max(stats, slot, STAT_JMAX, J)
-        scatter_particle(acc, x_new, v_new, c_new, vol0[p] * tau, mass[p], origin, dx, shape, touched, stamp)
+        fg = wp.vec3(0.0)
+        if touches_ground(ground.particles, ground.height, x_new[2], vol0[p]):
+            fg = particle_ground_force(
+                ground, ground_k, material[p], x_new, v_new, mass[p], vol0[p], pending, slot
+            )
+        tau_v = vol0[p] * tau
+        scatter_particle(acc, x_new, v_new, c_new, tau_v, mass[p], origin, dx, shape, touched, stamp, fg)
     x[p] = x_new
     v[p] = v_new
     C[p] = c_new

@@ -22,6 +22,7 @@ from physgm.sim.mpm import kernels as K
 from physgm.sim.mpm.boundary import no_ground
 from physgm.sim.mpm.grid import GridSpec
 from physgm.sim.mpm.grid_arrays import GridArrays
+from physgm.sim.mpm.particle_ground import contact_plane, ground_stiffness
 from physgm.sim.mpm.particle_store import ParticleStore
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.stepping import SolverConfig
@@ -79,6 +80,10 @@ class SubstepLaunches:
         origin = wp.vec3(*g.origin)
         lo, hi = g.interior(1)
         ground = scene.ground.pack() if scene.ground is not None else no_ground()
+        if scene.ground is not None and scene.ground.on_particles:
+            ground.height = contact_plane(scene.ground, ps.x.numpy(), ps.vol0.numpy())
+        self.contact_height = float(ground.height)  # m, the plane the particle contact pushes from
+        self.ground_k = wp.array(ground_stiffness(scene.ground, ps.materials), dtype=wp.vec2, device=dev)
         num_boxes = len(scene.boxes)
         n = ps.n
         shape = wp.vec3i(*g.res)
@@ -97,12 +102,18 @@ class SubstepLaunches:
                         ps.C,
                         ps.stress,
                         ps.mass,
+                        ps.vol0,
+                        ps.material,
+                        ground,
+                        self.ground_k,
                         origin,
                         g.dx,
                         p0,
+                        t,
                         shape,
                         a.touched,
                         self.params,
+                        a.pending,
                         a.acc[t].flatten(),
                     ],
                     device=dev,
@@ -139,6 +150,9 @@ class SubstepLaunches:
                         ps.escaped,
                         a.stats,
                         a.work,
+                        ground,
+                        self.ground_k,
+                        a.pending,
                         a.touched,
                         a.acc[t].flatten(),
                     ],
@@ -165,6 +179,7 @@ class SubstepLaunches:
                 a.boxes,
                 num_boxes,
                 0,
+                a.pending,
                 a.work,
                 a.grid_v,
             ],
@@ -188,6 +203,7 @@ class SubstepLaunches:
         """The particle state was replaced: clear the accumulators, scatter afresh next sub-step."""
         for acc in self.arrays.acc:
             acc.zero_()
+        self.arrays.pending.zero_()
         self.scattered = False
 
     @property

@@ -47,6 +47,7 @@ class ParticleStore:
         self.material = wp.array(particles.material, dtype=int, device=device)  # [P]
         self.order = wp.array(np.arange(n, dtype=np.int32), dtype=int, device=device)  # [P]
         self.mat_table = wp.array([m.pack() for m in materials], dtype=MaterialStruct, device=device)  # [M]
+        self.materials = tuple(materials)  # [M] as the solver runs them
         self._keys = wp.zeros(2 * n, dtype=int, device=device)
         self._values = wp.zeros(2 * n, dtype=int, device=device)
         self._scratch = {t: wp.empty(n, dtype=t, device=device) for t in _GATHERS}

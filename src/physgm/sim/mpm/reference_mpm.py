@@ -1,7 +1,8 @@
 """Plain numpy twin of one MLS-MPM sub-step (p2g, grid update, g2p), float64, for tests only.
 
-Mirrors ``kernels.p2g`` / ``grid_update`` / ``g2p`` node by node with explicit loops; the
-constitutive update comes from ``constitutive.reference``.
+Mirrors ``kernels.p2g`` / ``grid_update`` / ``g2p`` node by node with explicit loops, the
+ground's particle contact (``particle_ground``) included; the constitutive update comes from
+``constitutive.reference``.
 """
 
 from __future__ import annotations
@@ -9,6 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from physgm.sim.constitutive import reference as cref
+from physgm.sim.mpm.boundary import NET_DEPTH
+from physgm.sim.mpm.particle_ground import ground_stiffness
 
 
 def _weights(fx: np.ndarray) -> np.ndarray:  # fx: [3] -> [3 (node), 3 (axis)]
@@ -33,6 +36,8 @@ def _ground_velocity(ground, pos, dx, v):
         return v
     depth = ground.held_depth
     limit = ground.height if depth == 0 else ground.height - (depth - 0.5) * dx
+    if ground.on_particles:
+        limit = ground.height - NET_DEPTH * dx
     if pos[2] > limit:
         return v
     if ground.mode == "sticky":
@@ -46,6 +51,21 @@ def _ground_velocity(ground, pos, dx, v):
     if n <= -ground.friction * v[2]:
         return np.zeros(3)
     return vt * (1 + ground.friction * v[2] / n)
+
+
+def _particle_ground_force(ground, k_mat, x, v, m, vol0):
+    """The ground's penalty and friction force on one particle, N (``particle_ground``)."""
+    if ground is None or not ground.on_particles:
+        return np.zeros(3)
+    s = vol0 ** (1.0 / 3.0)
+    depth = ground.height + 0.5 * s - x[2]
+    if depth <= 0:
+        return np.zeros(3)
+    f = np.array([0.0, 0.0, k_mat[0] * s * depth])
+    speed = np.linalg.norm(v[:2])
+    if ground.mode == "separate" and speed > 0:
+        f[:2] = -min(ground.friction * f[2], m * speed * k_mat[1] / s) * v[:2] / speed
+    return f
 
 
 def _grip(ground, m, v_free, vel):
@@ -80,6 +100,8 @@ def substep(state: dict, params: list, grid, scene, dt: float, t: float, flip: f
     mass, vol0, material, plastic = state["mass"], state["vol0"], state["material"], state["plastic"]
     res, dx, origin = np.array(grid.res), grid.dx, np.asarray(grid.origin)
     n = len(x)
+    ground = scene.ground
+    ground_k = ground_stiffness(ground, params).astype(np.float64)
     # Stress of the current (already projected) F.
     tau = np.zeros((n, 3, 3))
     for m, p in enumerate(params):
@@ -97,13 +119,14 @@ def substep(state: dict, params: list, grid, scene, dt: float, t: float, flip: f
         w = _weights(fx)
         stencils.append((base, fx, w))
         impulse = -dt * 4 / dx**2 * vol0[p] * tau[p]
+        external = dt * _particle_ground_force(ground, ground_k[material[p]], x[p], v[p], mass[p], vol0[p])
         affine = mass[p] * C[p] + impulse
         for o in np.ndindex(3, 3, 3):
             wi = w[o[0], 0] * w[o[1], 1] * w[o[2], 2]
             dpos = (np.array(o) - fx) * dx
             node = tuple(base + o)
-            mom[node] += wi * (mass[p] * v[p] + affine @ dpos)
-            force[node] += wi * (impulse @ dpos)
+            mom[node] += wi * (mass[p] * v[p] + affine @ dpos + external)
+            force[node] += wi * (impulse @ dpos + external)
             gm[node] += wi * mass[p]
     gv = np.zeros((*res, 3))
     gdv = np.zeros((*res, 3))

@@ -8,7 +8,7 @@ conf/sim/scene/<name>.yaml is ``physgm.sim.scenes``.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -37,3 +37,8 @@ class Scene:
         object.__setattr__(self, "boxes", tuple(self.boxes))
         object.__setattr__(self, "walls", tuple(self.walls))
         object.__setattr__(self, "periodic", tuple(self.periodic))
+
+    def with_ground_on_nodes(self) -> Scene:
+        """This scene with its ground's grid condition at the plane instead of particle contact
+        (``GroundPlane.on_nodes``), for steps whose solve replaces the scatter's forces."""
+        return self if self.ground is None else replace(self, ground=self.ground.on_nodes())

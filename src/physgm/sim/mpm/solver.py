@@ -22,7 +22,7 @@ from physgm.sim.mpm.observables import SubstepObservables, SubstepObserver, part
 from physgm.sim.mpm.particle_store import ParticleStore
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.state import Energy, FrameStats, Particles, ParticleState, Trajectory
-from physgm.sim.mpm.stepping import SimulationDiverged, SolverConfig, wave_speed
+from physgm.sim.mpm.stepping import SimulationDiverged, SolverConfig, step_wave_speed
 from physgm.sim.mpm.walls import SceneWalls
 
 # Two threads pay off from about 2k particles; below that the hand-off costs more than the split
@@ -113,7 +113,7 @@ class MPMSolver:
             2 if self.device.is_cpu and n >= _AUTO_THREADS_MIN_PARTICLES and (os.cpu_count() or 1) >= 2 else 1
         )
         self.threads = min(self.config.threads or auto, 2) if self.device.is_cpu else 1
-        self._c_max = wave_speed(self.materials)
+        self._c_max = step_wave_speed(self.materials, ground, particles, self.grid.dx)
         self.particles = ParticleStore(particles, self.materials, self.device)
         self._launches = SubstepLaunches(
             self.particles, self.grid, self.scene, self.config, self.threads, self.device
@@ -309,7 +309,7 @@ class MPMSolver:
         return int(round(float(self.arrays.work.numpy()[:, K.WORK_FACE_CONTACTS].sum())))
 
     def stable_dt(self, cfl: float | None = None) -> float:
-        """CFL step cfl dx / (c_p + |v|max) for the current |v|max, s."""
+        """CFL step cfl dx / (c + |v|max) for the current |v|max, s (c: ``step_wave_speed``)."""
         cfl = self.config.cfl if cfl is None else cfl
         return cfl * self.grid.dx / (self._c_max + self._vmax)
 

@@ -8,6 +8,7 @@ from dataclasses import dataclass, fields
 
 from physgm.resources import package_file
 from physgm.sim.constitutive import MaterialParams
+from physgm.sim.mpm.particle_ground import contact_wave_speed
 
 CONF_DIR = package_file("conf", "sim")  # ships inside the package (physgm.resources)
 
@@ -98,6 +99,14 @@ class SolverConfig:
 def wave_speed(materials: Sequence[MaterialParams]) -> float:
     """Largest P-wave (or sound) speed among the materials, m/s."""
     return max(m.wave_speed() for m in materials)
+
+
+def step_wave_speed(materials: Sequence[MaterialParams], ground, particles, dx: float) -> float:
+    """Speed c of the solver's CFL rule dt = cfl dx / (c + |v|max): the fastest material's P-wave
+    speed, or more if the ground's particle contact springs need it (``particle_ground``), m/s.
+    ``ground``: GroundPlane or None; ``particles``: the solver's input ``Particles``."""
+    spring = contact_wave_speed(ground, materials, particles.volume, particles.material, dx)
+    return max(wave_speed(materials), spring)
 
 
 def cfl_dt(dx: float, materials: Sequence[MaterialParams], vmax: float = 0.0, cfl: float = 0.4) -> float:

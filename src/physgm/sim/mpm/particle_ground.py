@@ -1,0 +1,158 @@
+"""Ground contact on the particles: a conservative penalty spring at each particle's surface.
+
+``GroundPlane(contact="particles")``, an option for slip and Coulomb grounds (why it is not the
+default: ``boundary``).
+
+A grid condition reaches a body through 1.5-cell stencils, so it acts a cell early (``boundary``).
+Here the ground pushes the particles themselves: a particle of spacing s = V0^(1/3) (its rest
+volume's side) carries the material down to s / 2 below its centre, and when that surface is a
+depth d under the plane it gets the normal force
+
+    f_n = k d,   k = X s   (N/m),   X = min(kappa G, M),
+
+G the shear modulus of its material (a fluid, which has none: its bulk modulus), M = lam + 2 mu
+its P-wave modulus, kappa = ``GroundPlane.stiffness`` (1). Per particle column of cross-section
+s^2 the ground is as stiff as a layer s / kappa thick of a material of modulus G: a body of
+height H rests with its surface rho g H s / X under the plane (0.013 dx for the 5 cm test block,
+0.14 dx for a 10 cm jelly cube at E = 1e4 Pa, nu = 0.45; docs/measurements_sim.md section 11), and,
+the spring being conservative, an elastic body keeps its bounce. G, not M: the bulk cap (issue
+25) lowers M and keeps G, so the ground does not sink a capped body deeper than the uncapped one;
+and a spring as stiff as M made the bouncing ball's bottom layer chatter (restitution 0.908
+against 0.938 with G). On a Coulomb ground a tangential force opposes the particle's sliding
+velocity v_t, at most mu f_n and at most m |v_t| / tau, tau = 2 / omega below. The solver's step
+never exceeds tau (next paragraph), so friction never reverses the motion; a slow particle is
+stopped within a few sub-steps. The cap uses tau, not the sub-step dt, because the scatter runs
+before the next sub-step's dt is known (``kernels``: the fused scatter must not depend on dt).
+
+The force enters the scatter like the stress force (``kernels.scatter_particle``), so it reaches
+the grid as gravity does; ``pending`` sums what the particles got, and the next grid_update
+adds it times that step's dt to the ground impulse (``kernels.WORK_GROUND``), which the
+observables report as the ground's force.
+
+Stability: alone on its mass m = rho s^3 the spring rings at omega = sqrt(k / m) = c_X / s, c_X =
+sqrt(X / rho) <= c_p. The solver's step dt = cfl dx / c is taken with c >= c_X dx / (2 s)
+(``contact_wave_speed``), so omega dt <= 2 cfl = 0.8 at the default cfl (and dt <= cfl tau <=
+tau, as cfl <= 1), under the explicit limit 2. With 2 particles per cell axis (s = dx / 2) that
+c is at most the material's own c_p, so the step does not change.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import warp as wp
+
+from physgm.sim.constitutive import MODELS, MaterialParams
+from physgm.sim.mpm.boundary import GROUND_SLIP, GroundPlane, GroundStruct
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.func
+def touches_ground(particles: int, height: float, z: float, vol0: float) -> bool:
+    """Is this particle's surface (s / 2 below it, s = vol0^(1/3)) under a particle-contact plane?
+    Scalars only and no cube root: the kernels test every particle with it and call
+    ``particle_ground_force`` (whose array arguments cost ~5 % of a sub-step if passed for every
+    particle) only for the few it finds."""
+    h = z - height
+    return particles != 0 and (h <= 0.0 or 8.0 * h * h * h < vol0)
+
+
+@wp.func
+def particle_ground_force(
+    ground: GroundStruct,
+    ground_k: wp.array(dtype=wp.vec2),  # [M] (X, Pa; sqrt(X / rho) / 2, m/s) per material
+    material: int,  # the particle's index into ground_k
+    xp: wp.vec3,  # m
+    vp: wp.vec3,  # m/s
+    m: float,  # kg
+    vol0: float,  # rest volume, m^3
+    pending: wp.array2d(dtype=wp.float64),  # [2, 4] out: the force is added to row ``slot``, N
+    slot: int,
+) -> wp.vec3:
+    """Force of the ground on one particle that ``touches_ground``, N (module docstring)."""
+    h = xp[2] - ground.height
+    s = wp.pow(vol0, 1.0 / 3.0)
+    depth = 0.5 * s - h
+    if depth <= 0.0:
+        return wp.vec3(0.0)
+    k_mat = ground_k[material]
+    f = wp.vec3(0.0, 0.0, k_mat[0] * s * depth)
+    speed = wp.sqrt(vp[0] * vp[0] + vp[1] * vp[1])
+    if ground.mode != GROUND_SLIP and speed > 0.0:
+        ft = wp.min(ground.friction * f[2], m * speed * k_mat[1] / s) / speed  # k_mat[1] / s = 1 / tau
+        f = wp.vec3(-ft * vp[0], -ft * vp[1], f[2])
+    for a in range(3):
+        wp.atomic_add(pending, slot, a, wp.float64(f[a]))
+    return f
+
+
+@wp.func
+def fold_ground_force(
+    pending: wp.array2d(dtype=wp.float64),  # [2, 4] forces scattered for this sub-step, N; cleared
+    work: wp.array2d(dtype=wp.float64),  # [threads, WORK_ROW] running sums
+    col: int,  # first column of the ground impulse in ``work``
+    dt: float,
+):
+    """Ground impulse of this sub-step's particle contact: dt x the forces its scatter used."""
+    for row in range(2):
+        for a in range(3):
+            work[0, col + a] = work[0, col + a] + wp.float64(dt) * pending[row, a]
+            pending[row, a] = wp.float64(0.0)
+
+
+def contact_modulus(ground: GroundPlane, material: MaterialParams) -> float:
+    """X of the contact spring, Pa: kappa x the material's shear modulus (a fluid, which has none:
+    its bulk modulus), at most its P-wave modulus M (module docstring)."""
+    p_wave = MODELS[material.model].stiffness(material)
+    if material.model == "fluid":
+        return p_wave
+    return min(ground.stiffness * material.mu, p_wave)
+
+
+def ground_stiffness(ground: GroundPlane | None, materials: Sequence[MaterialParams]) -> np.ndarray:
+    """[M, 2] per material (X, Pa; sqrt(X / rho) / 2, m/s) of the contact spring (module
+    docstring); zeros unless the ground acts on the particles."""
+    if ground is None or not ground.on_particles:
+        return np.zeros((len(materials), 2), dtype=np.float32)
+    rows = []
+    for m in materials:
+        x = contact_modulus(ground, m)
+        rows.append((x, 0.5 * math.sqrt(x / m.density)))
+    return np.array(rows, dtype=np.float32)
+
+
+def contact_plane(ground: GroundPlane, x: np.ndarray, volume: np.ndarray) -> float:
+    """Height of the plane the contact springs push from, m (x [P, 3] m, volume [P] m^3 at the start).
+
+    The ground's own height, lowered by the deepest overlap of a starting particle's surface with
+    it (at most half that particle's spacing): scenes that put the lowest particle centres on the
+    floor (``physgm.sim.scenes``: push, two_objects) would otherwise start with the springs
+    compressed by half a spacing, which throws the body off the ground (a 10 cm wood block
+    jumped 8 cm). Such a body rests with its lowest particles on the plane instead.
+    """
+    half = 0.5 * np.cbrt(np.asarray(volume, dtype=np.float64))
+    overlap = np.minimum(ground.height + half - np.asarray(x, dtype=np.float64)[:, 2], half)
+    return ground.height - max(float(overlap.max()), 0.0)
+
+
+def contact_wave_speed(
+    ground: GroundPlane | None,
+    materials: Sequence[MaterialParams],
+    volume: np.ndarray,  # [P] rest volumes, m^3
+    material: np.ndarray,  # [P] int
+    dx: float,
+) -> float:
+    """Speed c the contact springs need in dt = cfl dx / c (module docstring), m/s; 0 without them."""
+    if ground is None or not ground.on_particles:
+        return 0.0
+    volume = np.broadcast_to(np.asarray(volume, dtype=np.float64), np.shape(material))
+    c = 0.0
+    for index, m in enumerate(materials):
+        sel = material == index
+        if sel.any():
+            s = float(volume[sel].min()) ** (1.0 / 3.0)
+            c = max(c, math.sqrt(contact_modulus(ground, m) / m.density) * dx / (2.0 * s))
+    return c

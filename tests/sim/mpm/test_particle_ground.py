@@ -1,0 +1,120 @@
+"""The ground's particle contact (``particle_ground``): numpy twin, reported force, heavy bodies,
+bodies that start on the plane, and the step the springs allow."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from physgm.bench.verification import analytic as V
+from physgm.sim.constitutive import MaterialParams
+from physgm.sim.mpm import kernels as K
+from physgm.sim.mpm import reference_mpm
+from physgm.sim.mpm.boundary import GroundPlane
+from physgm.sim.mpm.grid import GridSpec
+from physgm.sim.mpm.scene import Scene
+from physgm.sim.mpm.solver import MPMSolver
+from physgm.sim.mpm.state import Particles
+from physgm.sim.mpm.stepping import SolverConfig, step_wave_speed, wave_speed
+
+DX = 0.02
+SP = DX / 2
+JELLY = MaterialParams("fixed_corotated", 1e5, 0.3, 1000.0)
+
+
+def _twin_state(solver: MPMSolver, p: Particles, density: float) -> dict:
+    s0 = solver.state()
+    state = {"x": s0.x, "v": s0.v, "C": s0.C, "F": s0.F, "plastic": s0.plastic}
+    state["mass"] = density * p.volume
+    state["vol0"] = p.volume
+    state = {k: np.asarray(val, dtype=np.float64) for k, val in state.items()}
+    state["material"] = p.material
+    return state
+
+
+@pytest.mark.parametrize("mode", ["slip", "separate"])
+def test_contact_matches_the_numpy_twin_and_reports_its_force(mode):
+    # A block hitting the plane at 2 m/s while sliding, its surface 0.1 mm above it: four
+    # sub-steps against the twin; the contact acts (without it the bottom layer falls on), and
+    # the ground impulse is dt x the twin's contact forces, step by step.
+    p = Particles.lattice((-0.02, -0.02, 0.005 * DX), (0.02, 0.02, 0.005 * DX + 0.03), SP)
+    p.v = np.tile([0.5, 0.1, -2.0], (len(p), 1))
+    scene = Scene(ground=GroundPlane(0.0, friction=0.4, mode=mode, contact="particles"))
+    grid = GridSpec.fit((-0.05, -0.05, 0.0), (0.05, 0.05, 0.05), DX)
+    solver = MPMSolver(p, [JELLY], grid, scene, SolverConfig(flip=0.0, threads=1))
+    assert solver.launches.contact_height == 0.0  # nothing started under the plane
+    state = _twin_state(solver, p, 1000.0)
+    bound = SolverConfig().boundary_cells
+    k_mat = np.array([JELLY.mu, 0.5 * np.sqrt(JELLY.mu / 1000.0)])
+    impulse = np.zeros(3)
+    for dt in (2e-4, 1.5e-4, 2e-4, 2e-4):
+        for i in range(len(p)):
+            f = reference_mpm._particle_ground_force(
+                scene.ground, k_mat, state["x"][i], state["v"][i], state["mass"][i], state["vol0"][i]
+            )
+            impulse += dt * f
+        out = reference_mpm.substep(state, [JELLY], solver.grid, scene, dt, solver.time, 0.0, bound)
+        solver.substep(dt)
+        state.update({k: out[k] for k in ("x", "v", "C", "F", "plastic")})
+        reported = solver.arrays.work.numpy().sum(0)[K.WORK_GROUND : K.WORK_GROUND + 3]
+        np.testing.assert_allclose(reported, impulse, rtol=1e-4, atol=1e-9)
+    assert impulse[2] > 0 and (impulse[0] < 0 if mode == "separate" else impulse[0] == 0)
+    s1 = solver.state()
+    np.testing.assert_allclose(s1.v, state["v"], rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(s1.x, state["x"], rtol=1e-6, atol=1e-6)
+    low = s1.x[:, 2] < s1.x[:, 2].min() + 0.5 * SP  # the lowest layer of particles
+    free = reference_mpm.substep(state, [JELLY], solver.grid, Scene(), 2e-4, solver.time, 0.0, bound)
+    held = reference_mpm.substep(state, [JELLY], solver.grid, scene, 2e-4, solver.time, 0.0, bound)
+    assert held["v"][low, 2].mean() > free["v"][low, 2].mean() + 0.05  # m/s, in one sub-step
+    solver.close()
+
+
+def test_heavy_sand_heap_on_a_coulomb_floor_does_not_sink():
+    # The 13 cm sand cone of the sand-pile case (mohr_coulomb, 35 degrees, 1600 kg/m^3) on a
+    # Coulomb floor instead of a sticky one: its lowest particles stay a quarter cell up, its
+    # surface on the plane (the nodes held 7/8 cell down let the sticky heap sink 0.6 cell under).
+    sp, radius, height = 0.006, 0.08, 0.13
+    inside = lambda x: np.hypot(x[:, 0], x[:, 1]) < radius * (1 - x[:, 2] / height)  # noqa: E731
+    p = Particles.lattice((-radius, -radius, 0.0), (radius, radius, height), sp, inside=inside)
+    sand = MaterialParams("mohr_coulomb", 3.5e5, 0.3, 1600.0, friction_angle=35.0)
+    reach = radius + 2 * height
+    scene = Scene(ground=GroundPlane(0.0, friction=0.5, contact="particles"), damping=20.0)
+    solver = V._solver(p, sand, (-reach, -reach, 0.0), (reach, reach, height), 2 * sp, scene)
+    for _ in range(15):
+        solver.step_frame()
+    low = float(solver.state().x[:, 2].min()) / (2 * sp)
+    solver.close()
+    assert low == pytest.approx(0.25, abs=0.02), low  # measured 0.245 dx after 1 s
+
+
+def test_body_placed_with_its_particles_on_the_plane_stays_down():
+    # Scenes put the lowest particle centres on the floor (half a spacing of overlap): the springs
+    # push from a plane lowered by that overlap, so a stiff block neither jumps nor sinks.
+    p = Particles.lattice((-0.04, -0.04, -SP / 2), (0.04, 0.04, 0.05 - SP / 2), SP)
+    wood = MaterialParams("fixed_corotated", 5e6, 0.3, 600.0)
+    grid = GridSpec.fit((-0.08, -0.08, 0.0), (0.08, 0.08, 0.1), DX)
+    scene = Scene(ground=GroundPlane(0.0, friction=0.3, contact="particles"))
+    solver = MPMSolver(p, [wood], grid, scene, SolverConfig(threads=1))
+    assert solver.launches.contact_height == pytest.approx(-SP / 2, abs=1e-6)
+    top = []
+    for _ in range(5):
+        solver.step_frame()
+        top.append(float(solver.state().x[:, 2].max()))
+    solver.close()
+    assert max(top) - p.x[:, 2].max() < 0.01 * DX  # without the lowered plane it jumped 8 cm
+
+
+def test_step_allows_for_the_springs_only_when_they_need_it():
+    # omega dt <= 2 cfl needs c >= c_X dx / (2 s): with 2 particles per cell axis the material's
+    # own c_p already covers it; 4 per axis halve s and need c_X dx / (2 s) = 2 c_X.
+    ground = GroundPlane(0.0, contact="particles")
+    for per_axis, expected in [(2, wave_speed([JELLY])), (4, 2.0 * np.sqrt(JELLY.mu / 1000.0))]:
+        s = DX / per_axis
+        p = Particles.lattice((0.0, 0.0, 0.0), (0.04, 0.04, 0.04), s)
+        assert step_wave_speed([JELLY], ground, p, DX) == pytest.approx(max(expected, wave_speed([JELLY])))
+    nodes = replace(ground, contact="nodes")
+    assert step_wave_speed([JELLY], nodes, p, DX) == wave_speed([JELLY])
+    with pytest.raises(ValueError, match="contact='nodes'"):
+        GroundPlane(0.0, mode="sticky", contact="particles")
