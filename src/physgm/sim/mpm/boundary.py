@@ -43,6 +43,9 @@ SURFACE_DEPTH = 0.875
 # safety net that a resting body's stencils (1.5 cells below its lowest particles) never reach.
 NET_DEPTH = 2.0
 _CONTACTS = ("particles", "nodes")
+# Largest zeta of the particle contact's dashpot: its force 4 zeta m |v_n| / tau reaches the cap
+# m |v_n| / tau there (particle_ground).
+MAX_DAMPING = 0.25
 
 
 @wp.struct
@@ -53,6 +56,7 @@ class GroundStruct:
     mode: int  # GROUND_SEPARATE / GROUND_SLIP / GROUND_STICKY
     depth: float  # held_depth, cells
     particles: int  # 1: penalty contact on the particles (particle_ground), nodes held from NET_DEPTH down
+    damping: float  # zeta of the particle contact's normal dashpot (particle_ground)
 
 
 @wp.struct
@@ -76,6 +80,8 @@ class GroundPlane:
     the plane).
     stiffness: kappa of the particle contact: a particle of spacing s gets min(kappa G, M) s N/m,
     G and M its material's shear and P-wave moduli (``particle_ground``).
+    damping: zeta of the particle contact's normal dashpot, c = 2 zeta sqrt(k m), in [0, 0.25]
+    (``particle_ground``); 0 keeps the contact elastic.
     held_depth: nodes contact only: 0 holds the nodes at or below the plane (contact starts ~1.25
     cells up, bodies rest a cell high); ``SURFACE_DEPTH`` puts contact and the rest of light bodies
     at the plane but lets soft or heavy bodies sink (module docstring).
@@ -87,6 +93,7 @@ class GroundPlane:
     held_depth: float = 0.0  # cells, nodes contact; SURFACE_DEPTH: contact at the surface
     contact: str = "nodes"  # "particles": contact at the surface (particle_ground)
     stiffness: float = 1.0  # kappa of the particle contact (particle_ground)
+    damping: float = 0.0  # zeta of the particle contact's normal dashpot (particle_ground)
 
     def __post_init__(self) -> None:
         if self.mode not in _GROUND_MODES:
@@ -99,6 +106,11 @@ class GroundPlane:
             )
         if not (math.isfinite(self.stiffness) and self.stiffness > 0.0):
             raise ValueError(f"ground stiffness={self.stiffness!r} must be finite and > 0; try 1")
+        if not (math.isfinite(self.damping) and 0.0 <= self.damping <= MAX_DAMPING):
+            raise ValueError(
+                f"ground damping={self.damping!r} must be in [0, {MAX_DAMPING}] (the dashpot is capped "
+                "at the spring's period there); try 0"
+            )
         if self.contact not in _CONTACTS:
             raise ValueError(f"ground contact {self.contact!r} unknown; use one of {', '.join(_CONTACTS)}")
         if self.contact == "particles" and (self.mode == "sticky" or self.held_depth > 0):
@@ -133,6 +145,7 @@ class GroundPlane:
         s.mode = _GROUND_MODES[self.mode]
         s.depth = float(self.held_depth)
         s.particles = int(self.on_particles)
+        s.damping = float(self.damping)
         return s
 
 
@@ -176,6 +189,7 @@ def no_ground() -> GroundStruct:
     s = GroundStruct()
     s.enabled = 0
     s.particles = 0
+    s.damping = 0.0
     return s
 
 

@@ -79,10 +79,13 @@ def particle_ground_force(
     if depth <= 0.0:
         return wp.vec3(0.0)
     k_mat = ground_k[material]
-    f = wp.vec3(0.0, 0.0, k_mat[0] * s * depth)
+    inv_tau = k_mat[1] / s  # 1 / tau = omega / 2
+    # The dashpot 2 zeta m omega = 4 zeta m / tau on the normal velocity; the total never pulls.
+    fn = wp.max(k_mat[0] * s * depth - 4.0 * ground.damping * m * inv_tau * vp[2], 0.0)
+    f = wp.vec3(0.0, 0.0, fn)
     speed = wp.sqrt(vp[0] * vp[0] + vp[1] * vp[1])
     if ground.mode != GROUND_SLIP and speed > 0.0:
-        ft = wp.min(ground.friction * f[2], m * speed * k_mat[1] / s) / speed  # k_mat[1] / s = 1 / tau
+        ft = wp.min(ground.friction * f[2], m * speed * inv_tau) / speed
         f = wp.vec3(-ft * vp[0], -ft * vp[1], f[2])
     for a in range(3):
         wp.atomic_add(pending, slot, a, wp.float64(f[a]))
