@@ -1,7 +1,6 @@
 """Ground contact on the particles: a conservative penalty spring at each particle's surface.
 
-``GroundPlane(contact="particles")``, an option for slip and Coulomb grounds (why it is not the
-default: ``boundary``).
+``GroundPlane(contact="particles")``, the default for slip and Coulomb grounds (``boundary``).
 
 A grid condition reaches a body through 1.5-cell stencils, so it acts a cell early (``boundary``).
 Here the ground pushes the particles themselves: a particle of spacing s = V0^(1/3) (its rest
@@ -19,7 +18,15 @@ the spring being conservative, an elastic body keeps its bounce. G, not M: the b
 25) lowers M and keeps G, so the ground does not sink a capped body deeper than the uncapped one;
 and a spring as stiff as M made the bouncing ball's bottom layer chatter (restitution 0.908
 against 0.938 with G). On a Coulomb ground a tangential force opposes the particle's sliding
-velocity v_t, at most mu f_n and at most m |v_t| / tau, tau = 2 / omega below. The solver's step
+velocity v_t, at most mu f_n and at most m |v_t| / tau, tau = 2 / omega below.
+
+A normal dashpot takes energy at impact, as real contacts do (the conservative spring alone kept
+a jelly hit at twice its wave speed bouncing): f_n = max(k d - c v_n, 0), c = 2 zeta sqrt(k m) =
+4 zeta m / tau, zeta = ``GroundPlane.damping`` (0.2), so the ground never pulls. At the largest
+zeta, 0.25, c v_n reaches m |v_n| / tau, the friction's cap, so (dt <= tau) the dashpot never
+reverses the normal velocity within a sub-step. It acts on the bottom layer only and keeps most
+of an elastic ball's bounce (restitution 0.938 elastic, 0.914 at 0.2; docs/measurements_sim.md
+section 11). The solver's step
 never exceeds tau (next paragraph), so friction never reverses the motion; a slow particle is
 stopped within a few sub-steps. The cap uses tau, not the sub-step dt, because the scatter runs
 before the next sub-step's dt is known (``kernels``: the fused scatter must not depend on dt).
