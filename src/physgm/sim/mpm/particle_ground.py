@@ -14,8 +14,9 @@ its P-wave modulus, kappa = ``GroundPlane.stiffness`` (1). Per particle column o
 s^2 the ground is as stiff as a layer s / kappa thick of a material of modulus G: a body of
 height H rests with its surface rho g H s / X under the plane (0.013 dx for the 5 cm test block,
 0.14 dx for a 10 cm jelly cube at E = 1e4 Pa, nu = 0.45; docs/measurements_sim.md section 11), and,
-the spring being elastic and its dashpot light, an elastic body keeps most of its bounce. G, not M: the bulk cap (issue
-25) lowers M and keeps G, so the ground does not sink a capped body deeper than the uncapped one;
+the spring being elastic and its dashpot light, an elastic body keeps most of its bounce. G, not
+M: the bulk cap (issue 25) lowers M and keeps G, so the ground does not sink a capped body deeper
+than the uncapped one;
 and a spring as stiff as M made the bouncing ball's bottom layer chatter (restitution 0.908
 against 0.938 with G). On a Coulomb ground a tangential force opposes the particle's sliding
 velocity v_t, at most mu f_n and at most m |v_t| / tau, tau = 2 / omega below.
