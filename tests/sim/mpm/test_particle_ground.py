@@ -34,14 +34,15 @@ def _twin_state(solver: MPMSolver, p: Particles, density: float) -> dict:
     return state
 
 
-@pytest.mark.parametrize("mode", ["slip", "separate"])
-def test_contact_matches_the_numpy_twin_and_reports_its_force(mode):
+@pytest.mark.parametrize("mode, damping", [("slip", 0.2), ("separate", 0.0), ("separate", 0.2)])
+def test_contact_matches_the_numpy_twin_and_reports_its_force(mode, damping):
     # A block hitting the plane at 2 m/s while sliding, its surface 0.1 mm above it: four
     # sub-steps against the twin; the contact acts (without it the bottom layer falls on), and
     # the ground impulse is dt x the twin's contact forces, step by step.
     p = Particles.lattice((-0.02, -0.02, 0.005 * DX), (0.02, 0.02, 0.005 * DX + 0.03), SP)
     p.v = np.tile([0.5, 0.1, -2.0], (len(p), 1))
-    scene = Scene(ground=GroundPlane(0.0, friction=0.4, mode=mode, contact="particles"))
+    ground = GroundPlane(0.0, friction=0.4, mode=mode, contact="particles", damping=damping)
+    scene = Scene(ground=ground)
     grid = GridSpec.fit((-0.05, -0.05, 0.0), (0.05, 0.05, 0.05), DX)
     solver = MPMSolver(p, [JELLY], grid, scene, SolverConfig(flip=0.0, threads=1))
     assert solver.launches.contact_height == 0.0  # nothing started under the plane

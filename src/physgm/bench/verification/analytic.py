@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 
@@ -280,9 +281,15 @@ def colliding_spheres(fast: bool = True) -> dict:
 
 
 def ball_restitution(
-    fast: bool = True, E: float = 1e5, held_depth: float = 0.0, contact: str = "nodes"
+    fast: bool = True, E: float = 1e5, held_depth: float = 0.0, contact: str | None = None,
+    damping: float | None = None,
 ) -> dict:
-    """Elastic ball dropped on a slip, separating floor bounces back with restitution >= 0.7."""
+    """Elastic ball dropped on a slip, separating floor bounces back with restitution >= 0.7.
+
+    contact, damping: ``GroundPlane``'s (None: its defaults)."""
+    ground = GroundPlane(0.0, friction=0.0, mode="slip", held_depth=held_depth, contact=contact)
+    if damping is not None:
+        ground = replace(ground, damping=damping)
     sp = 0.0125 if fast else 0.00625
     r, height = 0.1, 0.2
     p = _ball(r, sp, (0.0, 0.0, r + height))
@@ -293,7 +300,7 @@ def ball_restitution(
         (-0.2, -0.2, 0.0),
         (0.2, 0.2, 2 * r + height),
         2 * sp,
-        Scene(ground=GroundPlane(0.0, friction=0.0, mode="slip", held_depth=held_depth, contact=contact)),
+        Scene(ground=ground),
         frame_dt=0.005,
     )
     vz = []

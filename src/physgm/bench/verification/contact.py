@@ -40,7 +40,7 @@ def hertz_contact(
     gap_cells: float = 2.0,  # gap between sphere and floor at t = 0, cells
     frame_dt: float = 5e-4,  # s, sampling of the mean velocity
     tolerance: float = 0.005,  # change of the mean velocity that counts as contact, x speed
-    contact: str = "nodes",  # GroundPlane.contact
+    contact: str | None = None,  # GroundPlane.contact (None: its default)
 ) -> dict:
     """Contact duration of an elastic sphere on a slip floor against Hertz (module docstring)."""
     dx = radius / cells
@@ -108,7 +108,7 @@ def drop_drift(
     seconds: float = 2.0,
     E: float = 1e4,  # Pa (jelly)
     friction: float = 0.3,
-    contact: str = "nodes",  # GroundPlane.contact
+    contact: str | None = None,  # GroundPlane.contact (None: its default)
 ) -> dict:
     """Sideways drift of a symmetric jelly box dropped 5 cm flat, through the planner (module docstring)."""
     camera = orbit_cameras(

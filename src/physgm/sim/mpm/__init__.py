@@ -30,14 +30,15 @@ cohesion=0, viscosity=0)``                          (``physgm.sim.constitutive``
 ``Scene(gravity=(0, 0, -9.81), ground=None, boxes=(), damping=0.0, walls=(), periodic=())``
 (scene.py, boundary.py, walls.py)
     ``GroundPlane(height=0.0, friction=0.3, mode="separate"|"slip"|"sticky", held_depth=0.0,
-    contact="nodes", stiffness=1.0)`` acts on grid nodes at or below the plane (bodies rest a cell
-    high); ``held_depth=SURFACE_DEPTH`` (7/8 cell, on a grid the solver lowers by under a cell)
-    makes light bodies touch and rest at the plane, with Coulomb friction also on the node layer
-    at the surface (boundary.py, surface_friction.py). ``contact="particles"`` (slip and Coulomb
-    grounds) acts on the particles instead: a conservative penalty spring at each particle's
+    contact=None, stiffness=1.0, damping=0.2)``: on slip and Coulomb grounds (``contact=
+    "particles"``, the default there) a penalty spring with a normal dashpot at each particle's
     material surface, half a particle spacing below it, with Coulomb friction on the particle
     (particle_ground.py): impacts begin and bodies rest at the plane, and the ground's force is
-    reported as for the grid condition. The implicit step always uses the node condition.
+    reported as for the grid condition. Sticky grounds (and ``contact="nodes"``) act on grid nodes
+    at or below the plane (bodies rest a cell high); ``held_depth=SURFACE_DEPTH`` (7/8 cell, on a
+    grid the solver lowers by under a cell) makes light bodies touch and rest at the plane, with
+    Coulomb friction also on the node layer at the surface (boundary.py, surface_friction.py).
+    The implicit step always uses the node condition.
     ``VelocityBox(lo, hi, velocity, start=0, stop=inf, hold=True)`` prescribes the velocity of
     grid nodes and particles inside a box that moves with it (grips, clamps with velocity 0,
     pushers); after ``stop`` a held box fixes its contents.

@@ -1,26 +1,26 @@
 """Boundary conditions: the ground plane and moving velocity boxes.
 
 Where the ground acts (issue 24): a grid node's velocity reaches every particle within 1.5 cells
-(quadratic B-splines), so the default condition, on the nodes at or below the plane
-(``contact="nodes"``, ``held_depth=0``), holds a body about a cell above it: impacts begin while
-its surface is ~1.25 cells up and it rests a cell high. With ``held_depth=SURFACE_DEPTH`` the
+(quadratic B-splines), so a condition on the nodes at or below the plane (``contact="nodes"``,
+``held_depth=0``; the default for sticky grounds) holds a body about a cell above it: impacts
+begin while its surface is ~1.25 cells up and it rests a cell high. With ``held_depth=SURFACE_DEPTH`` the
 nodes 7/8 cell or more below it are held, on a grid aligned so a node plane lies there
 (``GridSpec.aligned``); held that deep, the nodes reach the lowest particles only through the
 tails of their stencils, so a Coulomb ground also takes friction on the node layer above
 (``surface_friction``), and the support is compliant: soft or heavy bodies sink by a load- and
 stiffness-dependent depth.
 
-``contact="particles"`` (slip and Coulomb grounds; ``physgm.sim.mpm.particle_ground``) acts on
-the particles instead: each particle whose material surface (half a particle spacing s below it)
-is under the plane is pushed out by a conservative penalty spring as stiff as a layer s thick of
-its material's shear modulus G, so impacts begin at the surface, bodies rest there (their
-surface sinks rho g H s / G: 0.14 cell for a 10 cm jelly cube at E = 1e4 Pa), and an elastic
-ball keeps its bounce; the nodes two cells or more below the plane stay held as a safety net that
-a resting body never reaches. It is not the default because the bouncier contact moved two
-chaotic test observables out of their bounds (a jelly hit at twice its wave speed is still
-bouncing at 0.5 s; a DPO landscape bound; docs/measurements_sim.md, section 11). Sticky grounds
-stay on the nodes at the plane: no surface variant kept both a sand heap's slope and a column
-collapse's run-out (section 7).
+``contact="particles"``, the default for slip and Coulomb grounds (``physgm.sim.mpm.particle_ground``),
+acts on the particles instead: each particle whose material surface (half a particle spacing s
+below it) is under the plane is pushed out by a penalty spring as stiff as a layer s thick of
+its material's shear modulus G, with a normal dashpot (``damping`` = zeta 0.2), so impacts
+begin at the surface, bodies rest there (their surface sinks rho g H s / G: 0.14 cell for a
+10 cm jelly cube at E = 1e4 Pa), and an elastic ball keeps most of its bounce (restitution
+0.914); the nodes two cells or more below the plane stay held as a safety net that a resting
+body never reaches. Without the dashpot the elastic contact kept a hard-hit jelly bouncing and
+moved two test observables out of their bounds (docs/measurements_sim.md, section 11). Sticky
+grounds stay on the nodes at the plane: no surface variant kept both a sand heap's slope and a
+column collapse's run-out (section 7).
 """
 
 from __future__ import annotations
@@ -43,6 +43,9 @@ SURFACE_DEPTH = 0.875
 # safety net that a resting body's stencils (1.5 cells below its lowest particles) never reach.
 NET_DEPTH = 2.0
 _CONTACTS = ("particles", "nodes")
+# Largest zeta of the particle contact's dashpot: its force 4 zeta m |v_n| / tau reaches the cap
+# m |v_n| / tau there (particle_ground).
+MAX_DAMPING = 0.25
 
 
 @wp.struct
@@ -53,6 +56,7 @@ class GroundStruct:
     mode: int  # GROUND_SEPARATE / GROUND_SLIP / GROUND_STICKY
     depth: float  # held_depth, cells
     particles: int  # 1: penalty contact on the particles (particle_ground), nodes held from NET_DEPTH down
+    damping: float  # zeta of the particle contact's normal dashpot (particle_ground)
 
 
 @wp.struct
@@ -67,15 +71,18 @@ class BoxStruct:
 
 @dataclass(frozen=True)
 class GroundPlane:
-    """Plane z = ``height`` acting on the grid nodes (default) or on the particles (module docstring).
+    """Plane z = ``height`` acting on the particles (default) or on the grid nodes (module docstring).
 
     mode: "separate" (Coulomb friction ``friction``, lift-off allowed), "slip" (frictionless,
     lift-off allowed) or "sticky" (held nodes do not move).
-    contact: "nodes" (the grid condition) or "particles" (slip and Coulomb grounds, held_depth 0: a
-    penalty spring on each particle's material surface, ``particle_ground``; contact and rest at
-    the plane).
+    contact: "particles" (slip and Coulomb grounds, held_depth 0: a penalty spring on each
+    particle's material surface, ``particle_ground``; contact and rest at the plane) or "nodes"
+    (the grid condition); None (default) picks "particles" unless the ground is sticky or held
+    at depth.
     stiffness: kappa of the particle contact: a particle of spacing s gets min(kappa G, M) s N/m,
     G and M its material's shear and P-wave moduli (``particle_ground``).
+    damping: zeta of the particle contact's normal dashpot, c = 2 zeta sqrt(k m), in [0, 0.25]
+    (``particle_ground``); 0 makes the contact elastic.
     held_depth: nodes contact only: 0 holds the nodes at or below the plane (contact starts ~1.25
     cells up, bodies rest a cell high); ``SURFACE_DEPTH`` puts contact and the rest of light bodies
     at the plane but lets soft or heavy bodies sink (module docstring).
@@ -85,10 +92,14 @@ class GroundPlane:
     friction: float = 0.3
     mode: str = "separate"
     held_depth: float = 0.0  # cells, nodes contact; SURFACE_DEPTH: contact at the surface
-    contact: str = "nodes"  # "particles": contact at the surface (particle_ground)
+    contact: str | None = None  # None: "particles" unless sticky or held_depth > 0, then "nodes"
     stiffness: float = 1.0  # kappa of the particle contact (particle_ground)
+    damping: float = 0.2  # zeta of the particle contact's normal dashpot (particle_ground)
 
     def __post_init__(self) -> None:
+        if self.contact is None:
+            nodes = self.mode == "sticky" or self.held_depth > 0
+            object.__setattr__(self, "contact", "nodes" if nodes else "particles")
         if self.mode not in _GROUND_MODES:
             raise ValueError(f"ground mode {self.mode!r} unknown; use one of {', '.join(_GROUND_MODES)}")
         if not (math.isfinite(self.friction) and self.friction >= 0.0):
@@ -99,6 +110,11 @@ class GroundPlane:
             )
         if not (math.isfinite(self.stiffness) and self.stiffness > 0.0):
             raise ValueError(f"ground stiffness={self.stiffness!r} must be finite and > 0; try 1")
+        if not (math.isfinite(self.damping) and 0.0 <= self.damping <= MAX_DAMPING):
+            raise ValueError(
+                f"ground damping={self.damping!r} must be in [0, {MAX_DAMPING}] (the dashpot is capped "
+                "at the spring's period there); try 0"
+            )
         if self.contact not in _CONTACTS:
             raise ValueError(f"ground contact {self.contact!r} unknown; use one of {', '.join(_CONTACTS)}")
         if self.contact == "particles" and (self.mode == "sticky" or self.held_depth > 0):
@@ -133,6 +149,7 @@ class GroundPlane:
         s.mode = _GROUND_MODES[self.mode]
         s.depth = float(self.held_depth)
         s.particles = int(self.on_particles)
+        s.damping = float(self.damping)
         return s
 
 
@@ -176,6 +193,7 @@ def no_ground() -> GroundStruct:
     s = GroundStruct()
     s.enabled = 0
     s.particles = 0
+    s.damping = 0.0
     return s
 
 

@@ -1,7 +1,6 @@
-"""Ground contact on the particles: a conservative penalty spring at each particle's surface.
+"""Ground contact on the particles: a damped penalty spring at each particle's surface.
 
-``GroundPlane(contact="particles")``, an option for slip and Coulomb grounds (why it is not the
-default: ``boundary``).
+``GroundPlane(contact="particles")``, the default for slip and Coulomb grounds (``boundary``).
 
 A grid condition reaches a body through 1.5-cell stencils, so it acts a cell early (``boundary``).
 Here the ground pushes the particles themselves: a particle of spacing s = V0^(1/3) (its rest
@@ -15,11 +14,20 @@ its P-wave modulus, kappa = ``GroundPlane.stiffness`` (1). Per particle column o
 s^2 the ground is as stiff as a layer s / kappa thick of a material of modulus G: a body of
 height H rests with its surface rho g H s / X under the plane (0.013 dx for the 5 cm test block,
 0.14 dx for a 10 cm jelly cube at E = 1e4 Pa, nu = 0.45; docs/measurements_sim.md section 11), and,
-the spring being conservative, an elastic body keeps its bounce. G, not M: the bulk cap (issue
-25) lowers M and keeps G, so the ground does not sink a capped body deeper than the uncapped one;
+the spring being elastic and its dashpot light, an elastic body keeps most of its bounce. G, not
+M: the bulk cap (issue 25) lowers M and keeps G, so the ground does not sink a capped body deeper
+than the uncapped one;
 and a spring as stiff as M made the bouncing ball's bottom layer chatter (restitution 0.908
 against 0.938 with G). On a Coulomb ground a tangential force opposes the particle's sliding
-velocity v_t, at most mu f_n and at most m |v_t| / tau, tau = 2 / omega below. The solver's step
+velocity v_t, at most mu f_n and at most m |v_t| / tau, tau = 2 / omega below.
+
+A normal dashpot takes energy at impact, as real contacts do (the conservative spring alone kept
+a jelly hit at twice its wave speed bouncing): f_n = max(k d - c v_n, 0), c = 2 zeta sqrt(k m) =
+4 zeta m / tau, zeta = ``GroundPlane.damping`` (0.2), so the ground never pulls. At the largest
+zeta, 0.25, c v_n reaches m |v_n| / tau, the friction's cap, so (dt <= tau) the dashpot never
+reverses the normal velocity within a sub-step. It acts on the bottom layer only and keeps most
+of an elastic ball's bounce (restitution 0.938 elastic, 0.914 at 0.2; docs/measurements_sim.md
+section 11). The solver's step
 never exceeds tau (next paragraph), so friction never reverses the motion; a slow particle is
 stopped within a few sub-steps. The cap uses tau, not the sub-step dt, because the scatter runs
 before the next sub-step's dt is known (``kernels``: the fused scatter must not depend on dt).
@@ -79,10 +87,13 @@ def particle_ground_force(
     if depth <= 0.0:
         return wp.vec3(0.0)
     k_mat = ground_k[material]
-    f = wp.vec3(0.0, 0.0, k_mat[0] * s * depth)
+    inv_tau = k_mat[1] / s  # 1 / tau = omega / 2
+    # The dashpot 2 zeta m omega = 4 zeta m / tau on the normal velocity; the total never pulls.
+    fn = wp.max(k_mat[0] * s * depth - 4.0 * ground.damping * m * inv_tau * vp[2], 0.0)
+    f = wp.vec3(0.0, 0.0, fn)
     speed = wp.sqrt(vp[0] * vp[0] + vp[1] * vp[1])
     if ground.mode != GROUND_SLIP and speed > 0.0:
-        ft = wp.min(ground.friction * f[2], m * speed * k_mat[1] / s) / speed  # k_mat[1] / s = 1 / tau
+        ft = wp.min(ground.friction * f[2], m * speed * inv_tau) / speed
         f = wp.vec3(-ft * vp[0], -ft * vp[1], f[2])
     for a in range(3):
         wp.atomic_add(pending, slot, a, wp.float64(f[a]))

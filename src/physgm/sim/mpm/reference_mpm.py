@@ -61,10 +61,11 @@ def _particle_ground_force(ground, k_mat, x, v, m, vol0):
     depth = ground.height + 0.5 * s - x[2]
     if depth <= 0:
         return np.zeros(3)
-    f = np.array([0.0, 0.0, k_mat[0] * s * depth])
+    inv_tau = k_mat[1] / s
+    f = np.array([0.0, 0.0, max(k_mat[0] * s * depth - 4.0 * ground.damping * m * inv_tau * v[2], 0.0)])
     speed = np.linalg.norm(v[:2])
     if ground.mode == "separate" and speed > 0:
-        f[:2] = -min(ground.friction * f[2], m * speed * k_mat[1] / s) * v[:2] / speed
+        f[:2] = -min(ground.friction * f[2], m * speed * inv_tau) * v[:2] / speed
     return f
 
 
