@@ -16,10 +16,12 @@ height H rests with its surface rho g H s / X under the plane (0.013 dx for the 
 0.14 dx for a 10 cm jelly cube at E = 1e4 Pa, nu = 0.45; docs/measurements_sim.md section 11), and,
 the spring being elastic and its dashpot light, an elastic body keeps most of its bounce. G, not
 M: the bulk cap (issue 25) lowers M and keeps G, so the ground does not sink a capped body deeper
-than the uncapped one;
-and a spring as stiff as M made the bouncing ball's bottom layer chatter (restitution 0.908
-against 0.938 with G). On a Coulomb ground a tangential force opposes the particle's sliding
-velocity v_t, at most mu f_n and at most m |v_t| / tau, tau = 2 / omega below.
+than the uncapped one; and a spring as stiff as M made the bouncing ball's bottom layer chatter
+(restitution 0.908 against 0.938 with G). On a Coulomb ground a tangential force opposes the particle's sliding
+velocity v_t, at most mu f_n and at most m |v_t| / tau, tau = 2 / omega below. The solver's step
+never exceeds tau (last paragraph), so friction never reverses the motion; a slow particle is
+stopped within a few sub-steps. The cap uses tau, not the sub-step dt, because the scatter runs
+before the next sub-step's dt is known (``kernels``: the fused scatter must not depend on dt).
 
 A normal dashpot takes energy at impact, as real contacts do (the conservative spring alone kept
 a jelly hit at twice its wave speed bouncing): f_n = max(k d - c v_n, 0), c = 2 zeta sqrt(k m) =
@@ -27,10 +29,7 @@ a jelly hit at twice its wave speed bouncing): f_n = max(k d - c v_n, 0), c = 2 
 zeta, 0.25, c v_n reaches m |v_n| / tau, the friction's cap, so (dt <= tau) the dashpot never
 reverses the normal velocity within a sub-step. It acts on the bottom layer only and keeps most
 of an elastic ball's bounce (restitution 0.938 elastic, 0.914 at 0.2; docs/measurements_sim.md
-section 11). The solver's step
-never exceeds tau (next paragraph), so friction never reverses the motion; a slow particle is
-stopped within a few sub-steps. The cap uses tau, not the sub-step dt, because the scatter runs
-before the next sub-step's dt is known (``kernels``: the fused scatter must not depend on dt).
+section 11).
 
 The force enters the scatter like the stress force (``kernels.scatter_particle``), so it reaches
 the grid as gravity does; ``pending`` sums what the particles got, and the next grid_update
