@@ -17,8 +17,9 @@ height H rests with its surface rho g H s / X under the plane (0.013 dx for the 
 the spring being elastic and its dashpot light, an elastic body keeps most of its bounce. G, not
 M: the bulk cap (issue 25) lowers M and keeps G, so the ground does not sink a capped body deeper
 than the uncapped one; and a spring as stiff as M made the bouncing ball's bottom layer chatter
-(restitution 0.908 against 0.938 with G). On a Coulomb ground a tangential force opposes the particle's sliding
-velocity v_t, at most mu f_n and at most m |v_t| / tau, tau = 2 / omega below. The solver's step
+(restitution 0.908 against 0.938 with G).
+
+On a Coulomb ground a tangential force opposes the particle's sliding velocity v_t, at most mu f_n and at most m |v_t| / tau, tau = 2 / omega below. The solver's step
 never exceeds tau (last paragraph), so friction never reverses the motion; a slow particle is
 stopped within a few sub-steps. The cap uses tau, not the sub-step dt, because the scatter runs
 before the next sub-step's dt is known (``kernels``: the fused scatter must not depend on dt).
