@@ -19,10 +19,11 @@ M: the bulk cap (issue 25) lowers M and keeps G, so the ground does not sink a c
 than the uncapped one; and a spring as stiff as M made the bouncing ball's bottom layer chatter
 (restitution 0.908 against 0.938 with G).
 
-On a Coulomb ground a tangential force opposes the particle's sliding velocity v_t, at most mu f_n and at most m |v_t| / tau, tau = 2 / omega below. The solver's step
-never exceeds tau (last paragraph), so friction never reverses the motion; a slow particle is
-stopped within a few sub-steps. The cap uses tau, not the sub-step dt, because the scatter runs
-before the next sub-step's dt is known (``kernels``: the fused scatter must not depend on dt).
+On a Coulomb ground a tangential force opposes the particle's sliding velocity v_t, at most mu f_n
+and at most m |v_t| / tau, tau = 2 / omega below. The solver's step never exceeds tau (last
+paragraph), so friction never reverses the motion; a slow particle is stopped within a few
+sub-steps. The cap uses tau, not the sub-step dt, because the scatter runs before the next sub-step's
+dt is known (``kernels``: the fused scatter must not depend on dt).
 
 A normal dashpot takes energy at impact, as real contacts do (the conservative spring alone kept
 a jelly hit at twice its wave speed bouncing): f_n = max(k d - c v_n, 0), c = 2 zeta sqrt(k m) =
