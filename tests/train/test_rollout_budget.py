@@ -13,6 +13,7 @@ import torch
 import physgm.sim.gaussian_trajectory as gt
 from physgm.gaussians import Gaussians
 from physgm.physics.materials import PhysicsSpec
+from physgm.sim.mpm_run import SimulationBudgetExceeded
 from physgm.train.pairs import Candidate, PairCache, SceneRecord, select_pair
 from physgm.train.rollout_budget import THROUGHPUT, BudgetConfig, bounded_simulate
 
@@ -35,7 +36,7 @@ class FakeSim:
     def run(self, prepared, device="cpu", deadline=None):
         self.ran.append(prepared.plan.predicted_cost)
         if self.slow:  # the prediction was too optimistic: the solver's deadline cuts it
-            raise gt.SimulationBudgetExceeded(3, prepared.plan.n_frames)
+            raise SimulationBudgetExceeded(3, prepared.plan.n_frames)
         return SimpleNamespace(plan=prepared.plan, substeps=0, seconds=0.0, plan_seconds=0.0)
 
 
@@ -97,7 +98,7 @@ def test_the_solver_deadline_stops_a_real_mpm_run_between_frames():
     physics = PhysicsSpec("jelly", E=1e4, nu=0.3)
     prepared = gt.prepare_simulation(g, physics, "drop", cams, 6, {"cells_across": 6, "ballistic": False})
     assert prepared.plan.mode == "mpm" and prepared.ballistic_frames == 1
-    with pytest.raises(gt.SimulationBudgetExceeded, match="cut at frame 1 of 6"):
+    with pytest.raises(SimulationBudgetExceeded, match="cut at frame 1 of 6"):
         gt.run_prepared(prepared, "cpu", deadline=time.perf_counter())
     traj = gt.run_prepared(prepared, "cpu", deadline=time.perf_counter() + 600)  # ample: runs to the end
     assert traj.x.shape[0] == 6

@@ -8,6 +8,7 @@ in the bench camera (256 px):
     bulk_cap       shear modulus kept, nu lowered to c_p = r c_s (sim/bulk_cap.py; r = 2, or one
                    row bulk_cap_r<r> per ratio given);
     stiffness_cap  E lowered within cap_budget of the bound, also after elastic impacts;
+    coast          the reference's plan with flights after a bounce in closed form (sim/coast.py);
     planner        what the default planner chooses (rigid, caps or none) under its bound;
     implicit_<dt>ms_theta<theta>
                    the explicit run's plan with the implicit elastic integrator (sim/mpm/implicit.py):
@@ -32,7 +33,7 @@ from physgm.sim.mpm.implicit import IMPLICIT_MODELS
 from physgm.sim.mpm.stepping import SolverConfig
 from physgm.sim.planner import PlannerConfig
 
-OFF = dict(allow_rigid=False, allow_bulk_cap=False, allow_stiffness_cap=False)
+OFF = dict(allow_rigid=False, allow_bulk_cap=False, allow_stiffness_cap=False, coast=False)
 
 
 def options(bulk_ratios: tuple[float, ...] = (2.0,)) -> dict[str, dict]:
@@ -42,6 +43,7 @@ def options(bulk_ratios: tuple[float, ...] = (2.0,)) -> dict[str, dict]:
         name = "bulk_cap" if len(bulk_ratios) == 1 else f"bulk_cap_r{r:g}"
         out[name] = {**OFF, "allow_bulk_cap": True, "force_caps": True, "bulk_wave_ratio": r}
     out["stiffness_cap"] = {**OFF, "allow_stiffness_cap": True, "force_caps": True}
+    out["coast"] = {**OFF, "coast": True}
     out["planner"] = {}
     return out
 
@@ -94,7 +96,7 @@ def option_table(
                 gaussians, physics, "drop", cameras, bench.n_frames, cfg, scene_overrides=scene_overrides
             )
             probe = prepared.plan
-            key = (probe.mode, probe.E_used, probe.nu_used)
+            key = (probe.mode, probe.E_used, probe.nu_used, cfg.coast)
             row = {"material": name, "option": option, **physics.to_dict(), **grid, "mode": probe.mode}
             row.update(E_used=probe.E_used, nu_used=probe.nu_used)
             row.update(
@@ -110,6 +112,7 @@ def option_table(
                 break
             traj = run_prepared(prepared)
             row.update(seconds=traj.seconds, substeps=traj.substeps, rest_frame=traj.rest_frame)
+            row.update(coasted_frames=traj.coasted_frames)
             if option == "explicit":
                 ref = traj
             row.update(errors_px(cameras, traj, ref))

@@ -113,6 +113,7 @@ def drop_scenes(bench: DropBench) -> list[dict]:
                 "grid": plan.summary()["grid_cells"],
                 "substeps": traj.substeps,
                 "ballistic_frames": traj.ballistic_frames,
+                "coasted_frames": traj.coasted_frames,
                 "rest_frame": traj.rest_frame,
                 "predicted_error_px": plan.predicted_error_px,
                 "seconds": traj.seconds,

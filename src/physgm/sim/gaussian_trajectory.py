@@ -3,9 +3,8 @@
 The one entry the rest of physgm calls. Steps: choose the grid and particle spacing from the
 object size, sample particles from the Gaussians, build the scene (initial velocities,
 boundaries), plan (rigid / MPM with capped E / MPM), then run either the rigid-body path or the
-Warp MPM solver, with an exact ballistic prefix while the object is still in free flight above
-the ground (uniform gravity does not deform a body at rest) and early stop once everything is
-still. The result holds particle positions and deformation gradients per frame; deformed
+Warp MPM solver (``mpm_run``: flights in closed form where only gravity acts, early stop once
+everything is still). The result holds particle positions and deformation gradients per frame; deformed
 Gaussians are computed per frame on request.
 """
 
@@ -24,11 +23,9 @@ from physgm.gaussians import Gaussians
 from physgm.physics.materials import PhysicsSpec
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.coupling import follow_and_deform, rigid_transform_gaussians
-from physgm.sim.mpm.grid import GridSpec
-from physgm.sim.mpm.integrators import make_solver
 from physgm.sim.mpm.scene import Scene
-from physgm.sim.mpm.state import Particles
 from physgm.sim.mpm.stepping import SolverConfig
+from physgm.sim.mpm_run import ballistic_frames, run_mpm
 from physgm.sim.planner import Plan, PlannerConfig, choose_spacing, plan_simulation
 from physgm.sim.rigid import ContactParams, RigidBody, RigidSimulator, RigidTrajectory
 from physgm.sim.sampling import Followers, ParticleSample, build_followers, sample_particles
@@ -54,6 +51,7 @@ class GaussianTrajectory:
         plan_seconds: the part of ``seconds`` spent sampling particles and planning, s.
         face_contacts: grid-node updates in which the grid faces' safety walls stopped mass
             (``MPMSolver.face_contacts``); 0 when the planned grid held the motion.
+        coasted_frames: frames of flights after a bounce computed in closed form (``sim.coast``).
     """
 
     plan: Plan
@@ -69,6 +67,7 @@ class GaussianTrajectory:
     seconds: float
     plan_seconds: float = 0.0
     face_contacts: int = 0
+    coasted_frames: int = 0
 
     def __len__(self) -> int:
         return self.x.shape[0]
@@ -153,34 +152,6 @@ def _place_gaussians(gaussians: Gaussians, x_rest: torch.Tensor, x_placed: np.nd
         nearest = build_followers(gaussians.means, x_rest, k=1)
         delta = torch.from_numpy(shift).to(gaussians.means)[nearest.index[:, 0]]
     return replace(gaussians, means=gaussians.means + delta)
-
-
-def ballistic_frames(
-    x: np.ndarray, v0: np.ndarray, scene: Scene, frame_dt: float, n_frames: int, gap: float
-) -> int:
-    """Number of leading frames (incl. frame 0) during which the object is in free flight.
-
-    Only for a body moving as a whole (uniform v0), with nothing prescribed, while its lowest
-    point stays ``gap`` (m) above the ground: there uniform gravity leaves it undeformed.
-    """
-    if scene.ground is None or scene.boxes or len(x) == 0 or np.ptp(v0, axis=0).max() > 1e-9:
-        return 1
-    g = np.asarray(scene.gravity, dtype=np.float64)
-    height = x[:, 2].min() - scene.ground.height - gap
-    vz, gz = float(v0[0, 2]), float(g[2])
-    if height <= 0 or gz >= 0:
-        return 1
-    # Solve height + vz t + gz t^2 / 2 = 0 for the first t > 0.
-    t_hit = (-vz - math.sqrt(vz * vz - 2 * gz * height)) / gz
-    return int(min(n_frames, max(1, math.floor(t_hit / frame_dt) + 1)))
-
-
-class SimulationBudgetExceeded(RuntimeError):
-    """The MPM run passed its wall-clock deadline; raised between frames, nothing is returned."""
-
-    def __init__(self, frames_done: int, n_frames: int) -> None:
-        super().__init__(f"cut at frame {frames_done} of {n_frames}: past its wall-clock deadline")
-        self.frames_done, self.n_frames = frames_done, n_frames
 
 
 @dataclass
@@ -276,7 +247,7 @@ def run_prepared(
     prepared: PreparedSimulation, device: str = "cpu", deadline: float | None = None
 ) -> GaussianTrajectory:
     """Run a prepared simulation; ``deadline`` (a ``time.perf_counter()`` value) cuts an MPM run
-    between frames with ``SimulationBudgetExceeded``."""
+    between frames with ``mpm_run.SimulationBudgetExceeded``."""
     start = time.perf_counter() - prepared.seconds
     plan, sample, gaussians, cfg = prepared.plan, prepared.sample, prepared.gaussians, prepared.planner
     x0, v0, n_frames = sample.x.detach().cpu().double().numpy(), prepared.v0, plan.n_frames
@@ -300,7 +271,7 @@ def run_prepared(
             prepared.seconds,
         )
     followers = build_followers(gaussians.means, sample.x, k=cfg.follower_k)
-    xs, Fs, substeps, rest_frame, k0, faces = _run_mpm(
+    run = run_mpm(
         plan,
         prepared.material.with_elasticity(E=plan.E_used, nu=plan.nu_used),
         prepared.scene,
@@ -311,6 +282,7 @@ def run_prepared(
         device,
         cfg.ballistic,
         deadline,
+        max(cfg.bound_px - plan.predicted_error_px, 0.0) if cfg.coast else 0.0,
     )
     seconds = time.perf_counter() - start
     return GaussianTrajectory(
@@ -318,15 +290,16 @@ def run_prepared(
         gaussians,
         sample,
         followers,
-        xs,
-        Fs,
+        run.x,
+        run.F,
         None,
-        rest_frame,
-        k0,
-        substeps,
+        run.rest_frame,
+        run.ballistic_frames,
+        run.substeps,
         seconds,
         prepared.seconds,
-        faces,
+        run.face_contacts,
+        run.coasted_frames,
     )
 
 
@@ -373,63 +346,3 @@ def _run_rigid(
     sim = RigidSimulator(body, contact, RigidSimulator.initial_state(body, x0, mass, v0))
     rest_speed = plan.rest_px / plan.px_per_m / plan.frame_dt
     return sim.run(plan.n_frames, plan.frame_dt, cfg.rigid_dt, rest_speed, cfg.rest_frames)
-
-
-def _run_mpm(
-    plan: Plan,
-    material: MaterialParams,
-    scene: Scene,
-    x0: np.ndarray,
-    v0: np.ndarray,
-    sample: ParticleSample,
-    solver_cfg: SolverConfig,
-    device: str,
-    ballistic: bool = True,
-    deadline: float | None = None,
-) -> tuple[np.ndarray, np.ndarray, int, int | None, int, int]:
-    """MPM with a ballistic prefix and early stop.
-
-    Returns:
-        (x [T,P,3], F [T,P,3,3], substeps, rest_frame, k0, face contacts).
-    """
-    T, frame_dt, n = plan.n_frames, plan.frame_dt, len(x0)
-    xs = np.empty((T, n, 3), np.float32)
-    Fs = np.empty((T, n, 3, 3), np.float32)
-    g = np.asarray(scene.gravity, dtype=np.float64)
-    k0 = ballistic_frames(x0, v0, scene, frame_dt, T, gap=3 * plan.dx) if ballistic else 1
-    for k in range(k0):
-        t = k * frame_dt
-        xs[k] = x0 + v0 * t + 0.5 * g * t * t
-        Fs[k] = np.eye(3, dtype=np.float32)
-    if k0 == T:
-        return xs, Fs, 0, None, k0, 0
-    t0 = (k0 - 1) * frame_dt
-    grid = GridSpec.fit(plan.grid_lo, plan.grid_hi, plan.dx, margin_cells=solver_cfg.boundary_cells)
-    particles = Particles(x=xs[k0 - 1], volume=sample.volume.cpu().numpy(), material=0, v=v0 + g * t0)
-    solver = make_solver(particles, [material], grid, scene, solver_cfg, device)
-    substeps, quiet, rest_frame = 0, 0, None
-    try:
-        for k in range(k0, T):
-            if deadline is not None and time.perf_counter() > deadline:
-                raise SimulationBudgetExceeded(k, T)
-            stats = solver.step_frame()
-            substeps += stats.substeps
-            state = solver.state()
-            xs[k], Fs[k] = state.x, state.F
-            # Still = no particle moved a visible amount in this frame, nor over the quiet window
-            # (a slow creep). Instantaneous speeds are not used: MPM particles jitter at high
-            # frequency with invisible amplitude long after the object has settled.
-            moved = float(np.linalg.norm(xs[k] - xs[k - 1], axis=1).max()) * plan.px_per_m
-            quiet = quiet + 1 if moved < plan.rest_px else 0
-            if quiet >= plan.rest_frames:
-                window = xs[k] - xs[max(k - plan.rest_frames, 0)]
-                if float(np.linalg.norm(window, axis=1).max()) * plan.px_per_m >= plan.rest_px:
-                    quiet = 0
-            if quiet >= plan.rest_frames:
-                rest_frame = k + 1
-                xs[k + 1 :], Fs[k + 1 :] = xs[k], Fs[k]
-                break
-        faces = solver.face_contacts
-    finally:
-        solver.close()
-    return xs, Fs, substeps, rest_frame, k0, faces

@@ -120,7 +120,8 @@ def bounded_simulate(
     start: float | None = None,
 ) -> BoundedRun:
     """``physgm.sim.gaussian_trajectory.simulate`` within ``budget`` (seconds counted from ``start``)."""
-    from physgm.sim.gaussian_trajectory import SimulationBudgetExceeded, prepare_simulation, run_prepared
+    from physgm.sim.gaussian_trajectory import prepare_simulation, run_prepared
+    from physgm.sim.mpm_run import SimulationBudgetExceeded
 
     start = time.perf_counter() if start is None else start
     if budget.max_seconds is None:

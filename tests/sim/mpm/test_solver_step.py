@@ -383,3 +383,29 @@ def test_an_oversized_grid_is_refused_before_allocating():
     huge = GridSpec((-10.0, -10.0, -10.0), 0.005, (4000, 4000, 4000))
     with pytest.raises(ValueError, match="max_grid_nodes"):
         MPMSolver(p, MATS[:1], huge)
+
+
+def test_a_solver_started_from_another_ones_state_carries_on_as_it_would():
+    """Particles(C=..., plastic=...) restores the whole state: a restart continues the run (the coasted
+    flights of sim/coast.py resume this way); without C and the plastic history it does not."""
+    p = random_block(400, seed=11, material=np.arange(400) % 2)
+    grid = GridSpec.fit((0.05, 0.05, 0.0), (0.25, 0.25, 0.25), 0.02)
+    scene = Scene(ground=GroundPlane(0.05))
+    cfg = SolverConfig(frame_dt=0.005, threads=1)
+    original = MPMSolver(p, MATS, grid, scene, cfg)
+    original.step_frame()
+    s = original.state()
+    assert np.abs(s.plastic).max() > 0 and np.abs(s.C).max() > 0
+    restarted = MPMSolver(
+        Particles(s.x, p.volume, p.material, v=s.v, F=s.F, C=s.C, plastic=s.plastic), MATS, grid, scene, cfg
+    )
+    np.testing.assert_array_equal(restarted.state().C, s.C)
+    # (the first stress evaluation re-applies the return mapping: equal to float32 rounding)
+    np.testing.assert_allclose(restarted.state().plastic, s.plastic, rtol=1e-5)
+    forgetful = MPMSolver(Particles(s.x, p.volume, p.material, v=s.v, F=s.F), MATS, grid, scene, cfg)
+    runs = [solver.step_frame() and solver.state() for solver in (original, restarted, forgetful)]
+    for solver in (original, restarted, forgetful):
+        solver.close()
+    same = np.abs(runs[1].x - runs[0].x).max()
+    assert same < 1e-6
+    assert np.abs(runs[2].x - runs[0].x).max() > 100 * max(same, 1e-8)

@@ -35,10 +35,18 @@ class ParticleStore:
         v0 = particles.v if particles.v is not None else np.zeros((n, 3), np.float32)
         self.x = wp.array(particles.x, dtype=wp.vec3, device=device)  # [P] m
         self.v = wp.array(v0, dtype=wp.vec3, device=device)  # [P] m/s
-        self.C = wp.zeros(n, dtype=wp.mat33, device=device)  # [P] 1/s
+        self.C = (
+            wp.zeros(n, dtype=wp.mat33, device=device)
+            if particles.C is None
+            else wp.array(particles.C, dtype=wp.mat33, device=device)
+        )  # [P] 1/s
         self.H = wp.array(F0 - np.eye(3, dtype=np.float32), dtype=wp.mat33, device=device)  # [P] F - I
         self.stress = wp.zeros(n, dtype=wp.mat33, device=device)  # [P] rest volume x Kirchhoff, N m
-        self.plastic = wp.zeros(n, dtype=float, device=device)  # [P]
+        self.plastic = (
+            wp.zeros(n, dtype=float, device=device)
+            if particles.plastic is None
+            else wp.array(particles.plastic, dtype=float, device=device)
+        )  # [P]
         self.escaped = wp.zeros(n, dtype=int, device=device)  # [P] 0/1
         self.mass = wp.array(
             (particles.volume * density[particles.material]).astype(np.float32), dtype=float, device=device

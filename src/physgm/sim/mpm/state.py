@@ -17,6 +17,8 @@ class Particles:
         material: [P] index into the material list handed to the solver.
         v: [P, 3] initial velocities, m/s (zeros if None).
         F: [P, 3, 3] initial deformation gradients (identity if None).
+        C: [P, 3, 3] initial APIC affine velocities, 1/s (zeros if None).
+        plastic: [P] initial plastic history (zeros if None).
     """
 
     x: np.ndarray  # [P, 3]
@@ -24,6 +26,8 @@ class Particles:
     material: np.ndarray  # [P]
     v: np.ndarray | None = None  # [P, 3]
     F: np.ndarray | None = None  # [P, 3, 3]
+    C: np.ndarray | None = None  # [P, 3, 3]
+    plastic: np.ndarray | None = None  # [P]
 
     def __post_init__(self) -> None:
         self.x = np.ascontiguousarray(self.x, dtype=np.float32)
@@ -54,6 +58,14 @@ class Particles:
             self.F = np.broadcast_to(np.asarray(self.F, dtype=np.float32), (n, 3, 3)).copy()
             if not np.isfinite(self.F).all():
                 raise ValueError("initial deformation gradients contain NaN/inf")
+        if self.C is not None:
+            self.C = np.broadcast_to(np.asarray(self.C, dtype=np.float32), (n, 3, 3)).copy()
+            if not np.isfinite(self.C).all():
+                raise ValueError("initial affine velocities C contain NaN/inf")
+        if self.plastic is not None:
+            self.plastic = np.broadcast_to(np.asarray(self.plastic, dtype=np.float32), (n,)).copy()
+            if not np.isfinite(self.plastic).all():
+                raise ValueError("initial plastic history contains NaN/inf")
 
     def __len__(self) -> int:
         return self.x.shape[0]
@@ -87,12 +99,21 @@ class Particles:
             p.F if p.F is not None else np.tile(np.eye(3, dtype=np.float32), (k, 1, 1))
             for p, k in zip(parts, n, strict=True)
         ]
+        C = [
+            p.C if p.C is not None else np.zeros((k, 3, 3), np.float32) for p, k in zip(parts, n, strict=True)
+        ]
+        plastic = [
+            p.plastic if p.plastic is not None else np.zeros(k, np.float32)
+            for p, k in zip(parts, n, strict=True)
+        ]
         return cls(
             x=np.concatenate([p.x for p in parts]),
             volume=np.concatenate([p.volume for p in parts]),
             material=np.concatenate([p.material for p in parts]),
             v=np.concatenate(v),
             F=np.concatenate(F),
+            C=np.concatenate(C),
+            plastic=np.concatenate(plastic),
         )
 
 

@@ -39,6 +39,9 @@ class PlannerConfig:
     rest_frames: int = 5  # still frames in a row before the remaining frames are held
     spread_factor: float = 0.5  # horizontal grid margin for sagging / splashing, object sizes
     ballistic: bool = True  # free flight before the first contact in closed form
+    # Flights after a bounce in closed form too (sim/coast.py), while the vibration they leave out
+    # fits the bound left over by the plan's own predicted error.
+    coast: bool = True
     fit_grid: bool = True  # False: a fixed cube of domain_size on the ground (naive baseline)
     domain_size: float = 1.0  # m, only with fit_grid = False
 
