@@ -112,7 +112,7 @@ def option_table(
                 break
             traj = run_prepared(prepared)
             row.update(seconds=traj.seconds, substeps=traj.substeps, rest_frame=traj.rest_frame)
-            row.update(coasted_frames=traj.coasted_frames)
+            row.update(coasted_frames=traj.coasted_frames, coast_predicted_px=traj.coast_predicted_px)
             if option == "explicit":
                 ref = traj
             row.update(errors_px(cameras, traj, ref))

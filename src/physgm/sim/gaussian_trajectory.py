@@ -52,6 +52,8 @@ class GaussianTrajectory:
         face_contacts: grid-node updates in which the grid faces' safety walls stopped mass
             (``MPMSolver.face_contacts``); 0 when the planned grid held the motion.
         coasted_frames: frames of flights after a bounce computed in closed form (``sim.coast``).
+        coast_predicted_px: the largest predicted error of those flights, pixels (within the bound
+            left over by ``plan.predicted_error_px``).
     """
 
     plan: Plan
@@ -68,6 +70,7 @@ class GaussianTrajectory:
     plan_seconds: float = 0.0
     face_contacts: int = 0
     coasted_frames: int = 0
+    coast_predicted_px: float = 0.0
 
     def __len__(self) -> int:
         return self.x.shape[0]
@@ -300,6 +303,7 @@ def run_prepared(
         prepared.seconds,
         run.face_contacts,
         run.coasted_frames,
+        run.coast_predicted_px,
     )
 
 

@@ -64,6 +64,7 @@ class MPMRun:
     ballistic_frames: int  # leading frames in closed form (the first fall)
     coasted_frames: int  # later frames in closed form (flights after a bounce, sim/coast.py)
     face_contacts: int
+    coast_predicted_px: float = 0.0  # the largest predicted error of a coasted flight, pixels
 
 
 def _can_coast(scene: Scene, budget_px: float) -> bool:
@@ -112,7 +113,7 @@ def run_mpm(
     particles = Particles(x=xs[k0 - 1], volume=volume, material=0, v=v0 + g * t0)
     solver = make_solver(particles, [material], grid, scene, solver_cfg, device)
     coast_ok = _can_coast(scene, coast_budget_px)
-    substeps, quiet, rest_frame, coasted, faces = 0, 0, None, 0, 0
+    substeps, quiet, rest_frame, coasted, faces, coast_px = 0, 0, None, 0, 0, 0.0
     try:
         k = k0
         while k < T:
@@ -159,10 +160,11 @@ def run_mpm(
                 )
                 solver = make_solver(resume, [material], grid, scene, solver_cfg, device)
                 coasted += flight.frames
+                coast_px = max(coast_px, flight.predicted_px)
                 k += flight.frames
                 quiet = 0
             k += 1
         faces += solver.face_contacts
     finally:
         solver.close()
-    return MPMRun(xs, Fs, substeps, rest_frame, k0, coasted, faces)
+    return MPMRun(xs, Fs, substeps, rest_frame, k0, coasted, faces, coast_px)
