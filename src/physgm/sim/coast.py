@@ -15,10 +15,10 @@ What it leaves out is the vibration during the flight, in two ways (``vibration`
   amplitude, size x strain / 2 + relative speed / omega_1, where omega_1 = pi c_s / size is the
   lowest elastic frequency of a compact body of that size (a standing shear wave across it;
   slender bodies ring lower and are under-estimated);
-- at the next impact the vibration meets the ground in another phase, and the rebound changes.
-  Measured on a rubber cube (12 cm of a 15 cm cube, 8 cells across, E 5e6 Pa): frames that
-  matched within 0.1 mm before the second impact were 3.4 cm apart at the next apex. The bound
-  is the vibration's whole energy turned into speed, kept for the rest of the clip.
+- at the next impact the vibration meets the ground in another phase, and the rebound changes
+  (docs/measurements_sim.md section 12: left out of the bound, it moved a rubber block's next
+  apex by centimetres). The bound is the vibration's whole energy turned into speed, kept for
+  the rest of the clip.
 The caller coasts only while both fit its share of the pixel bound. Fluids never coast.
 """
 
@@ -105,7 +105,7 @@ def vibration(
     size = float(np.ptp(x, axis=0).max())
     omega_1 = math.pi * math.sqrt(material.mu / material.density) / max(size, 1e-9)
     strain = 0.5 * (np.einsum("pki,pkj->pij", F, F) - np.eye(3))  # Green strain, rotation-free
-    w = mass / mass.sum()
+    w = mass / total
     strain_rms = math.sqrt(float(w @ (strain * strain).sum((1, 2))))
     speed_rms = math.sqrt(float(w @ (v_rel * v_rel).sum(1)))
     trace = np.trace(strain, axis1=1, axis2=2)
@@ -113,7 +113,7 @@ def vibration(
     kinetic = 0.5 * float(mass @ (v_rel * v_rel).sum(1))
     return Vibration(
         0.5 * size * strain_rms + speed_rms / omega_1,
-        math.sqrt(2.0 * (kinetic + float(elastic)) / mass.sum()),
+        math.sqrt(2.0 * (kinetic + float(elastic)) / total),
     )
 
 
