@@ -2,6 +2,9 @@
 
 Prints one JSON object:
     throughput:     raw MPM solver particle-substeps per second at 10k / 50k / 200k particles;
+    kernels:        each kernel of a sub-step at 200k particles on one thread, against the memory
+                    limit (the host's copy bandwidth over the bytes each particle streams;
+                    bench/sim_kernels.py);
     scenes:         a 50-frame drop of a ~20k-Gaussian hollow cube per material, through the planner;
     speed_vs_error: wall time against the visual error (mean Gaussian-centre distance in pixels at
                     the output camera, averaged over frames) relative to a fine reference run, for
@@ -26,6 +29,7 @@ import torch
 import warp as wp
 
 from physgm.bench.drop_scene import DropBench, bench_camera, hollow_cube_gaussians, project
+from physgm.bench.sim_kernels import kernel_shares
 from physgm.bench.sim_options import option_table
 from physgm.cameras import Cameras
 from physgm.physics.materials import MATERIAL_NAMES, PhysicsSpec, get_material
@@ -223,7 +227,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--quick", action="store_true", help="smaller sizes and fewer frames (a smoke run)")
     parser.add_argument(
         "--only",
-        choices=["throughput", "scenes", "speed_vs_error", "options"],
+        choices=["throughput", "kernels", "scenes", "speed_vs_error", "options"],
         action="append",
         help="run only these parts (repeatable)",
     )
@@ -243,7 +247,7 @@ def main(argv: list[str] | None = None) -> dict:
         "the default is the row nearest the bound in docs/measurements_sim.md section 10",
     )
     args = parser.parse_args(argv)
-    parts = set(args.only or ["throughput", "scenes", "speed_vs_error", "options"])
+    parts = set(args.only or ["throughput", "kernels", "scenes", "speed_vs_error", "options"])
     torch.set_num_threads(2)
     wp.config.log_level = wp.LOG_WARNING  # Warp's banner would break the one-JSON-object output
     drop = DropBench(tuple(args.materials), 10 if args.quick else args.frames, E_override={"jelly": JELLY_E})
@@ -253,6 +257,8 @@ def main(argv: list[str] | None = None) -> dict:
         result["throughput"] = throughput(
             sizes, substeps=10 if args.quick else 20, device=args.device, repeats=3 if args.quick else 15
         )
+    if "kernels" in parts:
+        result["kernels"] = kernel_shares(20_000 if args.quick else 200_000, args.device)
     if "scenes" in parts:
         result["scenes"] = drop_scenes(drop)
     if "options" in parts:
