@@ -32,7 +32,7 @@ import numpy as np
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.state import ParticleState
-from physgm.sim.rigid import ContactParams, RigidBody, RigidSimulator, quat_to_matrix
+from physgm.sim.rigid import ContactParams, RigidBody, RigidSimulator, mass_properties, quat_to_matrix
 
 STEPS_PER_FRAME = 16  # rigid steps per frame while looking for the return within reach of the ground
 
@@ -58,6 +58,14 @@ class Coast:
     @property
     def frames(self) -> int:
         return self.x.shape[0]
+
+
+def fall_time(height: float, vz: float, gz: float) -> float:
+    """First t > 0 at which a point ``height`` (m, > 0) above a plane, rising at ``vz`` (m/s) under
+    gravity ``gz`` (m/s^2), reaches it; inf without downward gravity."""
+    if gz >= 0.0:
+        return math.inf
+    return (-vz - math.sqrt(vz * vz - 2.0 * gz * height)) / gz
 
 
 def _skew(w: np.ndarray) -> np.ndarray:
@@ -94,13 +102,10 @@ def vibration(
     if material.model == "fluid":
         return Vibration(math.inf, math.inf)
     x, v, F, mass, volume = (np.asarray(a, dtype=np.float64) for a in (x, v, F, mass, volume))
-    total = float(mass.sum())
-    com = mass @ x / total
+    total, com, inertia = mass_properties(x, mass)
     v_com = mass @ v / total
     r = x - com
-    inertia = np.eye(3) * float(mass @ (r * r).sum(1)) - np.einsum("p,pi,pj->ij", mass, r, r)
-    spin = np.cross(r, v - v_com)  # per unit mass
-    omega = np.linalg.lstsq(inertia, mass @ spin, rcond=None)[0]
+    omega = np.linalg.solve(inertia, mass @ np.cross(r, v - v_com))  # I^-1 L
     v_rel = v - v_com - np.cross(omega, r)
     size = float(np.ptp(x, axis=0).max())
     omega_1 = math.pi * math.sqrt(material.mu / material.density) / max(size, 1e-9)
@@ -201,9 +206,8 @@ def next_flight(
     # The centre of mass falls to ground + gap later than the lowest point: a bound on the flight,
     # so on the clip left after it, checked before the flight is worked out.
     com_z = float(mass @ state.x[:, 2]) / float(mass.sum()) - ground - gap
-    vz, gz = float(mass @ state.v[:, 2]) / float(mass.sum()), float(scene.gravity[2])
-    longest = (-vz - math.sqrt(vz * vz - 2.0 * gz * com_z)) / gz if gz < 0.0 else math.inf
-    least_tail = max(frames_left * frame_dt - longest, 0.0)
+    vz = float(mass @ state.v[:, 2]) / float(mass.sum())
+    least_tail = max(frames_left * frame_dt - fall_time(com_z, vz, float(scene.gravity[2])), 0.0)
     if (vib.amplitude + 0.5 * vib.rebound_speed * least_tail) * px_per_m > budget_px:
         return None
     flight = coast(

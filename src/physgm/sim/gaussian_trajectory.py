@@ -4,8 +4,8 @@ The one entry the rest of physgm calls. Steps: choose the grid and particle spac
 object size, sample particles from the Gaussians, build the scene (initial velocities,
 boundaries), plan (rigid / MPM with capped E / MPM), then run either the rigid-body path or the
 Warp MPM solver (``mpm_run``: flights in closed form where only gravity acts, early stop once
-everything is still). The result holds particle positions and deformation gradients per frame; deformed
-Gaussians are computed per frame on request.
+everything is still). The result holds particle positions and deformation gradients per frame;
+deformed Gaussians are computed per frame on request.
 """
 
 from __future__ import annotations

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from physgm.sim.coast import next_flight
+from physgm.sim.coast import fall_time, next_flight
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.mpm.grid import GridSpec
 from physgm.sim.mpm.integrators import make_solver
@@ -35,13 +35,11 @@ def ballistic_frames(
     """
     if scene.ground is None or scene.boxes or len(x) == 0 or np.ptp(v0, axis=0).max() > 1e-9:
         return 1
-    g = np.asarray(scene.gravity, dtype=np.float64)
     height = x[:, 2].min() - scene.ground.height - gap
-    vz, gz = float(v0[0, 2]), float(g[2])
+    gz = float(scene.gravity[2])
     if height <= 0 or gz >= 0:
         return 1
-    # Solve height + vz t + gz t^2 / 2 = 0 for the first t > 0.
-    t_hit = (-vz - math.sqrt(vz * vz - 2 * gz * height)) / gz
+    t_hit = fall_time(float(height), float(v0[0, 2]), gz)
     return int(min(n_frames, max(1, math.floor(t_hit / frame_dt) + 1)))
 
 

@@ -50,19 +50,26 @@ class RigidBody:
             raise ValueError(
                 f"RigidBody.from_particles needs x [P, 3] and mass [P], got {x.shape} and {m.shape}"
             )
-        total = float(m.sum())
-        if not total > 0:
+        if not float(m.sum()) > 0:
             raise ValueError(
                 "RigidBody.from_particles: total mass must be positive; check particle volumes and density"
             )
-        com = (m[:, None] * x).sum(0) / total
-        r = x - com
-        inertia = np.eye(3) * (m * (r * r).sum(1)).sum() - np.einsum("p,pi,pj->ij", m, r, r)
-        # A degenerate (flat or linear) particle set has a singular inertia: add the tensor of a thin
-        # shell so the body still rotates, without changing the inertia of a full body noticeably.
-        inertia += np.eye(3) * 1e-9 * max(float(np.trace(inertia)), total * 1e-6)
+        total, com, inertia = mass_properties(x, m)
         pts = x if contact_points is None else np.asarray(contact_points, dtype=np.float64)
         return RigidBody(total, com, inertia, _hull_vertices(pts) - com)
+
+
+def mass_properties(x: np.ndarray, mass: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Total mass (kg), centre of mass [3] (m) and inertia tensor about it [3, 3] (kg m^2) of
+    particles x [P, 3] with masses [P] (float64)."""
+    total = float(mass.sum())
+    com = mass @ x / total
+    r = x - com
+    inertia = np.eye(3) * float(mass @ (r * r).sum(1)) - np.einsum("p,pi,pj->ij", mass, r, r)
+    # A degenerate (flat or linear) particle set has a singular inertia: add the tensor of a thin
+    # shell so the body still rotates, without changing the inertia of a full body noticeably.
+    inertia += np.eye(3) * 1e-9 * max(float(np.trace(inertia)), total * 1e-6)
+    return total, com, inertia
 
 
 def _hull_vertices(points: np.ndarray) -> np.ndarray:
