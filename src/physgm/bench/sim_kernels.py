@@ -71,15 +71,20 @@ def particle_bytes(solver: MPMSolver) -> dict[str, int]:
     }
 
 
-def kernel_shares(n: int = 200_000, device: str = "cpu", repeats: int = 20, jelly_E: float = 1e5) -> dict:
-    """Per-kernel times and shares of the copy bandwidth; see the module docstring."""
+def resting_block(n: int, config: SolverConfig, device: str, jelly_E: float = 1e5) -> MPMSolver:
+    """The throughput block: a 20 cm jelly cube of about ``n`` particles (8 per cell) on the ground."""
     side = 0.2
     spacing = side / round(n ** (1 / 3))
     particles = Particles.lattice((-side / 2, -side / 2, 0.0), (side / 2, side / 2, side), spacing)
     grid = GridSpec.fit((-side / 2, -side / 2, 0.0), (side / 2, side / 2, side * 1.2), 2 * spacing)
     material = get_material("jelly").params(E=jelly_E)
-    config = SolverConfig(threads=1, graphs=False)
-    solver = MPMSolver(particles, [material], grid, Scene(ground=GroundPlane()), config, device)
+    return MPMSolver(particles, [material], grid, Scene(ground=GroundPlane()), config, device)
+
+
+def kernel_shares(n: int = 200_000, device: str = "cpu", repeats: int = 20, jelly_E: float = 1e5) -> dict:
+    """Per-kernel times and shares of the copy bandwidth; see the module docstring."""
+    solver = resting_block(n, SolverConfig(threads=1, graphs=False), device, jelly_E)
+    p, grid_nodes = solver.num_particles, solver.grid.num_nodes
     try:
         dt = solver.stable_dt()
         for _ in range(3):  # warm-up: compiled, scattered, active box fitted
@@ -99,7 +104,6 @@ def kernel_shares(n: int = 200_000, device: str = "cpu", repeats: int = 20, jell
     finally:
         solver.close()
     bandwidth = copy_bandwidth()
-    p = len(particles)
     rows = []
     seconds["substep"] = substep
     for name in ("p2g", "grid_update", "g2p", "substep"):
@@ -112,7 +116,7 @@ def kernel_shares(n: int = 200_000, device: str = "cpu", repeats: int = 20, jell
     limit = bandwidth / per_particle["g2p"]
     return {
         "particles": p,
-        "grid_nodes": grid.num_nodes,
+        "grid_nodes": grid_nodes,
         "copy_GB_per_s": bandwidth / 1e9,
         "kernels": rows,
         "substep_particle_substeps_per_s": p / substep,

@@ -29,16 +29,13 @@ import torch
 import warp as wp
 
 from physgm.bench.drop_scene import DropBench, bench_camera, hollow_cube_gaussians, project
-from physgm.bench.sim_kernels import kernel_shares
+from physgm.bench.sim_kernels import kernel_shares, resting_block
 from physgm.bench.sim_options import option_table
 from physgm.cameras import Cameras
-from physgm.physics.materials import MATERIAL_NAMES, PhysicsSpec, get_material
+from physgm.physics.materials import MATERIAL_NAMES, PhysicsSpec
 from physgm.sim.gaussian_trajectory import GaussianTrajectory, simulate
 from physgm.sim.mpm.boundary import GroundPlane
-from physgm.sim.mpm.grid import GridSpec
 from physgm.sim.mpm.scene import Scene
-from physgm.sim.mpm.solver import MPMSolver
-from physgm.sim.mpm.state import Particles
 from physgm.sim.mpm.stepping import SolverConfig
 from physgm.sim.planner import PlannerConfig
 
@@ -60,14 +57,9 @@ def throughput(sizes: list[int], substeps: int, device: str, repeats: int = 15) 
     the spread (min, max), because a shared CPU makes single timings swing by tens of percent.
     """
     out = []
-    material = get_material("jelly").params(E=JELLY_E)
     for n, threads in [(n, t) for n in sizes for t in (1, 2)]:
-        side = 0.2
-        spacing = side / round(n ** (1 / 3))
-        particles = Particles.lattice((-side / 2, -side / 2, 0.0), (side / 2, side / 2, side), spacing)
-        grid = GridSpec.fit((-side / 2, -side / 2, 0.0), (side / 2, side / 2, side * 1.2), 2 * spacing)
-        config = SolverConfig(threads=threads)
-        solver = MPMSolver(particles, [material], grid, Scene(ground=GroundPlane()), config, device)
+        solver = resting_block(n, SolverConfig(threads=threads), device, JELLY_E)
+        count, grid = solver.num_particles, solver.grid
         blocks = []
         try:
             dt = solver.stable_dt()
@@ -80,10 +72,10 @@ def throughput(sizes: list[int], substeps: int, device: str, repeats: int = 15) 
                 blocks.append((time.perf_counter() - start) / substeps)
         finally:
             solver.close()
-        rates = sorted(len(particles) / b for b in blocks)
+        rates = sorted(count / b for b in blocks)
         out.append(
             {
-                "particles": len(particles),
+                "particles": count,
                 "grid": list(grid.res),
                 "grid_nodes": grid.num_nodes,
                 "threads": solver.threads,
