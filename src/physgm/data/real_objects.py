@@ -2,23 +2,23 @@
 
     python -m physgm.data.real_objects --out data/real_objects [--resolution 256] [--only ID,ID]
 
-Builds PhysAssets from artist-made, textured objects that two pip packages ship (robosuite
-1.5.2 and metaworld 3.1.1, installed ``--no-deps`` by scripts/setup.sh; only their asset files
-are read, neither package is imported). Each object is a row of ``OBJECTS``: its mesh file, or
-its MJCF body assembled from parts (mjcf.py), a hand label (one of the 15 materials of the
-material table) and why. Rendering is the mesh importer's (from_meshes.render_mesh: same 32
+Builds PhysAssets from artist-made, textured objects that three pip packages ship (robosuite
+1.5.2, genesis-world 1.4.5 and metaworld 3.1.1, installed ``--no-deps`` by scripts/setup.sh;
+only their asset files are read, no package is imported). Each object is a row of ``OBJECTS``:
+its mesh file, or its MJCF body assembled from parts (mjcf.py), a hand label (one of the 15
+materials of the material table) and why. Rendering is the mesh importer's (from_meshes.render_mesh: same 32
 views, light and normalisation as the synthetic assets).
 
-Splits: robosuite objects go to ``val`` (used only to choose hyper-parameters such as a fusion
-weight), metaworld objects to ``test``; ``train`` and ``dpo`` stay empty, so the set is never
-trained on. physical.json holds the hand label with the material table's typical E, nu and
-density (``physics_source: "material default"``), ``label_source: "hand"`` and the reason.
+Splits: robosuite's and genesis-world's objects go to ``val`` (used only to choose
+hyper-parameters such as a fusion weight), metaworld's to ``test``; ``train`` and ``dpo`` stay
+empty, so the set is never trained on. physical.json holds the hand label with the material
+table's typical E, nu and density (``physics_source: "material default"``),
+``label_source: "hand"`` and the reason.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib.metadata
 import json
 import sys
 import time
@@ -30,18 +30,19 @@ import numpy as np
 import trimesh
 
 from physgm.data import mjcf
-from physgm.data.asset_packages import PINNED, package_root
+from physgm.data.asset_packages import package_root, package_version, requirement
 from physgm.data.format import SPLITS, SPLITS_DIR
 from physgm.data.from_meshes import ColourSource, MeshObject, colour_source, default_physics, render_mesh
 from physgm.data.priors import constitutive_model, material_names
 from physgm.data.synth import view_cameras
 from physgm.data.writer import atomic_asset_dir, write_json, write_views_cameras_physics
 
-SPLIT_OF_SOURCE = {"robosuite": "val", "metaworld": "test"}
+SPLIT_OF_SOURCE = {"robosuite": "val", "genesis": "val", "metaworld": "test"}
 # MJCF files name meshes and textures relative to the top-level model's folder.
 SEARCH_DIRS = {"robosuite": ("models/assets/objects",), "metaworld": ("assets/sawyer_xyz",)}
 MW = "assets/objects/assets/"  # metaworld's object MJCF folder
 RS = "models/assets/objects/"  # robosuite's
+GN = "assets/meshes/"  # genesis-world's
 
 
 @dataclass(frozen=True)
@@ -49,16 +50,17 @@ class RealObject:
     """One object of the set: where its geometry and colours are, and its hand label."""
 
     id: str
-    source: str  # pip package holding the files: "robosuite" or "metaworld"
+    source: str  # module of the pip package holding the files: "robosuite", "genesis" or "metaworld"
     material: str  # hand label, one of MATERIAL_NAMES
     reason: str  # why that material
-    mesh: str = ""  # a mesh file in the package (OBJ with its MTL texture, or STL) ...
+    mesh: str = ""  # a mesh file in the package (OBJ with its MTL texture, GLB, or STL) ...
     xml: str = ""  # ... or an MJCF file whose body is assembled from its geoms
     deps: tuple[str, ...] = ()  # MJCF files declaring its meshes, materials and default classes
     body: str = ""  # MJCF body to start from (default: the file's first)
     rgba: tuple[float, float, float] | None = None  # colour of a `mesh` that has none of its own
     texture: str = ""  # box-projected texture for a `mesh` without texture coordinates
     yaw_deg: float = 0.0  # turn about +z so the object's front faces +x (view 000)
+    up: str = "auto"  # the mesh's up axis, "y" or "z"; auto: +y for glTF (its specification), else +z
 
     @property
     def split(self) -> str:
@@ -135,6 +137,81 @@ OBJECTS: tuple[RealObject, ...] = (
         "a dark-wood door panel (most of the object) with a brass handle in a white frame",
         xml=RS + "door.xml",
     ),
+    # genesis-world -> val: the meshes its examples drop, cut and pour
+    RealObject(
+        "gn_duck", "genesis", "rubber", "a yellow rubber bath duck", mesh=GN + "duck/duck.obj", up="y"
+    ),
+    RealObject(
+        "gn_ball",
+        "genesis",
+        "rubber",
+        "a plain black toy ball, as bouncy balls are",
+        mesh="assets/tower/ball.glb",
+    ),
+    RealObject(
+        "gn_wooden_sphere",
+        "genesis",
+        "wood",
+        "a turned wooden sphere with visible grain",
+        mesh=GN + "wooden_sphere_OBJ/wooden_sphere.obj",
+    ),
+    RealObject(
+        "gn_chopping_board",
+        "genesis",
+        "wood",
+        "a pale wooden chopping board with a handle slot",
+        mesh=GN + "chopping-board/source/chopping_board.glb",
+    ),
+    RealObject(
+        "gn_boat", "genesis", "wood", "a planked, red-painted rowing boat", mesh=GN + "boat/boat.obj", up="y"
+    ),
+    RealObject(
+        "gn_water_wheel",
+        "genesis",
+        "wood",
+        "a water wheel: wooden rim, spokes and paddles",
+        mesh="assets/urdf/wheel/fancy_wheel.obj",
+    ),
+    RealObject(
+        "gn_bathtub",
+        "genesis",
+        "ceramic",
+        "a bathtub: glazed enamel or ceramic",
+        mesh=GN + "bathtub/bathtub.obj",
+        up="y",
+    ),
+    RealObject(
+        "gn_bunny",
+        "genesis",
+        "ceramic",
+        "the Stanford bunny, scanned from a terracotta figurine; drawn plain grey",
+        mesh=GN + "bunny.obj",
+    ),
+    RealObject(
+        "gn_dragon",
+        "genesis",
+        "stone",
+        "a green dragon figurine, like carved jade",
+        mesh=GN + "dragon/dragon.obj",
+        up="y",
+    ),
+    RealObject(
+        "gn_airplane",
+        "genesis",
+        "metal",
+        "a light aircraft: aluminium skin",
+        mesh=GN + "Airplane/airplane.obj",
+        up="y",
+    ),
+    RealObject(
+        "gn_dispenser",
+        "genesis",
+        "metal",
+        "an ice-cream dispenser: a stainless-steel machine (untextured)",
+        mesh=GN + "icecream_dispenser.obj",
+        up="y",
+    ),
+    RealObject("gn_stirrer", "genesis", "metal", "a thin steel stirring rod", mesh=GN + "stirrer.obj"),
     # metaworld -> test
     _mw(
         "mw_mug",
@@ -236,7 +313,9 @@ OBJECTS: tuple[RealObject, ...] = (
 # Left out on purpose: robosuite's lemon (no material of the 15 behaves like fruit flesh); metaworld's
 # dial (its dark metal texture renders as black plastic without MuJoCo's reflections), hammer and
 # golf club (half wood or plastic, half metal), drawer and stick (painted, material unreadable), the
-# goals and hoop (nets and frames), and the robot itself.
+# goals and hoop (nets and frames), and the robot itself; genesis-world's worm (soft tissue), tank (a
+# plain container of unreadable material), camera (a flat dark silhouette), the cloth, terrain,
+# environment sphere and the robots.
 
 
 def _files(obj: RealObject, root: Path) -> list[Path]:
@@ -249,9 +328,11 @@ def _mesh_parts(obj: RealObject, root: Path) -> list[mjcf.Part]:
     # which trimesh >= 5 refuses unless asked (the file is inside the installed package).
     resolver = trimesh.resolvers.FilePathResolver(str(path), allow_anywhere=True)
     scene = trimesh.load(str(path), force="scene", resolver=resolver)
+    y_up = obj.up == "y" or (obj.up == "auto" and path.suffix.lower() in (".glb", ".gltf"))
+    rot = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]]) if y_up else np.eye(3)
     parts = []
     for mesh in scene.dump(concatenate=False):
-        tri = np.asarray(mesh.vertices, dtype=np.float64)[mesh.faces]
+        tri = np.asarray(mesh.vertices, dtype=np.float64)[mesh.faces] @ rot.T
         if obj.texture:
             image = mjcf.load_image(root / obj.texture)
             colour = mjcf.box_projected(tri, image, np.ones(2), np.ones(3))
@@ -269,9 +350,8 @@ def load_object(obj: RealObject) -> MeshObject:
     missing = [str(f) for f in _files(obj, root) if not f.is_file()]
     if missing:
         raise FileNotFoundError(
-            f"{obj.id}: {missing} not in the installed {obj.source} "
-            f"{importlib.metadata.version(obj.source)}; the table is for "
-            f"{obj.source}=={PINNED[obj.source]} (pip install --no-deps {obj.source}=={PINNED[obj.source]})"
+            f"{obj.id}: {missing} not in the installed {obj.source} {package_version(obj.source)}; "
+            f"the table is for {requirement(obj.source)} (pip install --no-deps {requirement(obj.source)})"
         )
     if obj.mesh:
         parts = _mesh_parts(obj, root)
@@ -306,7 +386,7 @@ def build_object(obj: RealObject, out: Path, resolution: int, supersample: int) 
         "source": "real object, hand-labelled",
         "label_source": "hand",
         "label_reason": obj.reason,
-        "package": f"{obj.source}=={importlib.metadata.version(obj.source)}",
+        "package": f"{requirement(obj.source).split('==')[0]}=={package_version(obj.source)}",
         "files": [str(f.relative_to(root)) for f in _files(obj, root)],
     }
     with atomic_asset_dir(out, obj.id) as tmp:
