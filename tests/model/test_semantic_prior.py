@@ -14,6 +14,7 @@ from physgm.model.semantic_prior import (
     load_semantic_table,
     material_log_prior,
     material_prior,
+    pool_views,
     semantic_table_path,
     zero_shot_material,
 )
@@ -123,6 +124,22 @@ def test_prior_matches_the_plain_definition_on_random_batches():
     labels = zero_shot_material(logits)
     assert labels.dtype == torch.int64 and labels.shape == (2, 3)
     assert torch.equal(labels, (torch.softmax(logits, -1) @ class_to_material_matrix()).argmax(-1))
+
+
+def test_views_pool_into_the_mixture_of_their_class_probabilities():
+    logits = 4 * torch.randn(2, 3, 1000, generator=torch.Generator().manual_seed(1))  # [B, V, 1000]
+    pooled = pool_views(logits, dim=1)
+    torch.testing.assert_close(pooled.exp(), torch.softmax(logits, -1).mean(1))
+    torch.testing.assert_close(pool_views(logits[:, :1], dim=1), logits[:, 0].log_softmax(-1))  # one view
+    # A mug seen clearly once and three times from where it reads as nothing in particular (the mug
+    # class ruled out, a gong a little likelier than the rest) is still a ceramic mug. A mean of the
+    # logits is a product of the views' beliefs: any view that rules the mug out vetoes it.
+    mug, other = _peaked("coffee mug"), torch.zeros(1000)
+    other[imagenet_categories().index("gong")] = 4.0
+    other[imagenet_categories().index("coffee mug")] = -20.0
+    views = torch.stack([mug, other, other, other])
+    assert int(zero_shot_material(pool_views(views, dim=0))) == MATERIAL_NAMES.index("ceramic")
+    assert int(zero_shot_material(views.mean(0))) != MATERIAL_NAMES.index("ceramic")
 
 
 def test_mass_is_the_share_of_mapped_classes():

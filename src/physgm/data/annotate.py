@@ -34,7 +34,7 @@ from physgm.data.annotation import E_CATEGORIES, NU_CATEGORIES, e_class, nu_clas
 from physgm.data.format import AssetError, load_asset
 from physgm.data.views import NUM_INPUT_SET, ViewConfig, select_views
 from physgm.data.writer import TMP_PREFIX, write_json
-from physgm.model.semantic_prior import imagenet_logits, material_prior, top_classes
+from physgm.model.semantic_prior import imagenet_logits, material_prior, pool_views, top_classes
 from physgm.physics.materials import MATERIAL_NAMES, get_material
 
 SOURCE = "imagenet-mobilenet_v2 semantic prior"
@@ -112,13 +112,13 @@ def label_material(
 def annotate_asset(
     path: Path, net: nn.Module, views: int = NUM_INPUT_SET, top: int = 5
 ) -> SemanticAnnotation:
-    """Classify an asset's views and fold the mean logits onto the material table."""
+    """Classify an asset's views and fold their mixture (``pool_views``) onto the material table."""
     asset = load_asset(path)
     picks = annotation_views(asset.cameras.c2w, views)
     rgba = torch.from_numpy(np.ascontiguousarray(asset.load_rgba(picks))).permute(0, 3, 1, 2)  # [V, 4, H, W]
     alpha = rgba[:, 3:]
     rgb = rgba[:, :3] * alpha + BACKGROUND * (1 - alpha)  # straight alpha over white
-    logits = imagenet_logits(net, rgb, BACKGROUND).mean(0)  # [1000]
+    logits = pool_views(imagenet_logits(net, rgb, BACKGROUND), dim=0)  # [1000]
     probs, mass = material_prior(logits)
     best = int(probs.argmax())
     return label_material(

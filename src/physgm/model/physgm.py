@@ -16,7 +16,7 @@ from physgm.model.config import PhysGMConfig
 from physgm.model.gaussian_head import GaussianHead, GaussianPrediction
 from physgm.model.physics_head import PhysicsHead, fuse_material_logits, pooled_features
 from physgm.model.posterior import PhysicsPosterior
-from physgm.model.semantic_prior import semantic_log_prior
+from physgm.model.semantic_prior import pool_views, semantic_log_prior
 
 
 @dataclass
@@ -86,8 +86,8 @@ class PhysGM(nn.Module):
             out.patch_tokens, images, masks, c2w.to(images.dtype), Ks.to(images.dtype), directions, skips
         )
         log_prior = None
-        if out.features is not None:  # the views show one object: average their ImageNet logits
-            log_prior = semantic_log_prior(out.features.imagenet_logits.float().reshape(b, v, -1).mean(dim=1))
+        if out.features is not None:  # the views show one object: one mixture of their ImageNet classes
+            log_prior = semantic_log_prior(pool_views(out.features.imagenet_logits.reshape(b, v, -1), dim=1))
         pooled = None
         if self.config.physics_head.material_input == "features":
             pooled = pooled_features(out.features, b)

@@ -212,6 +212,19 @@ def semantic_log_prior(
     return torch.logaddexp(log_mass[..., None] + log_p, log_rest[..., None])
 
 
+def pool_views(
+    imagenet_logits: Tensor,  # [..., V, 1000] one object's views along ``dim``
+    dim: int = -2,
+) -> Tensor:  # [..., 1000] logits (log-probabilities) of the views' mixture
+    """Several views of one object as one classifier output: the log of the views' mean class
+    probabilities. A mixture, not a mean of logits, which multiplies the views' beliefs: there a
+    view from which the object is hard to read (from behind, edge-on) vetoes the class the
+    others see. On the real validation objects the mixture names the material more often
+    (docs/model.md)."""
+    log_q = imagenet_logits.float().log_softmax(dim=-1)
+    return torch.logsumexp(log_q, dim=dim) - math.log(imagenet_logits.shape[dim])
+
+
 def zero_shot_material(imagenet_logits: Tensor) -> Tensor:  # [...] int64 index into MATERIAL_NAMES
     """The most probable material under the semantic prior."""
     return material_log_prior(imagenet_logits)[0].argmax(dim=-1)
