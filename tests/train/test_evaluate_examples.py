@@ -27,6 +27,9 @@ def test_a_bad_label_file_names_what_is_wrong(tmp_path):
     (tmp_path / "labels.json").write_text(json.dumps({"jelly_cube.png": "custard", "gone.png": "wood"}))
     with pytest.raises(UserError, match=r"custard.*gone\.png"):
         read_labels(tmp_path)
+    (tmp_path / "labels.json").write_text("{jelly_cube.png: jelly}")
+    with pytest.raises(UserError, match="not valid JSON"):
+        read_labels(tmp_path)
 
 
 def test_shipped_checkpoint_scores_the_examples(capsys):

@@ -17,14 +17,19 @@ PINNED = {"robosuite": "1.5.2", "metaworld": "3.1.1", "genesis": "1.4.5"}
 DISTRIBUTION = {"genesis": "genesis-world"}  # pip's name where it is not the module's
 
 
+def distribution(name: str) -> str:
+    """pip's name of the package holding module ``name``: ``genesis-world`` for ``genesis``."""
+    return DISTRIBUTION.get(name, name)
+
+
 def requirement(name: str) -> str:
-    """What pip installs for module ``name``: ``genesis-world==1.4.5``."""
-    return f"{DISTRIBUTION.get(name, name)}=={PINNED.get(name, '...')}"
+    """What setup.sh installs for module ``name``: ``genesis-world==1.4.5``."""
+    return f"{distribution(name)}=={PINNED.get(name, '...')}"
 
 
 def package_version(name: str) -> str:
     """The installed version of the package holding module ``name``."""
-    return importlib.metadata.version(DISTRIBUTION.get(name, name))
+    return importlib.metadata.version(distribution(name))
 
 
 def package_root(name: str, needed_for: str = "its asset files build the real-object set") -> Path:

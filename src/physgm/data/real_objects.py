@@ -6,8 +6,8 @@ Builds PhysAssets from artist-made, textured objects that three pip packages shi
 1.5.2, genesis-world 1.4.5 and metaworld 3.1.1, installed ``--no-deps`` by scripts/setup.sh;
 only their asset files are read, no package is imported). Each object is a row of ``OBJECTS``:
 its mesh file, or its MJCF body assembled from parts (mjcf.py), a hand label (one of the 15
-materials of the material table) and why. Rendering is the mesh importer's (from_meshes.render_mesh: same 32
-views, light and normalisation as the synthetic assets).
+materials of the material table) and why. Rendering is the mesh importer's
+(from_meshes.render_mesh: same 32 views, light and normalisation as the synthetic assets).
 
 Splits: robosuite's and genesis-world's objects go to ``val`` (used only to choose
 hyper-parameters such as a fusion weight), metaworld's to ``test``; ``train`` and ``dpo`` stay
@@ -30,7 +30,7 @@ import numpy as np
 import trimesh
 
 from physgm.data import mjcf
-from physgm.data.asset_packages import package_root, package_version, requirement
+from physgm.data.asset_packages import distribution, package_root, package_version, requirement
 from physgm.data.format import SPLITS, SPLITS_DIR
 from physgm.data.from_meshes import ColourSource, MeshObject, colour_source, default_physics, render_mesh
 from physgm.data.priors import constitutive_model, material_names
@@ -386,7 +386,7 @@ def build_object(obj: RealObject, out: Path, resolution: int, supersample: int) 
         "source": "real object, hand-labelled",
         "label_source": "hand",
         "label_reason": obj.reason,
-        "package": f"{requirement(obj.source).split('==')[0]}=={package_version(obj.source)}",
+        "package": f"{distribution(obj.source)}=={package_version(obj.source)}",
         "files": [str(f.relative_to(root)) for f in _files(obj, root)],
     }
     with atomic_asset_dir(out, obj.id) as tmp:

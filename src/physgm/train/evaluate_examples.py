@@ -34,7 +34,12 @@ def read_labels(folder: Path) -> dict[str, str]:
     path = folder / LABELS_FILE
     if not path.is_file():
         raise UserError(f"{path} not found: it maps each example input to its material")
-    labels = json.loads(path.read_text())
+    try:
+        labels = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise UserError(f"{path} is not valid JSON ({err}); it maps each input name to a material") from None
+    if not isinstance(labels, dict):
+        raise UserError(f"{path} must hold one object mapping each input name to a material")
     unknown = {k: v for k, v in labels.items() if v not in MATERIAL_BEHAVIOUR}
     missing = [k for k in labels if not (folder / k).exists()]
     if unknown or missing:
