@@ -116,6 +116,13 @@ class MeshObject:
     sources: list[ColourSource]
 
 
+def up_rotation(path: Path, up: str) -> np.ndarray:  # [3, 3]
+    """The rotation that brings a mesh file's up axis to +z. ``up``: "y", "z", or "auto" (+y for
+    glTF, as its specification says, +z for the other formats)."""
+    y_up = up == "y" or (up == "auto" and path.suffix.lower() in (".glb", ".gltf"))
+    return np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]]) if y_up else np.eye(3)  # +y -> +z
+
+
 def load_mesh(path: Path, up: str = "auto") -> MeshObject:
     """Load every triangle mesh in a file, z-up, centred, farthest vertex at radius 0.5."""
     try:
@@ -125,8 +132,7 @@ def load_mesh(path: Path, up: str = "auto") -> MeshObject:
     meshes = [g for g in scene.dump(concatenate=False) if isinstance(g, trimesh.Trimesh) and len(g.faces)]
     if not meshes:
         raise ValueError(f"{path} holds no triangle mesh")
-    y_up = up == "y" or (up == "auto" and path.suffix.lower() in (".glb", ".gltf"))
-    rot = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]]) if y_up else np.eye(3)  # +y -> +z
+    rot = up_rotation(path, up)
     tris = [np.asarray(m.vertices, dtype=np.float64)[m.faces] @ rot.T for m in meshes]
     verts = np.concatenate([t.reshape(-1, 3) for t in tris])
     centre = (verts.min(0) + verts.max(0)) / 2

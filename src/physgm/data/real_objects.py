@@ -32,7 +32,14 @@ import trimesh
 from physgm.data import mjcf
 from physgm.data.asset_packages import distribution, package_root, package_version, requirement
 from physgm.data.format import SPLITS, SPLITS_DIR
-from physgm.data.from_meshes import ColourSource, MeshObject, colour_source, default_physics, render_mesh
+from physgm.data.from_meshes import (
+    ColourSource,
+    MeshObject,
+    colour_source,
+    default_physics,
+    render_mesh,
+    up_rotation,
+)
 from physgm.data.priors import constitutive_model, material_names
 from physgm.data.synth import view_cameras
 from physgm.data.writer import atomic_asset_dir, write_json, write_views_cameras_physics
@@ -60,7 +67,7 @@ class RealObject:
     rgba: tuple[float, float, float] | None = None  # colour of a `mesh` that has none of its own
     texture: str = ""  # box-projected texture for a `mesh` without texture coordinates
     yaw_deg: float = 0.0  # turn about +z so the object's front faces +x (view 000)
-    up: str = "auto"  # the mesh's up axis, "y" or "z"; auto: +y for glTF (its specification), else +z
+    up: str = "auto"  # the mesh file's up axis (from_meshes.up_rotation): "y", "z" or "auto"
 
     @property
     def split(self) -> str:
@@ -328,8 +335,7 @@ def _mesh_parts(obj: RealObject, root: Path) -> list[mjcf.Part]:
     # which trimesh >= 5 refuses unless asked (the file is inside the installed package).
     resolver = trimesh.resolvers.FilePathResolver(str(path), allow_anywhere=True)
     scene = trimesh.load(str(path), force="scene", resolver=resolver)
-    y_up = obj.up == "y" or (obj.up == "auto" and path.suffix.lower() in (".glb", ".gltf"))
-    rot = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]]) if y_up else np.eye(3)
+    rot = up_rotation(path, obj.up)
     parts = []
     for mesh in scene.dump(concatenate=False):
         tri = np.asarray(mesh.vertices, dtype=np.float64)[mesh.faces] @ rot.T
