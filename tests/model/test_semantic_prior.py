@@ -142,6 +142,14 @@ def test_views_pool_into_the_mixture_of_their_class_probabilities():
     assert int(zero_shot_material(views.mean(0))) != MATERIAL_NAMES.index("ceramic")
 
 
+def test_a_classifier_temperature_that_is_not_positive_is_refused():
+    from physgm.model.config import PhysGMConfig
+    from physgm.model.physgm import PhysGM
+
+    with pytest.raises(ValueError, match="semantic_prior_temperature must be > 0"):
+        PhysGM(PhysGMConfig.from_dict({"physics_head": {"semantic_prior_temperature": 0.0}}))
+
+
 def test_mass_is_the_share_of_mapped_classes():
     # flat logits: every class equally likely, so the mass is the fraction of classes with a material
     mapped = sum(m is not None for m in class_materials())

@@ -124,6 +124,17 @@ def test_export_sets_the_semantic_prior_weight(tmp_path, capsys):
     torch.testing.assert_close(got.physics.material_logits, expected)
     logits = model.backbone.encoder.classify(images[0])
     torch.testing.assert_close(got.semantic_log_prior, semantic_log_prior(logits))
+    # A classifier temperature T below 1 sharpens the ImageNet classes before they are folded.
+    args = [str(tmp_path / "t.ckpt"), str(tmp_path / "wt.ckpt"), "--prior-weight", "1.5"]
+    assert main([*args, "--prior-temperature", "0.5"]) == 0
+    sharp, _ = load_model(tmp_path / "wt.ckpt")
+    assert sharp.config.physics_head.semantic_prior_temperature == 0.5
+    with torch.no_grad():
+        got = sharp(images, masks, cams.c2w[None], cams.Ks[None])
+    torch.testing.assert_close(got.semantic_log_prior, semantic_log_prior(logits / 0.5))
+    assert not torch.allclose(got.semantic_log_prior, semantic_log_prior(logits))
+    with pytest.raises(SystemExit, match="temperature must be > 0"):
+        main([*args, "--prior-temperature", "0"])
     with pytest.raises(SystemExit, match="mobilenet_v2"):  # a ViT model has no ImageNet classes to read
         training_checkpoint(tmp_path / "vit.ckpt")
         main([str(tmp_path / "vit.ckpt"), str(tmp_path / "v.ckpt"), "--prior-weight", "1"])

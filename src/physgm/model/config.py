@@ -82,8 +82,12 @@ class PhysicsHeadConfig:
     logvar_max: float = 2.0  # largest log-variance (std 2.7, wider than the whole [-1, 1] range)
     # Weight w of the semantic prior in the material distribution, p ~ p_head * p_prior^w (needs the
     # mobilenet_v2 encoder; physgm.model.semantic_prior). Training keeps 0, so the head learns from
-    # the data alone; w is then chosen on real validation objects (physgm.train.choose_prior_weight).
+    # the data alone; w is then chosen on real validation objects (python -m physgm.train.evaluate
+    # --prior-sweep).
     semantic_prior_weight: float = 0.0
+    # Temperature T of the ImageNet classifier before its classes are folded onto materials: below
+    # 1 the top classes count more against the long tail of faintly likely ones. Chosen with w.
+    semantic_prior_temperature: float = 1.0
     # Post-hoc calibration: added to the head's log-variances of normalised log10 E and nu, so that
     # 90 % intervals cover 90 % of validation assets. Training keeps 0 (a head trained to convergence
     # is over-confident off its training set); ``physgm.train.export --logvar-offsets`` sets them from

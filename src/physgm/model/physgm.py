@@ -87,7 +87,11 @@ class PhysGM(nn.Module):
         )
         log_prior = None
         if out.features is not None:  # the views show one object: one mixture of their ImageNet classes
-            log_prior = semantic_log_prior(pool_views(out.features.imagenet_logits.reshape(b, v, -1), dim=1))
+            logits = (
+                out.features.imagenet_logits.reshape(b, v, -1)
+                / self.config.physics_head.semantic_prior_temperature
+            )
+            log_prior = semantic_log_prior(pool_views(logits, dim=1))
         pooled = None
         if self.config.physics_head.material_input == "features":
             pooled = pooled_features(out.features, b)

@@ -68,6 +68,10 @@ class PhysicsHead(nn.Module):
             raise ValueError(
                 f"physics_head needs logvar_min < logvar_max, got {cfg.logvar_min}, {cfg.logvar_max}"
             )
+        if not cfg.semantic_prior_temperature > 0:
+            raise ValueError(
+                f"physics_head.semantic_prior_temperature must be > 0, got {cfg.semantic_prior_temperature}"
+            )
         if cfg.material_input not in MATERIAL_INPUTS:
             raise ValueError(
                 f"physics_head.material_input must be one of {MATERIAL_INPUTS}, got {cfg.material_input!r}"

@@ -181,6 +181,12 @@ def main(argv: list[str] | None = None) -> int:
         "--prior-weight", type=float, default=None, help="w of the semantic prior (default: the checkpoint's)"
     )
     p.add_argument("--prior-sweep", default="", help="comma-separated w values to also score the material at")
+    p.add_argument(
+        "--prior-temperature",
+        type=float,
+        default=None,
+        help="temperature T of the semantic prior's classifier (default: the checkpoint's)",
+    )
     p.add_argument("--device", default="cpu", help="cpu or cuda[:k]")
     a = p.parse_args(argv)
 
@@ -192,6 +198,10 @@ def main(argv: list[str] | None = None) -> int:
     if a.device.startswith("cuda") and not torch.cuda.is_available():
         raise SystemExit(f"--device {a.device}: CUDA is not available on this machine; use --device cpu")
     model, ckpt = load_model(a.ckpt, a.device)
+    if a.prior_temperature is not None:
+        if not a.prior_temperature > 0:
+            raise SystemExit(f"--prior-temperature must be > 0, got {a.prior_temperature}")
+        model.config.physics_head.semantic_prior_temperature = a.prior_temperature
     sweep = tuple(float(w) for w in a.prior_sweep.split(",") if w.strip())
     cache = "mobilenet_v2" if model.config.backbone.encoder.kind == "mobilenet_v2" else None
     renderer = checkpoint_renderer(ckpt.hparams)
@@ -208,6 +218,7 @@ def main(argv: list[str] | None = None) -> int:
         "input_resolution": res,
         "target_resolution": a.resolution or res,
         "num_targets": a.num_targets,
+        "prior_temperature": model.config.physics_head.semantic_prior_temperature,
     }
     start = time.perf_counter()
     for v in views:

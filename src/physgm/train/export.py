@@ -47,11 +47,13 @@ def slim(
     metrics: dict | None = None,
     prior_weight: float | None = None,
     logvar_offsets: tuple[float, float] | None = None,
+    prior_temperature: float | None = None,
 ) -> dict:
     """The inference part of a Lightning checkpoint of ``LitPretrain`` or ``LitDPO``.
 
-    ``prior_weight`` sets the semantic prior's weight w in the exported model (chosen on real
-    validation objects with ``python -m physgm.train.evaluate --prior-sweep``); ``logvar_offsets``
+    ``prior_weight`` and ``prior_temperature`` set the semantic prior's weight w and classifier
+    temperature T in the exported model (chosen on real validation objects with ``python -m
+    physgm.train.evaluate --prior-sweep [--prior-temperature T]``); ``logvar_offsets``
     the (E, nu) calibration of the physics head (evaluate's ``calibration_logvar_offset_*`` on a
     validation split).
     """
@@ -66,6 +68,10 @@ def slim(
                 "ImageNet classes)"
             )
         head["semantic_prior_weight"] = float(prior_weight)
+    if prior_temperature is not None:
+        if not prior_temperature > 0:
+            raise ValueError(f"--prior-temperature must be > 0, got {prior_temperature}")
+        head["semantic_prior_temperature"] = float(prior_temperature)
     if logvar_offsets is not None:
         head["E_logvar_offset"], head["nu_logvar_offset"] = (float(x) for x in logvar_offsets)
     if head:
@@ -102,6 +108,12 @@ def main(argv: list[str] | None = None) -> int:
         "--prior-weight", type=float, default=None, help="semantic prior weight w of the exported model"
     )
     p.add_argument(
+        "--prior-temperature",
+        type=float,
+        default=None,
+        help="temperature T of the ImageNet classifier in the semantic prior of the exported model",
+    )
+    p.add_argument(
         "--logvar-offsets",
         type=float,
         nargs=2,
@@ -114,7 +126,15 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"checkpoint {a.ckpt} not found")
     metrics = json.loads(a.metrics.read_text()) if a.metrics else None
     try:
-        out = slim(read_checkpoint(a.ckpt), str(a.ckpt), a.recipe, metrics, a.prior_weight, a.logvar_offsets)
+        out = slim(
+            read_checkpoint(a.ckpt),
+            str(a.ckpt),
+            a.recipe,
+            metrics,
+            a.prior_weight,
+            a.logvar_offsets,
+            a.prior_temperature,
+        )
     except (UserError, ValueError) as err:
         raise SystemExit(str(err)) from None
     a.out.parent.mkdir(parents=True, exist_ok=True)
