@@ -74,6 +74,27 @@ def _skew(w: np.ndarray) -> np.ndarray:
 
 
 @dataclass
+class RigidMotion:
+    """The rigid part of particle velocities (momentum and angular momentum kept) and the rest."""
+
+    com: np.ndarray  # [3] m
+    v_com: np.ndarray  # [3] m/s
+    omega: np.ndarray  # [3] rad/s, I^-1 L about the centre of mass
+    v_rel: np.ndarray  # [P, 3] m/s, what the rigid motion leaves: the vibration's velocity
+
+
+def rigid_motion(
+    x: np.ndarray, v: np.ndarray, mass: np.ndarray
+) -> RigidMotion:  # float64 [P, 3], [P, 3], [P]
+    """Split velocities into the rigid motion with the same momentum and angular momentum, and the rest."""
+    total, com, inertia = mass_properties(x, mass)
+    v_com = mass @ v / total
+    r = x - com
+    omega = np.linalg.solve(inertia, mass @ np.cross(r, v - v_com))
+    return RigidMotion(com, v_com, omega, v - v_com - np.cross(omega, r))
+
+
+@dataclass
 class Vibration:
     """How much a body deviates from rigid motion (``vibration``).
 
@@ -102,11 +123,7 @@ def vibration(
     if material.model == "fluid":
         return Vibration(math.inf, math.inf)
     x, v, F, mass, volume = (np.asarray(a, dtype=np.float64) for a in (x, v, F, mass, volume))
-    total, com, inertia = mass_properties(x, mass)
-    v_com = mass @ v / total
-    r = x - com
-    omega = np.linalg.solve(inertia, mass @ np.cross(r, v - v_com))  # I^-1 L
-    v_rel = v - v_com - np.cross(omega, r)
+    total, v_rel = float(mass.sum()), rigid_motion(x, v, mass).v_rel
     size = float(np.ptp(x, axis=0).max())
     omega_1 = math.pi * math.sqrt(material.mu / material.density) / max(size, 1e-9)
     strain = 0.5 * (np.einsum("pki,pkj->pij", F, F) - np.eye(3))  # Green strain, rotation-free
@@ -152,9 +169,8 @@ def coast(
         RigidSimulator.initial_state(body, x64, m64, v64),
     )
     g = np.asarray(gravity, dtype=np.float64)
-    v_com0 = sim.state.v.copy()
-    omega0 = sim.omega()
-    v_rel = v64 - v_com0 - np.cross(omega0, x64 - body.com)  # the vibration's velocity
+    start = rigid_motion(x64, v64, m64)
+    v_com0, omega0, v_rel = start.v_com, start.omega, start.v_rel
     r = x64 - body.com
     poses = []
     dt = frame_dt / STEPS_PER_FRAME

@@ -137,7 +137,7 @@ def run_mpm(
             # A plane lowered under a body that started in the ground would move on a restart.
             flight = (
                 next_flight(
-                    state, mass, volume, material, scene, plan.frame_dt, T - 1 - k, 3 * plan.dx,
+                    state, mass, volume, material, scene, frame_dt, T - 1 - k, 3 * plan.dx,
                     plan.px_per_m, coast_budget_px,
                 )
                 if coast_ok and solver.launches.contact_height == scene.ground.height
