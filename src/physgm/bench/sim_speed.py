@@ -42,6 +42,7 @@ from physgm.sim.planner import PlannerConfig
 # The jelly of the performance target (the throughput blocks and the drop): E = 1e5 Pa; the
 # material table's default is 1e4.
 JELLY_E = 1e5
+PARTS = ("throughput", "kernels", "scenes", "speed_vs_error", "options")  # all run by default
 
 
 def pixel_error(cameras: Cameras, a: GaussianTrajectory, b: GaussianTrajectory) -> dict[str, float]:
@@ -219,7 +220,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--quick", action="store_true", help="smaller sizes and fewer frames (a smoke run)")
     parser.add_argument(
         "--only",
-        choices=["throughput", "kernels", "scenes", "speed_vs_error", "options"],
+        choices=PARTS,
         action="append",
         help="run only these parts (repeatable)",
     )
@@ -239,7 +240,7 @@ def main(argv: list[str] | None = None) -> dict:
         "the default is the row nearest the bound in docs/measurements_sim.md section 10",
     )
     args = parser.parse_args(argv)
-    parts = set(args.only or ["throughput", "kernels", "scenes", "speed_vs_error", "options"])
+    parts = set(args.only or PARTS)
     torch.set_num_threads(2)
     wp.config.log_level = wp.LOG_WARNING  # Warp's banner would break the one-JSON-object output
     drop = DropBench(tuple(args.materials), 10 if args.quick else args.frames, E_override={"jelly": JELLY_E})
