@@ -14,6 +14,9 @@ in the bench camera (256 px):
                    the explicit run's plan with the implicit elastic integrator (sim/mpm/implicit.py):
                    sub-step dt while slow, the advective limit dx / |v| when fast (cfl 1); theta 1
                    backward Euler, 0.5 midpoint. Elastic models only; others are listed as skipped.
+    cfl_<c>        the explicit run's plan at another CFL number c (the default is 0.4): a smaller c
+                   measures the reference's own time-step error, a larger one what fewer sub-steps
+                   would cost (docs/measurements_sim.md section 13).
 
 A row gives seconds, sub-steps, the planner's predicted error and the measured error: mean over
 frames and Gaussians, the worst frame's mean, and the largest single Gaussian's distance.
@@ -30,7 +33,7 @@ import sys
 from physgm.bench.drop_scene import DropBench, project
 from physgm.sim.gaussian_trajectory import GaussianTrajectory, prepare_simulation, run_prepared
 from physgm.sim.mpm.implicit import IMPLICIT_MODELS
-from physgm.sim.mpm.stepping import SolverConfig
+from physgm.sim.mpm.stepping import SimulationDiverged, SolverConfig
 from physgm.sim.planner import PlannerConfig
 
 OFF = dict(allow_rigid=False, allow_bulk_cap=False, allow_stiffness_cap=False, coast=False)
@@ -46,6 +49,11 @@ def options(bulk_ratios: tuple[float, ...] = (2.0,)) -> dict[str, dict]:
     out["coast"] = {**OFF, "coast": True}
     out["planner"] = {}
     return out
+
+
+def cfl_options(cfls: tuple[float, ...]) -> dict[str, SolverConfig]:
+    """Option name -> solver settings of the CFL rows: the explicit step at CFL number c."""
+    return {f"cfl_{c:g}": SolverConfig(cfl=c) for c in cfls}
 
 
 def implicit_options(steps: tuple[tuple[float, float], ...]) -> dict[str, SolverConfig]:
@@ -74,6 +82,7 @@ def option_table(
     cells_across: int | None = None,
     bulk_ratios: tuple[float, ...] = (2.0,),
     implicit_steps: tuple[tuple[float, float], ...] = (),
+    cfls: tuple[float, ...] = (),
 ) -> list[dict]:
     """One row per (material, option) of the bench drop; see the module docstring.
 
@@ -82,6 +91,7 @@ def option_table(
         cells_across: grid cells across the object for every option (None: the planner default).
         bulk_ratios: c_p / c_s of the bulk-cap rows (one row each).
         implicit_steps: (dt s, theta) of the implicit rows (one row each).
+        cfls: CFL numbers of the explicit rows at another step (one row each).
     """
     grid = {} if cells_across is None else {"cells_across": cells_across}
     gaussians, cameras, scene_overrides = bench.gaussians(), bench.camera(), bench.scene_overrides()
@@ -122,16 +132,19 @@ def option_table(
                 file=sys.stderr,
             )
         if ref is not None:
-            out += _implicit_rows(bench, name, gaussians, cameras, scene_overrides, grid, ref, implicit_steps)
+            solvers = {**cfl_options(tuple(cfls)), **implicit_options(tuple(implicit_steps))}
+            out += _solver_rows(bench, name, gaussians, cameras, scene_overrides, grid, ref, solvers)
     return out
 
 
-def _implicit_rows(bench, name, gaussians, cameras, scene_overrides, grid, ref, steps) -> list[dict]:
-    """The implicit integrator on the explicit reference's plan, one row per (dt, theta)."""
+def _solver_rows(bench, name, gaussians, cameras, scene_overrides, grid, ref, solvers) -> list[dict]:
+    """The explicit reference's plan with other solver settings (``cfl_options``,
+    ``implicit_options``), one row per option."""
     physics, rows = bench.physics(name), []
-    for option, solver in implicit_options(tuple(steps)).items():
-        row = {"material": name, "option": option, **physics.to_dict(), **grid}
-        row.update(implicit_dt=solver.implicit_dt, implicit_theta=solver.implicit_theta, cfl=solver.cfl)
+    for option, solver in solvers.items():
+        row = {"material": name, "option": option, **physics.to_dict(), **grid, "cfl": solver.cfl}
+        if solver.integrator == "implicit":
+            row.update(implicit_dt=solver.implicit_dt, implicit_theta=solver.implicit_theta)
         prepared = prepare_simulation(
             gaussians,
             physics,
@@ -142,10 +155,16 @@ def _implicit_rows(bench, name, gaussians, cameras, scene_overrides, grid, ref, 
             solver=solver,
             scene_overrides=scene_overrides,
         )
-        if prepared.plan.mode != "mpm" or prepared.material.model not in IMPLICIT_MODELS:
+        implicit = solver.integrator == "implicit"
+        if implicit and (prepared.plan.mode != "mpm" or prepared.material.model not in IMPLICIT_MODELS):
             rows.append({**row, "skipped": f"{prepared.material.model} is not an implicit (elastic) model"})
             continue
-        traj = run_prepared(prepared)
+        try:
+            traj = run_prepared(prepared)
+        except SimulationDiverged as err:  # a step past the stability limit: the row says so
+            rows.append({**row, "diverged": str(err).split(". Materials")[0]})
+            print(f"[bench sim options] {name} {option}: diverged", file=sys.stderr)
+            continue
         row.update(seconds=traj.seconds, substeps=traj.substeps, rest_frame=traj.rest_frame)
         row.update(errors_px(cameras, traj, ref))
         rows.append(row)

@@ -11,7 +11,8 @@ Prints one JSON object:
                     the grid resolution, the particle density (particles per cell), the CFL
                     number and the planner on / off; every row names its particles_per_cell;
     options:        per material, seconds and pixel error (mean, worst frame, largest) of each
-                    planner option, and of the implicit elastic integrator (``--implicit``), against
+                    planner option, of the implicit elastic integrator (``--implicit``) and of the
+                    explicit step at other CFL numbers (``--cfls``), against
                     the explicit full-stiffness reference for the same drop as ``scenes``
                     (bench/sim_options.py).
 Wall-clock numbers are noisy when other jobs share the CPU; nothing here asserts on them.
@@ -239,6 +240,14 @@ def main(argv: list[str] | None = None) -> dict:
         help="options: implicit rows, sub-step in ms and theta (1 backward Euler, 0.5 midpoint); "
         "the default is the row nearest the bound in docs/measurements_sim.md section 10",
     )
+    parser.add_argument(
+        "--cfls",
+        type=float,
+        nargs="*",
+        default=[0.2],
+        help="options: explicit rows at these CFL numbers (the solver's is 0.4); 0.2 gives the reference's "
+        "own time-step error",
+    )
     args = parser.parse_args(argv)
     parts = set(args.only or PARTS)
     torch.set_num_threads(2)
@@ -258,7 +267,9 @@ def main(argv: list[str] | None = None) -> dict:
         implicit = tuple(
             (float(dt) * 1e-3, float(theta)) for dt, theta in (s.split(":") for s in args.implicit)
         )
-        result["options"] = option_table(drop, 3e9, args.cells, tuple(args.bulk_ratios), implicit)
+        result["options"] = option_table(
+            drop, 3e9, args.cells, tuple(args.bulk_ratios), implicit, tuple(args.cfls)
+        )
     if "speed_vs_error" in parts:
         frames = 10 if args.quick else 25
         result["speed_vs_error"] = speed_vs_error(frames, drop.n_gaussians, drop.side, 0.3, args.quick)
