@@ -41,3 +41,13 @@ def test_summary_counts_crushed_cells_in_and_out_of_scope():
     assert s["cells_crushed"] == 3 and s["cells_crushed_in_scope"] == 1 and s["cells_out_of_scope"] == 2
     assert s["impact_cells_in_scope"] == 3 and s["impact_volume_off_by_more_than_5pct"] == 1
     assert s["impact_max_elastic_left"] == pytest.approx(0.04)
+
+
+def test_the_default_cfl_is_where_the_stiff_fluid_drop_stops_gaining_energy(capsys):
+    """docs/measurements_sim.md section 13: at cfl 0.6 the fluid's contact spring (as stiff as its
+    bulk modulus) rings past stable and the dropped cube gains energy; at the default it does not."""
+    args = ["--models", "fluid", "--E", "1e9", "--nu", "0.3", "--scenes", "drop"]
+    (default,) = sim_stability.main(args)["cells"]
+    (larger,) = sim_stability.main(args + ["--cfl", "0.6"])["cells"]
+    assert default["finite"] and default["energy_ratio"] <= 1.05 and default["retries"] == 0
+    assert larger["energy_ratio"] > 1.5

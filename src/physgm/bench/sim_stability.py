@@ -218,7 +218,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--scenes", nargs="*", default=list(SCENES))
     parser.add_argument("--budget", type=int, default=4000, help="largest number of CFL sub-steps per cell")
     parser.add_argument("--impact-factor", type=float, default=2.0, help="impact scene: speed / P-wave speed")
+    parser.add_argument("--cfl", type=float, default=None, help="the solver's CFL number (default 0.4)")
     args = parser.parse_args(argv)
+    solver = {} if args.cfl is None else {"cfl": args.cfl}
     import warp as wp
 
     wp.config.quiet = True
@@ -228,7 +230,9 @@ def main(argv: list[str] | None = None) -> dict:
         for E in args.E:
             for nu in args.nu:
                 for s in args.scenes:
-                    cells.append(run_cell(m, E, nu, s, budget=args.budget, impact_factor=args.impact_factor))
+                    cells.append(
+                        run_cell(m, E, nu, s, budget=args.budget, impact_factor=args.impact_factor, **solver)
+                    )
                     c = cells[-1]
                     print(
                         f"{len(cells):3d} {m} E={E:.0e} nu={nu} {s}: finite={c['finite']} "
