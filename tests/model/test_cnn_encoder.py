@@ -69,7 +69,8 @@ def test_encoder_is_frozen_stays_in_eval_mode_and_is_not_checkpointed():
 
 def test_classifier_matches_torchvision_at_224():
     """The encoder's logits are torchvision's own MobileNetV2 on the view resized to 224 px."""
-    enc, net = MobileNetEncoder(), pretrained.load_mobilenet_v2()
+    enc, net = MobileNetEncoder(), torchvision.models.mobilenet_v2(weights=None).eval()
+    net.load_state_dict(torch.load(pretrained.mobilenet_v2_weights_path(), weights_only=True))
     images = torch.rand(2, 3, 128, 128)
     x = torch.nn.functional.interpolate(
         images, size=(224, 224), mode="bilinear", antialias=True, align_corners=False

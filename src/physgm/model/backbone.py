@@ -14,13 +14,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from timm.models.vision_transformer import Block
 from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint
 
 from physgm.model.cnn_encoder import ImageFeatures, MobileNetEncoder
 from physgm.model.config import BackboneConfig
 from physgm.model.encoder import build_encoder
+from physgm.model.transformer import Block
 
 
 class PluckerEncoder(nn.Module):
@@ -76,7 +76,7 @@ class Backbone(nn.Module):
         # Random (not zero) init: identical global tokens would stay identical through every block.
         self.global_tokens = nn.Parameter(torch.randn(1, cfg.num_global_tokens, cfg.width) * 0.02)
         self.blocks = nn.ModuleList(
-            Block(cfg.width, num_heads=cfg.width // cfg.head_dim, mlp_ratio=cfg.mlp_ratio, qkv_bias=True)
+            Block(cfg.width, num_heads=cfg.width // cfg.head_dim, mlp_ratio=cfg.mlp_ratio)
             for _ in range(cfg.depth)
         )
         for module in (self.camera_encoder, self.fuse, self.blocks):  # never the (maybe pretrained) encoder

@@ -3,6 +3,8 @@
 Both turn each view into one token per ``patch_size`` x ``patch_size`` patch; the joint backbone
 (``physgm.model.backbone``) then mixes the views. Nothing here ever downloads weights: timm models
 are built with ``pretrained=False`` and DINOv3 weights come from the file named in the config.
+timm is imported only by the builders that use it: it takes seconds to import, and the frozen CNN
+encoder, the CPU default, does not need it.
 """
 
 from __future__ import annotations
@@ -10,9 +12,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-import timm
 import torch
-from timm.models.eva import checkpoint_filter_fn as _eva_checkpoint_filter
 from torch import Tensor, nn
 
 from physgm.model.cnn_encoder import MobileNetEncoder
@@ -70,6 +70,8 @@ def build_vit(cfg: EncoderConfig, load_pretrained: bool = True) -> ImageEncoder:
     """A timm VisionTransformer from scratch, sized by the config (it has no pretrained weights)."""
     if cfg.embed_dim % cfg.num_heads:
         raise ValueError(f"encoder embed_dim {cfg.embed_dim} is not divisible by num_heads {cfg.num_heads}")
+    import timm
+
     vit = timm.models.vision_transformer.VisionTransformer(
         img_size=cfg.img_size,
         patch_size=cfg.patch_size,
@@ -92,6 +94,8 @@ def build_timm(cfg: EncoderConfig, load_pretrained: bool = True) -> ImageEncoder
     """
     if not cfg.arch:
         raise ValueError("encoder.kind=timm needs encoder.arch, a timm ViT name (e.g. vit_small_patch16_224)")
+    import timm
+
     vit = timm.create_model(
         cfg.arch,
         pretrained=cfg.pretrained and load_pretrained,
@@ -113,6 +117,8 @@ def build_dinov3(cfg: EncoderConfig, load_pretrained: bool = True) -> ImageEncod
 
     ``load_pretrained=False`` builds the architecture only (a checkpoint will supply the weights).
     """
+    import timm
+
     arch = DINOV3_ARCHS.get(cfg.arch, cfg.arch)
     available = timm.list_models("*dinov3*")
     if arch not in available:
@@ -157,9 +163,11 @@ def load_dinov3_weights(vit: nn.Module, path: str | Path) -> None:
         state = load_file(str(path), device="cpu")
     else:
         state = torch.load(path, map_location="cpu", weights_only=True)
+    from timm.models.eva import checkpoint_filter_fn
+
     # Meta checkpoints name registers "storage_tokens", layer scales "ls1.gamma", ...; timm's filter
     # renames them and passes timm-layout dicts through unchanged.
-    state = _eva_checkpoint_filter(state, vit)
+    state = checkpoint_filter_fn(state, vit)
     missing, unexpected = _key_mismatch(vit.state_dict(), state)
     if missing or unexpected:
         raise RuntimeError(

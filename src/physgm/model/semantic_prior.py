@@ -96,7 +96,8 @@ def load_semantic_table(path: str | Path | None = None, categories: list[str] | 
 
     Args:
         path: the YAML file; default ``semantic_table_path()``.
-        categories: the 1000 class names in classifier order; default torchvision's list.
+        categories: the 1000 class names in classifier order; default torchvision's list, as shipped
+            in conf/semantic/imagenet_classes.txt (``pretrained.imagenet_categories``).
     """
     path = Path(path) if path is not None else semantic_table_path()
     if not path.is_file():

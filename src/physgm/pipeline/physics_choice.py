@@ -23,7 +23,7 @@ from physgm.errors import UserError
 from physgm.physics.materials import MATERIAL_NAMES, PhysicsSpec, get_material
 from physgm.pipeline.config import PhysicsOverrides
 
-if TYPE_CHECKING:  # importing physgm.model pulls in timm; a .ply run never needs it
+if TYPE_CHECKING:  # importing physgm.model pulls in torch; a .ply run never needs the model
     from physgm.model.posterior import PhysicsPosterior, PhysicsSample
 
 NU_MAX = 0.49  # = physgm.model.posterior.NU_MAX: the simulator's Lame lambda blows up at nu = 0.5

@@ -29,7 +29,7 @@ from physgm.pipeline.outputs import (
     write_json,
 )
 
-# Heavy modules (torch, timm, warp) are imported inside the stages that need them, so a bad
+# Heavy modules (torch, warp) are imported inside the stages that need them, so a bad
 # setting is reported in about a second and a .ply run never imports the model code.
 
 STAGES = ("load", "model", "plan", "simulate", "render", "write")
