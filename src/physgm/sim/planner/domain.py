@@ -1,7 +1,7 @@
 """Where the planner puts the grid and how fine: cell size, particle spacing, reachable region.
 
 The grid holds every place the object can reach during the run (``reachable_region``: the fall,
-tumbling, throw drift, prescribed boxes; granular runout and heaps, fluid splash), mirrored about
+tumbling, toppling, throw drift, prescribed boxes; granular runout and heaps, fluid splash), mirrored about
 the object's centre in x and y, with at most ``max_cells`` cells per axis.
 """
 
@@ -17,6 +17,23 @@ from physgm.sim.mpm.scene import Scene
 from physgm.sim.planner.config import PlannerConfig
 
 GRANULAR_MODELS = frozenset({"drucker_prager", "mohr_coulomb"})  # pour into a heap at their friction angle
+# Points within this share of the object's extent above its lowest point are its base: what it
+# stands on, and what it can topple about.
+BASE_LAYER = 0.05
+# A body that must lean less than this to bring its centre over the edge of its base may fall over
+# (a landing or a push tips it); the grid then leaves room for it to lie down. A cube needs 45 deg.
+TIP_ANGLE_DEG = 20.0
+
+
+def tipping_angle(pts: np.ndarray) -> float:  # pts [P, 3] m
+    """How far the body must lean, degrees, before its centre passes the edge of its base (the
+    bounding rectangle of its lowest points; 0 when the centre is already outside it)."""
+    extent = float((pts.max(0) - pts.min(0)).max())
+    base = pts[pts[:, 2] <= pts[:, 2].min() + BASE_LAYER * extent]
+    center = pts.mean(0)
+    inside = np.minimum(center[:2] - base[:, :2].min(0), base[:, :2].max(0) - center[:2]).min()
+    height = center[2] - pts[:, 2].min()
+    return math.degrees(math.atan2(max(float(inside), 0.0), max(float(height), 1e-12)))
 
 
 def choose_spacing(size: float, config: PlannerConfig) -> tuple[float, float]:
@@ -39,7 +56,8 @@ def reachable_region(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Axis-aligned box [lo, hi] (m) the object can reach during ``duration``.
 
-    Falls to the ground (or freely for ``duration``), tumbles about its centre, rises by
+    Falls to the ground (or freely for ``duration``), tumbles about its centre, topples over
+    about a point of its base, rises by
     v0z^2 / 2g, drifts horizontally by |v0| T (or, with ground friction, flies until it lands
     and then slides v^2 / (2 mu g)), spreads by ``spread``, and follows any prescribed box it is
     gripped by. A ball rolling without resistance could go further: the domain walls stop it.
@@ -54,6 +72,16 @@ def reachable_region(
     lo[:2] = np.minimum(lo[:2] - spread, center[:2] - radius)
     hi[:2] = np.maximum(hi[:2] + spread, center[:2] + radius)
     hi[2] = max(hi[2], center[2] + radius)
+    if ground is not None and len(pts) and tipping_angle(pts) < TIP_ANGLE_DEG:
+        # Toppling: a body that stands on a narrow base can fall over about a point p of it. Its
+        # centre then ends within |c - p| of p and every point within the radius of the centre,
+        # which reaches further than tumbling about the centre (a slab stood on end, or a
+        # single-view reconstruction that is a thick disc on its rim: the grid faces stopped them).
+        extent = float((pts.max(0) - pts.min(0)).max())
+        base = pts[pts[:, 2] <= pts[:, 2].min() + BASE_LAYER * extent]
+        reach = np.linalg.norm(base - center, axis=1)[:, None] + radius  # [B, 1]
+        lo[:2] = np.minimum(lo[:2], (base[:, :2] - reach).min(0))
+        hi[:2] = np.maximum(hi[:2], (base[:, :2] + reach).max(0))
     g = float(np.linalg.norm(gravity))
     vmax = np.abs(vel).max(0) if len(vel) else np.zeros(3)
     drift = vmax * duration
