@@ -301,3 +301,24 @@ def test_default_config():
     assert (run.output.resolution, run.output.frames, run.output.fps, run.scene) == (256, 50, 25.0, "drop")
     assert str(run.ckpt) == "checkpoints/physgm_tiny.ckpt" and run.renderer["backend"] == "warp"
     assert run.planner["bound_px"] > 0 and run.solver["cfl"] > 0
+
+
+def test_a_run_whose_object_reached_the_region_edge_warns(monkeypatch, capsys, tmp_path):
+    """The grid-face walls are a safety net: when they stopped the object, the user is told."""
+    from physgm.pipeline import stages
+
+    def future(name: str, faces: int) -> stages.FutureResult:
+        return stages.FutureResult(
+            name=name, video=f"{name}.mp4", material="rubber", E=3e7, nu=0.45, mode="mpm",
+            predicted_error_px=0.0, E_used=3e7, nu_used=0.45, particles=100, grid_cells=[8, 8, 8],
+            dx_m=0.01, substeps=10, rest_frame=None, face_contacts=faces, ballistic_frames=1,
+            reason="", finite=True, seconds={},
+        )  # fmt: skip
+
+    result = stages.RunResult({"seconds": {"total": 1.0}}, [future("video", 0), future("sample1", 632)])
+    monkeypatch.setattr(stages, "from_hydra", lambda cfg: type("C", (), {"output_dir": tmp_path})())
+    monkeypatch.setattr(stages, "run_pipeline", lambda cfg: result)
+    stages.run(None)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("warning: sample1.mp4: the object reached the edge")
+    assert "632 grid-node updates" in err[0] and "planner.spread_factor=2" in err[0]

@@ -81,11 +81,23 @@ def run(cfg) -> dict:
             f"{run_cfg.output_dir / r.video}: {r.material} E={r.E:.3g} Pa nu={r.nu:.2f}, "
             f"{r.mode} ({r.predicted_error_px:.2f} px predicted error)"
         )
+        if r.face_contacts:
+            print(f"warning: {r.video}: {wall_warning(r.face_contacts)}", file=sys.stderr)
     print(
         f"done in {result.report['seconds']['total']:.1f} s; contact sheet: "
         f"{run_cfg.output_dir / 'contact_sheet.png'}, report: {run_cfg.output_dir / 'report.json'}"
     )
     return result.report
+
+
+def wall_warning(face_contacts: int) -> str:
+    """What to tell a user whose object reached the edge of the simulated region."""
+    return (
+        f"the object reached the edge of the simulated region ({face_contacts} grid-node updates stopped "
+        "there): it rolled, bounced or slid further than the planner allowed for, and from there on the "
+        "clip shows it held by an invisible wall. A wider region: planner.spread_factor=2 (default 0.5, "
+        "in object sizes), at a small cost per sub-step."
+    )
 
 
 def _load_model(cfg: RunConfig):
