@@ -24,8 +24,8 @@ CAMERAS = orbit_cameras(
 GROUND = Scene(ground=GroundPlane(0.0, friction=0.4))
 
 
-def _shell_cube(n: int = 3000, side: float = 0.1, bottom: float = 0.3, seed: int = 0) -> Gaussians:
-    g = torch.Generator().manual_seed(seed)
+def _unit_box_surface(n: int, g: torch.Generator) -> torch.Tensor:  # [n, 3]
+    """n points uniformly on the faces of the unit cube centred at the origin."""
     face = torch.randint(0, 6, (n,), generator=g)
     uv = torch.rand(n, 2, generator=g) - 0.5
     pts = torch.zeros(n, 3)
@@ -34,6 +34,12 @@ def _shell_cube(n: int = 3000, side: float = 0.1, bottom: float = 0.3, seed: int
         others = [b for b in range(3) if b != a]
         pts[m, a] = 0.5 * ((face[m] % 2) * 2 - 1.0)
         pts[m, others[0]], pts[m, others[1]] = uv[m, 0], uv[m, 1]
+    return pts
+
+
+def _shell_cube(n: int = 3000, side: float = 0.1, bottom: float = 0.3, seed: int = 0) -> Gaussians:
+    g = torch.Generator().manual_seed(seed)
+    pts = _unit_box_surface(n, g)
     quats = torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=-1)
     return Gaussians(
         means=pts * side + torch.tensor([0.0, 0.0, bottom + side / 2]),
@@ -108,14 +114,7 @@ def test_planned_grid_holds_a_sand_collapse():
 def _leaning_slab(n: int = 4000, dims=(0.04, 0.05, 0.3), lean_deg: float = 20.0) -> Gaussians:
     """Gaussians on the surface of a tall slab standing on the ground, leaning toward -y."""
     g = torch.Generator().manual_seed(0)
-    face = torch.randint(0, 6, (n,), generator=g)
-    uv = torch.rand(n, 2, generator=g) - 0.5
-    pts = torch.zeros(n, 3)
-    for a in range(3):
-        m = face // 2 == a
-        others = [b for b in range(3) if b != a]
-        pts[m, a] = 0.5 * ((face[m] % 2) * 2 - 1.0)
-        pts[m, others[0]], pts[m, others[1]] = uv[m, 0], uv[m, 1]
+    pts = _unit_box_surface(n, g)
     t = math.radians(lean_deg)
     rot = torch.tensor([[1.0, 0.0, 0.0], [0.0, math.cos(t), -math.sin(t)], [0.0, math.sin(t), math.cos(t)]])
     pts = (pts * torch.tensor(dims)) @ rot.T
