@@ -25,11 +25,16 @@ BASE_LAYER = 0.05
 TIP_ANGLE_DEG = 20.0
 
 
+def base_points(pts: np.ndarray) -> np.ndarray:  # pts [P, 3] m -> [B, 3]
+    """The body's base: its points within ``BASE_LAYER`` of its extent above its lowest point."""
+    extent = float((pts.max(0) - pts.min(0)).max())
+    return pts[pts[:, 2] <= pts[:, 2].min() + BASE_LAYER * extent]
+
+
 def tipping_angle(pts: np.ndarray) -> float:  # pts [P, 3] m
     """How far the body must lean, degrees, before its centre passes the edge of its base (the
-    bounding rectangle of its lowest points; 0 when the centre is already outside it)."""
-    extent = float((pts.max(0) - pts.min(0)).max())
-    base = pts[pts[:, 2] <= pts[:, 2].min() + BASE_LAYER * extent]
+    bounding rectangle of ``base_points``; 0 when the centre is already outside it)."""
+    base = base_points(pts)
     center = pts.mean(0)
     inside = np.minimum(center[:2] - base[:, :2].min(0), base[:, :2].max(0) - center[:2]).min()
     height = center[2] - pts[:, 2].min()
@@ -77,8 +82,7 @@ def reachable_region(
         # centre then ends within |c - p| of p and every point within the radius of the centre,
         # which reaches further than tumbling about the centre (a slab stood on end, or a
         # single-view reconstruction that is a thick disc on its rim: the grid faces stopped them).
-        extent = float((pts.max(0) - pts.min(0)).max())
-        base = pts[pts[:, 2] <= pts[:, 2].min() + BASE_LAYER * extent]
+        base = base_points(pts)
         reach = np.linalg.norm(base - center, axis=1)[:, None] + radius  # [B, 1]
         lo[:2] = np.minimum(lo[:2], (base[:, :2] - reach).min(0))
         hi[:2] = np.maximum(hi[:2], (base[:, :2] + reach).max(0))
