@@ -315,7 +315,12 @@ def test_a_run_whose_object_reached_the_region_edge_warns(monkeypatch, capsys, t
             reason="", finite=True, seconds={},
         )  # fmt: skip
 
-    result = stages.RunResult({"seconds": {"total": 1.0}}, [future("video", 0), future("sample1", 632)])
+    futures = [future("video", 0), future("sample1", 632)]
+    cfg = type("C", (), {"scene": "drop", "size_m": 0.2})()
+    sheet = stages._sheet_lines({"posterior": None}, futures, cfg)
+    assert sheet.count("    held by the region's edge (see the warning)") == 1
+    assert sheet.index("    held by the region's edge (see the warning)") == len(sheet) - 1  # under sample1
+    result = stages.RunResult({"seconds": {"total": 1.0}}, futures)
     monkeypatch.setattr(stages, "from_hydra", lambda cfg: type("C", (), {"output_dir": tmp_path})())
     monkeypatch.setattr(stages, "run_pipeline", lambda cfg: result)
     stages.run(None)

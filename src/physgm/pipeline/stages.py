@@ -305,6 +305,8 @@ def _sheet_lines(phys: dict, results: list[FutureResult], cfg: RunConfig) -> lis
     for r in results:
         lines.append(f"  {r.name}: {r.material} E={r.E:.3g} nu={r.nu:.2f}")
         lines.append(f"    {r.mode}, error {r.predicted_error_px:.2f} px, {r.substeps} steps")
+        if r.face_contacts:
+            lines.append("    held by the region's edge (see the warning)")
     return lines
 
 
