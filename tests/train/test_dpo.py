@@ -14,7 +14,7 @@ from physgm.cameras import orbit_cameras
 from physgm.model import BackboneConfig, EncoderConfig, GaussianHeadConfig, PhysGMConfig
 from physgm.model.checkpoint import load_model
 from physgm.model.posterior import PhysicsPosterior
-from physgm.train.dpo import LitDPO, dpo_loss, posterior_kl
+from physgm.train.dpo import DPOLossConfig, LitDPO, dpo_loss, posterior_kl
 from physgm.train.pairs import Candidate, PairDataset, SceneInputs, SceneRecord, collate_pairs
 from physgm.train.pretrain import LitPretrain
 
@@ -88,6 +88,27 @@ def test_dpo_loss_matches_hand_computation():
     assert terms.loss.tolist() == pytest.approx(expected, rel=1e-6)
     assert terms.chosen_rewards.tolist() == pytest.approx([0.25, -0.25])
     assert terms.rejected_rewards.tolist() == pytest.approx([-0.5, 0.25])
+
+
+def test_conservative_dpo_loss_matches_hand_computation_and_stops_at_its_margin():
+    pw, pl = torch.tensor([-1.0, -2.5]), torch.tensor([-3.0, -0.5])
+    rw, rl = torch.tensor([-1.5, -2.0]), torch.tensor([-2.0, -1.0])
+    terms = dpo_loss(pw, pl, rw, rl, beta=0.5, label_smoothing=0.25)
+    # Logits 0.75 and -0.5 as above; 0.75 * -log sigmoid(x) + 0.25 * -log sigmoid(-x).
+    expected = [
+        0.75 * math.log(1 + math.exp(-0.75)) + 0.25 * math.log(1 + math.exp(0.75)),
+        0.75 * math.log(1 + math.exp(0.5)) + 0.25 * math.log(1 + math.exp(-0.5)),
+    ]
+    assert terms.loss.tolist() == pytest.approx(expected, rel=1e-6)
+    # Plain DPO keeps falling with the margin; the conservative loss is lowest at log(3) / beta.
+    margin = torch.linspace(0.0, 10.0, 10001, dtype=torch.float64)
+    zero = torch.zeros_like(margin)
+    plain = dpo_loss(margin, zero, zero, zero, beta=0.5).loss
+    smooth = dpo_loss(margin, zero, zero, zero, beta=0.5, label_smoothing=0.25).loss
+    assert bool((plain[1:] < plain[:-1]).all())
+    assert margin[smooth.argmin()].item() == pytest.approx(math.log(3.0) / 0.5, abs=2e-3)
+    with pytest.raises(ValueError, match="label_smoothing"):
+        DPOLossConfig(label_smoothing=0.5)
 
 
 def test_analytic_kl_matches_torch_distributions():

@@ -42,12 +42,21 @@ class DPOLossConfig:
     # log-ratios (their E and nu lost or won with the material, so they say nothing about E or nu).
     factorised: bool = False
     kl_weight: float = 0.0  # + weight * KL(pi || pi_ref) on every scene of the batch (pairs and tie anchors)
+    # The share of pairs assumed mis-ranked (conservative DPO, Mitchell 2023): each pair also counts,
+    # with this weight, as preferring the loser. 0 is plain DPO, whose loss keeps falling as the margin
+    # grows; above 0 the margin stops at log((1 - s) / s) / beta.
+    label_smoothing: float = 0.0
 
     def __post_init__(self) -> None:
         if not self.beta > 0 or self.sft_weight < 0 or self.kl_weight < 0:
             raise ValueError(
                 f"DPO needs beta > 0, sft_weight >= 0 and kl_weight >= 0, got {self.beta}, "
                 f"{self.sft_weight}, {self.kl_weight}"
+            )
+        if not 0 <= self.label_smoothing < 0.5:
+            raise ValueError(
+                f"loss.label_smoothing is the share of mis-ranked pairs, in [0, 0.5), got "
+                f"{self.label_smoothing}; 0 is plain DPO"
             )
 
 
@@ -64,11 +73,17 @@ def dpo_loss(
     reference_chosen: Tensor,  # [B] log pi_ref(w)
     reference_rejected: Tensor,  # [B] log pi_ref(l)
     beta: float,
+    label_smoothing: float = 0.0,
 ) -> DPOTerms:
-    """The DPO loss of Rafailov et al. (2023) per pair, and the implicit rewards."""
+    """The DPO loss of Rafailov et al. (2023) per pair, and the implicit rewards.
+
+    With ``label_smoothing`` s > 0 it is the conservative form: the pair counts as won by the
+    winner with weight 1 - s and by the loser with weight s.
+    """
     chosen = policy_chosen - reference_chosen
     rejected = policy_rejected - reference_rejected
-    loss = -F.logsigmoid(beta * (chosen - rejected))
+    logits = beta * (chosen - rejected)
+    loss = -(1.0 - label_smoothing) * F.logsigmoid(logits) - label_smoothing * F.logsigmoid(-logits)
     return DPOTerms(loss, beta * chosen.detach(), beta * rejected.detach())
 
 
@@ -243,7 +258,9 @@ class LitDPO(L.LightningModule):
         pair = batch.has_pair
         pw, pl = self.log_prob(policy, batch.winner, batch), self.log_prob(policy, batch.loser, batch)
         rw, rl = self.log_prob(reference, batch.winner, batch), self.log_prob(reference, batch.loser, batch)
-        terms = dpo_loss(pw[pair], pl[pair], rw[pair], rl[pair], self.loss_cfg.beta)
+        terms = dpo_loss(
+            pw[pair], pl[pair], rw[pair], rl[pair], self.loss_cfg.beta, self.loss_cfg.label_smoothing
+        )
         kl = posterior_kl(policy, reference)  # [B] analytic KL(pi || pi_ref)
         loss = terms.loss.sum() / pair.sum().clamp_min(1)  # a batch of tie anchors only has no DPO term
         if self.loss_cfg.sft_weight > 0:
