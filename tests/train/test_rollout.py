@@ -479,35 +479,32 @@ def test_real_rollout_on_a_generated_drop_scene(tmp_path):
     assert all(c.distance is not None and math.isfinite(c.distance) for c in record.candidates), record
 
 
-def test_evaluate_command_compares_two_checkpoints(dpo_root, stage1_ckpt, tmp_path, monkeypatch, capsys):
-    """Bookkeeping of ``python -m physgm.train.evaluate_dpo``, stand-in score |mean log10 E - true|."""
+def _stage2_ckpt(stage1_ckpt: str, path: Path, shift: float) -> str:
+    """A DPO checkpoint: stage 1 with the mean of normalised log10 E shifted by ``shift``."""
     import lightning as L
 
-    from physgm.train import evaluate_dpo
     from physgm.train.dpo import LitDPO
 
     lit = LitDPO(init_ckpt=stage1_ckpt, inputs={"num_views": 2, "input_resolution": 32, "background": 1.0})
     with torch.no_grad():
-        lit.model.physics_head.young[-1].bias[0] += (
-            0.5  # shift the mean of normalised log10 E by +0.5 (2.2 decades)
-        )
-    dpo_path = tmp_path / "dpo.ckpt"
-    torch.save(
-        {
-            "state_dict": lit.state_dict(),
-            "hyper_parameters": dict(lit.hparams),
-            "pytorch-lightning_version": L.__version__,
-        },
-        dpo_path,
-    )
+        lit.model.physics_head.young[-1].bias[0] += shift
+    state = {"state_dict": lit.state_dict(), "hyper_parameters": dict(lit.hparams)}
+    torch.save({**state, "pytorch-lightning_version": L.__version__}, path)
+    return str(path)
+
+
+def test_evaluate_command_compares_two_checkpoints(dpo_root, stage1_ckpt, tmp_path, monkeypatch, capsys):
+    """Bookkeeping of ``python -m physgm.train.evaluate_dpo``, stand-in score |mean log10 E - true|."""
+    from physgm.train import evaluate_dpo
+
+    # The mean of normalised log10 E shifted by +0.5 (2.2 decades).
+    dpo_path = _stage2_ckpt(stage1_ckpt, tmp_path / "dpo.ckpt", 0.5)
     truth = {s.id: s.log10_E for s in env.load_scenes(dpo_root, "dpo", num_views=2, input_resolution=32)}
 
     def score(scene, gaussians, physics, reference, settings, device="cpu", keep_frames=False):
         # The rollout score is the stand-in; the clip is the reference itself, so the command's own
         # trajectory and perceptual distances must come out 0.
-        return env.ClipResult(
-            abs(math.log10(physics.E) - truth[scene.id]), mode="stand-in", frames=reference
-        )
+        return env.ClipResult(abs(math.log10(physics.E) - truth[scene.id]), mode="stand-in", frames=reference)
 
     monkeypatch.setattr(env, "evaluate_physics", score)
     out = tmp_path / "eval"
@@ -543,6 +540,56 @@ def test_evaluate_command_compares_two_checkpoints(dpo_root, stage1_ckpt, tmp_pa
     text = (out / "evaluate_dpo.md").read_text()
     assert text.count("\n") == len(summary) + 2 and "| overall |" in text and "| rubber |" in text
     assert "stage 1 perceptual" in text and "stage 2 traj dist" in text
+
+
+def test_evaluate_command_reads_stored_rollouts_and_shares_stage_1(
+    dpo_root, stage1_ckpt, tmp_path, monkeypatch, capsys
+):
+    """A second evaluation simulates nothing it has stored; another stage-2 model sharing the
+    folder simulates only itself; other settings simulate everything again."""
+    from physgm.train import evaluate_dpo
+
+    calls = []
+
+    def score(scene, gaussians, physics, reference, settings, device="cpu", keep_frames=False):
+        calls.append(math.log10(physics.E))
+        return env.ClipResult(abs(math.log10(physics.E) - 6.0), mode="stand-in", frames=reference)
+
+    monkeypatch.setattr(env, "evaluate_physics", score)
+    shared = tmp_path / "rollouts"
+
+    def evaluate(dpo: str, out: str, frames: str = "6") -> dict:
+        argv = ["--pretrain", stage1_ckpt, "--dpo", dpo, "--data", str(dpo_root), "--split", "dpo"]
+        argv += [
+            "--frames",
+            frames,
+            "--out",
+            str(tmp_path / out),
+            "--rollouts",
+            str(shared),
+            "--workers",
+            "1",
+        ]
+        calls.clear()
+        assert evaluate_dpo.main(argv) == 0
+        return json.loads(capsys.readouterr().out)
+
+    a, b = (
+        _stage2_ckpt(stage1_ckpt, tmp_path / f"{n}.ckpt", shift) for n, shift in (("a", 0.5), ("b", -0.5))
+    )
+    first = evaluate(a, "a")
+    assert len(calls) == 2 * COUNT
+    again = evaluate(a, "a2")
+    assert calls == [] and again["per_scene"] == first["per_scene"]
+    other = evaluate(b, "b")
+    assert len(calls) == COUNT  # stage 2 only
+    assert [r["pretrain"] for r in other["per_scene"]] == [r["pretrain"] for r in first["per_scene"]]
+    assert [r["dpo"]["log10_E"] for r in other["per_scene"]] != [
+        r["dpo"]["log10_E"] for r in first["per_scene"]
+    ]
+    evaluate(a, "a3", frames="5")
+    assert len(calls) == 2 * COUNT
+    assert not list(shared.glob("*.tmp*"))
 
 
 def test_asset_gaussians_are_what_candidates_simulate(dpo_root, policy, tmp_path, monkeypatch):

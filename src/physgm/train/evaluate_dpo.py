@@ -12,12 +12,18 @@ DPO ranks by), a perceptual distance (``physgm.metrics.perceptual``), median |lo
 and material accuracy. One JSON object goes to stdout (and ``--out``/evaluate_dpo.json), the
 table to stderr and ``--out``/evaluate_dpo.md, and one contact sheet per material (reference,
 stage 1, stage 2) to ``--out``/sheet_<material>.png.
+
+Each model's rollout of each scene is stored as it finishes (``--rollouts``, by default
+``--out``/rollouts), keyed by the model's weights and the settings: a stopped evaluation resumes,
+and evaluations of several stage-2 runs that share the folder simulate stage 1 once.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import os
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -31,6 +37,7 @@ from physgm.metrics.trajectory import score_videos
 from physgm.model.checkpoint import load_model
 from physgm.physics.materials import MATERIAL_NAMES
 from physgm.train import rollout_env
+from physgm.train.pairs import policy_fingerprint, settings_hash
 from physgm.warp_runtime import preload
 
 KEY_MATERIALS = ("metal", "jelly", "plasticine", "snow", "sand", "rubber")  # always reported
@@ -48,8 +55,54 @@ def input_settings(hparams: dict, model) -> dict:
     return inputs
 
 
-def evaluate_scene(models: dict, scene, settings: rollout_env.SimSettings, workers: int) -> tuple[dict, dict]:
-    """Both models' mean-physics rollouts of one scene: (row, {name: scored frames or None})."""
+class RolloutStore:
+    """Each model's scored rollout of each scene, one ``.npz`` per (scene, model), written atomically.
+
+    An evaluation that stops resumes where it stopped, and evaluations sharing the folder reuse each
+    other's rollouts: stage 1 is simulated once for several stage-2 runs. A file is keyed by the
+    model's weights (``policy_fingerprint``) and everything else that changes the rollout
+    (``settings_hash`` of the data, views and simulation settings), so a stale one is never read.
+    """
+
+    def __init__(self, root: Path, settings: dict) -> None:
+        self.root = Path(root)
+        self.settings = settings_hash(settings)
+
+    def path(self, scene_id: str, fingerprint: str) -> Path:
+        return self.root / f"{scene_id}-{fingerprint}-{self.settings}.npz"
+
+    def load(self, scene_id: str, fingerprint: str) -> tuple[dict, np.ndarray | None] | None:
+        path = self.path(scene_id, fingerprint)
+        if not path.is_file():
+            return None
+        with np.load(path, allow_pickle=False) as z:
+            out = json.loads(str(z["out"]))
+            frames = z["frames"] if "frames" in z.files else None
+        return out, frames
+
+    def save(self, scene_id: str, fingerprint: str, out: dict, frames: np.ndarray | None) -> None:
+        self.root.mkdir(parents=True, exist_ok=True)
+        path = self.path(scene_id, fingerprint)
+        tmp = path.with_name(path.name + ".tmp.npz")
+        arrays = {"out": np.array(json.dumps(out))}
+        if frames is not None:
+            arrays["frames"] = np.asarray(frames)
+        np.savez(tmp, **arrays)
+        os.replace(tmp, path)
+
+
+def evaluate_scene(
+    models: dict,
+    scene,
+    settings: rollout_env.SimSettings,
+    workers: int,
+    store: RolloutStore | None = None,
+    fingerprints: dict[str, str] | None = None,
+) -> tuple[dict, dict]:
+    """Each model's mean-physics rollout of one scene: (row, {name: scored frames or None}).
+
+    Rollouts found in ``store`` (keyed by ``fingerprints[name]``) are read, not simulated again.
+    """
     reference = rollout_env.reference_frames(scene, settings.n_frames)
     row = {**scene.truth(), "true_known": scene.true_known}
 
@@ -75,11 +128,17 @@ def evaluate_scene(models: dict, scene, settings: rollout_env.SimSettings, worke
         out["abs_log10_E_error"] = abs(out["log10_E"] - scene.log10_E) if scene.true_known else None
         return name, out, frames
 
+    stored = {n: store.load(scene.id, fingerprints[n]) for n in models} if store else {}
+    todo = [n for n in models if stored.get(n) is None]
     preload("cpu")  # no Warp module may load while the workers launch kernels
     with ThreadPoolExecutor(max(1, workers)) as pool:
-        results = list(pool.map(run, list(models)))
+        results = {name: (out, frames) for name, out, frames in pool.map(run, todo)}
     clips = {}
-    for name, out, frames in results:
+    for name in models:
+        if name not in todo:
+            row[name], clips[name] = stored[name]
+            continue
+        out, frames = results[name]
         clips[name] = frames
         # Scored here, in one thread: the tracker and the feature network are not shared across threads.
         out["distance"] = out["perceptual"] = None
@@ -88,6 +147,8 @@ def evaluate_scene(models: dict, scene, settings: rollout_env.SimSettings, worke
             out["distance"] = d if np.isfinite(d) else None
             out["perceptual"] = perceptual_distance(reference, frames)
         row[name] = out
+        if store:
+            store.save(scene.id, fingerprints[name], out, frames)
     return row, clips
 
 
@@ -202,6 +263,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--out", type=Path, default=None, help="folder for JSON, table, sheets (default: by --dpo)"
     )
+    p.add_argument(
+        "--rollouts",
+        type=Path,
+        default=None,
+        help="folder of each model's stored rollouts (default: OUT/rollouts); share it between "
+        "evaluations to simulate a stage-1 model once",
+    )
     a = p.parse_args(argv)
 
     torch.manual_seed(a.seed)
@@ -229,9 +297,22 @@ def main(argv: list[str] | None = None) -> int:
     )
     out_dir = a.out or Path(a.dpo).resolve().parent / "evaluate_dpo"
     out_dir.mkdir(parents=True, exist_ok=True)
+    store = RolloutStore(
+        a.rollouts or out_dir / "rollouts",
+        {
+            "data": str(Path(a.data).resolve()),
+            "video": a.video,
+            "views": views,
+            "input_resolution": res,
+            "background": float(inputs["background"]),
+            "seed": a.seed,
+            "settings": dataclasses.asdict(settings),
+        },
+    )
+    fingerprints = {name: policy_fingerprint(m) for name, m in models.items()}
     start, rows, sheets = time.perf_counter(), [], []
     for i, scene in enumerate(scenes):
-        row, clips = evaluate_scene(models, scene, settings, a.workers)
+        row, clips = evaluate_scene(models, scene, settings, a.workers, store, fingerprints)
         rows.append(row)
         if scene.material not in {m for m, _ in sheets}:
             sheet = out_dir / f"sheet_{scene.material}.png"
