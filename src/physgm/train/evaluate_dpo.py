@@ -60,19 +60,21 @@ class RolloutStore:
 
     An evaluation that stops resumes where it stopped, and evaluations sharing the folder reuse each
     other's rollouts: stage 1 is simulated once for several stage-2 runs. A file is keyed by the
-    model's weights (``policy_fingerprint``) and everything else that changes the rollout
-    (``settings_hash`` of the data, views and simulation settings), so a stale one is never read.
+    model's weights (``policy_fingerprint``) and the evaluation's settings (``settings_hash`` of
+    the data, views and simulation settings). The code is not in the key: after a change to the
+    simulator or the scores, use a new folder.
     """
 
-    def __init__(self, root: Path, settings: dict) -> None:
+    def __init__(self, root: Path, settings: dict, models: dict) -> None:
         self.root = Path(root)
         self.settings = settings_hash(settings)
+        self.fingerprints = {name: policy_fingerprint(m) for name, m in models.items()}
 
-    def path(self, scene_id: str, fingerprint: str) -> Path:
-        return self.root / f"{scene_id}-{fingerprint}-{self.settings}.npz"
+    def path(self, scene_id: str, name: str) -> Path:
+        return self.root / f"{scene_id}-{self.fingerprints[name]}-{self.settings}.npz"
 
-    def load(self, scene_id: str, fingerprint: str) -> tuple[dict, np.ndarray | None] | None:
-        path = self.path(scene_id, fingerprint)
+    def load(self, scene_id: str, name: str) -> tuple[dict, np.ndarray | None] | None:
+        path = self.path(scene_id, name)
         if not path.is_file():
             return None
         with np.load(path, allow_pickle=False) as z:
@@ -80,9 +82,9 @@ class RolloutStore:
             frames = z["frames"] if "frames" in z.files else None
         return out, frames
 
-    def save(self, scene_id: str, fingerprint: str, out: dict, frames: np.ndarray | None) -> None:
+    def save(self, scene_id: str, name: str, out: dict, frames: np.ndarray | None) -> None:
         self.root.mkdir(parents=True, exist_ok=True)
-        path = self.path(scene_id, fingerprint)
+        path = self.path(scene_id, name)
         tmp = path.with_name(path.name + ".tmp.npz")
         arrays = {"out": np.array(json.dumps(out))}
         if frames is not None:
@@ -97,11 +99,10 @@ def evaluate_scene(
     settings: rollout_env.SimSettings,
     workers: int,
     store: RolloutStore | None = None,
-    fingerprints: dict[str, str] | None = None,
 ) -> tuple[dict, dict]:
     """Each model's mean-physics rollout of one scene: (row, {name: scored frames or None}).
 
-    Rollouts found in ``store`` (keyed by ``fingerprints[name]``) are read, not simulated again.
+    Rollouts found in ``store`` are read, not simulated again.
     """
     reference = rollout_env.reference_frames(scene, settings.n_frames)
     row = {**scene.truth(), "true_known": scene.true_known}
@@ -128,7 +129,7 @@ def evaluate_scene(
         out["abs_log10_E_error"] = abs(out["log10_E"] - scene.log10_E) if scene.true_known else None
         return name, out, frames
 
-    stored = {n: store.load(scene.id, fingerprints[n]) for n in models} if store else {}
+    stored = {n: store.load(scene.id, n) for n in models} if store else {}
     todo = [n for n in models if stored.get(n) is None]
     preload("cpu")  # no Warp module may load while the workers launch kernels
     with ThreadPoolExecutor(max(1, workers)) as pool:
@@ -148,7 +149,7 @@ def evaluate_scene(
             out["perceptual"] = perceptual_distance(reference, frames)
         row[name] = out
         if store:
-            store.save(scene.id, fingerprints[name], out, frames)
+            store.save(scene.id, name, out, frames)
     return row, clips
 
 
@@ -308,11 +309,11 @@ def main(argv: list[str] | None = None) -> int:
             "seed": a.seed,
             "settings": dataclasses.asdict(settings),
         },
+        models,
     )
-    fingerprints = {name: policy_fingerprint(m) for name, m in models.items()}
     start, rows, sheets = time.perf_counter(), [], []
     for i, scene in enumerate(scenes):
-        row, clips = evaluate_scene(models, scene, settings, a.workers, store, fingerprints)
+        row, clips = evaluate_scene(models, scene, settings, a.workers, store)
         rows.append(row)
         if scene.material not in {m for m, _ in sheets}:
             sheet = out_dir / f"sheet_{scene.material}.png"
