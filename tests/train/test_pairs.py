@@ -52,6 +52,40 @@ def test_ties_and_total_failure_give_no_pair():
     assert select_pair([cand(0.1), cand(0.1025)], min_gap=0.002)[:2] == (0, 1)
 
 
+def src_cand(distance, source, skipped=None) -> Candidate:
+    c = cand(distance)
+    c.source, c.skipped = source, skipped
+    return c
+
+
+def test_anchor_pairing_rejects_the_policy_draw_and_gives_no_pair_when_it_wins():
+    wide, pol = "wide", "policy"
+    # the best wide candidate wins against the policy's draw, not against the worst candidate
+    assert select_pair([src_cand(0.1, wide), src_cand(0.9, wide), src_cand(0.3, pol)], 0.002, "anchor") == (
+        0,
+        2,
+        "",
+    )
+    w, l, note = select_pair([src_cand(0.5, wide), src_cand(0.9, wide), src_cand(0.2, pol)], 0.002, "anchor")
+    assert (w, l) == (None, None) and note == "the policy's draw won"
+    # a failed policy draw loses; a skipped one gives no pair; within min_gap is a tie
+    assert select_pair([src_cand(0.5, wide), src_cand(None, pol)], 0.002, "anchor")[:2] == (0, 1)
+    assert select_pair([src_cand(0.5, wide), src_cand(0.6, pol, "over budget")], 0.002, "anchor")[:2] == (
+        None,
+        None,
+    )
+    assert "tie" in select_pair([src_cand(0.500, wide), src_cand(0.501, pol)], 0.002, "anchor")[2]
+    # the first policy draw is the anchor when several are
+    assert select_pair([src_cand(0.4, pol), src_cand(0.1, pol), src_cand(0.9, pol)], 0.002, "anchor")[:2] == (
+        1,
+        0,
+    )
+    with pytest.raises(ValueError, match="drawn from the policy"):
+        select_pair([src_cand(0.1, wide), src_cand(0.2, wide)], 0.002, "anchor")
+    with pytest.raises(ValueError, match="unknown pairing"):
+        select_pair([src_cand(0.1, wide)], 0.002, "best")
+
+
 def test_cache_round_trip_and_validation(tmp_path):
     cache = PairCache(tmp_path)
     rec = record()

@@ -250,6 +250,37 @@ def test_winner_is_lowest_distance_and_candidates_are_raw_samples(
     assert spread > 0.5
 
 
+def test_anchor_pairing_rereads_cached_candidates_and_needs_a_policy_draw(
+    dpo_root, policy, tmp_path, monkeypatch
+):
+    monkeypatch.setattr(rollout, "evaluate_physics", StandIn())
+    trainer = fake_trainer(tmp_path)
+    first = make_callback(dpo_root, proposal="wide", wide_fraction=2 / 3)
+    first.setup(None, None, "fit")
+    extremes = first.refresh(trainer, policy, 0, "p0")
+    anchored = make_callback(dpo_root, proposal="wide", wide_fraction=2 / 3, pairing="anchor")
+    anchored.setup(None, None, "fit")
+    assert anchored.settings == first.settings  # the pairing is not part of the cache key
+    again = StandIn()
+    monkeypatch.setattr(rollout, "evaluate_physics", again)
+    records = anchored.refresh(trainer, policy, 0, "p0")
+    assert again.calls == []  # the same candidates, paired again
+    for old, new in zip(extremes, records, strict=True):
+        assert new.candidates == old.candidates
+        assert [c.source for c in new.candidates] == ["wide", "wide", "policy"]
+        d = [c.distance for c in new.candidates]
+        assert old.loser == int(np.argmax(d))
+        if int(np.argmin(d)) == 2:
+            assert not new.has_pair and new.note == "the policy's draw won"
+        else:
+            assert (new.winner, new.loser) == (int(np.argmin(d)), 2)
+    assert any(r.has_pair for r in records)
+    with pytest.raises(ValueError, match="pairing=anchor needs a candidate drawn from the policy"):
+        make_callback(dpo_root, proposal="wide", wide_fraction=1.0, pairing="anchor")
+    with pytest.raises(ValueError, match="rollout.pairing must be one of"):
+        make_callback(dpo_root, pairing="worst")
+
+
 def test_mode_material_candidates_share_the_most_likely_material(dpo_root, policy, tmp_path, monkeypatch):
     monkeypatch.setattr(rollout, "evaluate_physics", StandIn())
     cb = make_callback(dpo_root, material="mode", num_candidates=4)

@@ -83,24 +83,50 @@ class SceneRecord:
         return cls(**data)
 
 
-def select_pair(candidates: list[Candidate], min_gap: float) -> tuple[int | None, int | None, str]:
-    """(winner, loser, note): the lowest distance wins, the highest loses.
+PAIRINGS = ("extremes", "anchor")  # how select_pair picks the rejected candidate (``stage.rollout.pairing``)
 
-    No pair when fewer than two candidates have finite distances, or when the best and the
-    worst are less than ``min_gap`` apart (a tie, e.g. stiff bodies that all move rigidly):
+
+def select_pair(
+    candidates: list[Candidate], min_gap: float, pairing: str = "extremes"
+) -> tuple[int | None, int | None, str]:
+    """(winner, loser, note): the lowest distance wins; ``pairing`` says which candidate loses.
+
+    - ``extremes`` (the paper's): the highest distance loses.
+    - ``anchor``: the policy's own draw (the first candidate whose source is "policy") loses, and
+      there is no pair when it wins. For a Gaussian policy the DPO gradient on the mean points
+      from the loser to the winner wherever the mean is, so only a loser at the policy's own
+      draw makes it point from the policy towards the winner; best against worst pointed the
+      right way in about half the pairs once the policy had moved (docs/model.md).
+
+    No pair when fewer than two candidates have finite distances, or when the winner and the
+    loser are less than ``min_gap`` apart (a tie, e.g. stiff bodies that all move rigidly):
     such pairs carry no preference, only tracker noise. A failed rollout loses against any
     finished one, so physics that cannot be simulated is pushed away. A candidate the time
     budget skipped or cut says nothing about the physics and takes no part.
     """
+    if pairing not in PAIRINGS:
+        raise ValueError(f"unknown pairing {pairing!r}; choose one of {', '.join(PAIRINGS)}")
     scores = [math.nan if c.skipped else c.score for c in candidates]
     finite = [i for i, s in enumerate(scores) if math.isfinite(s)]
     if not finite:
         return None, None, "every rollout failed"
     winner = min(finite, key=lambda i: (scores[i], i))
     failed = [i for i, s in enumerate(scores) if math.isinf(s)]
-    if failed:
+    if pairing == "anchor":
+        anchor = next((i for i, c in enumerate(candidates) if c.source == "policy"), None)
+        if anchor is None:
+            raise ValueError("pairing 'anchor' needs a candidate drawn from the policy; lower wide_fraction")
+        if candidates[anchor].skipped:
+            return None, None, "the policy's draw was skipped over the time budget"
+        if anchor == winner:
+            return None, None, "the policy's draw won"
+        if math.isinf(scores[anchor]):
+            return winner, anchor, "loser failed to simulate"
+        loser = anchor
+    elif failed:
         return winner, failed[0], "loser failed to simulate"
-    loser = max(finite, key=lambda i: (scores[i], -i))
+    else:
+        loser = max(finite, key=lambda i: (scores[i], -i))
     if loser == winner:
         return None, None, "fewer than two candidates within the time budget"
     if scores[loser] - scores[winner] < min_gap:

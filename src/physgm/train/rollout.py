@@ -28,6 +28,7 @@ from physgm.gaussians import read_ply
 from physgm.model.posterior import PhysicsPosterior
 from physgm.physics.materials import MATERIAL_NAMES
 from physgm.train.pairs import (
+    PAIRINGS,
     Candidate,
     PairCache,
     PairDataset,
@@ -74,7 +75,9 @@ class RolloutConfig:
     refresh_every_n_epochs: int = 4  # new rollouts (a new round) every N epochs
     min_std_decades: float = 0.3  # exploration floor: policy draws' log10 E std is at least this
     min_std_nu: float = 0.03  # and nu's std at least this
-    min_gap: float = 0.002  # best and worst closer than this (score units) is a tie: no pair
+    min_gap: float = 0.002  # winner and loser closer than this (score units) is a tie: no pair
+    pairing: str = "extremes"  # physgm.train.pairs.PAIRINGS: which candidate loses (best vs worst, or vs
+    # the policy's own draw); pairs are chosen again from the cached candidates, so it is not in the cache key
     anchor_ties: bool = False  # serve tie scenes too, for the KL anchor (loss.kl_weight)
     max_failed_fraction: float = 0.5  # more failed rollouts than this in a round stops training
     workers: int = 2  # candidates simulated at once (threads; Warp releases the GIL)
@@ -102,6 +105,17 @@ class RolloutConfig:
             raise ValueError(f"rollout.proposal must be one of {', '.join(PROPOSALS)}, got {self.proposal!r}")
         if not 0.0 <= self.wide_fraction <= 1.0:
             raise ValueError(f"rollout.wide_fraction must be in [0, 1], got {self.wide_fraction}")
+        if self.pairing not in PAIRINGS:
+            raise ValueError(f"rollout.pairing must be one of {', '.join(PAIRINGS)}, got {self.pairing!r}")
+        if (
+            self.pairing == "anchor"
+            and self.proposal == "wide"
+            and round(self.wide_fraction * self.num_candidates) >= self.num_candidates
+        ):
+            raise ValueError(
+                "rollout.pairing=anchor needs a candidate drawn from the policy, but wide_fraction "
+                f"{self.wide_fraction} makes all {self.num_candidates} candidates wide; lower it"
+            )
         if (
             self.num_candidates < 2
             or self.refresh_every_n_epochs < 1
@@ -167,7 +181,7 @@ def rollout_scene(
             candidates = list(pool.map(run, range(cfg.num_candidates)))
     else:
         candidates = [run(k) for k in range(cfg.num_candidates)]
-    winner, loser, note = select_pair(candidates, cfg.min_gap)
+    winner, loser, note = select_pair(candidates, cfg.min_gap, cfg.pairing)
     return SceneRecord(
         scene.id, scene.index, round_, settings, policy, candidates, winner, loser, global_step, note
     )
@@ -222,6 +236,7 @@ class RolloutCallback(L.Callback):
             "cache_dir",
             "data_root",
             "progress",
+            "pairing",
         ):
             c.pop(k)
         return settings_hash(c)
@@ -303,6 +318,10 @@ class RolloutCallback(L.Callback):
                 record = rollout_scene(model, scene, self.cfg, round_, settings, policy, trainer.global_step)
                 cache.write(record)
                 simulated += 1
+            else:  # the record may have been paired by another rule
+                record.winner, record.loser, record.note = select_pair(
+                    record.candidates, self.cfg.min_gap, self.cfg.pairing
+                )
             local.append(record)
             if self.cfg.progress:
                 self._progress(round_, local, len(mine), simulated, time.perf_counter() - start)
