@@ -28,7 +28,7 @@ from collections import defaultdict
 from pathlib import Path
 
 from physgm.data.format import load_asset
-from physgm.train.pairs import PAIRINGS, SceneRecord, select_pair
+from physgm.train.pairs import PAIRINGS, SceneRecord, policy_draw
 
 COUNTS = ("pairs", "nearer", "toward", "toward_counted", "no_pair")
 
@@ -47,7 +47,8 @@ def judge(records: list[SceneRecord], truth: dict[str, tuple[str, float]]) -> di
                 row["no_pair"] += 1
             continue
         w, l = r.candidates[r.winner].log10_E, r.candidates[r.loser].log10_E
-        draw = next((c.log10_E for c in r.candidates if c.source == "policy"), None)
+        k = policy_draw(r.candidates)
+        draw = None if k is None else r.candidates[k].log10_E
         for row in rows:
             row["pairs"] += 1
             row["nearer"] += abs(w - true_log10_E) < abs(l - true_log10_E)
@@ -68,7 +69,7 @@ def read_round(folder: Path, pairing: str | None = None, min_gap: float = 0.002)
         if not record.complete:
             continue
         if pairing is not None:
-            record.winner, record.loser, record.note = select_pair(record.candidates, min_gap, pairing)
+            record.pair_again(min_gap, pairing)
         records.append(record)
     return records
 

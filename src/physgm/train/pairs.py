@@ -82,8 +82,17 @@ class SceneRecord:
         data["candidates"] = [Candidate(**c) for c in data["candidates"]]
         return cls(**data)
 
+    def pair_again(self, min_gap: float, pairing: str) -> None:
+        """Choose the pair from the same candidates by ``pairing`` (a record may come from another rule)."""
+        self.winner, self.loser, self.note = select_pair(self.candidates, min_gap, pairing)
+
 
 PAIRINGS = ("extremes", "anchor")  # how select_pair picks the rejected candidate (``stage.rollout.pairing``)
+
+
+def policy_draw(candidates: list[Candidate]) -> int | None:
+    """Index of the first candidate drawn from the policy (the anchor pairs' loser), or None."""
+    return next((i for i, c in enumerate(candidates) if c.source == "policy"), None)
 
 
 def select_pair(
@@ -113,7 +122,7 @@ def select_pair(
     winner = min(finite, key=lambda i: (scores[i], i))
     failed = [i for i, s in enumerate(scores) if math.isinf(s)]
     if pairing == "anchor":
-        anchor = next((i for i, c in enumerate(candidates) if c.source == "policy"), None)
+        anchor = policy_draw(candidates)
         if anchor is None:
             raise ValueError("pairing 'anchor' needs a candidate drawn from the policy; lower wide_fraction")
         if candidates[anchor].skipped:

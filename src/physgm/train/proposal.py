@@ -75,13 +75,18 @@ def policy_proposal(
     return Draws(draws, ["policy"] * k)
 
 
+def wide_count(k: int, wide_fraction: float) -> int:
+    """How many of K candidates the wide proposal stratifies; the rest are policy draws."""
+    return min(k, max(0, round(wide_fraction * k)))
+
+
 def wide_proposal(
     posterior: PhysicsPosterior, k: int, cfg: ProposalSettings, generator: torch.Generator
 ) -> Draws:
     """``round(wide_fraction K)`` candidates stratified over their material's log10 E range, the rest
     from the policy; materials and nu are the policy's draws either way."""
     draws = policy_proposal(posterior, k, cfg, generator)
-    n_wide = min(k, max(0, round(cfg.wide_fraction * k)))
+    n_wide = wide_count(k, cfg.wide_fraction)
     u = torch.rand(n_wide, generator=generator, dtype=torch.float64)
     log10_E = draws.sample.log10_E.clone()
     for j in range(n_wide):  # candidate j takes stratum j of n_wide

@@ -40,7 +40,7 @@ from physgm.train.pairs import (
     select_pair,
     settings_hash,
 )
-from physgm.train.proposal import PROPOSALS, ProposalSettings, propose, scene_generator
+from physgm.train.proposal import PROPOSALS, ProposalSettings, propose, scene_generator, wide_count
 from physgm.train.rollout_env import (
     RolloutScene,
     SimSettings,
@@ -110,7 +110,7 @@ class RolloutConfig:
         if (
             self.pairing == "anchor"
             and self.proposal == "wide"
-            and round(self.wide_fraction * self.num_candidates) >= self.num_candidates
+            and wide_count(self.num_candidates, self.wide_fraction) == self.num_candidates
         ):
             raise ValueError(
                 "rollout.pairing=anchor needs a candidate drawn from the policy, but wide_fraction "
@@ -318,10 +318,8 @@ class RolloutCallback(L.Callback):
                 record = rollout_scene(model, scene, self.cfg, round_, settings, policy, trainer.global_step)
                 cache.write(record)
                 simulated += 1
-            else:  # the record may have been paired by another rule
-                record.winner, record.loser, record.note = select_pair(
-                    record.candidates, self.cfg.min_gap, self.cfg.pairing
-                )
+            else:
+                record.pair_again(self.cfg.min_gap, self.cfg.pairing)
             local.append(record)
             if self.cfg.progress:
                 self._progress(round_, local, len(mine), simulated, time.perf_counter() - start)
