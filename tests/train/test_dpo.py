@@ -177,6 +177,30 @@ def test_cached_head_inputs_give_the_full_forward_posteriors(tmp_path, material_
     assert not torch.equal(policy.z_E_mean, reference.z_E_mean)
 
 
+def test_prior_weight_override_trains_policy_and_reference_without_the_shipped_prior(tmp_path):
+    """A stage-1 file shipped with w = 16 for real photos is trained at w = 0 on procedural scenes."""
+    model = features_head_config()
+    model["physics_head"]["semantic_prior_weight"] = 16.0
+    s1 = stage1_checkpoint(tmp_path / "s1.ckpt", model=model)
+    records, inputs = fake_pairs(n=2)
+    batch = collate_pairs([PairDataset(records, inputs)[i] for i in range(2)])
+    args = (batch.images, batch.masks, batch.c2w, batch.Ks)
+    stage1 = load_model(s1)[0]
+    with torch.no_grad():
+        with_prior = stage1(*args).physics.material_logits
+        stage1.config.physics_head.semantic_prior_weight = 0.0
+        head_alone = stage1(*args).physics.material_logits
+        lit = LitDPO(init_ckpt=s1, prior_weight=0.0)
+        policy, reference = lit.model(*args).physics, lit.reference(*args).physics
+    assert not torch.allclose(with_prior.log_softmax(-1), head_alone.log_softmax(-1), atol=1e-3)
+    torch.testing.assert_close(policy.material_logits.log_softmax(-1), head_alone.log_softmax(-1))
+    torch.testing.assert_close(reference.material_logits.log_softmax(-1), head_alone.log_softmax(-1))
+    assert lit.hparams.model["physics_head"]["semantic_prior_weight"] == 0.0  # the DPO file rebuilds at w = 0
+    assert LitDPO(init_ckpt=s1).model.config.physics_head.semantic_prior_weight == 16.0  # None: the file's
+    with pytest.raises(ValueError, match="mobilenet_v2"):  # a ViT has no ImageNet classes for a prior
+        LitDPO(init_ckpt=stage1_checkpoint(tmp_path / "vit.ckpt"), prior_weight=2.0)
+
+
 def test_factorised_log_prob_drops_E_and_nu_when_materials_differ(tmp_path):
     lit = LitDPO(init_ckpt=stage1_checkpoint(tmp_path / "s1.ckpt"), loss={"factorised": True})
     records, inputs = fake_pairs(n=4)  # odd scenes: same material, even: different

@@ -8,7 +8,7 @@ dataclasses one to one; checkpoints store ``PhysGMConfig.to_dict()`` and rebuild
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
 
@@ -118,6 +118,17 @@ class PhysGMConfig:
     def from_dict(cls, data: Mapping[str, Any]) -> PhysGMConfig:
         """Build from a nested mapping (YAML, checkpoint hparams); unknown keys are an error."""
         return _from_mapping(cls, data, "model")
+
+    def with_prior_weight(self, weight: float) -> PhysGMConfig:
+        """A copy whose semantic prior has weight ``weight`` (w > 0 needs the mobilenet_v2 encoder)."""
+        if weight > 0 and self.backbone.encoder.kind != "mobilenet_v2":
+            raise ValueError(
+                f"a semantic prior weight of {weight} needs a model with the mobilenet_v2 encoder (the prior "
+                f"reads its ImageNet classes); this model's encoder is {self.backbone.encoder.kind!r}"
+            )
+        if weight < 0:
+            raise ValueError(f"the semantic prior weight must be >= 0, got {weight}")
+        return replace(self, physics_head=replace(self.physics_head, semantic_prior_weight=float(weight)))
 
 
 def _from_mapping(cls: type, data: Mapping[str, Any] | None, where: str):

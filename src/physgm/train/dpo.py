@@ -120,6 +120,9 @@ class LitDPO(L.LightningModule):
         total_steps: optimiser steps of the run (length of the learning-rate schedule).
         inputs: the input views trained on (num_views, input_resolution, background), kept for
             evaluation (``physgm.train.evaluate_dpo``).
+        prior_weight: the semantic prior weight w of the policy and the reference; None keeps the
+            stage-1 checkpoint's. Procedural scenes need 0: their ImageNet classes say nothing about
+            the material, so the prior a shipped model carries for real photos would pick it.
         format_version: checkpoint layout version (``physgm.CHECKPOINT_FORMAT_VERSION``), checked on load.
     """
 
@@ -131,6 +134,7 @@ class LitDPO(L.LightningModule):
         optim: dict[str, Any] | None = None,
         total_steps: int = 1000,
         inputs: dict[str, Any] | None = None,
+        prior_weight: float | None = None,
         format_version: int = CHECKPOINT_FORMAT_VERSION,
     ) -> None:
         super().__init__()
@@ -143,13 +147,16 @@ class LitDPO(L.LightningModule):
                     f"init_ckpt={init_ckpt!r}"
                 )
             model = stage1.config.to_dict()
-            self.hparams["model"] = model  # stored so the DPO checkpoint rebuilds on its own
         config = PhysGMConfig.from_dict(model)
+        if prior_weight is not None:
+            config = config.with_prior_weight(prior_weight)
+        self.hparams["model"] = config.to_dict()  # stored so the DPO checkpoint rebuilds on its own
         self.model = PhysGM(config, load_pretrained=False)
         # A list, so the reference is not a submodule (not saved, not optimised).
         self._reference: list[PhysGM] = []
         if stage1 is not None:
-            if stage1.config != config:
+            own = stage1.config if prior_weight is None else stage1.config.with_prior_weight(prior_weight)
+            if own != config:
                 raise ValueError(
                     f"the model config does not match the stage-1 checkpoint {init_ckpt}; drop the model "
                     "override"
@@ -380,6 +387,7 @@ def fit(cfg) -> dict[str, float]:
         optim=plain(stage.optim),
         total_steps=int(total),
         inputs=inputs,
+        prior_weight=stage.get("prior_weight"),
     )
     trainer.fit(module, ckpt_path=cfg.get("ckpt_path"))
     return {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}

@@ -25,6 +25,7 @@ import torch
 import physgm
 from physgm.errors import UserError
 from physgm.model.checkpoint import PREFIX, Checkpoint, read_checkpoint
+from physgm.model.config import PhysGMConfig
 
 KEEP_HPARAMS = ("model", "renderer", "inputs", "format_version")
 
@@ -62,12 +63,8 @@ def slim(
     kept = {k: hparams[k] for k in KEEP_HPARAMS if k in hparams}
     head = {}
     if prior_weight is not None:
-        if (kept["model"].get("backbone") or {}).get("encoder", {}).get("kind") != "mobilenet_v2":
-            raise ValueError(
-                "--prior-weight needs a model with the mobilenet_v2 encoder (the prior reads its "
-                "ImageNet classes)"
-            )
-        head["semantic_prior_weight"] = float(prior_weight)
+        config = PhysGMConfig.from_dict(kept["model"]).with_prior_weight(prior_weight)
+        head["semantic_prior_weight"] = config.physics_head.semantic_prior_weight
     if prior_temperature is not None:
         if not prior_temperature > 0:
             raise ValueError(f"--prior-temperature must be > 0, got {prior_temperature}")
