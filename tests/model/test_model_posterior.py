@@ -151,3 +151,48 @@ def test_head_logvar_stays_in_configured_bounds(raw):
     assert -9.0 <= float(lv) <= 2.0
     post = head(torch.randn(4, 3, 8))
     assert post.material_logits.shape == (4, 15) and post.z_E_mean.shape == (4,)
+
+
+def test_material_frame_reads_E_within_each_materials_range():
+    """E_ranges: z_E = -1, 1 are the ends of the candidate's own material's range (hand-computed)."""
+    ranges = torch.tensor([[3.0, 5.0], [10.0, 11.0]], dtype=torch.float64)
+    post = PhysicsPosterior(
+        material_logits=torch.tensor([[0.0, 2.0], [30.0, 0.0]], dtype=torch.float64),
+        z_E_mean=torch.tensor([0.0, 0.5], dtype=torch.float64),
+        z_E_logvar=torch.tensor([math.log(0.25), math.log(0.04)], dtype=torch.float64),
+        z_nu_mean=torch.zeros(2, dtype=torch.float64),
+        z_nu_logvar=torch.zeros(2, dtype=torch.float64),
+        E_ranges=ranges,
+    )
+    # Mean and spread are the most likely material's: 10.5 +- 0.5 * 0.5; 4.5 +- 0.2 * 1.
+    assert post.log10_E_mean.tolist() == pytest.approx([10.5, 4.5])
+    assert post.log10_E_std.tolist() == pytest.approx([0.25, 0.2])
+    assert post.mean().material[:, 0].tolist() == [1, 0]
+    # A candidate is normalised with its own material: log10 E = 4.5 under material 0 is z = 0.5.
+    cand = PhysicsSample(
+        torch.tensor([[0, 1]]), torch.tensor([[4.5, 10.25]], dtype=torch.float64), torch.zeros(1, 2)
+    )
+    _, log_E, _ = post[:1].log_prob_terms(cand)
+    expected = [Normal(0.0, 0.5).log_prob(torch.tensor(z)).item() for z in (0.5, -0.5)]
+    assert log_E[0].tolist() == pytest.approx(expected)
+    # Samples of the sure second scene (material 0) land in [3, 5] around 4.5 with std 0.2.
+    draws = post[1:].sample(4000, torch.Generator().manual_seed(0))
+    assert bool((draws.material == 0).all())
+    assert draws.log10_E.mean().item() == pytest.approx(4.5, abs=0.02)
+    assert draws.log10_E.std().item() == pytest.approx(0.2, rel=0.05)
+    # Indexing and moving keep the table whole; the global frame is unchanged without it.
+    assert post[1:].E_ranges is ranges and torch.equal(post.cpu_float().E_ranges, ranges.float())
+    glob = PhysicsPosterior(*(getattr(post, k) for k in PhysicsPosterior.BATCHED))
+    assert glob.log10_E_mean.tolist() == pytest.approx(denormalise_log10_E(post.z_E_mean).tolist())
+
+
+def test_wide_proposal_floor_is_in_decades_of_the_material_frame():
+    from physgm.train.proposal import widen
+
+    post = PhysicsPosterior(
+        torch.tensor([[0.0, 5.0]]), torch.zeros(1), torch.tensor([-20.0]), torch.zeros(1), torch.zeros(1),
+        E_ranges=torch.tensor([[3.0, 5.0], [10.0, 11.0]]),
+    )
+    # Material 1 spans 1 decade: 0.5 decades a unit of z, so a 0.3-decade floor is a z std of 0.6.
+    assert widen(post, 0.3, 0.03).log10_E_std.item() == pytest.approx(0.3, rel=1e-5)
+    assert math.exp(0.5 * widen(post, 0.3, 0.03).z_E_logvar.item()) == pytest.approx(0.6, rel=1e-5)

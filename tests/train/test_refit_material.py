@@ -1,4 +1,5 @@
-"""The material classifier on pooled encoder features, and its refit on a frozen stage-1 model."""
+"""Refits on a frozen stage-1 model: the material classifier on pooled encoder features, and the E
+regression relative to the material's range (``refit_stiffness``)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,10 @@ from physgm.errors import UserError
 from physgm.model import PhysGM, PhysGMConfig
 from physgm.model.checkpoint import load_model, save_checkpoint
 from physgm.model.physics_head import POOLED_DIM, pooled_features
+from physgm.model.posterior import material_E_ranges
+from physgm.train import refit_stiffness
 from physgm.train.refit_material import RefitConfig, draw_scenes, main, refit
+from physgm.train.refit_stiffness import StiffnessRefitConfig, TokenSplit, fit, posterior_mean_errors
 
 MOBILENET = {"kind": "mobilenet_v2", "patch_size": 16, "embed_dim": 448, "freeze": True, "img_size": 32}
 
@@ -112,3 +116,68 @@ def test_refit_refuses_a_vit_model_and_overwriting_its_input(data_root, tmp_path
         refit(tmp_path / "vit.ckpt", data_root, tmp_path / "out.ckpt", RefitConfig(epochs=1))
     with pytest.raises(SystemExit, match="overwrite"):
         main([str(tmp_path / "vit.ckpt"), "--data", str(data_root), "--out", str(tmp_path / "vit.ckpt")])
+
+
+def test_refit_fits_E_in_the_material_frame_and_keeps_every_other_weight(data_root, tmp_path):
+    torch.manual_seed(1)
+    source = PhysGM(tiny_cnn_config("token"))
+    save_checkpoint(source, tmp_path / "s1.ckpt", global_step=7)
+    out = tmp_path / "stiff.ckpt"
+    cfg = StiffnessRefitConfig(epochs=200, lr=3e-3)
+    record = refit_stiffness.refit(tmp_path / "s1.ckpt", data_root, out, cfg, log=print)
+    model, ckpt = load_model(out)
+    head = model.config.physics_head
+    assert (head.E_frame, head.E_logvar_offset, head.semantic_prior_weight) == ("material", 0.0, 1.5)
+    before, after = source.state_dict(), model.state_dict()
+    assert any(not torch.equal(before[k], after[k]) for k in after if k.startswith("physics_head.young."))
+    for k, v in before.items():
+        if not k.startswith("physics_head.young."):
+            assert torch.equal(v, after[k]), k
+    assert ckpt.raw["physgm"]["refit_stiffness"]["best"]["epoch"] == record["best"]["epoch"] >= 10
+    assert not (tmp_path / "stiff.ckpt.tmp").exists()
+    # The saved model reads E in the frame of its most likely material in a full forward pass.
+    cams = orbit_cameras([0.0, 90.0], [0.0, 0.0], 1.8, 34.0, 32, 32)
+    with torch.no_grad():
+        post = model(
+            torch.rand(1, 2, 3, 32, 32), torch.ones(1, 2, 1, 32, 32), cams.c2w[None], cams.Ks[None]
+        ).physics
+    lo, hi = material_E_ranges()[post.material_logits.argmax(-1)].unbind(-1)
+    torch.testing.assert_close(post.log10_E_mean, lo + (post.z_E_mean + 1) / 2 * (hi - lo))
+
+
+def test_stiffness_refit_refuses_overwriting_its_input_and_too_few_epochs(tmp_path):
+    save_checkpoint(PhysGM(tiny_cnn_config("token")), tmp_path / "s1.ckpt")
+    base = [str(tmp_path / "s1.ckpt"), "--data", str(tmp_path)]
+    with pytest.raises(SystemExit, match="overwrite"):
+        refit_stiffness.main([*base, "--out", str(tmp_path / "s1.ckpt")])
+    with pytest.raises(SystemExit, match="at least 10"):
+        refit_stiffness.main([*base, "--out", str(tmp_path / "o.ckpt"), "--epochs", "3"])
+    with pytest.raises(SystemExit, match="not found"):
+        refit_stiffness.main(
+            [str(tmp_path / "none.ckpt"), "--data", str(tmp_path), "--out", str(tmp_path / "o.ckpt")]
+        )
+
+
+def token_set(n: int, seed: int) -> TokenSplit:
+    """Tokens whose first channel carries the position of E in its material's range, as a cue would."""
+    gen = torch.Generator().manual_seed(seed)
+    material = torch.randint(0, 15, (n,), generator=gen)
+    z = torch.rand(n, generator=gen) * 2 - 1
+    lo, hi = material_E_ranges()[material].unbind(-1)
+    tokens = torch.randn(n, 16, generator=gen)
+    tokens[:, 0] = 3 * z
+    logits = torch.nn.functional.one_hot(material, 15).float()
+    return TokenSplit(tokens, logits, material, lo + (z + 1) / 2 * (hi - lo), torch.full((n,), 4))
+
+
+def test_stiffness_fit_reads_the_cue_in_each_materials_frame():
+    from physgm.model.config import PhysicsHeadConfig
+    from physgm.model.physics_head import PhysicsHead
+
+    torch.manual_seed(0)
+    head = PhysicsHead(PhysicsHeadConfig(E_frame="material"), dim=16, num_global_tokens=3)
+    train, val = token_set(400, 0), token_set(100, 1)
+    best = fit(head, train, val, StiffnessRefitConfig(epochs=60, lr=3e-3), log=lambda *_: None)
+    fitted = float(posterior_mean_errors(head, val).median())
+    centre = float(posterior_mean_errors(head, val, centre=True).median())
+    assert fitted < 0.3 * centre and best["val_views4"] == pytest.approx(fitted)

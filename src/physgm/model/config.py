@@ -100,6 +100,12 @@ class PhysicsHeadConfig:
     # tokens by 0.1-0.15 (docs/model.md); ``python -m physgm.train.refit_material`` fits it.
     material_input: str = "token"
     feature_hidden: int = 256  # hidden size of the "features" material MLP
+    # What z_E = -1 .. 1 stands for: "global", 1 kPa .. 500 GPa for every material (the paper's single
+    # E), or "material", the ends of the material's own E range in the material table, so E is read
+    # relative to the material (physgm.model.posterior). A global-frame head, unsure between jelly and
+    # metal, puts its mean between them; ``python -m physgm.train.refit_stiffness`` fits a material-frame
+    # head on a frozen stage-1 model (docs/model.md).
+    E_frame: str = "global"
 
 
 @dataclass

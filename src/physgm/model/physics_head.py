@@ -15,9 +15,10 @@ from torch import Tensor, nn
 
 from physgm.model.cnn_encoder import LEVEL_CHANNELS, ImageFeatures
 from physgm.model.config import PhysicsHeadConfig
-from physgm.model.posterior import PhysicsPosterior
+from physgm.model.posterior import PhysicsPosterior, material_E_ranges
 
 MATERIAL_INPUTS = ("token", "features")
+E_FRAMES = ("global", "material")
 # Per-channel mean of all four levels and standard deviation of the two coarsest (the fine levels'
 # spread is mostly the silhouette's edge).
 POOLED_DIM = sum(LEVEL_CHANNELS.values()) + LEVEL_CHANNELS["s16"] + LEVEL_CHANNELS["s32"]
@@ -76,7 +77,16 @@ class PhysicsHead(nn.Module):
             raise ValueError(
                 f"physics_head.material_input must be one of {MATERIAL_INPUTS}, got {cfg.material_input!r}"
             )
+        if cfg.E_frame not in E_FRAMES:
+            raise ValueError(f"physics_head.E_frame must be one of {E_FRAMES}, got {cfg.E_frame!r}")
         self.cfg = cfg
+        # [M, 2] log10 E range per material, for E_frame "material" (not saved: the material table's)
+        self.register_buffer("E_ranges", material_E_ranges(), persistent=False)
+        if cfg.E_frame == "material" and len(self.E_ranges) != cfg.num_materials:
+            raise ValueError(
+                f"physics_head.E_frame='material' reads the material table's {len(self.E_ranges)} E ranges, "
+                f"but the head has num_materials={cfg.num_materials}"
+            )
         if cfg.material_input == "features":
             self.material = PooledMaterialClassifier(cfg.num_materials, cfg.feature_hidden)
             last = self.material.out
@@ -110,6 +120,7 @@ class PhysicsHead(nn.Module):
             z_E_logvar=self._logvar(E_raw) + self.cfg.E_logvar_offset,
             z_nu_mean=nu_mean,
             z_nu_logvar=self._logvar(nu_raw) + self.cfg.nu_logvar_offset,
+            E_ranges=self.E_ranges if self.cfg.E_frame == "material" else None,
         )
 
     def _logvar(self, raw: Tensor) -> Tensor:

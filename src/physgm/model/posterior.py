@@ -7,12 +7,19 @@ roughly [-1, 1], so both regressions have the same scale:
 Samples are reported in physical units (log10 E in log10 Pa, nu). ``log_prob`` is the exact log
 density of the *normalised* values (categorical log prob + two Gaussian log densities), which is
 what the pretraining NLL and the DPO ratio need; the constant Jacobian of the affine map is left out.
+
+With ``E_ranges`` (a [M, 2] table of each material's log10 E range, ``material_E_ranges``) z_E is
+instead relative to the material: z_E = -1 and 1 are the ends of that material's range, so E is
+conditional on the material (``physics_head.E_frame="material"``). The mean and the spread are then
+those of the most likely material, a sample maps its z_E with its own material's range, and
+``log_prob`` normalises a candidate's E with its candidate's material (the Jacobian, now different per
+material, is still left out: it cancels in the DPO ratio, where policy and reference share it).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -42,6 +49,13 @@ def normalise_log10_E(log10_E: Tensor) -> Tensor:
 
 def denormalise_log10_E(z: Tensor) -> Tensor:
     return _from_unit(z, LOG10_E_RANGE)
+
+
+def material_E_ranges() -> Tensor:  # [M, 2]
+    """log10 of each material's E range in the material table, in ``MATERIAL_NAMES`` order."""
+    from physgm.physics.materials import MATERIAL_NAMES, get_material
+
+    return torch.tensor([[math.log10(x) for x in get_material(m).E_range] for m in MATERIAL_NAMES])
 
 
 def normalise_nu(nu: Tensor) -> Tensor:
@@ -86,6 +100,8 @@ class PhysicsPosterior:
         material_logits: [B, M] unnormalised log probabilities of the M materials.
         z_E_mean, z_E_logvar: [B] mean and log-variance of normalised log10 E.
         z_nu_mean, z_nu_logvar: [B] mean and log-variance of normalised nu.
+        E_ranges: None (z_E in the global frame) or [M, 2] log10 E range per material (z_E relative
+            to the material; not per batch element, so indexing the posterior keeps it whole).
     """
 
     material_logits: Tensor  # [B, M]
@@ -93,18 +109,29 @@ class PhysicsPosterior:
     z_E_logvar: Tensor  # [B]
     z_nu_mean: Tensor  # [B]
     z_nu_logvar: Tensor  # [B]
+    E_ranges: Tensor | None = None  # [M, 2]
+
+    BATCHED = ("material_logits", "z_E_mean", "z_E_logvar", "z_nu_mean", "z_nu_logvar")
 
     @property
     def material_probs(self) -> Tensor:  # [B, M]
         return self.material_logits.softmax(dim=-1)
 
+    def _E_frame(self, material: Tensor) -> tuple[Tensor, Tensor] | tuple[float, float]:
+        """(lo, hi) of log10 E that z_E = -1, 1 stand for, for ``material`` (any shape of indices)."""
+        if self.E_ranges is None:
+            return LOG10_E_RANGE
+        ranges = self.E_ranges.to(self.z_E_mean)
+        return ranges[material, 0], ranges[material, 1]
+
     @property
     def log10_E_mean(self) -> Tensor:  # [B] log10 Pa
-        return denormalise_log10_E(self.z_E_mean)
+        return _from_unit(self.z_E_mean, self._E_frame(self.material_logits.argmax(-1)))
 
     @property
     def log10_E_std(self) -> Tensor:  # [B] decades
-        return torch.exp(0.5 * self.z_E_logvar) * 0.5 * (LOG10_E_RANGE[1] - LOG10_E_RANGE[0])
+        lo, hi = self._E_frame(self.material_logits.argmax(-1))
+        return torch.exp(0.5 * self.z_E_logvar) * 0.5 * (hi - lo)
 
     @property
     def nu_mean(self) -> Tensor:  # [B]
@@ -126,7 +153,7 @@ class PhysicsPosterior:
             )
             z_E = self.z_E_mean[:, None] + torch.exp(0.5 * self.z_E_logvar)[:, None] * noise[0]
             z_nu = self.z_nu_mean[:, None] + torch.exp(0.5 * self.z_nu_logvar)[:, None] * noise[1]
-        return PhysicsSample(material, denormalise_log10_E(z_E), denormalise_nu(z_nu))
+        return PhysicsSample(material, _from_unit(z_E, self._E_frame(material)), denormalise_nu(z_nu))
 
     def mean(self) -> PhysicsSample:
         """The most likely material and the mean E and nu, as a K = 1 sample."""
@@ -139,7 +166,8 @@ class PhysicsPosterior:
     def log_prob_terms(self, sample: PhysicsSample) -> tuple[Tensor, Tensor, Tensor]:  # 3 x [B, K]
         """Exact log probabilities of (material, normalised log10 E, normalised nu), separately."""
         log_p = F.log_softmax(self.material_logits, dim=-1).gather(1, sample.material)
-        log_E = _gaussian_log_density(normalise_log10_E(sample.log10_E), self.z_E_mean, self.z_E_logvar)
+        z_E = _to_unit(sample.log10_E, self._E_frame(sample.material))
+        log_E = _gaussian_log_density(z_E, self.z_E_mean, self.z_E_logvar)
         log_nu = _gaussian_log_density(normalise_nu(sample.nu), self.z_nu_mean, self.z_nu_logvar)
         return log_p, log_E, log_nu
 
@@ -155,12 +183,22 @@ class PhysicsPosterior:
         gaussians = 1.0 + _LOG_2PI + 0.5 * (self.z_E_logvar + self.z_nu_logvar)
         return categorical + gaussians
 
+    def _map(self, fn) -> PhysicsPosterior:
+        """The same posterior with ``fn`` applied to each batched tensor."""
+        return PhysicsPosterior(**{k: fn(getattr(self, k)) for k in self.BATCHED}, E_ranges=self.E_ranges)
+
     def detach(self) -> PhysicsPosterior:
-        return PhysicsPosterior(**{f.name: getattr(self, f.name).detach() for f in fields(self)})
+        return self._map(Tensor.detach)
+
+    def cpu_float(self) -> PhysicsPosterior:
+        """A float32 copy on the CPU (rollouts and the pipeline read it there)."""
+        out = self._map(lambda t: t.float().cpu())
+        out.E_ranges = None if self.E_ranges is None else self.E_ranges.float().cpu()
+        return out
 
     def __getitem__(self, index) -> PhysicsPosterior:
         """The posteriors of the batch elements selected by ``index`` (mask, indices or slice)."""
-        return PhysicsPosterior(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
+        return self._map(lambda t: t[index])
 
 
 def _gaussian_log_density(

@@ -48,4 +48,4 @@ def predict_scene(
     g = out.gaussians.to_gaussians(0)
     g = Gaussians(*(t.detach().float().cpu() for t in (g.means, g.quats, g.scales, g.opacities, g.colors)))
     post = out.physics.detach()
-    return g, PhysicsPosterior(*(getattr(post, f).float().cpu() for f in post.__dataclass_fields__))
+    return g, post.cpu_float()

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import torch
 
-from physgm.model.posterior import LOG10_E_RANGE, NU_RANGE, PhysicsPosterior, PhysicsSample
+from physgm.model.posterior import NU_RANGE, PhysicsPosterior, PhysicsSample
 from physgm.physics.materials import log10_E_range
 
 
@@ -43,16 +43,18 @@ class Draws:
 
 def widen(posterior: PhysicsPosterior, min_std_decades: float, min_std_nu: float) -> PhysicsPosterior:
     """The posterior with its E and nu standard deviations floored (the exploration proposal)."""
-    z_per_decade = 2.0 / (LOG10_E_RANGE[1] - LOG10_E_RANGE[0])
+    # decades per unit of z_E: the global frame's, or the most likely material's (E_frame "material")
+    decades = posterior.log10_E_std / torch.exp(0.5 * posterior.z_E_logvar)
     z_per_nu = 2.0 / (NU_RANGE[1] - NU_RANGE[0])
-    floor_E = 2.0 * math.log(max(min_std_decades * z_per_decade, 1e-12))
+    floor_E = 2.0 * torch.log((min_std_decades / decades).clamp_min(1e-12))
     floor_nu = 2.0 * math.log(max(min_std_nu * z_per_nu, 1e-12))
     return PhysicsPosterior(
         posterior.material_logits,
         posterior.z_E_mean,
-        posterior.z_E_logvar.clamp_min(floor_E),
+        torch.maximum(posterior.z_E_logvar, floor_E),
         posterior.z_nu_mean,
         posterior.z_nu_logvar.clamp_min(floor_nu),
+        posterior.E_ranges,
     )
 
 

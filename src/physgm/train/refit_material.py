@@ -30,7 +30,7 @@ from torch import Tensor
 from physgm.data.datamodule import PhysAssetsDataModule
 from physgm.data.format import load_asset, read_split
 from physgm.errors import UserError
-from physgm.model.checkpoint import PREFIX, input_size, load_model, read_checkpoint
+from physgm.model.checkpoint import PREFIX, Checkpoint, input_size, load_model, read_checkpoint
 from physgm.model.physgm import PhysGM
 from physgm.model.physics_head import PooledMaterialClassifier, pooled_features
 from physgm.physics.materials import MATERIAL_NAMES
@@ -176,16 +176,24 @@ def refit(ckpt_path: Path, root: Path, out: Path, cfg: RefitConfig, log=print) -
         "seconds": round(time.perf_counter() - start, 1),
     }
     recipe = f"python -m physgm.train.refit_material {ckpt_path} --data {root} --epochs {cfg.epochs}"
+    save_refit(ckpt, ckpt_path, model, out, recipe, "refit_material", record)
+    return record
+
+
+def save_refit(
+    ckpt: Checkpoint, ckpt_path: Path, model: PhysGM, out: Path, recipe: str, key: str, record: dict
+) -> None:
+    """Write ``model`` (refitted from ``ckpt``) as a slim checkpoint at ``out``, atomically, with the
+    refit's ``record`` under ``physgm.<key>``."""
     exported = slim(ckpt, str(ckpt_path), recipe=recipe)
-    exported["hyper_parameters"]["model"] = config.to_dict()
+    exported["hyper_parameters"]["model"] = model.config.to_dict()
     exported["state_dict"] = {PREFIX + k: v.detach().clone() for k, v in model.state_dict().items()}
-    exported["physgm"]["refit_material"] = record
+    exported["physgm"][key] = record
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(out.name + ".tmp")
     torch.save(exported, tmp)
     tmp.replace(out)  # never a half-written checkpoint under the final name
     read_checkpoint(out)  # the layout check every reader does
-    return record
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -17,7 +17,7 @@ import math
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import lightning as L
@@ -192,7 +192,7 @@ def asset_gaussians_path(cfg: RolloutConfig, scene: RolloutScene) -> Path:
 
 
 def _cpu(p: PhysicsPosterior) -> PhysicsPosterior:
-    return PhysicsPosterior(*(getattr(p, f.name).float().cpu() for f in fields(p)))
+    return p.cpu_float()
 
 
 class RolloutCallback(L.Callback):
