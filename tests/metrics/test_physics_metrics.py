@@ -108,3 +108,28 @@ def test_simulated_E_is_the_mean_projected_onto_the_predicted_materials_range():
     assert out["abs_log10E_mean"].item() == pytest.approx(2.6 / 3, abs=1e-4)
     assert out["abs_log10E_simulated_mean"].item() == pytest.approx(1.6 / 3, abs=1e-4)
     assert out["abs_log10E_simulated_median"].item() == pytest.approx(0.3, abs=1e-4)
+
+
+def test_material_frame_coverage_is_the_mixtures_central_interval():
+    """Half jelly (log10 E 3-5), half metal: the true E's CDF is a sum over the two materials."""
+    from physgm.model.posterior import material_E_ranges
+    from physgm.physics.materials import MATERIAL_NAMES
+
+    jelly, metal = MATERIAL_NAMES.index("jelly"), MATERIAL_NAMES.index("metal")
+    logits = torch.full((3, 15), -1e4)
+    logits[:, [jelly, metal]] = 0.0
+    post = PhysicsPosterior(
+        logits,
+        torch.zeros(3),
+        torch.full((3,), math.log(0.01)),
+        torch.zeros(3),
+        torch.zeros(3),
+        E_ranges=material_E_ranges(),
+    )
+    lo, hi = material_E_ranges()[[jelly, metal]].unbind(-1)
+    truth = torch.tensor([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, 2.0])  # the centres, and below both
+    # At jelly's centre: half of jelly's Gaussian and none of metal's; at metal's: all of jelly's and half.
+    assert post.log10_E_cdf(truth).tolist() == pytest.approx([0.25, 0.75, 0.0], abs=1e-5)
+    m = PhysicsMetrics(num_materials=15)
+    m.update(post, torch.tensor([jelly, metal, jelly]), truth, torch.zeros(3))
+    assert m.compute()["coverage90_E"].item() == pytest.approx(2 / 3)

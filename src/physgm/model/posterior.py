@@ -133,6 +133,17 @@ class PhysicsPosterior:
         lo, hi = self._E_frame(self.material_logits.argmax(-1))
         return torch.exp(0.5 * self.z_E_logvar) * 0.5 * (hi - lo)
 
+    def log10_E_cdf(self, log10_E: Tensor) -> Tensor:  # [B] -> [B]
+        """P(log10 E' <= ``log10_E``) under the posterior: its Gaussian's, or with ``E_ranges`` the mixture
+        over the materials of each material's Gaussian (the material probabilities as weights)."""
+        std = torch.exp(0.5 * self.z_E_logvar)
+        if self.E_ranges is None:
+            return torch.special.ndtr((normalise_log10_E(log10_E) - self.z_E_mean) / std)
+        lo, hi = self.E_ranges.to(self.z_E_mean).unbind(-1)  # [M]
+        z = 2.0 * (log10_E[:, None] - lo) / (hi - lo) - 1.0  # [B, M]
+        per_material = torch.special.ndtr((z - self.z_E_mean[:, None]) / std[:, None])
+        return (self.material_probs * per_material).sum(-1)
+
     @property
     def nu_mean(self) -> Tensor:  # [B]
         return denormalise_nu(self.z_nu_mean)
