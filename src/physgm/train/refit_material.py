@@ -196,24 +196,38 @@ def save_refit(
     read_checkpoint(out)  # the layout check every reader does
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(
-        prog="python -m physgm.train.refit_material", description=__doc__.split("\n")[0]
-    )
-    p.add_argument("ckpt", type=Path, help="stage-1 checkpoint with the mobilenet_v2 encoder")
+def refit_arguments(prog: str, description: str, epochs: int, seed: int, argv: list[str] | None):
+    """The command line every refit takes, ``CKPT --data ROOT --out OUT [--epochs N] [--seed S]``, checked."""
+    p = argparse.ArgumentParser(prog=prog, description=description)
+    p.add_argument("ckpt", type=Path, help="stage-1 checkpoint")
     p.add_argument("--data", type=Path, required=True, help="PhysAssets root with train and val splits")
     p.add_argument("--out", type=Path, required=True, help="refitted checkpoint to write")
-    p.add_argument("--epochs", type=int, default=RefitConfig.epochs)
-    p.add_argument("--seed", type=int, default=RefitConfig.seed)
+    p.add_argument("--epochs", type=int, default=epochs)
+    p.add_argument("--seed", type=int, default=seed)
     a = p.parse_args(argv)
+    if not a.ckpt.is_file():
+        raise SystemExit(f"checkpoint {a.ckpt} not found")
     if a.out.resolve() == a.ckpt.resolve():
         raise SystemExit(f"--out {a.out} would overwrite the checkpoint being refitted; write elsewhere")
+    return a
+
+
+def run_refit(fn, a: argparse.Namespace, cfg) -> int:
+    """Run ``fn(ckpt, data, out, cfg)``, progress on stderr, its JSON record on stdout."""
     try:
-        record = refit(a.ckpt, a.data, a.out, RefitConfig(epochs=a.epochs, seed=a.seed), log=_stderr)
+        record = fn(a.ckpt, a.data, a.out, cfg, log=_stderr)
     except UserError as err:
         raise SystemExit(str(err)) from None
     print(json.dumps(record))
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    doc = __doc__.split("\n")[0]
+    a = refit_arguments(
+        "python -m physgm.train.refit_material", doc, RefitConfig.epochs, RefitConfig.seed, argv
+    )
+    return run_refit(refit, a, RefitConfig(epochs=a.epochs, seed=a.seed))
 
 
 def _stderr(msg: str) -> None:

@@ -18,7 +18,6 @@ and export with ``--logvar-offsets`` to calibrate the new head. OUT is written a
 
 from __future__ import annotations
 
-import argparse
 import copy
 import json
 import sys
@@ -35,7 +34,7 @@ from physgm.model.checkpoint import input_size, load_model
 from physgm.model.physgm import PhysGM
 from physgm.model.physics_head import PhysicsHead, _mean_logvar_mlp
 from physgm.model.posterior import denormalise_log10_E, material_E_ranges
-from physgm.train.refit_material import save_refit
+from physgm.train.refit_material import refit_arguments, run_refit, save_refit
 
 
 @dataclass
@@ -187,31 +186,12 @@ def refit(ckpt_path: Path, root: Path, out: Path, cfg: StiffnessRefitConfig, log
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(
-        prog="python -m physgm.train.refit_stiffness", description=__doc__.split("\n")[0]
-    )
-    p.add_argument("ckpt", type=Path, help="stage-1 checkpoint")
-    p.add_argument("--data", type=Path, required=True, help="PhysAssets root with train and val splits")
-    p.add_argument("--out", type=Path, required=True, help="refitted checkpoint to write")
-    p.add_argument("--epochs", type=int, default=StiffnessRefitConfig.epochs)
-    p.add_argument("--seed", type=int, default=StiffnessRefitConfig.seed)
-    a = p.parse_args(argv)
-    if not a.ckpt.is_file():
-        raise SystemExit(f"checkpoint {a.ckpt} not found")
-    if a.out.resolve() == a.ckpt.resolve():
-        raise SystemExit(f"--out {a.out} would overwrite the checkpoint being refitted; write elsewhere")
-    if a.epochs < StiffnessRefitConfig.eval_every:
-        raise SystemExit(f"--epochs must be at least {StiffnessRefitConfig.eval_every} (one scored epoch)")
-    try:
-        record = refit(a.ckpt, a.data, a.out, StiffnessRefitConfig(epochs=a.epochs, seed=a.seed), log=_stderr)
-    except UserError as err:
-        raise SystemExit(str(err)) from None
-    print(json.dumps(record))
-    return 0
-
-
-def _stderr(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)  # stdout is for the JSON record
+    doc = __doc__.split("\n")[0]
+    cfg = StiffnessRefitConfig
+    a = refit_arguments("python -m physgm.train.refit_stiffness", doc, cfg.epochs, cfg.seed, argv)
+    if a.epochs < cfg.eval_every:
+        raise SystemExit(f"--epochs must be at least {cfg.eval_every} (one scored epoch)")
+    return run_refit(refit, a, StiffnessRefitConfig(epochs=a.epochs, seed=a.seed))
 
 
 if __name__ == "__main__":
