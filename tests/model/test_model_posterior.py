@@ -196,3 +196,24 @@ def test_wide_proposal_floor_is_in_decades_of_the_material_frame():
     # Material 1 spans 1 decade: 0.5 decades a unit of z, so a 0.3-decade floor is a z std of 0.6.
     assert widen(post, 0.3, 0.03).log10_E_std.item() == pytest.approx(0.3, rel=1e-5)
     assert math.exp(0.5 * widen(post, 0.3, 0.03).z_E_logvar.item()) == pytest.approx(0.6, rel=1e-5)
+
+
+@pytest.mark.parametrize("frame", ["global", "material"])
+def test_E_log_density_is_the_derivative_of_the_cdf(frame):
+    """Per decade, in both frames: the mixture's density is d/dx of its CDF (central differences)."""
+    post = make_posterior(b=4, m=2, seed=3)
+    if frame == "material":
+        post.E_ranges = torch.tensor([[3.0, 5.0], [6.0, 10.0]], dtype=torch.float64)
+    x = torch.tensor([4.0, 6.5, 8.1, 9.7], dtype=torch.float64)
+    h = 1e-5
+    numeric = (post.log10_E_cdf(x + h) - post.log10_E_cdf(x - h)) / (2 * h)
+    torch.testing.assert_close(post.log10_E_log_density(x).exp(), numeric, rtol=1e-6, atol=1e-9)
+
+
+def test_cat_joins_batches_and_keeps_the_table():
+    a, b = make_posterior(b=2, seed=1), make_posterior(b=3, seed=2)
+    joined = PhysicsPosterior.cat([a, b])
+    assert joined.material_logits.shape == (5, 15) and joined.E_ranges is None
+    torch.testing.assert_close(joined[2:].z_E_mean, b.z_E_mean)
+    with pytest.raises(ValueError, match="at least one"):
+        PhysicsPosterior.cat([])

@@ -180,3 +180,21 @@ def test_classifier_input_pads_with_background_and_normalises():
     std = torch.tensor((0.229, 0.224, 0.225)).view(3, 1)
     torch.testing.assert_close(x[0, :, 0, :], ((1 - mean) / std).expand(3, 224))  # white padding on top
     torch.testing.assert_close(x[0, :, 112, :], ((0 - mean) / std).expand(3, 224))  # the image in the middle
+
+
+def test_material_temperature_softens_the_fused_distribution_and_keeps_its_mode():
+    from physgm.model.config import PhysGMConfig
+    from physgm.model.physgm import PhysGM
+    from physgm.model.physics_head import fuse_material_logits
+
+    gen = torch.Generator().manual_seed(0)
+    head, prior = torch.randn(3, 15, generator=gen), torch.randn(3, 15, generator=gen).log_softmax(-1)
+    fused = fuse_material_logits(head, prior, 2.0)
+    tempered = fuse_material_logits(head, prior, 2.0, temperature=2.0)
+    # (p_head * p_prior^2)^(1/2), renormalised: the square root of the fused probabilities, rescaled
+    expected = fused.softmax(-1).sqrt() / fused.softmax(-1).sqrt().sum(-1, keepdim=True)
+    torch.testing.assert_close(tempered.softmax(-1), expected)
+    assert torch.equal(tempered.argmax(-1), fused.argmax(-1))
+    torch.testing.assert_close(fuse_material_logits(head, None, 0.0, 4.0), head / 4)
+    with pytest.raises(ValueError, match="material_temperature must be > 0"):
+        PhysGM(PhysGMConfig.from_dict({"physics_head": {"material_temperature": -1.0}}))

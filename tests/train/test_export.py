@@ -156,3 +156,19 @@ def test_export_sets_the_calibration_offsets_of_the_log_variances(tmp_path):
     torch.testing.assert_close(after.z_nu_logvar, before.z_nu_logvar - 0.5)
     torch.testing.assert_close(after.z_E_mean, before.z_E_mean)
     torch.testing.assert_close(after.log10_E_std, before.log10_E_std * math.exp(0.6))
+
+
+def test_export_sets_the_material_temperature(tmp_path):
+    """The exported model divides its material logits by T: the same most likely material, softer."""
+    module = training_checkpoint(tmp_path / "t.ckpt")
+    assert main([str(tmp_path / "t.ckpt"), str(tmp_path / "c.ckpt"), "--material-temperature", "2.5"]) == 0
+    model, _ = load_model(tmp_path / "c.ckpt")
+    assert model.config.physics_head.material_temperature == 2.5
+    cams = orbit_cameras([0], [0], 1.5, 40.0, 16, 16)
+    images, masks = torch.rand(1, 1, 3, 16, 16), torch.ones(1, 1, 1, 16, 16)
+    with torch.no_grad():
+        before = module.model.eval()(images, masks, cams.c2w[None], cams.Ks[None]).physics
+        after = model(images, masks, cams.c2w[None], cams.Ks[None]).physics
+    torch.testing.assert_close(after.material_logits, before.material_logits / 2.5)
+    with pytest.raises(SystemExit, match="material-temperature must be > 0"):
+        main([str(tmp_path / "t.ckpt"), str(tmp_path / "d.ckpt"), "--material-temperature", "0"])

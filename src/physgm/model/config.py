@@ -94,6 +94,11 @@ class PhysicsHeadConfig:
     # ``physgm.train.evaluate``'s ``calibration_logvar_offset_*`` on a validation split.
     E_logvar_offset: float = 0.0
     nu_logvar_offset: float = 0.0
+    # Post-hoc calibration of the material distribution: its logits (after the semantic prior) are
+    # divided by T. The most likely material stays the same; T > 1 gives the others more mass, so that
+    # a material-frame E posterior (a mixture over materials) covers what a wrong material would miss.
+    # Training keeps 1; ``python -m physgm.train.calibrate`` chooses it with E_logvar_offset.
+    material_temperature: float = 1.0
     # What the material classifier reads: "token" (global token 0, the paper's design) or
     # "features" (the frozen CNN encoder's pyramid pooled over space and the views; mobilenet_v2
     # only). On the synthetic assets a classifier of the pooled features beats one of the trained

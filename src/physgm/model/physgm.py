@@ -96,8 +96,10 @@ class PhysGM(nn.Module):
         if self.config.physics_head.material_input == "features":
             pooled = pooled_features(out.features, b)
         head = self.physics_head(out.global_tokens, pooled)
-        weight = self.config.physics_head.semantic_prior_weight
-        fused = fuse_material_logits(head.material_logits, log_prior, weight)
+        cfg = self.config.physics_head
+        fused = fuse_material_logits(
+            head.material_logits, log_prior, cfg.semantic_prior_weight, cfg.material_temperature
+        )
         physics = dataclasses.replace(head, material_logits=fused)
         return PhysGMOutput(gaussians, physics, log_prior, head.material_logits)
 

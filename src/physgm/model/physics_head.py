@@ -73,6 +73,8 @@ class PhysicsHead(nn.Module):
             raise ValueError(
                 f"physics_head.semantic_prior_temperature must be > 0, got {cfg.semantic_prior_temperature}"
             )
+        if not cfg.material_temperature > 0:
+            raise ValueError(f"physics_head.material_temperature must be > 0, got {cfg.material_temperature}")
         if cfg.material_input not in MATERIAL_INPUTS:
             raise ValueError(
                 f"physics_head.material_input must be one of {MATERIAL_INPUTS}, got {cfg.material_input!r}"
@@ -141,8 +143,10 @@ def fuse_material_logits(
     head_logits: Tensor,  # [B, M]
     semantic_log_prior: Tensor | None,  # [B, M] log p_prior(material), or None
     weight: float,
+    temperature: float = 1.0,
 ) -> Tensor:  # [B, M]
-    """Material logits of p_head * p_prior^weight (the head's own logits without a prior or at 0)."""
-    if semantic_log_prior is None or weight == 0.0:
-        return head_logits
-    return head_logits.log_softmax(dim=-1) + weight * semantic_log_prior.to(head_logits.dtype)
+    """Material logits of (p_head * p_prior^weight)^(1 / temperature) (the head's own logits without a
+    prior or at weight 0)."""
+    if semantic_log_prior is not None and weight != 0.0:
+        head_logits = head_logits.log_softmax(dim=-1) + weight * semantic_log_prior.to(head_logits.dtype)
+    return head_logits if temperature == 1.0 else head_logits / temperature

@@ -144,6 +144,18 @@ class PhysicsPosterior:
         per_material = torch.special.ndtr((z - self.z_E_mean[:, None]) / std[:, None])
         return (self.material_probs * per_material).sum(-1)
 
+    def log10_E_log_density(self, log10_E: Tensor) -> Tensor:  # [B] -> [B]
+        """log p(``log10_E``) per decade: its Gaussian's, or with ``E_ranges`` the mixture over the
+        materials (each Gaussian read in its material's frame, with that frame's Jacobian)."""
+        if self.E_ranges is None:
+            lo, hi = LOG10_E_RANGE
+            z = normalise_log10_E(log10_E)[:, None]  # [B, 1]
+            return _gaussian_log_density(z, self.z_E_mean, self.z_E_logvar)[:, 0] + math.log(2.0 / (hi - lo))
+        lo, hi = self.E_ranges.to(self.z_E_mean).unbind(-1)  # [M]
+        z = 2.0 * (log10_E[:, None] - lo) / (hi - lo) - 1.0  # [B, M]
+        per_material = _gaussian_log_density(z, self.z_E_mean, self.z_E_logvar) + torch.log(2.0 / (hi - lo))
+        return torch.logsumexp(F.log_softmax(self.material_logits, dim=-1) + per_material, dim=-1)
+
     @property
     def nu_mean(self) -> Tensor:  # [B]
         return denormalise_nu(self.z_nu_mean)
@@ -210,6 +222,14 @@ class PhysicsPosterior:
     def __getitem__(self, index) -> PhysicsPosterior:
         """The posteriors of the batch elements selected by ``index`` (mask, indices or slice)."""
         return self._map(lambda t: t[index])
+
+    @classmethod
+    def cat(cls, posteriors: list[PhysicsPosterior]) -> PhysicsPosterior:
+        """One posterior of the batch elements of ``posteriors`` in order (they share ``E_ranges``)."""
+        if not posteriors:
+            raise ValueError("PhysicsPosterior.cat needs at least one posterior")
+        fields = {k: torch.cat([getattr(p, k) for p in posteriors]) for k in cls.BATCHED}
+        return cls(**fields, E_ranges=posteriors[0].E_ranges)
 
 
 def _gaussian_log_density(

@@ -45,9 +45,9 @@ def checkpoint_renderer(hparams: dict) -> dict:
     return dict(hparams.get("renderer") or {"backend": "warp"})
 
 
-def fused_logits(out, weight: float) -> torch.Tensor:  # [B, M]
-    """Material logits of p_head * p_prior^w of a model output, at any w."""
-    return fuse_material_logits(out.head_material_logits, out.semantic_log_prior, weight)
+def fused_logits(out, weight: float, temperature: float = 1.0) -> torch.Tensor:  # [B, M]
+    """Material logits of (p_head * p_prior^w)^(1 / T) of a model output, at any w."""
+    return fuse_material_logits(out.head_material_logits, out.semantic_log_prior, weight, temperature)
 
 
 @torch.no_grad()
@@ -66,6 +66,7 @@ def evaluate_views(
     material at each of these w.
     """
     weight = model.config.physics_head.semantic_prior_weight if prior_weight is None else prior_weight
+    temperature = model.config.physics_head.material_temperature
     images = ImageMetrics().to(device)
     seen = ImageMetrics().to(
         device
@@ -85,7 +86,7 @@ def evaluate_views(
         batch = batch.to(device)
         views = batch.images.shape[1]
         out = model(batch.images, batch.masks, batch.c2w, batch.Ks, batch.features)
-        posterior = dataclasses.replace(out.physics, material_logits=fused_logits(out, weight))
+        posterior = dataclasses.replace(out.physics, material_logits=fused_logits(out, weight, temperature))
         h, w = batch.target_images.shape[-2:]
         rgb, _ = render_targets(out, batch.target_c2w, batch.target_Ks, w, h, renderer)
         rendered = rgb.permute(0, 1, 4, 2, 3).clamp(0, 1)
@@ -108,7 +109,7 @@ def evaluate_views(
         if out.semantic_log_prior is not None:
             zero_shot.update(out.semantic_log_prior, torch.where(known, batch.true_material, batch.material))
         for w, (p_metric, l_metric) in sweep.items():
-            swept = dataclasses.replace(out.physics, material_logits=fused_logits(out, w))
+            swept = dataclasses.replace(out.physics, material_logits=fused_logits(out, w, temperature))
             if known.any():
                 p_metric.update(
                     swept[known], batch.true_material[known], batch.true_log10_E[known], batch.true_nu[known]

@@ -2,7 +2,7 @@
 
     python -m physgm.train.export outputs/<run>/checkpoints/last.ckpt checkpoints/physgm_tiny.ckpt \
         [--recipe "python train.py experiment=tiny_cpu ..."] [--metrics test_metrics.json] \
-        [--prior-weight W] [--logvar-offsets E NU]
+        [--prior-weight W] [--logvar-offsets E NU] [--material-temperature T]
 
 Keeps the model weights, the hyper-parameters that rebuild the model (and the renderer and input
 settings evaluation reads), the step count and a ``physgm`` record of where the file came from;
@@ -49,14 +49,15 @@ def slim(
     prior_weight: float | None = None,
     logvar_offsets: tuple[float, float] | None = None,
     prior_temperature: float | None = None,
+    material_temperature: float | None = None,
 ) -> dict:
     """The inference part of a Lightning checkpoint of ``LitPretrain`` or ``LitDPO``.
 
     ``prior_weight`` and ``prior_temperature`` set the semantic prior's weight w and classifier
     temperature T in the exported model (chosen on real validation objects with ``python -m
     physgm.train.evaluate --prior-sweep [--prior-temperature T]``); ``logvar_offsets``
-    the (E, nu) calibration of the physics head (evaluate's ``calibration_logvar_offset_*`` on a
-    validation split).
+    the (E, nu) calibration of the physics head and ``material_temperature`` the temperature of its
+    material logits (both from ``python -m physgm.train.calibrate`` on a validation split).
     """
     hparams = ckpt.hparams
     state = {PREFIX + k: v.detach().clone() for k, v in ckpt.state.items()}
@@ -69,6 +70,10 @@ def slim(
         if not prior_temperature > 0:
             raise ValueError(f"--prior-temperature must be > 0, got {prior_temperature}")
         head["semantic_prior_temperature"] = float(prior_temperature)
+    if material_temperature is not None:
+        if not material_temperature > 0:
+            raise ValueError(f"--material-temperature must be > 0, got {material_temperature}")
+        head["material_temperature"] = float(material_temperature)
     if logvar_offsets is not None:
         head["E_logvar_offset"], head["nu_logvar_offset"] = (float(x) for x in logvar_offsets)
     if head:
@@ -116,7 +121,13 @@ def main(argv: list[str] | None = None) -> int:
         nargs=2,
         default=None,
         metavar=("E", "NU"),
-        help="calibration added to the physics head's log-variances (evaluate's calibration_logvar_offset_*)",
+        help="calibration added to the physics head's log-variances (python -m physgm.train.calibrate)",
+    )
+    p.add_argument(
+        "--material-temperature",
+        type=float,
+        default=None,
+        help="temperature of the material logits of the exported model (python -m physgm.train.calibrate)",
     )
     a = p.parse_args(argv)
     if not a.ckpt.is_file():
@@ -131,6 +142,7 @@ def main(argv: list[str] | None = None) -> int:
             a.prior_weight,
             a.logvar_offsets,
             a.prior_temperature,
+            a.material_temperature,
         )
     except (UserError, ValueError) as err:
         raise SystemExit(str(err)) from None
