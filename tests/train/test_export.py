@@ -36,6 +36,16 @@ def training_checkpoint(path):
     return module
 
 
+def physics_of_both(module: LitPretrain, model) -> tuple:
+    """The physics posteriors of the training module's model and of the exported one, on one random view."""
+    cams = orbit_cameras([0], [0], 1.5, 40.0, 16, 16)
+    images, masks = torch.rand(1, 1, 3, 16, 16), torch.ones(1, 1, 1, 16, 16)
+    with torch.no_grad():
+        before = module.model.eval()(images, masks, cams.c2w[None], cams.Ks[None]).physics
+        after = model(images, masks, cams.c2w[None], cams.Ks[None]).physics
+    return before, after
+
+
 def test_export_keeps_predictions_and_drops_training_state(tmp_path, capsys):
     module = training_checkpoint(tmp_path / "train.ckpt")
     metrics = tmp_path / "m.json"
@@ -147,11 +157,7 @@ def test_export_sets_the_calibration_offsets_of_the_log_variances(tmp_path):
     model, _ = load_model(tmp_path / "c.ckpt")
     head = model.config.physics_head
     assert (head.E_logvar_offset, head.nu_logvar_offset) == (1.2, -0.5)
-    cams = orbit_cameras([0], [0], 1.5, 40.0, 16, 16)
-    images, masks = torch.rand(1, 1, 3, 16, 16), torch.ones(1, 1, 1, 16, 16)
-    with torch.no_grad():
-        before = module.model.eval()(images, masks, cams.c2w[None], cams.Ks[None]).physics
-        after = model(images, masks, cams.c2w[None], cams.Ks[None]).physics
+    before, after = physics_of_both(module, model)
     torch.testing.assert_close(after.z_E_logvar, before.z_E_logvar + 1.2)
     torch.testing.assert_close(after.z_nu_logvar, before.z_nu_logvar - 0.5)
     torch.testing.assert_close(after.z_E_mean, before.z_E_mean)
@@ -164,11 +170,7 @@ def test_export_sets_the_material_temperature(tmp_path):
     assert main([str(tmp_path / "t.ckpt"), str(tmp_path / "c.ckpt"), "--material-temperature", "2.5"]) == 0
     model, _ = load_model(tmp_path / "c.ckpt")
     assert model.config.physics_head.material_temperature == 2.5
-    cams = orbit_cameras([0], [0], 1.5, 40.0, 16, 16)
-    images, masks = torch.rand(1, 1, 3, 16, 16), torch.ones(1, 1, 1, 16, 16)
-    with torch.no_grad():
-        before = module.model.eval()(images, masks, cams.c2w[None], cams.Ks[None]).physics
-        after = model(images, masks, cams.c2w[None], cams.Ks[None]).physics
+    before, after = physics_of_both(module, model)
     torch.testing.assert_close(after.material_logits, before.material_logits / 2.5)
     with pytest.raises(SystemExit, match="material-temperature must be > 0"):
         main([str(tmp_path / "t.ckpt"), str(tmp_path / "d.ckpt"), "--material-temperature", "0"])
