@@ -91,7 +91,7 @@ class PhysicsHeadConfig:
     # Post-hoc calibration: added to the head's log-variances of normalised log10 E and nu, so that
     # 90 % intervals cover 90 % of validation assets. Training keeps 0 (a head trained to convergence
     # is over-confident off its training set); ``physgm.train.export --logvar-offsets`` sets them from
-    # ``physgm.train.evaluate``'s ``calibration_logvar_offset_*`` on a validation split.
+    # ``python -m physgm.train.calibrate`` on a validation split.
     E_logvar_offset: float = 0.0
     nu_logvar_offset: float = 0.0
     # Post-hoc calibration of the material distribution: its logits (after the semantic prior) are

@@ -17,9 +17,9 @@ views (the fixed views ``physgm.train.evaluate`` uses), and chooses three number
   so its T stays 1.
 
 Offsets and the temperature are totals (the checkpoint's own combined with the change), as
-``export --logvar-offsets --material-temperature`` takes them.
-On procedural data choose ``--prior-weight 0``: the semantic prior reads real photographs. Prints one
-JSON record with the choice, the coverage before and after, and the export command.
+``export --logvar-offsets --material-temperature`` takes them. On procedural data choose
+``--prior-weight 0``: the semantic prior reads real photographs. Prints one JSON record with the
+choice, the coverage before and after, and the export command.
 """
 
 from __future__ import annotations
@@ -80,7 +80,7 @@ def collect(model: PhysGM, root: str, split: str, views: int, resolution: int, s
     if not posts:
         raise SystemExit(
             f"split {split!r} of {root} has no assets with true physics (physical.json 'true'); "
-            f"calibrate on generated data, e.g. python -m physgm.data.generate"
+            f"calibrate on generated data (python -m physgm.data.synth --out ROOT)"
         )
     return ViewSet(views, PhysicsPosterior.cat(posts), torch.cat(log10_E), torch.cat(nu))
 
@@ -173,7 +173,7 @@ def calibrate(model: PhysGM, sets: list[ViewSet], level: float = 0.9) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m physgm.train.calibrate", description=__doc__.split("\n")[0])
-    p.add_argument("ckpt", type=Path, help="stage-1 or stage-2 checkpoint (not yet calibrated)")
+    p.add_argument("ckpt", type=Path, help="stage-1 or stage-2 checkpoint")
     p.add_argument("--data", required=True, help="PhysAssets root with splits/ and true physics")
     p.add_argument("--split", default="val")
     p.add_argument("--level", type=float, default=0.9, help="interval level to cover (0 < level < 1)")
