@@ -14,7 +14,7 @@ from physgm.model.checkpoint import load_model, save_checkpoint
 from physgm.model.posterior import PhysicsPosterior
 from physgm.train import calibrate
 from physgm.train.calibrate import ViewSet, choose_E_calibration
-from physgm.train.evaluate import evaluate_views
+from physgm.train.evaluate import evaluate_views, view_datamodule
 from physgm.train.export import main as export_main
 
 
@@ -116,7 +116,7 @@ def test_cli_choice_exports_to_a_model_evaluate_scores_the_same(data_root, tmp_p
     head = model.config.physics_head
     assert (head.material_temperature, head.E_logvar_offset, head.nu_logvar_offset) == (T, off_E, off_nu)
     for views in (1, 4):
-        dm = calibrate_datamodule(data_root, views)
+        dm = view_datamodule(model, str(data_root), "val", views, 32, batch_size=8)
         scores = evaluate_views(model, dm, {"backend": "torch"})
         after = record["after"][f"views{views}"]
         assert scores["coverage90_E"] == pytest.approx(after["coverage_E"], abs=1e-6)
@@ -129,15 +129,6 @@ def test_cli_choice_exports_to_a_model_evaluate_scores_the_same(data_root, tmp_p
     # T = 1 with no change is on the grid: the choice never covers less than the file did
     lowest = {w: min(r[v]["coverage_E"] for v in r) for w, r in record.items() if w in ("before", "after")}
     assert lowest["after"] >= lowest["before"]
-
-
-def calibrate_datamodule(root, views):
-    from physgm.data.datamodule import PhysAssetsDataModule
-
-    return PhysAssetsDataModule(
-        str(root), batch_size=8, eval_p_single=1.0 if views == 1 else 0.0, num_targets=8,
-        input_resolution=32, target_resolution=32, test_split="val", val_split="val", seed=0,
-    )  # fmt: skip
 
 
 def test_cli_errors(tmp_path):

@@ -33,11 +33,11 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from physgm.data.datamodule import PhysAssetsDataModule
 from physgm.metrics.physics_metrics import Z90, calibration_logvar_offset
 from physgm.model.checkpoint import input_size, load_model
 from physgm.model.physgm import PhysGM
 from physgm.model.posterior import PhysicsPosterior
+from physgm.train.evaluate import view_datamodule
 
 TEMPERATURES = (0.75, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 4.0)
 E_OFFSETS = tuple(x / 4 for x in range(-4, 13))  # added log-variance, -1 .. 3 (std x 0.61 .. 4.5)
@@ -55,18 +55,7 @@ class ViewSet:
 
 def collect(model: PhysGM, root: str, split: str, views: int, resolution: int, seed: int = 0) -> ViewSet:
     """The model's posteriors (at its own prior weight) for the split's assets with true physics."""
-    dm = PhysAssetsDataModule(
-        root,
-        batch_size=8,
-        eval_p_single=1.0 if views == 1 else 0.0,
-        num_targets=8,  # physgm.train.evaluate's default: the same input views
-        input_resolution=resolution,
-        target_resolution=resolution,
-        test_split=split,
-        val_split=split,
-        seed=seed,
-        feature_cache="mobilenet_v2" if model.config.backbone.encoder.kind == "mobilenet_v2" else None,
-    )
+    dm = view_datamodule(model, root, split, views, resolution, seed=seed, batch_size=8)  # evaluate's views
     posts, log10_E, nu = [], [], []
     for batch in dm.test_dataloader():
         known = batch.true_known

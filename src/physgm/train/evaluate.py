@@ -50,6 +50,33 @@ def fused_logits(out, weight: float, temperature: float = 1.0) -> torch.Tensor: 
     return fuse_material_logits(out.head_material_logits, out.semantic_log_prior, weight, temperature)
 
 
+def view_datamodule(
+    model,
+    root: str,
+    split: str,
+    views: int,
+    resolution: int,
+    num_targets: int = 8,
+    target_resolution: int | None = None,
+    seed: int = 0,
+    batch_size: int = 4,
+) -> PhysAssetsDataModule:
+    """The split's fixed evaluation inputs at one input-view count (1 or 4), read from the feature
+    cache when ``model`` has the frozen CNN encoder; its ``test_dataloader`` iterates them."""
+    return PhysAssetsDataModule(
+        root,
+        batch_size=batch_size,
+        eval_p_single=1.0 if views == 1 else 0.0,
+        num_targets=num_targets,
+        input_resolution=resolution,
+        target_resolution=target_resolution or resolution,
+        test_split=split,
+        val_split=split,
+        seed=seed,
+        feature_cache="mobilenet_v2" if model.config.backbone.encoder.kind == "mobilenet_v2" else None,
+    )
+
+
 @torch.no_grad()
 def evaluate_views(
     model,
@@ -204,7 +231,6 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit(f"--prior-temperature must be > 0, got {a.prior_temperature}")
         model.config.physics_head.semantic_prior_temperature = a.prior_temperature
     sweep = tuple(float(w) for w in a.prior_sweep.split(",") if w.strip())
-    cache = "mobilenet_v2" if model.config.backbone.encoder.kind == "mobilenet_v2" else None
     renderer = checkpoint_renderer(ckpt.hparams)
     res = model.config.backbone.encoder.img_size
     lpips_model = None
@@ -223,17 +249,8 @@ def main(argv: list[str] | None = None) -> int:
     }
     start = time.perf_counter()
     for v in views:
-        dm = PhysAssetsDataModule(
-            a.data,
-            batch_size=a.batch_size,
-            eval_p_single=1.0 if v == 1 else 0.0,
-            num_targets=a.num_targets,
-            input_resolution=res,
-            target_resolution=a.resolution or res,
-            test_split=a.split,
-            val_split=a.split,
-            seed=a.seed,
-            feature_cache=cache,
+        dm = view_datamodule(
+            model, a.data, a.split, v, res, a.num_targets, a.resolution, a.seed, a.batch_size
         )
         report[f"views{v}"] = evaluate_views(
             model, dm, renderer, lpips_model, a.prior_weight, sweep, a.device

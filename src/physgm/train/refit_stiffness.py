@@ -28,12 +28,12 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from physgm.data.datamodule import PhysAssetsDataModule
 from physgm.errors import UserError
 from physgm.model.checkpoint import input_size, load_model
 from physgm.model.physgm import PhysGM
 from physgm.model.physics_head import PhysicsHead, _mean_logvar_mlp
 from physgm.model.posterior import denormalise_log10_E, material_E_ranges
+from physgm.train.evaluate import view_datamodule
 from physgm.train.refit_material import refit_arguments, run_refit, save_refit
 
 
@@ -65,20 +65,9 @@ def token_split(model: PhysGM, root: Path, split: str, resolution: int) -> Token
         lambda mod, args, out: seen.append((args[0][:, 1].detach(), out.material_logits.detach()))
     )
     parts: list[tuple[Tensor, ...]] = []
-    cache = "mobilenet_v2" if model.config.backbone.encoder.kind == "mobilenet_v2" else None
     try:
         for views in (4, 1):
-            dm = PhysAssetsDataModule(
-                str(root),
-                batch_size=8,
-                eval_p_single=1.0 if views == 1 else 0.0,
-                num_targets=4,
-                input_resolution=resolution,
-                target_resolution=resolution,
-                test_split=split,
-                val_split=split,
-                feature_cache=cache,
-            )
+            dm = view_datamodule(model, str(root), split, views, resolution, num_targets=4, batch_size=8)
             for batch in dm.test_dataloader():
                 seen.clear()
                 with torch.no_grad():

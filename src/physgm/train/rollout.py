@@ -25,7 +25,6 @@ import torch
 from torch.utils.data import DataLoader
 
 from physgm.gaussians import read_ply
-from physgm.model.posterior import PhysicsPosterior
 from physgm.physics.materials import MATERIAL_NAMES
 from physgm.train.pairs import (
     PAIRINGS,
@@ -147,7 +146,7 @@ def rollout_scene(
     if cfg.gaussians == "asset":
         gaussians = read_ply(asset_gaussians_path(cfg, scene), keep_sh=False)
     generator = scene_generator(cfg.seed, round_, scene.id)
-    drawn = propose(cfg.proposal, _cpu(posterior), cfg.num_candidates, cfg.proposal_settings, generator)
+    drawn = propose(cfg.proposal, posterior.cpu_float(), cfg.num_candidates, cfg.proposal_settings, generator)
     draws = drawn.sample
     reference = reference_frames(scene, cfg.sim.n_frames)
     device = warp_device(cfg.sim.device, next(model.parameters()).device)
@@ -189,10 +188,6 @@ def rollout_scene(
 
 def asset_gaussians_path(cfg: RolloutConfig, scene: RolloutScene) -> Path:
     return Path(cfg.data_root) / scene.id / "gaussians.ply"
-
-
-def _cpu(p: PhysicsPosterior) -> PhysicsPosterior:
-    return p.cpu_float()
 
 
 class RolloutCallback(L.Callback):
