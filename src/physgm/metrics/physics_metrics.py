@@ -27,6 +27,12 @@ def calibration_logvar_offset(z: Tensor, level: float = 0.9) -> Tensor:  # z [N]
     return 2.0 * torch.log(torch.quantile(z.double(), level) / z_level).to(z.dtype)
 
 
+def central_coverage(cdf: Tensor, level: float = 0.9) -> Tensor:  # [N] -> scalar
+    """Share of true values inside the posterior's central ``level`` interval, from the posterior's
+    CDF at each true value (``PhysicsPosterior.log10_E_cdf``)."""
+    return ((cdf >= 0.5 - level / 2) & (cdf <= 0.5 + level / 2)).float().mean()
+
+
 STATES = ("correct", "correct_behaviour", "err_E", "err_E_simulated", "err_nu", "nll", "z_E", "z_nu", "cdf_E")
 
 
@@ -100,7 +106,7 @@ class PhysicsMetrics(Metric):
             "abs_nu_median": cat["err_nu"].median(),
             "abs_nu_mean": cat["err_nu"].mean(),
             "nll": cat["nll"].mean(),
-            "coverage90_E": ((cat["cdf_E"] >= 0.05) & (cat["cdf_E"] <= 0.95)).float().mean(),
+            "coverage90_E": central_coverage(cat["cdf_E"]),
             "coverage90_nu": (cat["z_nu"] <= Z90).float().mean(),
             "calibration_logvar_offset_E": calibration_logvar_offset(cat["z_E"]),
             "calibration_logvar_offset_nu": calibration_logvar_offset(cat["z_nu"]),

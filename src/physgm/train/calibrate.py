@@ -33,7 +33,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from physgm.metrics.physics_metrics import Z90, calibration_logvar_offset
+from physgm.metrics.physics_metrics import Z90, calibration_logvar_offset, central_coverage
 from physgm.model.checkpoint import input_size, load_model
 from physgm.model.physgm import PhysGM
 from physgm.model.posterior import PhysicsPosterior
@@ -76,8 +76,7 @@ def collect(model: PhysGM, root: str, split: str, views: int, resolution: int, s
 
 def E_coverage(posterior: PhysicsPosterior, log10_E: Tensor, level: float) -> float:
     """Share of true log10 E inside the posterior's central ``level`` interval."""
-    cdf = posterior.log10_E_cdf(log10_E)
-    return float(((cdf >= 0.5 - level / 2) & (cdf <= 0.5 + level / 2)).float().mean())
+    return float(central_coverage(posterior.log10_E_cdf(log10_E), level))
 
 
 def nu_coverage(posterior: PhysicsPosterior, nu: Tensor) -> float:
