@@ -139,8 +139,7 @@ class PhysicsPosterior:
         std = torch.exp(0.5 * self.z_E_logvar)
         if self.E_ranges is None:
             return torch.special.ndtr((normalise_log10_E(log10_E) - self.z_E_mean) / std)
-        lo, hi = self.E_ranges.to(self.z_E_mean).unbind(-1)  # [M]
-        z = 2.0 * (log10_E[:, None] - lo) / (hi - lo) - 1.0  # [B, M]
+        z = _to_unit(log10_E[:, None], self._E_frame(slice(None)))  # [B, M], each material's frame
         per_material = torch.special.ndtr((z - self.z_E_mean[:, None]) / std[:, None])
         return (self.material_probs * per_material).sum(-1)
 
@@ -151,8 +150,8 @@ class PhysicsPosterior:
             lo, hi = LOG10_E_RANGE
             z = normalise_log10_E(log10_E)[:, None]  # [B, 1]
             return _gaussian_log_density(z, self.z_E_mean, self.z_E_logvar)[:, 0] + math.log(2.0 / (hi - lo))
-        lo, hi = self.E_ranges.to(self.z_E_mean).unbind(-1)  # [M]
-        z = 2.0 * (log10_E[:, None] - lo) / (hi - lo) - 1.0  # [B, M]
+        lo, hi = self._E_frame(slice(None))  # [M] each
+        z = _to_unit(log10_E[:, None], (lo, hi))  # [B, M]
         per_material = _gaussian_log_density(z, self.z_E_mean, self.z_E_logvar) + torch.log(2.0 / (hi - lo))
         return torch.logsumexp(F.log_softmax(self.material_logits, dim=-1) + per_material, dim=-1)
 

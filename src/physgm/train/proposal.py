@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 import zlib
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -48,13 +48,10 @@ def widen(posterior: PhysicsPosterior, min_std_decades: float, min_std_nu: float
     z_per_nu = 2.0 / (NU_RANGE[1] - NU_RANGE[0])
     floor_E = 2.0 * torch.log((min_std_decades / decades).clamp_min(1e-12))
     floor_nu = 2.0 * math.log(max(min_std_nu * z_per_nu, 1e-12))
-    return PhysicsPosterior(
-        posterior.material_logits,
-        posterior.z_E_mean,
-        torch.maximum(posterior.z_E_logvar, floor_E),
-        posterior.z_nu_mean,
-        posterior.z_nu_logvar.clamp_min(floor_nu),
-        posterior.E_ranges,
+    return replace(
+        posterior,
+        z_E_logvar=torch.maximum(posterior.z_E_logvar, floor_E),
+        z_nu_logvar=posterior.z_nu_logvar.clamp_min(floor_nu),
     )
 
 
