@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import warnings
 from typing import Any
 
@@ -18,6 +19,8 @@ from physgm.model.physgm import PhysGM, PhysGMOutput
 from physgm.render import rasterize_gaussians
 from physgm.train.losses import PretrainLossConfig, pretrain_losses
 from physgm.train.optim import OptimConfig, build_optimizer
+
+log = logging.getLogger(__name__)
 
 VIEW_KEYS = ("v1", "v4")  # validation metrics are kept apart for 1 and 4 input views
 
@@ -186,6 +189,10 @@ def fit(cfg) -> dict[str, float]:
         renderer=plain(cfg.renderer),
         total_steps=int(cfg.trainer.max_steps),
     )
+    if cfg.stage.get("init_ckpt"):
+        from physgm.train.warm_start import warm_start
+
+        log.info(warm_start(module.model, cfg.stage.init_ckpt).summary())
     trainer = build_trainer(cfg)
     trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}

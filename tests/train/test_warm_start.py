@@ -1,0 +1,95 @@
+"""``stage.init_ckpt``: stage 1 starts from a checkpoint's weights, widening a layer that takes new inputs."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from physgm.errors import UserError
+from physgm.model import PhysGM, PhysGMConfig
+from physgm.model.checkpoint import save_checkpoint
+from physgm.train.run import run
+from physgm.train.warm_start import warm_start
+from tests.train.test_pretrain import compose_train, tiny_overrides
+
+OUTPUT_CONV = "gaussian_head.dpt.output.0.weight"
+
+
+def tiny_config(depth_prior: str = "range", width: int = 32) -> PhysGMConfig:
+    return PhysGMConfig.from_dict(
+        {
+            "backbone": {
+                "encoder": {"img_size": 32, "patch_size": 8, "embed_dim": 32, "depth": 1, "num_heads": 2},
+                **{"width": width, "depth": 4, "head_dim": 16, "camera_dim": 8, "camera_hidden": 16},
+                "out_layers": (0, 1, 2, 3),
+            },
+            "gaussian_head": {
+                "features": 8,
+                "layer_channels": (8, 8, 16, 16),
+                "hidden": 8,
+                "depth_prior": depth_prior,
+            },
+        }
+    )
+
+
+def test_the_hull_model_starts_from_a_range_checkpoint_and_its_head_computes_the_same(tmp_path):
+    torch.manual_seed(0)
+    source = PhysGM(tiny_config("range")).eval()
+    save_checkpoint(source, tmp_path / "range.ckpt")
+    torch.manual_seed(1)
+    model = PhysGM(tiny_config("hull")).eval()
+    report = warm_start(model, tmp_path / "range.ckpt")
+
+    assert report.widened == [OUTPUT_CONV]
+    assert report.new == []
+    assert len(report.copied) == len(source.state_dict()) - 1
+    for name, value in source.state_dict().items():
+        if name != OUTPUT_CONV:
+            torch.testing.assert_close(model.state_dict()[name], value, rtol=0, atol=0)
+    grown = model.state_dict()[OUTPUT_CONV]
+    old = source.state_dict()[OUTPUT_CONV]
+    assert grown.shape[1] == old.shape[1] + 2  # the hull segment's start and length
+    torch.testing.assert_close(grown[:, : old.shape[1]], old, rtol=0, atol=0)
+    assert not grown[:, old.shape[1] :].any()
+
+    # The widened DPT head gives the source's raw outputs whatever guide it is handed.
+    tokens = [torch.randn(2, 16, 32) for _ in range(4)]
+    images = torch.rand(2, 3, 32, 32)
+    with torch.no_grad():
+        want = source.gaussian_head.dpt(tokens, images)
+        got = model.gaussian_head.dpt(tokens, images, guide=torch.rand(2, 2, 32, 32))
+    for name in want:
+        torch.testing.assert_close(got[name], want[name], rtol=0, atol=1e-6)
+
+
+def test_another_architecture_is_refused_with_the_weights_named(tmp_path):
+    save_checkpoint(PhysGM(tiny_config(width=32)), tmp_path / "w32.ckpt")
+    with pytest.raises(UserError, match="different model.*weights of another shape.*backbone"):
+        warm_start(PhysGM(tiny_config(width=48)), tmp_path / "w32.ckpt")
+    with pytest.raises(UserError, match="no PhysGM checkpoint"):
+        warm_start(PhysGM(tiny_config()), tmp_path / "missing.ckpt")
+
+
+def test_a_run_with_init_ckpt_starts_from_those_weights(tiny_dataset, tmp_path):
+    """Through train.py's config: a from-scratch run, then a hull run from its checkpoint at lr 0,
+    whose saved weights are the first run's (the widened conv's new channels zero)."""
+    steps = ["trainer.max_steps=1", "trainer.limit_val_batches=0"]
+    run(compose_train([*tiny_overrides(tiny_dataset, tmp_path / "a"), *steps]))
+    first = torch.load(tmp_path / "a" / "checkpoints" / "last.ckpt", weights_only=False)["state_dict"]
+    run(
+        compose_train(
+            [
+                *tiny_overrides(tiny_dataset, tmp_path / "b"),
+                *steps,
+                "stage.optim.lr=0",
+                "model.gaussian_head.depth_prior=hull",
+                f"stage.init_ckpt={tmp_path / 'a' / 'checkpoints' / 'last.ckpt'}",
+            ]
+        )
+    )
+    second = torch.load(tmp_path / "b" / "checkpoints" / "last.ckpt", weights_only=False)["state_dict"]
+    assert set(second) == set(first)
+    for name, value in first.items():
+        got = second[name][:, : value.shape[1]] if name == "model." + OUTPUT_CONV else second[name]
+        torch.testing.assert_close(got, value, rtol=0, atol=0, msg=name)
