@@ -93,3 +93,5 @@ def test_a_run_with_init_ckpt_starts_from_those_weights(tiny_dataset, tmp_path):
     for name, value in first.items():
         got = second[name][:, : value.shape[1]] if name == "model." + OUTPUT_CONV else second[name]
         torch.testing.assert_close(got, value, rtol=0, atol=0, msg=name)
+    width = first["model." + OUTPUT_CONV].shape[1]
+    assert not second["model." + OUTPUT_CONV][:, width:].any()
