@@ -146,10 +146,13 @@ def test_evaluate_scores_labelled_real_assets_and_sweeps_the_prior(tiny_dataset,
         test_split="train",
     )
     beh = behaviour_index()
-    hits, beh_hits = [], []
+    hits, beh_hits, head_top, prior_top = [], [], [], []
     with torch.no_grad():
         for batch in dm.test_dataloader():
-            pred = fused_logits(model(batch.images, batch.masks, batch.c2w, batch.Ks), 2.0).argmax(-1)
+            out = model(batch.images, batch.masks, batch.c2w, batch.Ks)
+            pred = fused_logits(out, 2.0).argmax(-1)
+            head_top.append(out.head_material_logits.softmax(-1).max(-1).values)
+            prior_top.append(out.semantic_log_prior.exp().max(-1).values)
             labels = torch.tensor(
                 [MATERIAL_NAMES.index(load_asset(root / a).physical.material) for a in batch.asset_ids]
             )
@@ -160,3 +163,10 @@ def test_evaluate_scores_labelled_real_assets_and_sweeps_the_prior(tiny_dataset,
         abs(float(torch.cat(beh_hits).float().mean()) - r["prior_sweep"]["2.0"]["label_behaviour_acc"]) < 1e-6
     )
     assert 0.0 <= r["prior_only_material_acc"] <= r["prior_only_behaviour_acc"] <= 1.0
+    # How sure each source is: percentiles of the most probable material's probability.
+    for source, tops in (("head", head_top), ("prior", prior_top)):
+        tops = torch.cat(tops)
+        got = r["confidence"][source]
+        # evaluate reads the encoder's features from the cache (stored at lower precision)
+        assert abs(got["p50"] - float(tops.quantile(0.5))) < 2e-3
+        assert 1 / len(MATERIAL_NAMES) - 1e-6 <= got["p10"] <= got["p50"] <= got["p90"] <= float(tops.max())

@@ -109,6 +109,7 @@ def evaluate_views(
     }
     lpips_sum, lpips_count, assets, gaussians, labelled = 0.0, 0, 0, 0.0, 0
     opacities = []
+    confidence = {"head": [], "prior": []}  # [B] each: the most probable material's probability
     for batch in datamodule.test_dataloader():
         batch = batch.to(device)
         views = batch.images.shape[1]
@@ -133,7 +134,9 @@ def evaluate_views(
         if (~known).any():
             labels.update(posterior.material_logits[~known], batch.material[~known])
             labelled += int((~known).sum())
+        confidence["head"].append(out.head_material_logits.softmax(-1).amax(-1))
         if out.semantic_log_prior is not None:
+            confidence["prior"].append(out.semantic_log_prior.exp().amax(-1))
             zero_shot.update(out.semantic_log_prior, torch.where(known, batch.true_material, batch.material))
         for w, (p_metric, l_metric) in sweep.items():
             swept = dataclasses.replace(out.physics, material_logits=fused_logits(out, w, temperature))
@@ -155,6 +158,12 @@ def evaluate_views(
     result["opacity_median"] = float(torch.cat(opacities).median())
     if lpips_count:
         result["lpips"] = lpips_sum / lpips_count
+    levels = {"p10": 0.1, "p50": 0.5, "p90": 0.9}
+    result["confidence"] = {
+        source: {name: float(torch.cat(values).float().quantile(q)) for name, q in levels.items()}
+        for source, values in confidence.items()
+        if values
+    }
     if physics.update_count:
         scores = physics.compute()
         confusion = scores.pop("confusion")
