@@ -69,13 +69,19 @@ def test_evaluate_reports_both_view_counts_and_matches_a_hand_computation(tiny_d
         test_split="train",
     )
     psnrs, psnrs_inputs, opacities = [], [], []
+    outside_error, all_error, outside_alpha = [], [], []
     with torch.no_grad():
         for batch in dm.test_dataloader():
             assert batch.images.shape[1] == 4
             out_ = model(batch.images, batch.masks, batch.c2w, batch.Ks)
-            rgb, _ = render_targets(out_, batch.target_c2w, batch.target_Ks, 32, 32, {"backend": "torch"})
+            rgb, alpha = render_targets(out_, batch.target_c2w, batch.target_Ks, 32, 32, {"backend": "torch"})
             rendered = rgb.permute(0, 1, 4, 2, 3).clamp(0, 1)
             mse = ((rendered - batch.target_images) ** 2).flatten(2).mean(-1)  # [B, 5]
+            error = ((rendered - batch.target_images) ** 2).mean(2)[:, 4:]  # [B, 1, H, W] novel view
+            outside = batch.target_masks[:, 4:, 0] <= 0.5
+            outside_error.append(error[outside])
+            all_error.append(error.flatten())
+            outside_alpha.append(alpha[:, 4:, ..., 0][outside])
             psnrs.append(-10 * torch.log10(mse[:, 4:]).flatten())
             psnrs_inputs.append(-10 * torch.log10(mse[:, :4]).flatten())
             opacities.append(out_.gaussians.opacities[out_.gaussians.valid])
@@ -83,6 +89,9 @@ def test_evaluate_reports_both_view_counts_and_matches_a_hand_computation(tiny_d
     assert abs(float(torch.cat(psnrs).mean()) - report["views4"]["psnr"]) < 1e-3
     assert abs(float(torch.cat(psnrs_inputs).mean()) - report["views4"]["psnr_inputs"]) < 1e-3
     assert abs(float(torch.cat(opacities).median()) - report["views4"]["opacity_median"]) < 1e-5
+    share = float(torch.cat(outside_error).sum() / torch.cat(all_error).sum())
+    assert 0 < share < 1 and abs(share - report["views4"]["error_outside_mask"]) < 1e-3
+    assert abs(float(torch.cat(outside_alpha).mean()) - report["views4"]["alpha_outside_mask"]) < 1e-3
 
 
 def test_evaluate_single_view_batches_have_one_input(tiny_dataset, tmp_path):

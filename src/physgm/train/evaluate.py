@@ -5,7 +5,9 @@
 For every asset of the split the model sees the fixed evaluation inputs (view 1 is the
 canonical camera; with 4 views the other three follow around the object, as in training)
 and renders the target views it did not see. Reported per input-view count: PSNR, SSIM
-(and LPIPS when its backbone file is given) on those novel views; ``psnr_inputs``, the PSNR of
+(and LPIPS when its backbone file is given) on those novel views; where their squared error lies
+(``error_outside_mask``: its share outside the object's mask, the haze around the object;
+``alpha_outside_mask``, the rendered opacity there); ``psnr_inputs``, the PSNR of
 the input views rendered back (low when the Gaussians' depths are wrong, since the other
 views' Gaussians then cover them), and the median opacity of the predicted Gaussians;
 material and behaviour-class accuracy and the confusion matrix, |log10 E - true|, |nu - true|,
@@ -109,6 +111,8 @@ def evaluate_views(
     }
     lpips_sum, lpips_count, assets, gaussians, labelled = 0.0, 0, 0, 0.0, 0
     opacities = []
+    squared_error = {"inside": 0.0, "outside": 0.0}  # summed over the novel views' pixels
+    alpha_outside, outside_pixels = 0.0, 0.0
     confidence = {"head": [], "prior": []}  # [B] each: the most probable material's probability
     for batch in datamodule.test_dataloader():
         batch = batch.to(device)
@@ -116,11 +120,17 @@ def evaluate_views(
         out = model(batch.images, batch.masks, batch.c2w, batch.Ks, batch.features)
         posterior = dataclasses.replace(out.physics, material_logits=fused_logits(out, weight, temperature))
         h, w = batch.target_images.shape[-2:]
-        rgb, _ = render_targets(out, batch.target_c2w, batch.target_Ks, w, h, renderer)
+        rgb, alpha = render_targets(out, batch.target_c2w, batch.target_Ks, w, h, renderer)
         rendered = rgb.permute(0, 1, 4, 2, 3).clamp(0, 1)
         pred = rendered[:, views:].flatten(0, 1)  # novel views only
         target = batch.target_images[:, views:].flatten(0, 1)
         images.update(pred, target)
+        inside = batch.target_masks[:, views:].flatten(0, 1) > 0.5  # [N, 1, H, W]
+        error = ((pred - target) ** 2).mean(1, keepdim=True)  # [N, 1, H, W] over RGB
+        squared_error["inside"] += float(error[inside].sum())
+        squared_error["outside"] += float(error[~inside].sum())
+        alpha_outside += float(alpha[:, views:].flatten(0, 1).permute(0, 3, 1, 2)[~inside].sum())
+        outside_pixels += float((~inside).sum())
         seen.update(rendered[:, :views].flatten(0, 1), batch.target_images[:, :views].flatten(0, 1))
         opacities.append(out.gaussians.opacities[out.gaussians.valid])
         if lpips_model is not None:  # lpips takes images in [-1, 1]
@@ -156,6 +166,8 @@ def evaluate_views(
     result.update({k: float(v) for k, v in images.compute().items()})
     result["psnr_inputs"] = float(seen.compute()["psnr"])
     result["opacity_median"] = float(torch.cat(opacities).median())
+    result["error_outside_mask"] = squared_error["outside"] / max(sum(squared_error.values()), 1e-12)
+    result["alpha_outside_mask"] = alpha_outside / max(outside_pixels, 1.0)
     if lpips_count:
         result["lpips"] = lpips_sum / lpips_count
     levels = {"p10": 0.1, "p50": 0.5, "p90": 0.9}
