@@ -34,7 +34,7 @@ def test_a_bad_label_file_names_what_is_wrong(tmp_path):
 
 def test_shipped_checkpoint_scores_the_examples(capsys):
     # The shipped model at its own w gets 6 of the 8 behaviour classes right (docs/model.md); the
-    # jelly cube (plastic) and the plasticine views (leather) are the two it misses.
+    # jelly cube (metal) and the plasticine views (leather) are the two it misses.
     assert main([str(REPO_ROOT / "checkpoints" / "physgm_tiny.ckpt"), "--examples", str(EXAMPLES)]) == 0
     out = json.loads(capsys.readouterr().out)
     (w,) = out["right_behaviour"]
