@@ -178,4 +178,5 @@ def test_evaluate_scores_labelled_real_assets_and_sweeps_the_prior(tiny_dataset,
         got = r["confidence"][source]
         # evaluate reads the encoder's features from the cache (stored at lower precision)
         assert abs(got["p50"] - float(tops.quantile(0.5))) < 2e-3
-        assert 1 / len(MATERIAL_NAMES) - 1e-6 <= got["p10"] <= got["p50"] <= got["p90"] <= float(tops.max())
+        assert 1 / len(MATERIAL_NAMES) - 1e-6 <= got["p10"] <= got["p50"] <= got["p90"]
+        assert got["p90"] <= float(tops.max()) + 2e-3
