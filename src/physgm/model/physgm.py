@@ -13,6 +13,7 @@ from physgm.cameras import Cameras, plucker_rays
 from physgm.model.backbone import Backbone
 from physgm.model.cnn_encoder import LEVEL_CHANNELS, ImageFeatures, MobileNetEncoder
 from physgm.model.config import PhysGMConfig
+from physgm.model.domain_gate import DomainGate
 from physgm.model.gaussian_head import GaussianHead, GaussianPrediction
 from physgm.model.physics_head import PhysicsHead, fuse_material_logits, pooled_features
 from physgm.model.posterior import PhysicsPosterior
@@ -27,6 +28,7 @@ class PhysGMOutput:
     physics: PhysicsPosterior  # [B] posterior over material, log10 E, nu
     semantic_log_prior: Tensor | None = None  # [B, M] the ImageNet classes' material prior (CNN encoder)
     head_material_logits: Tensor | None = None  # [B, M] the physics head's alone, before the prior
+    domain_real: Tensor | None = None  # [B] the domain gate's P(real object), when the model has one
 
 
 class PhysGM(nn.Module):
@@ -55,6 +57,14 @@ class PhysGM(nn.Module):
         self.physics_head = PhysicsHead(
             config.physics_head, config.backbone.width, config.backbone.num_global_tokens
         )
+        self.domain_gate = None
+        if config.physics_head.domain_gate:
+            if not cnn:
+                raise ValueError(
+                    "physics_head.domain_gate reads the frozen CNN encoder's pyramid: it needs "
+                    f"backbone.encoder.kind='mobilenet_v2', got {config.backbone.encoder.kind!r}"
+                )
+            self.domain_gate = DomainGate()
 
     @property
     def patch_size(self) -> int:
@@ -96,12 +106,13 @@ class PhysGM(nn.Module):
         if self.config.physics_head.material_input == "features":
             pooled = pooled_features(out.features, b)
         head = self.physics_head(out.global_tokens, pooled)
+        gate = self.domain_gate(out.features, b) if self.domain_gate is not None else None
         cfg = self.config.physics_head
         fused = fuse_material_logits(
-            head.material_logits, log_prior, cfg.semantic_prior_weight, cfg.material_temperature
+            head.material_logits, log_prior, cfg.semantic_prior_weight, cfg.material_temperature, gate
         )
         physics = dataclasses.replace(head, material_logits=fused)
-        return PhysGMOutput(gaussians, physics, log_prior, head.material_logits)
+        return PhysGMOutput(gaussians, physics, log_prior, head.material_logits, gate)
 
     def encode_views(
         self,

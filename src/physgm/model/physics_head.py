@@ -144,9 +144,11 @@ def fuse_material_logits(
     semantic_log_prior: Tensor | None,  # [B, M] log p_prior(material), or None
     weight: float,
     temperature: float = 1.0,
+    gate: Tensor | None = None,  # [B] domain gate's P(real object) scaling the weight, or None
 ) -> Tensor:  # [B, M]
-    """Material logits of (p_head * p_prior^weight)^(1 / temperature) (the head's own logits without a
-    prior or at weight 0)."""
+    """Material logits of (p_head * p_prior^(weight * gate))^(1 / temperature) (the head's own logits
+    without a prior or at weight 0)."""
     if semantic_log_prior is not None and weight != 0.0:
-        head_logits = head_logits.log_softmax(dim=-1) + weight * semantic_log_prior.to(head_logits.dtype)
+        scaled = weight if gate is None else weight * gate.to(head_logits.dtype)[:, None]
+        head_logits = head_logits.log_softmax(dim=-1) + scaled * semantic_log_prior.to(head_logits.dtype)
     return head_logits if temperature == 1.0 else head_logits / temperature

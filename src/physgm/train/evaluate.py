@@ -18,8 +18,10 @@ and behaviour accuracy against their label (``label_*``).
 With the frozen MobileNetV2 encoder the material distribution is p_head * p_prior^w
 (``physgm.model.semantic_prior``): ``--prior-weight`` sets w (default: the checkpoint's), and
 ``--prior-sweep 0,0.5,1,2`` also reports both accuracies at each w, which is how w is chosen on
-the real validation objects; ``prior_only_*`` scores the semantic table alone (zero-shot). One
-JSON object goes to stdout.
+the real validation objects; ``prior_only_*`` scores the semantic table alone (zero-shot). A model
+with a domain gate (``physgm.model.domain_gate``) scales w by the gate's P(real object) at every w,
+and ``domain_gate`` gives that probability's 10th, 50th and 90th percentiles. One JSON object goes
+to stdout.
 """
 
 from __future__ import annotations
@@ -48,8 +50,11 @@ def checkpoint_renderer(hparams: dict) -> dict:
 
 
 def fused_logits(out, weight: float, temperature: float = 1.0) -> torch.Tensor:  # [B, M]
-    """Material logits of (p_head * p_prior^w)^(1 / T) of a model output, at any w."""
-    return fuse_material_logits(out.head_material_logits, out.semantic_log_prior, weight, temperature)
+    """Material logits of (p_head * p_prior^(w * g))^(1 / T) of a model output, at any w (g: the
+    domain gate's P(real), 1 for a model without a gate)."""
+    return fuse_material_logits(
+        out.head_material_logits, out.semantic_log_prior, weight, temperature, out.domain_real
+    )
 
 
 def view_datamodule(
@@ -114,6 +119,7 @@ def evaluate_views(
     squared_error = {"inside": 0.0, "outside": 0.0}  # summed over the novel views' pixels
     alpha_outside, outside_pixels = 0.0, 0.0
     confidence = {"head": [], "prior": []}  # [B] each: the most probable material's probability
+    domain_real = []  # [B] the domain gate's P(real object), for a model with a gate
     for batch in datamodule.test_dataloader():
         batch = batch.to(device)
         views = batch.images.shape[1]
@@ -145,6 +151,8 @@ def evaluate_views(
             labels.update(posterior.material_logits[~known], batch.material[~known])
             labelled += int((~known).sum())
         confidence["head"].append(out.head_material_logits.softmax(-1).amax(-1))
+        if out.domain_real is not None:
+            domain_real.append(out.domain_real)
         if out.semantic_log_prior is not None:
             confidence["prior"].append(out.semantic_log_prior.exp().amax(-1))
             zero_shot.update(out.semantic_log_prior, torch.where(known, batch.true_material, batch.material))
@@ -176,6 +184,9 @@ def evaluate_views(
         for source, values in confidence.items()
         if values
     }
+    if domain_real:
+        gate = torch.cat(domain_real).float()
+        result["domain_gate"] = {name: float(gate.quantile(q)) for name, q in levels.items()}
     if physics.update_count:
         scores = physics.compute()
         confusion = scores.pop("confusion")
