@@ -1,19 +1,28 @@
-"""physgm's own real-object evaluation set: ``python -m physgm.data.real_objects``.
+"""physgm's own real-object sets: ``python -m physgm.data.real_objects``.
 
     python -m physgm.data.real_objects --out data/real_objects [--resolution 256] [--only ID,ID]
+    python -m physgm.data.real_objects --set gate --out data/real_gate
 
 Builds PhysAssets from artist-made, textured objects that three pip packages ship (robosuite
 1.5.2, genesis-world 1.4.5 and metaworld 3.1.1, installed ``--no-deps`` by scripts/setup.sh;
-only their asset files are read, no package is imported). Each object is a row of ``OBJECTS``:
-its mesh file, or its MJCF body assembled from parts (mjcf.py), a hand label (one of the 15
-materials of the material table) and why. Rendering is the mesh importer's
-(from_meshes.render_mesh: same 32 views, light and normalisation as the synthetic assets).
+only their asset files are read, no package is imported). Each object is a row of a table
+(``physgm.data.real_object_tables``): its mesh file, or its MJCF body assembled from parts
+(mjcf.py), a hand label (one of the 15 materials of the material table) and why. Rendering is
+the mesh importer's (from_meshes.render_mesh: same 32 views, light and normalisation as the
+synthetic assets).
 
-Splits: robosuite's and genesis-world's objects go to ``val`` (used only to choose
-hyper-parameters such as a fusion weight), metaworld's to ``test``; ``train`` and ``dpo`` stay
-empty, so the set is never trained on. physical.json holds the hand label with the material
-table's typical E, nu and density (``physics_source: "material default"``),
-``label_source: "hand"`` and the reason.
+Two sets, each built into its own root (``SETS``):
+
+* ``eval`` (``OBJECTS``, the default): the evaluation set. robosuite's and genesis-world's
+  objects go to ``val`` (used only to choose hyper-parameters such as a fusion weight),
+  metaworld's to ``test``; ``train`` and ``dpo`` stay empty, so the set is never trained on.
+* ``gate`` (``GATE_OBJECTS``): other objects of the same packages, none of them an evaluation
+  object or a near-copy of one, all in ``train``. They train only the domain gate (a classifier
+  telling procedural synthetic renders from real objects), which reads the images, not the
+  labels; their labels are best effort, because the asset format needs one.
+
+physical.json holds the hand label with the material table's typical E, nu and density
+(``physics_source: "material default"``), ``label_source: "hand"`` and the reason.
 """
 
 from __future__ import annotations
@@ -23,7 +32,7 @@ import json
 import sys
 import time
 from collections import Counter
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -41,288 +50,9 @@ from physgm.data.from_meshes import (
     up_rotation,
 )
 from physgm.data.priors import constitutive_model, material_names
+from physgm.data.real_object_tables import SEARCH_DIRS, SETS, RealObject
 from physgm.data.synth import view_cameras
 from physgm.data.writer import atomic_asset_dir, write_json, write_views_cameras_physics
-
-SPLIT_OF_SOURCE = {"robosuite": "val", "genesis": "val", "metaworld": "test"}
-# MJCF files name meshes and textures relative to the top-level model's folder.
-SEARCH_DIRS = {"robosuite": ("models/assets/objects",), "metaworld": ("assets/sawyer_xyz",)}
-MW = "assets/objects/assets/"  # metaworld's object MJCF folder
-RS = "models/assets/objects/"  # robosuite's
-GN = "assets/meshes/"  # genesis-world's
-
-
-@dataclass(frozen=True)
-class RealObject:
-    """One object of the set: where its geometry and colours are, and its hand label."""
-
-    id: str
-    source: str  # module of the pip package holding the files: "robosuite", "genesis" or "metaworld"
-    material: str  # hand label, one of MATERIAL_NAMES
-    reason: str  # why that material
-    mesh: str = ""  # a mesh file in the package (OBJ with its MTL texture, GLB, or STL) ...
-    xml: str = ""  # ... or an MJCF file whose body is assembled from its geoms
-    deps: tuple[str, ...] = ()  # MJCF files declaring its meshes, materials and default classes
-    body: str = ""  # MJCF body to start from (default: the file's first)
-    rgba: tuple[float, float, float] | None = None  # colour of a `mesh` that has none of its own
-    texture: str = ""  # box-projected texture for a `mesh` without texture coordinates
-    yaw_deg: float = 0.0  # turn about +z so the object's front faces +x (view 000)
-    up: str = "auto"  # the mesh file's up axis (from_meshes.up_rotation): "y", "z" or "auto"
-
-    @property
-    def split(self) -> str:
-        return SPLIT_OF_SOURCE[self.source]
-
-
-def _mw(id, material, reason, xml, deps="", **kw) -> RealObject:
-    """A metaworld MJCF object; its dependencies file is ``<xml stem>_dependencies.xml`` unless named."""
-    deps = deps or xml.removesuffix(".xml") + "_dependencies.xml"
-    return RealObject(id, "metaworld", material, reason, xml=MW + xml, deps=(MW + deps,), **kw)
-
-
-OBJECTS: tuple[RealObject, ...] = (
-    # robosuite -> val
-    RealObject(
-        "rs_bottle",
-        "robosuite",
-        "glass",
-        "a green glass bottle (robosuite draws it with its glass texture)",
-        mesh=RS + "meshes/bottle.obj",
-        texture="models/assets/textures/glass.png",
-    ),
-    RealObject(
-        "rs_can",
-        "robosuite",
-        "metal",
-        "an aluminium soda can with a printed label",
-        mesh=RS + "meshes/can.obj",
-    ),
-    RealObject(
-        "rs_cereal",
-        "robosuite",
-        "paper",
-        "a printed cardboard cereal box",
-        mesh=RS + "meshes/cereal.obj",
-        yaw_deg=-90,
-    ),
-    RealObject(
-        "rs_milk", "robosuite", "paper", "a milk carton: coated paperboard", mesh=RS + "meshes/milk.obj"
-    ),
-    RealObject(
-        "rs_bread",
-        "robosuite",
-        "foam",
-        "a bread roll: a porous solid foam that squashes and springs back, "
-        "the closest of the 15 in behaviour",
-        mesh=RS + "meshes/bread.obj",
-    ),
-    RealObject(
-        "rs_round_nut",
-        "robosuite",
-        "metal",
-        "a large steel nut (scratched-steel texture)",
-        xml=RS + "round-nut.xml",
-    ),
-    RealObject(
-        "rs_square_nut",
-        "robosuite",
-        "metal",
-        "a large steel nut (scratched-steel texture)",
-        xml=RS + "square-nut.xml",
-    ),
-    RealObject(
-        "rs_plate_with_hole",
-        "robosuite",
-        "wood",
-        "a flat board with a square hole, red-wood texture",
-        xml=RS + "plate-with-hole.xml",
-    ),
-    RealObject(
-        "rs_door",
-        "robosuite",
-        "wood",
-        "a dark-wood door panel (most of the object) with a brass handle in a white frame",
-        xml=RS + "door.xml",
-    ),
-    # genesis-world -> val: the meshes its examples drop, cut and pour
-    RealObject(
-        "gn_duck", "genesis", "rubber", "a yellow rubber bath duck", mesh=GN + "duck/duck.obj", up="y"
-    ),
-    RealObject(
-        "gn_ball",
-        "genesis",
-        "rubber",
-        "a plain black toy ball, as bouncy balls are",
-        mesh="assets/tower/ball.glb",
-    ),
-    RealObject(
-        "gn_wooden_sphere",
-        "genesis",
-        "wood",
-        "a turned wooden sphere with visible grain",
-        mesh=GN + "wooden_sphere_OBJ/wooden_sphere.obj",
-    ),
-    RealObject(
-        "gn_chopping_board",
-        "genesis",
-        "wood",
-        "a pale wooden chopping board with a handle slot",
-        mesh=GN + "chopping-board/source/chopping_board.glb",
-    ),
-    RealObject(
-        "gn_boat", "genesis", "wood", "a planked, red-painted rowing boat", mesh=GN + "boat/boat.obj", up="y"
-    ),
-    RealObject(
-        "gn_water_wheel",
-        "genesis",
-        "wood",
-        "a water wheel: wooden rim, spokes and paddles",
-        mesh="assets/urdf/wheel/fancy_wheel.obj",
-    ),
-    RealObject(
-        "gn_bathtub",
-        "genesis",
-        "ceramic",
-        "a bathtub: glazed enamel or ceramic",
-        mesh=GN + "bathtub/bathtub.obj",
-        up="y",
-    ),
-    RealObject(
-        "gn_bunny",
-        "genesis",
-        "ceramic",
-        "the Stanford bunny, scanned from a terracotta figurine; drawn plain grey",
-        mesh=GN + "bunny.obj",
-    ),
-    RealObject(
-        "gn_dragon",
-        "genesis",
-        "stone",
-        "a green dragon figurine, like carved jade",
-        mesh=GN + "dragon/dragon.obj",
-        up="y",
-    ),
-    RealObject(
-        "gn_airplane",
-        "genesis",
-        "metal",
-        "a light aircraft: aluminium skin",
-        mesh=GN + "Airplane/airplane.obj",
-        up="y",
-    ),
-    RealObject(
-        "gn_dispenser",
-        "genesis",
-        "metal",
-        "an ice-cream dispenser: a stainless-steel machine (untextured)",
-        mesh=GN + "icecream_dispenser.obj",
-        up="y",
-    ),
-    RealObject("gn_stirrer", "genesis", "metal", "a thin steel stirring rod", mesh=GN + "stirrer.obj"),
-    # metaworld -> test
-    _mw(
-        "mw_mug",
-        "ceramic",
-        "a white coffee mug with a handle",
-        "mug.xml",
-        "coffeemachine_dependencies.xml",
-        yaw_deg=90,
-    ),
-    RealObject(
-        "mw_cup",
-        "metaworld",
-        "ceramic",
-        "the coffee machine's espresso cup (a mesh no geom uses), coloured like the mug",
-        mesh="assets/objects/meshes/coffeemachine/cup.stl",
-        rgba=(0.85, 0.85, 0.85),
-    ),
-    _mw("mw_basketball", "rubber", "a basketball: orange rubber with black seams", "basketball.xml"),
-    _mw(
-        "mw_soccer_ball",
-        "leather",
-        "a black-and-white panelled football; panels are (synthetic) leather",
-        "soccer_ball.xml",
-        "soccer_dependencies.xml",
-    ),
-    _mw(
-        "mw_puck",
-        "rubber",
-        "a black ice-hockey puck: vulcanised rubber",
-        "puck.xml",
-        "puck_goal_dependencies.xml",
-    ),
-    _mw("mw_nail", "metal", "a steel nail", "hammerblock.xml", "hammer_dependencies.xml", body="nail_link"),
-    _mw(
-        "mw_hammer_block",
-        "wood",
-        "a wooden block with a nail in it; the block is nearly all of it",
-        "hammerblock.xml",
-        "hammer_dependencies.xml",
-        yaw_deg=90,
-    ),
-    _mw(
-        "mw_safe",
-        "metal",
-        "a steel safe with a handle and a lock",
-        "doorlockA.xml",
-        "doorlock_dependencies.xml",
-        yaw_deg=90,
-    ),
-    _mw(
-        "mw_laptop",
-        "plastic",
-        "an open laptop, grey plastic shell and black screen",
-        "laptop.xml",
-        yaw_deg=90,
-    ),
-    _mw(
-        "mw_shelf", "wood", "a wooden shelf unit (wood texture) with white supports", "shelf.xml", yaw_deg=90
-    ),
-    _mw(
-        "mw_bin", "plastic", "a glossy red storage tray: moulded plastic", "binA.xml", "bin_dependencies.xml"
-    ),
-    _mw("mw_box", "wood", "an open box with a wood texture", "box.xml"),
-    _mw("mw_faucet", "metal", "a tap: metal body and spout with a red lever", "faucet.xml"),
-    _mw("mw_thermos", "metal", "a steel thermos flask with a handle", "thermos.xml", yaw_deg=90),
-    _mw(
-        "mw_button_box",
-        "plastic",
-        "a yellow-and-black stop-button box with a red push button",
-        "buttonbox.xml",
-        yaw_deg=90,
-    ),
-    _mw("mw_block", "wood", "a wooden toy cube (wood texture)", "block.xml"),
-    _mw("mw_peg_block", "wood", "a wooden block with a red-lined peg hole", "peg_block.xml", yaw_deg=90),
-    _mw("mw_table", "wood", "a wooden table", "table.xml"),
-    _mw(
-        "mw_coffee_machine",
-        "plastic",
-        "a coffee machine with a moulded dark-red and black plastic body",
-        "coffeemachine.xml",
-        yaw_deg=90,
-    ),
-    _mw("mw_lever", "metal", "a metal lever arm on a metal base with a blue knob", "lever.xml", yaw_deg=90),
-    _mw(
-        "mw_wall",
-        "stone",
-        "a brick wall section: fired-clay masonry, rigid, matte and rough like stone",
-        "wall.xml",
-        yaw_deg=90,
-    ),
-    _mw(
-        "mw_window",
-        "glass",
-        "a sash window: two large panes of glass in a thin frame",
-        "window.xml",
-        yaw_deg=90,
-    ),
-)
-# Left out on purpose: robosuite's lemon (no material of the 15 behaves like fruit flesh); metaworld's
-# dial (its dark metal texture renders as black plastic without MuJoCo's reflections), hammer and
-# golf club (half wood or plastic, half metal), drawer and stick (painted, material unreadable), the
-# goals and hoop (nets and frames), and the robot itself; genesis-world's worm (soft tissue), tank (a
-# plain container of unreadable material), camera (a flat dark silhouette), the cloth, terrain,
-# environment sphere and the robots.
 
 
 def _files(obj: RealObject, root: Path) -> list[Path]:
@@ -330,12 +60,18 @@ def _files(obj: RealObject, root: Path) -> list[Path]:
 
 
 def _mesh_parts(obj: RealObject, root: Path) -> list[mjcf.Part]:
-    path = root / obj.mesh
+    rot = up_rotation(root / obj.mesh, obj.up)
+    parts = []
+    for path in (root / f for f in (obj.mesh, *obj.deps)):
+        parts += _file_parts(obj, root, path, rot)
+    return parts
+
+
+def _file_parts(obj: RealObject, root: Path, path: Path, rot: np.ndarray) -> list[mjcf.Part]:
     # robosuite's MTL files name their textures as ../../textures/x.png, outside the mesh folder,
     # which trimesh >= 5 refuses unless asked (the file is inside the installed package).
     resolver = trimesh.resolvers.FilePathResolver(str(path), allow_anywhere=True)
     scene = trimesh.load(str(path), force="scene", resolver=resolver)
-    rot = up_rotation(path, obj.up)
     parts = []
     for mesh in scene.dump(concatenate=False):
         tri = np.asarray(mesh.vertices, dtype=np.float64)[mesh.faces] @ rot.T
@@ -346,7 +82,7 @@ def _mesh_parts(obj: RealObject, root: Path) -> list[mjcf.Part]:
             colour = ColourSource(np.arange(3 * len(tri)).reshape(-1, 3), factor=np.asarray(obj.rgba))
         else:
             colour = colour_source(mesh)
-        parts.append(mjcf.Part(tri, colour, Path(obj.mesh).name))
+        parts.append(mjcf.Part(tri, colour, path.name))
     return parts
 
 
@@ -399,34 +135,56 @@ def build_object(obj: RealObject, out: Path, resolution: int, supersample: int) 
         write_views_cameras_physics(tmp, rgba, cams, az, el, physical)
 
 
-def select(only: list[str] | None) -> list[RealObject]:
-    """The table's objects, or the ``only`` ones; a label outside the material table stops here."""
-    bad = {o.id: o.material for o in OBJECTS if o.material not in material_names()}
+def select(only: list[str] | None, set_name: str = "eval") -> list[RealObject]:
+    """The set's objects, or the ``only`` ones; a label outside the material table stops here."""
+    table = SETS[set_name].objects
+    bad = {o.id: o.material for o in table if o.material not in material_names()}
     if bad:
         raise ValueError(
-            f"OBJECTS labels {bad} are not materials of the table ({', '.join(material_names())})"
+            f"{set_name} set labels {bad} are not materials of the table ({', '.join(material_names())})"
         )
     if not only:
-        return list(OBJECTS)
-    known = {o.id: o for o in OBJECTS}
+        return list(table)
+    known = {o.id: o for o in table}
     unknown = [i for i in only if i not in known]
     if unknown:
-        raise ValueError(f"unknown object ids {unknown}; known: {', '.join(known)}")
+        elsewhere = {n for n, other in SETS.items() for o in other.objects if o.id in unknown} - {set_name}
+        hint = f" (they are in the {', '.join(sorted(elsewhere))} set: add --set)" if elsewhere else ""
+        raise ValueError(
+            f"unknown object ids {unknown} in the {set_name} set{hint}; known: {', '.join(known)}"
+        )
     return [known[i] for i in only]
 
 
-def build(out: Path, resolution: int = 256, supersample: int = 2, only: list[str] | None = None) -> dict:
-    """Build the set (or the ``only`` objects) into ``out``; finished objects are kept.
+def build(
+    out: Path,
+    resolution: int = 256,
+    supersample: int = 2,
+    only: list[str] | None = None,
+    set_name: str = "eval",
+) -> dict:
+    """Build set ``set_name`` (or its ``only`` objects) into ``out``; finished objects are kept.
 
     Returns a summary: objects built and skipped, seconds, and the count per split and material.
+
+    Raises:
+        ValueError: ``out`` holds the other set, or was built with other settings.
     """
-    objects = select(only)
+    real_set = SETS[set_name]
+    objects = select(only, set_name)
     settings = {"resolution": resolution, "supersample": supersample}
     manifest = out / "real_objects.json"
     if manifest.is_file():
-        have = json.loads(manifest.read_text())["settings"]
-        if have != settings:
-            raise ValueError(f"{out} was built with {have}, not {settings}; use another --out or delete it")
+        have = json.loads(manifest.read_text())
+        held = have.get("set", "eval")  # manifests written before the gate set hold the eval set
+        if held != set_name:
+            raise ValueError(
+                f"{out} holds the {held} set; the {set_name} set goes into its own root: use another --out"
+            )
+        if have["settings"] != settings:
+            raise ValueError(
+                f"{out} was built with {have['settings']}, not {settings}; use another --out or delete it"
+            )
     out.mkdir(parents=True, exist_ok=True)
     t0, built, kept = time.perf_counter(), [], []
     for obj in objects:
@@ -435,19 +193,19 @@ def build(out: Path, resolution: int = 256, supersample: int = 2, only: list[str
             continue
         build_object(obj, out, resolution, supersample)
         built.append(obj.id)
-    listed = {o.id for o in OBJECTS if (out / o.id).is_dir()}
+    present = [o for o in real_set.objects if (out / o.id).is_dir()]
     (out / SPLITS_DIR).mkdir(exist_ok=True)
     for split in SPLITS:
-        ids = [o.id for o in OBJECTS if o.split == split and o.id in listed]
+        ids = [o.id for o in present if real_set.split_of(o) == split]
         (out / SPLITS_DIR / f"{split}.txt").write_text("".join(f"{i}\n" for i in ids))
-    table = [{**asdict(o), "split": o.split} for o in OBJECTS if o.id in listed]
-    write_json(manifest, {"settings": settings, "objects": table})
-    present = [o for o in OBJECTS if o.id in listed]
+    table = [{**asdict(o), "split": real_set.split_of(o)} for o in present]
+    write_json(manifest, {"set": set_name, "settings": settings, "objects": table})
     return {
+        "set": set_name,
         "built": built,
         "kept": kept,
         "seconds": round(time.perf_counter() - t0, 1),
-        "splits": {s: sum(o.split == s for o in present) for s in SPLITS},
+        "splits": {s: sum(real_set.split_of(o) == s for o in present) for s in SPLITS},
         "materials": dict(Counter(o.material for o in present)),
         "out": str(out),
     }
@@ -458,12 +216,19 @@ def main(argv: list[str] | None = None) -> int:
         prog="python -m physgm.data.real_objects", description=__doc__.splitlines()[0]
     )
     p.add_argument("--out", type=Path, required=True)
+    p.add_argument(
+        "--set",
+        dest="set_name",
+        choices=list(SETS),
+        default="eval",
+        help="eval: the evaluation set (val/test); gate: the domain gate's training set (all train)",
+    )
     p.add_argument("--resolution", type=int, default=256, help="px; the ImageNet classifier reads it all")
     p.add_argument("--supersample", type=int, default=2, help="rays per pixel side, for anti-aliased edges")
-    p.add_argument("--only", default="", help="comma-separated object ids (default: all)")
+    p.add_argument("--only", default="", help="comma-separated object ids of the set (default: all)")
     a = p.parse_args(argv)
-    summary = build(a.out, a.resolution, a.supersample, [s for s in a.only.split(",") if s] or None)
-    print(json.dumps(summary))
+    only = [s for s in a.only.split(",") if s] or None
+    print(json.dumps(build(a.out, a.resolution, a.supersample, only, a.set_name)))
     return 0
 
 
