@@ -61,14 +61,20 @@ def test_gate_is_the_mean_view_log_odds_of_a_standardised_regression():
         gate.set_fit(shift[:3], scale, weight, 0.0)
 
 
-def test_the_gate_scales_the_prior_weight_scene_by_scene():
+def test_the_gate_mixes_the_fused_and_the_heads_distributions_scene_by_scene():
     head = torch.randn(3, 15)
     log_prior = torch.randn(3, 15).log_softmax(-1)
-    gate = torch.tensor([0.0, 0.5, 1.0])
-    fused = fuse_material_logits(head, log_prior, 8.0, 2.0, gate)
-    for i, w in enumerate((0.0, 4.0, 8.0)):  # each scene at its own weight w * g
-        expected = (head[i].log_softmax(-1) + w * log_prior[i]) / 2.0
-        torch.testing.assert_close(fused[i], expected)
+    gate = torch.tensor([0.0, 0.3, 1.0])
+    got = fuse_material_logits(head, log_prior, 8.0, 2.0, gate)
+    p_head = head.softmax(-1)
+    p_fused = p_head * log_prior.exp() ** 8.0
+    p_fused = p_fused / p_fused.sum(-1, keepdim=True)
+    for i, g in enumerate(gate.tolist()):
+        mixture = g * p_fused[i] + (1 - g) * p_head[i]
+        expected = (mixture.log() / 2.0).softmax(-1)
+        torch.testing.assert_close(got[i].softmax(-1), expected, atol=1e-5, rtol=1e-4)
+    # no gate: the product alone, as a model without one has always fused
+    torch.testing.assert_close(fuse_material_logits(head, log_prior, 8.0).softmax(-1), p_fused)
 
 
 def test_model_with_a_gate_needs_the_cnn_encoder():

@@ -7,11 +7,13 @@ one's confidence tells the two domains apart, but the frozen encoder's pooled py
 logistic regression on it separates held-out real objects from held-out synthetic assets.
 
 The gate is that regression, applied to every view and averaged in logit space over a scene's
-views. Its probability ``g`` scales the prior's weight: the material distribution is
-``p_head * p_prior^(w * g)`` (``fuse_material_logits``). It is fitted after stage 1 by ``python
--m physgm.train.fit_gate`` on the synthetic training assets against real objects of their own set
-(``python -m physgm.data.real_objects --set gate``), never on the real evaluation set. Its numbers
-are buffers: no stage trains them, and DPO's log-probabilities see them as constants.
+views. Its probability ``g`` weighs two experts: the material distribution is the mixture
+``g * norm(p_head * p_prior^w) + (1 - g) * p_head`` (``fuse_material_logits``), the prior's fusion
+where the scene looks real and the head alone where it looks procedural. It is fitted after stage
+1 by ``python -m physgm.train.fit_gate`` on the synthetic training assets against real objects of
+their own set (``python -m physgm.data.real_objects --set gate``), never on the real evaluation
+set. Its numbers are buffers: no stage trains them, and DPO's log-probabilities see them as
+constants.
 """
 
 from __future__ import annotations

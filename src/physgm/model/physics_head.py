@@ -144,11 +144,18 @@ def fuse_material_logits(
     semantic_log_prior: Tensor | None,  # [B, M] log p_prior(material), or None
     weight: float,
     temperature: float = 1.0,
-    gate: Tensor | None = None,  # [B] domain gate's P(real object) scaling the weight, or None
+    gate: Tensor | None = None,  # [B] the domain gate's P(real object), or None
 ) -> Tensor:  # [B, M]
-    """Material logits of (p_head * p_prior^(weight * gate))^(1 / temperature) (the head's own logits
-    without a prior or at weight 0)."""
+    """Material logits of p^(1 / temperature), where p = p_head * p_prior^weight (normalised), or with a
+    domain gate g the mixture g * that + (1 - g) * p_head: the prior's expert where the scene looks
+    real, the head alone where it looks like the procedural training data. Without a prior or at
+    weight 0, the head's own logits."""
     if semantic_log_prior is not None and weight != 0.0:
-        scaled = weight if gate is None else weight * gate.to(head_logits.dtype)[:, None]
-        head_logits = head_logits.log_softmax(dim=-1) + scaled * semantic_log_prior.to(head_logits.dtype)
+        log_head = head_logits.log_softmax(dim=-1)
+        fused = (log_head + weight * semantic_log_prior.to(head_logits.dtype)).log_softmax(dim=-1)
+        if gate is None:
+            head_logits = fused
+        else:
+            g = gate.to(head_logits.dtype)[:, None]  # log(0) = -inf drops an expert exactly
+            head_logits = torch.logaddexp(g.log() + fused, (1 - g).log() + log_head)
     return head_logits if temperature == 1.0 else head_logits / temperature

@@ -19,9 +19,9 @@ With the frozen MobileNetV2 encoder the material distribution is p_head * p_prio
 (``physgm.model.semantic_prior``): ``--prior-weight`` sets w (default: the checkpoint's), and
 ``--prior-sweep 0,0.5,1,2`` also reports both accuracies at each w, which is how w is chosen on
 the real validation objects; ``prior_only_*`` scores the semantic table alone (zero-shot). A model
-with a domain gate (``physgm.model.domain_gate``) scales w by the gate's P(real object) at every w,
-and ``domain_gate`` gives that probability's 10th, 50th and 90th percentiles. One JSON object goes
-to stdout.
+with a domain gate (``physgm.model.domain_gate``) mixes that with p_head by the gate's P(real
+object) g, at every w, and ``domain_gate`` gives that probability's 10th, 50th and 90th
+percentiles. One JSON object goes to stdout.
 """
 
 from __future__ import annotations
@@ -50,8 +50,8 @@ def checkpoint_renderer(hparams: dict) -> dict:
 
 
 def fused_logits(out, weight: float, temperature: float = 1.0) -> torch.Tensor:  # [B, M]
-    """Material logits of (p_head * p_prior^(w * g))^(1 / T) of a model output, at any w (g: the
-    domain gate's P(real), 1 for a model without a gate)."""
+    """Material logits of a model output at any prior weight w, with its domain gate if it has one
+    (``fuse_material_logits``)."""
     return fuse_material_logits(
         out.head_material_logits, out.semantic_log_prior, weight, temperature, out.domain_real
     )

@@ -18,6 +18,8 @@ import json
 import sys
 from pathlib import Path
 
+import torch
+
 from physgm.errors import UserError
 from physgm.model.checkpoint import input_size, load_model
 from physgm.model.predict import predict_scene
@@ -64,8 +66,15 @@ def evaluate_examples(model, size: int, folder: Path, weights: list[float], log=
                 ok = MATERIAL_BEHAVIOUR[material] == MATERIAL_BEHAVIOUR[truth]
                 right[w] += ok
                 chosen[f"{w:g}"] = {"material": material, "behaviour_right": ok}
-            rows.append({"input": name, "label": truth, "by_prior_weight": chosen})
-            log(f"{name:26s} {truth:10s} " + " ".join(f"w={w}: {c['material']}" for w, c in chosen.items()))
+            row = {"input": name, "label": truth, "by_prior_weight": chosen}
+            if model.domain_gate is not None:  # how real the views look to the gate, which scales w
+                with torch.no_grad():
+                    features = model.encode_views(inp.images, inp.classifier_images)
+                    row["domain_gate"] = round(float(model.domain_gate(features, 1)), 3)
+            rows.append(row)
+            gate = f" gate={row['domain_gate']:.2f}" if "domain_gate" in row else ""
+            picks = " ".join(f"w={w}: {c['material']}" for w, c in chosen.items())
+            log(f"{name:26s} {truth:10s}{gate} {picks}")
     finally:
         head.semantic_prior_weight = own
     return {
