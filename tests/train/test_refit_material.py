@@ -181,3 +181,25 @@ def test_stiffness_fit_reads_the_cue_in_each_materials_frame():
     fitted = float(posterior_mean_errors(head, val).median())
     centre = float(posterior_mean_errors(head, val, centre=True).median())
     assert fitted < 0.3 * centre and best["val_views4"] == pytest.approx(fitted)
+
+
+def test_refits_pool_the_train_and_val_splits_of_several_roots(data_root, tmp_path):
+    second = tmp_path / "second"
+    shutil.copytree(data_root, second)
+    ids = read_split(second, "train")
+    (second / "splits" / "train.txt").write_text("\n".join(ids[:4]) + "\n")
+    (second / "splits" / "val.txt").write_text("")  # a root without a val split adds none
+    save_checkpoint(PhysGM(tiny_cnn_config("token")), tmp_path / "s1.ckpt")
+    one = refit(tmp_path / "s1.ckpt", data_root, tmp_path / "one.ckpt", RefitConfig(epochs=2))
+    both = refit(tmp_path / "s1.ckpt", [data_root, second], tmp_path / "both.ckpt", RefitConfig(epochs=2))
+    assert both["assets"] == {"train": one["assets"]["train"] + 4, "val": one["assets"]["val"]}
+    assert both["data"] == [str(data_root), str(second)]
+    _, ckpt = load_model(tmp_path / "both.ckpt")
+    assert f"--data {data_root} {second} " in ckpt.raw["physgm"]["recipe"]
+    train = refit_stiffness.token_splits(
+        load_model(tmp_path / "s1.ckpt")[0].eval(), [data_root, second], "train", 32
+    )
+    assert len(train.tokens) == 2 * (one["assets"]["train"] + 4)  # every asset with 4 views and with 1
+    (second / "splits" / "train.txt").write_text("")
+    with pytest.raises(UserError, match="no 'train' assets to refit on in .*second"):
+        refit(tmp_path / "s1.ckpt", [second], tmp_path / "none.ckpt", RefitConfig(epochs=1))

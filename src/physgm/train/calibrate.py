@@ -1,6 +1,7 @@
 """Calibrate a checkpoint's physics posterior on a validation split, for ``physgm.train.export``.
 
-    python -m physgm.train.calibrate CKPT --data ROOT [--split val] [--level 0.9] [--prior-weight W]
+    python -m physgm.train.calibrate CKPT --data ROOT [ROOT ...] [--split val] [--level 0.9]
+        [--prior-weight W]
 
 Runs the model on each asset of the split that has true physics, once with 1 and once with 4 input
 views (the fixed views ``physgm.train.evaluate`` uses), and chooses three numbers of the physics head:
@@ -72,6 +73,16 @@ def collect(model: PhysGM, root: str, split: str, views: int, resolution: int, s
             f"calibrate on generated data (python -m physgm.data.synth --out ROOT)"
         )
     return ViewSet(views, PhysicsPosterior.cat(posts), torch.cat(log10_E), torch.cat(nu))
+
+
+def pool(sets: list[ViewSet]) -> ViewSet:
+    """Several roots' ``ViewSet`` of one input-view count as one."""
+    return ViewSet(
+        sets[0].views,
+        PhysicsPosterior.cat([s.posterior for s in sets]),
+        torch.cat([s.log10_E for s in sets]),
+        torch.cat([s.nu for s in sets]),
+    )
 
 
 def E_coverage(posterior: PhysicsPosterior, log10_E: Tensor, level: float) -> float:
@@ -162,7 +173,12 @@ def calibrate(model: PhysGM, sets: list[ViewSet], level: float = 0.9) -> dict:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m physgm.train.calibrate", description=__doc__.split("\n")[0])
     p.add_argument("ckpt", type=Path, help="stage-1 or stage-2 checkpoint")
-    p.add_argument("--data", required=True, help="PhysAssets root with splits/ and true physics")
+    p.add_argument(
+        "--data",
+        nargs="+",
+        required=True,
+        help="PhysAssets roots with splits/ and true physics; their splits pool",
+    )
     p.add_argument("--split", default="val")
     p.add_argument("--level", type=float, default=0.9, help="interval level to cover (0 < level < 1)")
     p.add_argument(
@@ -182,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
         except ValueError as err:
             raise SystemExit(str(err)) from None
     res = input_size(model, ckpt.hparams)
-    sets = [collect(model, a.data, a.split, v, res, a.seed) for v in (1, 4)]
+    sets = [pool([collect(model, root, a.split, v, res, a.seed) for root in a.data]) for v in (1, 4)]
     record = {"ckpt": str(a.ckpt), "data": a.data, "split": a.split, "prior_weight": a.prior_weight}
     record.update(calibrate(model, sets, a.level))
     record["export"] = (

@@ -1,10 +1,11 @@
 """Fit the domain gate of a stage-1 model: procedural training assets against real objects.
 
-    python -m physgm.train.fit_gate CKPT --data ROOT --real GATE_ROOT --out OUT [--held-out REAL_ROOT]
+    python -m physgm.train.fit_gate CKPT --data ROOT [ROOT ...] --real GATE_ROOT --out OUT
+        [--held-out REAL_ROOT] [--l2 0.1]
 
 The gate (``physgm.model.domain_gate``) is a logistic regression on one view's pooled frozen-encoder
-features: label 0 for every cached view of ROOT's ``train`` split (the synthetic assets the head
-learned from), label 1 for every view of GATE_ROOT's ``train`` split (``python -m
+features: label 0 for every cached view of the ROOTs' ``train`` splits (the synthetic assets the
+heads learned from), label 1 for every view of GATE_ROOT's ``train`` split (``python -m
 physgm.data.real_objects --set gate``: real objects kept apart from the evaluation set). The two
 classes weigh the same however many views each has, and an L2 penalty on the standardised weights
 (``--l2``) keeps the fit from memorising a few dozen objects. Every other weight of CKPT is kept;
@@ -12,7 +13,7 @@ OUT has ``physics_head.domain_gate`` on, and is written atomically.
 
 The record on stdout says how well the gate separates what it never saw: the area under the ROC
 curve over single views and the 10th / 50th / 90th percentiles of P(real) per 1-view and 4-view
-scene, on ROOT's ``val`` split and on ``--held-out``'s ``val`` and ``test`` splits (the real
+scene, on the ROOTs' ``val`` splits and on ``--held-out``'s ``val`` and ``test`` splits (the real
 evaluation set, only scored here).
 """
 
@@ -23,6 +24,7 @@ import copy
 import json
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -36,13 +38,23 @@ from physgm.model.checkpoint import input_size, load_model
 from physgm.model.domain_gate import DomainGate
 from physgm.model.physgm import PhysGM
 from physgm.model.physics_head import pooled_features
-from physgm.train.refit_material import save_refit
+from physgm.train.refit_material import data_roots, save_refit
 
 
 @dataclass
 class GateConfig:
     l2: float = 0.1  # penalty on the squared standardised weights, added to the class-balanced mean loss
     max_iter: int = 500  # L-BFGS iterations (the loss is convex: this is a tolerance, not a schedule)
+
+
+def roots_views(roots: list[Path], split: str, resolution: int) -> Tensor:  # [A, V, POOLED_DIM]
+    """``split_views`` of several roots, concatenated over their assets."""
+    parts = [v for v in (split_views(r, split, resolution) for r in roots) if len(v)]
+    if len({v.shape[1] for v in parts}) > 1:
+        raise UserError(
+            f"the feature caches of {roots} hold different numbers of views per asset; rebuild them"
+        )
+    return torch.cat(parts) if parts else torch.zeros(0, 0, 0)
 
 
 def split_views(root: Path, split: str, resolution: int) -> Tensor:  # [A, V, POOLED_DIM]
@@ -115,7 +127,7 @@ def summary(gate: DomainGate, views: Tensor) -> dict:
 
 def fit_gate(
     ckpt_path: Path,
-    root: Path,
+    data: Path | Sequence[Path],
     real_root: Path,
     out: Path,
     cfg: GateConfig,
@@ -129,12 +141,14 @@ def fit_gate(
             f"{ckpt_path} has the {old.config.backbone.encoder.kind!r} encoder; the gate reads the "
             "frozen mobilenet_v2's cached features"
         )
+    roots = data_roots(data)
     resolution = input_size(old, ckpt.hparams)
     start = time.perf_counter()
-    synthetic, real = split_views(root, "train", resolution), split_views(real_root, "train", resolution)
+    synthetic, real = roots_views(roots, "train", resolution), split_views(real_root, "train", resolution)
     if not len(synthetic) or not len(real):
         raise UserError(
-            f"the gate needs synthetic training assets ({root}: {len(synthetic)}) and real ones "
+            f"the gate needs synthetic training assets ({', '.join(map(str, roots))}: {len(synthetic)}) "
+            "and real ones "
             f"({real_root}: {len(real)}; python -m physgm.data.real_objects --set gate --out {real_root})"
         )
     log(f"fit_gate: {len(synthetic)} synthetic / {len(real)} real training assets")
@@ -149,15 +163,14 @@ def fit_gate(
     gate = model.domain_gate
     record = {
         "source": str(ckpt_path),
-        "data": str(root),
+        "data": [str(r) for r in roots],
         "real": str(real_root),
         "config": asdict(cfg),
         "train": {"synthetic": summary(gate, synthetic), "real": summary(gate, real)},
     }
-    checks = {"synthetic_val": (root, "val", 0)}
+    scored = {"synthetic_val": roots_views(roots, "val", resolution)}
     if held_out is not None:
-        checks |= {"real_val": (held_out, "val", 1), "real_test": (held_out, "test", 1)}
-    scored = {name: split_views(r, s, resolution) for name, (r, s, _) in checks.items()}
+        scored |= {name: split_views(held_out, name[5:], resolution) for name in ("real_val", "real_test")}
     for name, views in scored.items():
         if len(views):
             record[name] = summary(gate, views)
@@ -169,7 +182,10 @@ def fit_gate(
                     roc_auc(gate.view_logits(negative).flatten(), gate.view_logits(scored[name]).flatten()), 4
                 )
     record["seconds"] = round(time.perf_counter() - start, 1)
-    recipe = f"python -m physgm.train.fit_gate {ckpt_path} --data {root} --real {real_root} --l2 {cfg.l2}"
+    recipe = (
+        f"python -m physgm.train.fit_gate {ckpt_path} --data {' '.join(map(str, roots))} --real {real_root} "
+        f"--l2 {cfg.l2}"
+    )
     save_refit(ckpt, ckpt_path, model, out, recipe, "fit_gate", record)
     return record
 
@@ -177,7 +193,9 @@ def fit_gate(
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m physgm.train.fit_gate", description=__doc__.split("\n")[0])
     p.add_argument("ckpt", type=Path, help="stage-1 checkpoint with the mobilenet_v2 encoder")
-    p.add_argument("--data", type=Path, required=True, help="synthetic PhysAssets root (its train split)")
+    p.add_argument(
+        "--data", type=Path, nargs="+", required=True, help="synthetic PhysAssets roots (train splits)"
+    )
     p.add_argument("--real", type=Path, required=True, help="real objects for the gate (its train split)")
     p.add_argument("--out", type=Path, required=True, help="gated checkpoint to write")
     p.add_argument("--held-out", type=Path, default=None, help="real evaluation set, scored only")

@@ -1,6 +1,6 @@
 """Refit the physics head's material classifier on the frozen encoder's pooled features.
 
-    python -m physgm.train.refit_material CKPT --data ROOT --out OUT [--epochs 60] [--seed 0]
+    python -m physgm.train.refit_material CKPT --data ROOT [ROOT ...] --out OUT [--epochs 60] [--seed 0]
 
 Stage 1 trains the material classifier on global token 0, jointly with everything else. On the
 synthetic assets a classifier of the frozen MobileNetV2's pyramid, pooled over space and views,
@@ -9,9 +9,10 @@ weight of CKPT, switches its head to ``material_input="features"`` and fits that
 cross-entropy against the annotated material (stage 1's target) of the train split. Each epoch
 draws one random set of 1 or 4 of every asset's cached views (the two input counts of training);
 the epoch kept is the one with the best validation accuracy (true material where known, else the
-annotation), scored on single views and on fixed sets of 4. Only the feature cache is read, so a
-fit takes minutes on the CPU. OUT keeps CKPT's hyper-parameters (prior weight, calibration
-offsets) and is written atomically.
+annotation), scored on single views and on fixed sets of 4. Several roots pool their train splits
+and their val splits (more procedural assets make a better classifier: docs/model.md). Only the
+feature cache is read, so a fit takes minutes on the CPU. OUT keeps CKPT's hyper-parameters
+(prior weight, calibration offsets) and is written atomically.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import copy
 import json
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -57,6 +59,34 @@ class PooledSplit:
     views: Tensor  # [A, V, POOLED_DIM]
     annotated: Tensor  # [A] material index the annotator gave (stage 1's target)
     truth: Tensor  # [A] true material where known, else the annotation
+
+
+def data_roots(data: Path | str | Sequence[Path | str]) -> list[Path]:
+    """One data root or several, as a list of paths (the refits pool their splits)."""
+    return [Path(data)] if isinstance(data, str | Path) else [Path(r) for r in data]
+
+
+def pooled_splits(roots: list[Path], split: str, resolution: int) -> PooledSplit:
+    """``pooled_split`` of every root that has assets in ``split``, concatenated."""
+    parts = []
+    for root in roots:
+        if read_split(root, split):
+            store = PhysAssetsDataModule(
+                str(root), input_resolution=resolution, feature_cache="mobilenet_v2"
+            ).feature_store()
+            parts.append(pooled_split(root, split, store))
+    if not parts:
+        raise UserError(f"no {split!r} assets to refit on in {', '.join(map(str, roots))}")
+    if len({p.views.shape[1] for p in parts}) != 1:
+        raise UserError(
+            f"the feature caches of {roots} hold different numbers of views per asset; rebuild them"
+        )
+    return PooledSplit(
+        sum((p.ids for p in parts), []),
+        torch.cat([p.views for p in parts]),
+        torch.cat([p.annotated for p in parts]),
+        torch.cat([p.truth for p in parts]),
+    )
 
 
 def pooled_split(root: Path, split: str, store) -> PooledSplit:
@@ -145,8 +175,10 @@ def fit(
     return best
 
 
-def refit(ckpt_path: Path, root: Path, out: Path, cfg: RefitConfig, log=print) -> dict:
-    """Fit the features classifier for the model in ``ckpt_path`` and write the refitted model to ``out``."""
+def refit(ckpt_path: Path, data: Path | Sequence[Path], out: Path, cfg: RefitConfig, log=print) -> dict:
+    """Fit the features classifier for the model in ``ckpt_path`` on the data roots ``data`` and write the
+    refitted model to ``out``."""
+    roots = data_roots(data)
     old, ckpt = load_model(ckpt_path)
     if old.config.backbone.encoder.kind != "mobilenet_v2":
         raise UserError(
@@ -160,22 +192,22 @@ def refit(ckpt_path: Path, root: Path, out: Path, cfg: RefitConfig, log=print) -
     missing, unexpected = model.load_state_dict(kept, strict=False)
     if unexpected or not all(k.startswith("physics_head.material.") for k in missing):
         raise RuntimeError(f"refit lost weights other than the material classifier: {missing} {unexpected}")
-    store = PhysAssetsDataModule(
-        str(root), input_resolution=input_size(old, ckpt.hparams), feature_cache="mobilenet_v2"
-    ).feature_store()
     start = time.perf_counter()
-    train, val = pooled_split(root, "train", store), pooled_split(root, "val", store)
+    resolution = input_size(old, ckpt.hparams)
+    train, val = pooled_splits(roots, "train", resolution), pooled_splits(roots, "val", resolution)
     log(f"refit: {len(train.ids)} train / {len(val.ids)} val assets, {train.views.shape[1]} views each")
     best = fit(model.physics_head.material, train, val, cfg, log)
     record = {
         "source": str(ckpt_path),
-        "data": str(root),
+        "data": [str(r) for r in roots],
+        "assets": {"train": len(train.ids), "val": len(val.ids)},
         "config": asdict(cfg),
         "best": best,
         "train_accuracy_annotated": accuracy(model.physics_head.material, train.views, train.annotated),
         "seconds": round(time.perf_counter() - start, 1),
     }
-    recipe = f"python -m physgm.train.refit_material {ckpt_path} --data {root} --epochs {cfg.epochs}"
+    roots_arg = " ".join(map(str, roots))
+    recipe = f"python -m physgm.train.refit_material {ckpt_path} --data {roots_arg} --epochs {cfg.epochs}"
     save_refit(ckpt, ckpt_path, model, out, recipe, "refit_material", record)
     return record
 
@@ -197,10 +229,17 @@ def save_refit(
 
 
 def refit_arguments(prog: str, description: str, epochs: int, seed: int, argv: list[str] | None):
-    """The command line every refit takes, ``CKPT --data ROOT --out OUT [--epochs N] [--seed S]``, checked."""
+    """The command line every refit takes, ``CKPT --data ROOT [ROOT ...] --out OUT [--epochs N] [--seed S]``,
+    checked."""
     p = argparse.ArgumentParser(prog=prog, description=description)
     p.add_argument("ckpt", type=Path, help="stage-1 checkpoint")
-    p.add_argument("--data", type=Path, required=True, help="PhysAssets root with train and val splits")
+    p.add_argument(
+        "--data",
+        type=Path,
+        nargs="+",
+        required=True,
+        help="PhysAssets roots; their train and val splits pool",
+    )
     p.add_argument("--out", type=Path, required=True, help="refitted checkpoint to write")
     p.add_argument("--epochs", type=int, default=epochs)
     p.add_argument("--seed", type=int, default=seed)

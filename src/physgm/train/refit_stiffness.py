@@ -1,6 +1,6 @@
 """Refit the physics head's E regression relative to the material's range, on a frozen stage-1 model.
 
-    python -m physgm.train.refit_stiffness CKPT --data ROOT --out OUT [--epochs 300] [--seed 0]
+    python -m physgm.train.refit_stiffness CKPT --data ROOT [ROOT ...] --out OUT [--epochs 300] [--seed 0]
 
 Stage 1 regresses one Gaussian on log10 E over 1 kPa .. 500 GPa for every material. Unsure between
 a soft and a stiff material, it puts its mean between them, often outside both materials' ranges:
@@ -13,7 +13,8 @@ the fixed 4-view and 1-view input sets of each asset. The epoch kept is the one 
 validation median abs(log10 E error) of the posterior mean, whose frame is the predicted material's
 (at the semantic prior weight 0: the data is procedural), over 1 and 4 views. The log-variance
 calibration offset of E is reset to 0: run ``python -m physgm.train.evaluate`` on a validation split
-and export with ``--logvar-offsets`` to calibrate the new head. OUT is written atomically.
+and export with ``--logvar-offsets`` to calibrate the new head. Several roots pool their train
+splits and their val splits. OUT is written atomically.
 """
 
 from __future__ import annotations
@@ -22,19 +23,21 @@ import copy
 import json
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
+from physgm.data.format import read_split
 from physgm.errors import UserError
 from physgm.model.checkpoint import input_size, load_model
 from physgm.model.physgm import PhysGM
 from physgm.model.physics_head import PhysicsHead, _mean_logvar_mlp
 from physgm.model.posterior import denormalise_log10_E, material_E_ranges
 from physgm.train.evaluate import view_datamodule
-from physgm.train.refit_material import refit_arguments, run_refit, save_refit
+from physgm.train.refit_material import data_roots, refit_arguments, run_refit, save_refit
 
 
 @dataclass
@@ -82,6 +85,14 @@ def token_split(model: PhysGM, root: Path, split: str, resolution: int) -> Token
     if not parts:
         raise UserError(f"split {split!r} of {root} has no assets to refit on")
     return TokenSplit(*(torch.cat(x) for x in zip(*parts, strict=True)))
+
+
+def token_splits(model: PhysGM, roots: list[Path], split: str, resolution: int) -> TokenSplit:
+    """``token_split`` of every root that has assets in ``split``, concatenated."""
+    parts = [token_split(model, r, split, resolution) for r in roots if read_split(r, split)]
+    if not parts:
+        raise UserError(f"no {split!r} assets to refit on in {', '.join(map(str, roots))}")
+    return TokenSplit(*(torch.cat(x) for x in zip(*(vars(p).values() for p in parts), strict=True)))
 
 
 def posterior_mean_errors(head: PhysicsHead, data: TokenSplit, centre: bool = False) -> Tensor:  # [N]
@@ -140,8 +151,12 @@ def fit(head: PhysicsHead, train: TokenSplit, val: TokenSplit, cfg: StiffnessRef
     return best
 
 
-def refit(ckpt_path: Path, root: Path, out: Path, cfg: StiffnessRefitConfig, log=print) -> dict:
-    """Fit a material-frame E regression for the model in ``ckpt_path`` and write the model to ``out``."""
+def refit(
+    ckpt_path: Path, data: Path | Sequence[Path], out: Path, cfg: StiffnessRefitConfig, log=print
+) -> dict:
+    """Fit a material-frame E regression for the model in ``ckpt_path`` on the data roots ``data`` and
+    write the model to ``out``."""
+    roots = data_roots(data)
     model, ckpt = load_model(ckpt_path)
     model.eval()
     head_cfg = model.config.physics_head
@@ -151,7 +166,7 @@ def refit(ckpt_path: Path, root: Path, out: Path, cfg: StiffnessRefitConfig, log
     head_cfg.semantic_prior_weight, prior = 0.0, head_cfg.semantic_prior_weight  # procedural data
     start = time.perf_counter()
     res = input_size(model, ckpt.hparams)
-    train, val = token_split(model, root, "train", res), token_split(model, root, "val", res)
+    train, val = token_splits(model, roots, "train", res), token_splits(model, roots, "val", res)
     log(f"refit_stiffness: {len(train.tokens)} train / {len(val.tokens)} val input sets")
     before = validation_score(model.physics_head, val)  # CKPT's own head
     head_cfg.E_frame, head_cfg.E_logvar_offset = "material", 0.0
@@ -162,14 +177,17 @@ def refit(ckpt_path: Path, root: Path, out: Path, cfg: StiffnessRefitConfig, log
     head_cfg.semantic_prior_weight = prior
     record = {
         "source": str(ckpt_path),
-        "data": str(root),
+        "data": [str(r) for r in roots],
         "config": asdict(cfg),
         "val_before": before,
         "val_centre_of_predicted_material": validation_score(model.physics_head, val, centre=True),
         "best": best,
         "seconds": round(time.perf_counter() - start, 1),
     }
-    recipe = f"python -m physgm.train.refit_stiffness {ckpt_path} --data {root} --epochs {cfg.epochs}"
+    recipe = (
+        f"python -m physgm.train.refit_stiffness {ckpt_path} --data {' '.join(map(str, roots))} "
+        f"--epochs {cfg.epochs}"
+    )
     save_refit(ckpt, ckpt_path, model, out, recipe, "refit_stiffness", record)
     return record
 
