@@ -187,6 +187,7 @@ def refit(ckpt_path: Path, data: Path | Sequence[Path], out: Path, cfg: RefitCon
         )
     config = copy.deepcopy(old.config)
     config.physics_head.material_input, config.physics_head.feature_hidden = "features", cfg.hidden
+    torch.manual_seed(cfg.seed)  # the new classifier's initial weights are the seed's, whatever ran before
     model = PhysGM(config, load_pretrained=False)
     kept = {k: v for k, v in old.state_dict().items() if not k.startswith("physics_head.material.")}
     missing, unexpected = model.load_state_dict(kept, strict=False)
