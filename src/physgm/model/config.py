@@ -86,7 +86,8 @@ class PhysicsHeadConfig:
     # --prior-sweep).
     semantic_prior_weight: float = 0.0
     # Mix by the domain gate's probability g that the scene is a real object rather than a procedural
-    # asset (physgm.model.domain_gate; mobilenet_v2 only): p = g * (p_head * p_prior^w) + (1 - g) * p_head.
+    # asset (physgm.model.domain_gate; mobilenet_v2 only): p = g * norm(p_head * p_prior^w) + (1 - g) *
+    # p_head.
     # Off in training; ``python -m physgm.train.fit_gate`` fits the gate and turns it on.
     domain_gate: bool = False
     # Temperature T of the ImageNet classifier before its classes are folded onto materials: below
