@@ -134,7 +134,7 @@ def test_fit_gate_separates_the_two_sets_and_keeps_every_other_weight(tiny_datas
             got = model(
                 torch.rand(1, 2, 3, 32, 32), torch.ones(1, 2, 1, 32, 32), cams.c2w[None], cams.Ks[None], feats
             )
-            views = split_views(root, "train", 32)[0, :2]  # [2, P]
+            views = split_views([root], "train", 32)[0, :2]  # [2, P]
             expected = torch.sigmoid(model.domain_gate.view_logits(views).mean())[None]
         torch.testing.assert_close(got.domain_real, expected, atol=1e-5, rtol=0)
         assert float(expected) > 0.9 if high else float(expected) < 0.1

@@ -31,14 +31,12 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from physgm.data.datamodule import PhysAssetsDataModule
 from physgm.data.format import read_split
 from physgm.errors import UserError
 from physgm.model.checkpoint import input_size, load_model
 from physgm.model.domain_gate import DomainGate
 from physgm.model.physgm import PhysGM
-from physgm.model.physics_head import pooled_features
-from physgm.train.refit_material import data_roots, save_refit
+from physgm.train.refit_material import data_roots, pooled_splits, save_refit
 
 
 @dataclass
@@ -47,32 +45,11 @@ class GateConfig:
     max_iter: int = 500  # L-BFGS iterations (the loss is convex: this is a tolerance, not a schedule)
 
 
-def roots_views(roots: list[Path], split: str, resolution: int) -> Tensor:  # [A, V, POOLED_DIM]
-    """``split_views`` of several roots, concatenated over their assets."""
-    parts = [v for v in (split_views(r, split, resolution) for r in roots) if len(v)]
-    if len({v.shape[1] for v in parts}) > 1:
-        raise UserError(
-            f"the feature caches of {roots} hold different numbers of views per asset; rebuild them"
-        )
-    return torch.cat(parts) if parts else torch.zeros(0, 0, 0)
-
-
-def split_views(root: Path, split: str, resolution: int) -> Tensor:  # [A, V, POOLED_DIM]
-    """Every cached view of a split's assets, pooled one view at a time (the cache is built if missing)."""
-    ids = read_split(root, split)
-    if not ids:
+def split_views(roots: list[Path], split: str, resolution: int) -> Tensor:  # [A, V, POOLED_DIM]
+    """Every cached view of the roots' ``split`` assets, pooled one view at a time (empty if none)."""
+    if not any(read_split(r, split) for r in roots):
         return torch.zeros(0, 0, 0)
-    store = PhysAssetsDataModule(
-        str(root), input_resolution=resolution, feature_cache="mobilenet_v2"
-    ).feature_store()
-    views = []
-    for aid in ids:
-        feats = store.load(aid)
-        views.append(pooled_features(feats, batch=len(feats.s4)))
-    counts = {len(v) for v in views}
-    if len(counts) != 1:
-        raise UserError(f"the feature cache of {root} holds {sorted(counts)} views per asset; rebuild it")
-    return torch.stack(views)
+    return pooled_splits(roots, split, resolution).views
 
 
 def fit_regression(
@@ -144,7 +121,7 @@ def fit_gate(
     roots = data_roots(data)
     resolution = input_size(old, ckpt.hparams)
     start = time.perf_counter()
-    synthetic, real = roots_views(roots, "train", resolution), split_views(real_root, "train", resolution)
+    synthetic, real = split_views(roots, "train", resolution), split_views([real_root], "train", resolution)
     if not len(synthetic) or not len(real):
         raise UserError(
             f"the gate needs synthetic training assets ({', '.join(map(str, roots))}: {len(synthetic)}) "
@@ -168,9 +145,9 @@ def fit_gate(
         "config": asdict(cfg),
         "train": {"synthetic": summary(gate, synthetic), "real": summary(gate, real)},
     }
-    scored = {"synthetic_val": roots_views(roots, "val", resolution)}
+    scored = {"synthetic_val": split_views(roots, "val", resolution)}
     if held_out is not None:
-        scored |= {name: split_views(held_out, name[5:], resolution) for name in ("real_val", "real_test")}
+        scored |= {name: split_views([held_out], name[5:], resolution) for name in ("real_val", "real_test")}
     for name, views in scored.items():
         if len(views):
             record[name] = summary(gate, views)
