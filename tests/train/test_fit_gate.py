@@ -77,6 +77,21 @@ def test_the_gate_mixes_the_fused_and_the_heads_distributions_scene_by_scene():
     torch.testing.assert_close(fuse_material_logits(head, log_prior, 8.0).softmax(-1), p_fused)
 
 
+def test_the_gate_mixes_in_the_procedural_expert_where_the_scene_looks_procedural():
+    head, procedural = torch.randn(3, 15), torch.randn(3, 15)
+    log_prior = torch.randn(3, 15).log_softmax(-1)
+    gate = torch.tensor([0.0, 0.6, 1.0])
+    p_head, p_procedural = head.softmax(-1), procedural.softmax(-1)
+    p_fused = p_head * log_prior.exp() ** 4.0
+    p_fused = p_fused / p_fused.sum(-1, keepdim=True)
+    for weight, real in ((4.0, p_fused), (0.0, p_head)):  # at w = 0 the real expert is the head alone
+        got = fuse_material_logits(head, log_prior, weight, 1.0, gate, procedural).softmax(-1)
+        torch.testing.assert_close(got, gate[:, None] * real + (1 - gate[:, None]) * p_procedural)
+    torch.testing.assert_close(got[0], p_procedural[0])  # g = 0: the procedural expert alone
+    with pytest.raises(ValueError, match="pass gate"):
+        fuse_material_logits(head, log_prior, 4.0, procedural_logits=procedural)
+
+
 def test_model_with_a_gate_needs_the_cnn_encoder():
     with pytest.raises(ValueError, match="domain_gate.*mobilenet_v2"):
         PhysGM(PhysGMConfig.from_dict({"physics_head": {"domain_gate": True}}))

@@ -108,6 +108,71 @@ def test_refit_fits_the_annotations_and_keeps_every_other_weight(data_root, tmp_
     assert not (tmp_path / "refit.ckpt.tmp").exists()
 
 
+def test_procedural_expert_refit_keeps_the_token_classifier_and_the_gate_mixes_them(data_root, tmp_path):
+    torch.manual_seed(2)
+    config = tiny_cnn_config("token")
+    config.physics_head.domain_gate = True
+    source = PhysGM(config)
+    gen = torch.Generator().manual_seed(3)
+    source.domain_gate.set_fit(
+        torch.randn(POOLED_DIM, generator=gen),
+        torch.rand(POOLED_DIM, generator=gen) + 0.5,
+        torch.randn(POOLED_DIM, generator=gen) * 0.005,
+        0.2,
+    )
+    save_checkpoint(source, tmp_path / "gated.ckpt", global_step=5)
+    out = tmp_path / "experts.ckpt"
+    argv = [str(tmp_path / "gated.ckpt"), "--data", str(data_root), "--out", str(out), "--epochs", "40"]
+    assert main([*argv, "--procedural-expert"]) == 0
+    model, ckpt = load_model(out)
+    head = model.config.physics_head
+    assert (head.material_input, head.procedural_expert, head.domain_gate) == ("token", True, True)
+    before, after = source.state_dict(), model.state_dict()
+    assert {k for k in after if k not in before} == {
+        k for k in after if k.startswith("physics_head.procedural.")
+    }
+    for k, v in before.items():  # the token classifier and the gate among them
+        assert torch.equal(v, after[k]), k
+    record = ckpt.raw["physgm"]["refit_material"]
+    assert record["train_accuracy_annotated"]["views1"] >= 0.7
+    assert record["config"]["procedural_expert"] and ckpt.raw["physgm"]["recipe"].endswith(
+        "--procedural-expert"
+    )
+    # the output: g * norm(p_token * p_prior^w) + (1 - g) * p_procedural, with the expert's own logits
+    cams = orbit_cameras([0.0, 90.0], [0.0, 0.0], 1.8, 34.0, 32, 32)
+    images = torch.rand(3, 2, 3, 32, 32)
+    with torch.no_grad():
+        c2w, Ks = cams.c2w.expand(3, -1, -1, -1), cams.Ks.expand(3, -1, -1, -1)
+        got = model(images, torch.ones(3, 2, 1, 32, 32), c2w, Ks)
+        feats = model.backbone.encoder.encode(images.flatten(0, 1))
+        procedural = model.physics_head.procedural(pooled_features(feats, batch=3))
+        g = model.domain_gate(feats, batch=3)[:, None]
+    torch.testing.assert_close(got.procedural_material_logits, procedural)
+    real = got.head_material_logits.softmax(-1) * got.semantic_log_prior.exp() ** 1.5
+    mixture = g * real / real.sum(-1, keepdim=True) + (1 - g) * procedural.softmax(-1)
+    torch.testing.assert_close(got.physics.material_logits.softmax(-1), mixture, atol=1e-5, rtol=1e-4)
+    assert 0.05 < float(g.min()) and float(g.max()) < 0.95  # both experts count in these scenes
+
+
+def test_procedural_expert_needs_a_gate_and_a_token_classifier(data_root, tmp_path):
+    config = tiny_cnn_config("token")
+    config.physics_head.procedural_expert = True
+    with pytest.raises(ValueError, match="needs physics_head.domain_gate"):
+        PhysGM(config)
+    config.physics_head.domain_gate, config.physics_head.material_input = True, "features"
+    with pytest.raises(ValueError, match="use one or the other"):
+        PhysGM(config)
+    save_checkpoint(PhysGM(tiny_cnn_config("token")), tmp_path / "ungated.ckpt")
+    with pytest.raises(UserError, match="fit the gate first"):
+        refit(
+            tmp_path / "ungated.ckpt",
+            data_root,
+            tmp_path / "out.ckpt",
+            RefitConfig(epochs=1, procedural_expert=True),
+        )
+    assert not (tmp_path / "out.ckpt").exists()
+
+
 def test_refit_refuses_a_vit_model_and_overwriting_its_input(data_root, tmp_path):
     save_checkpoint(
         PhysGM(PhysGMConfig.from_dict({"backbone": {"encoder": {"img_size": 32}}})), tmp_path / "vit.ckpt"

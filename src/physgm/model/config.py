@@ -87,9 +87,15 @@ class PhysicsHeadConfig:
     semantic_prior_weight: float = 0.0
     # Mix by the domain gate's probability g that the scene is a real object rather than a procedural
     # asset (physgm.model.domain_gate; mobilenet_v2 only): p = g * norm(p_head * p_prior^w) + (1 - g) *
-    # p_head.
+    # p_procedural, where p_procedural is the procedural expert's distribution if the head has one,
+    # else p_head.
     # Off in training; ``python -m physgm.train.fit_gate`` fits the gate and turns it on.
     domain_gate: bool = False
+    # A second material classifier, on the frozen CNN encoder's pooled pyramid, for the scenes the gate
+    # calls procedural (needs domain_gate). The token classifier stays the real objects' expert, inside
+    # the prior's product: each expert reads the domain it was chosen on (docs/model.md).
+    # ``python -m physgm.train.refit_material --procedural-expert`` fits it.
+    procedural_expert: bool = False
     # Temperature T of the ImageNet classifier before its classes are folded onto materials: below
     # 1 the top classes count more against the long tail of faintly likely ones. Chosen with w.
     semantic_prior_temperature: float = 1.0

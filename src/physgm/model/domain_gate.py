@@ -8,8 +8,9 @@ logistic regression on it separates held-out real objects from held-out syntheti
 
 The gate is that regression, applied to every view and averaged in logit space over a scene's
 views. Its probability ``g`` weighs two experts: the material distribution is the mixture
-``g * norm(p_head * p_prior^w) + (1 - g) * p_head`` (``fuse_material_logits``), the prior's fusion
-where the scene looks real and the head alone where it looks procedural. It is fitted after stage
+``g * norm(p_head * p_prior^w) + (1 - g) * p_procedural`` (``fuse_material_logits``), the prior's
+fusion where the scene looks real and the procedural expert (the head itself when the model has
+none) where it looks procedural. It is fitted after stage
 1 by ``python -m physgm.train.fit_gate`` on the synthetic training assets against real objects of
 their own set (``python -m physgm.data.real_objects --set gate``), never on the real evaluation
 set. Its numbers are buffers: no stage trains them, and DPO's log-probabilities see them as
@@ -47,8 +48,11 @@ class DomainGate(nn.Module):
     ) -> Tensor:  # [B] probability in (0, 1)
         views = features.s4.flatten(0, -4).shape[0]  # B * V
         per_view = pooled_features(features, batch=views)  # [B * V, POOLED_DIM]
-        logits = self.view_logits(per_view).reshape(batch, -1)  # [B, V]
-        return torch.sigmoid(logits.mean(dim=1))
+        return self.scene_probability(per_view.reshape(batch, -1, POOLED_DIM))
+
+    def scene_probability(self, per_view: Tensor) -> Tensor:  # [B, V, POOLED_DIM] -> [B]
+        """The gate of scenes whose views are already pooled one by one."""
+        return torch.sigmoid(self.view_logits(per_view).mean(dim=1))
 
     def set_fit(self, shift: Tensor, scale: Tensor, weight: Tensor, bias: float) -> None:
         """Store a fitted regression (``physgm.train.fit_gate``)."""

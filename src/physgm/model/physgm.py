@@ -15,7 +15,7 @@ from physgm.model.cnn_encoder import LEVEL_CHANNELS, ImageFeatures, MobileNetEnc
 from physgm.model.config import PhysGMConfig
 from physgm.model.domain_gate import DomainGate
 from physgm.model.gaussian_head import GaussianHead, GaussianPrediction
-from physgm.model.physics_head import PhysicsHead, fuse_material_logits, pooled_features
+from physgm.model.physics_head import POOLED_DIM, PhysicsHead, fuse_material_logits, pooled_features
 from physgm.model.posterior import PhysicsPosterior
 from physgm.model.semantic_prior import pool_views, semantic_log_prior
 
@@ -29,6 +29,7 @@ class PhysGMOutput:
     semantic_log_prior: Tensor | None = None  # [B, M] the ImageNet classes' material prior (CNN encoder)
     head_material_logits: Tensor | None = None  # [B, M] the physics head's alone, before the prior
     domain_real: Tensor | None = None  # [B] the domain gate's P(real object), when the model has one
+    procedural_material_logits: Tensor | None = None  # [B, M] the procedural expert's, when there is one
 
 
 class PhysGM(nn.Module):
@@ -65,6 +66,11 @@ class PhysGM(nn.Module):
                     f"backbone.encoder.kind='mobilenet_v2', got {config.backbone.encoder.kind!r}"
                 )
             self.domain_gate = DomainGate()
+        if config.physics_head.procedural_expert and self.domain_gate is None:
+            raise ValueError(
+                "physics_head.procedural_expert is mixed in by the domain gate: it needs "
+                "physics_head.domain_gate (python -m physgm.train.fit_gate fits one)"
+            )
 
     @property
     def patch_size(self) -> int:
@@ -102,17 +108,25 @@ class PhysGM(nn.Module):
                 / self.config.physics_head.semantic_prior_temperature
             )
             log_prior = semantic_log_prior(pool_views(logits, dim=1))
-        pooled = None
-        if self.config.physics_head.material_input == "features":
-            pooled = pooled_features(out.features, b)
-        head = self.physics_head(out.global_tokens, pooled)
-        gate = self.domain_gate(out.features, b) if self.domain_gate is not None else None
         cfg = self.config.physics_head
+        pooled = gate = None
+        if cfg.material_input == "features" or self.domain_gate is not None:
+            per_view = pooled_features(out.features, b * v).reshape(b, v, POOLED_DIM)  # pooled once
+            pooled = per_view.mean(1)  # = pooled_features(out.features, b)
+            if self.domain_gate is not None:
+                gate = self.domain_gate.scene_probability(per_view)
+        head = self.physics_head(out.global_tokens, pooled)
+        procedural = self.physics_head.procedural_logits(pooled)
         fused = fuse_material_logits(
-            head.material_logits, log_prior, cfg.semantic_prior_weight, cfg.material_temperature, gate
+            head.material_logits,
+            log_prior,
+            cfg.semantic_prior_weight,
+            cfg.material_temperature,
+            gate,
+            procedural,
         )
         physics = dataclasses.replace(head, material_logits=fused)
-        return PhysGMOutput(gaussians, physics, log_prior, head.material_logits, gate)
+        return PhysGMOutput(gaussians, physics, log_prior, head.material_logits, gate, procedural)
 
     def encode_views(
         self,

@@ -5,7 +5,10 @@ log-variance of normalised log10 E, token 2 those of normalised nu (normalisatio
 ``physgm.model.posterior``). With ``material_input="features"`` the material logits come instead
 from the frozen CNN encoder's pyramid, pooled over space and views (``pooled_features``): on the
 synthetic assets that reads the material better than the jointly trained token does, while the
-tokens read E better (docs/model.md). This is the only module the DPO stage trains.
+tokens read E better (docs/model.md). With ``procedural_expert`` the head has both: the token
+classifier for real objects (inside the semantic prior's product) and a pooled-features one for the
+scenes the domain gate calls procedural (``fuse_material_logits``). This is the only module the DPO
+stage trains.
 """
 
 from __future__ import annotations
@@ -79,6 +82,11 @@ class PhysicsHead(nn.Module):
             raise ValueError(
                 f"physics_head.material_input must be one of {MATERIAL_INPUTS}, got {cfg.material_input!r}"
             )
+        if cfg.procedural_expert and cfg.material_input == "features":
+            raise ValueError(
+                "physics_head.procedural_expert adds a pooled-features classifier beside the token one; "
+                "material_input='features' already reads the pooled features: use one or the other"
+            )
         if cfg.E_frame not in E_FRAMES:
             raise ValueError(f"physics_head.E_frame must be one of {E_FRAMES}, got {cfg.E_frame!r}")
         self.cfg = cfg
@@ -95,6 +103,11 @@ class PhysicsHead(nn.Module):
         else:
             self.material = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, cfg.num_materials))
             last = self.material[-1]
+        self.procedural = None
+        if cfg.procedural_expert:
+            self.procedural = PooledMaterialClassifier(cfg.num_materials, cfg.feature_hidden)
+            nn.init.normal_(self.procedural.out.weight, std=0.02)
+            nn.init.zeros_(self.procedural.out.bias)
         self.young = _mean_logvar_mlp(dim, cfg.hidden)
         self.poisson = _mean_logvar_mlp(dim, cfg.hidden)
         nn.init.normal_(last.weight, std=0.02)
@@ -105,13 +118,10 @@ class PhysicsHead(nn.Module):
         global_tokens: Tensor,  # [B, G >= 3, D]
         pooled: Tensor | None = None,  # [B, POOLED_DIM] pooled_features, for material_input "features"
     ) -> PhysicsPosterior:
+        """The posterior; its material logits are the main classifier's (token or features), never the
+        procedural expert's (``procedural_logits``)."""
         if self.cfg.material_input == "features":
-            if pooled is None:
-                raise ValueError(
-                    "this physics head reads the material from the CNN encoder's pooled features; "
-                    "pass physics_head(global_tokens, pooled_features(features, B))"
-                )
-            material_logits = self.material(pooled)
+            material_logits = self.material(self._need_pooled(pooled))
         else:
             material_logits = self.material(global_tokens[:, 0])
         E_mean, E_raw = self.young(global_tokens[:, 1]).unbind(-1)
@@ -124,6 +134,18 @@ class PhysicsHead(nn.Module):
             z_nu_logvar=self._logvar(nu_raw) + self.cfg.nu_logvar_offset,
             E_ranges=self.E_ranges if self.cfg.E_frame == "material" else None,
         )
+
+    def procedural_logits(self, pooled: Tensor | None) -> Tensor | None:  # [B, POOLED_DIM] -> [B, M]
+        """The procedural expert's material logits, or None for a head without one."""
+        return None if self.procedural is None else self.procedural(self._need_pooled(pooled))
+
+    def _need_pooled(self, pooled: Tensor | None) -> Tensor:
+        if pooled is None:
+            raise ValueError(
+                "this physics head reads the material from the CNN encoder's pooled features; "
+                "pass physics_head(global_tokens, pooled_features(features, B))"
+            )
+        return pooled
 
     def _logvar(self, raw: Tensor) -> Tensor:
         # Smoothly bounded: a vanishing variance would let the NLL run to -inf on one sample.
@@ -145,17 +167,22 @@ def fuse_material_logits(
     weight: float,
     temperature: float = 1.0,
     gate: Tensor | None = None,  # [B] the domain gate's P(real object), or None
+    procedural_logits: Tensor | None = None,  # [B, M] the procedural expert's, or None (needs a gate)
 ) -> Tensor:  # [B, M]
     """Material logits of p^(1 / temperature), where p = p_head * p_prior^weight (normalised), or with a
-    domain gate g the mixture g * that + (1 - g) * p_head: the prior's expert where the scene looks
-    real, the head alone where it looks like the procedural training data. Without a prior or at
-    weight 0, the head's own logits."""
+    domain gate g the mixture g * that + (1 - g) * p_procedural: the prior's expert where the scene
+    looks real, the procedural expert (the head itself when there is none) where it looks like the
+    procedural training data. Without a prior or at weight 0 the real expert is p_head alone, and
+    without a gate too the result is the head's own logits."""
+    if procedural_logits is not None and gate is None:
+        raise ValueError("a procedural expert's logits are mixed in by the domain gate's g; pass gate")
+    fused = head_logits
     if semantic_log_prior is not None and weight != 0.0:
-        log_head = head_logits.log_softmax(dim=-1)
-        fused = (log_head + weight * semantic_log_prior.to(head_logits.dtype)).log_softmax(dim=-1)
-        if gate is None:
-            head_logits = fused
-        else:
-            g = gate.to(head_logits.dtype)[:, None]  # log(0) = -inf drops an expert exactly
-            head_logits = torch.logaddexp(g.log() + fused, (1 - g).log() + log_head)
-    return head_logits if temperature == 1.0 else head_logits / temperature
+        log_prior = semantic_log_prior.to(head_logits.dtype)
+        fused = (head_logits.log_softmax(dim=-1) + weight * log_prior).log_softmax(dim=-1)
+    if gate is not None:
+        other = head_logits if procedural_logits is None else procedural_logits
+        g = gate.to(head_logits.dtype)[:, None]  # log(0) = -inf drops an expert exactly
+        real, procedural = fused.log_softmax(dim=-1), other.log_softmax(dim=-1)
+        fused = torch.logaddexp(g.log() + real, (1 - g).log() + procedural)
+    return fused if temperature == 1.0 else fused / temperature

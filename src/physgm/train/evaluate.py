@@ -53,7 +53,12 @@ def fused_logits(out, weight: float, temperature: float = 1.0) -> torch.Tensor: 
     """Material logits of a model output at any prior weight w, with its domain gate if it has one
     (``fuse_material_logits``)."""
     return fuse_material_logits(
-        out.head_material_logits, out.semantic_log_prior, weight, temperature, out.domain_real
+        out.head_material_logits,
+        out.semantic_log_prior,
+        weight,
+        temperature,
+        out.domain_real,
+        out.procedural_material_logits,
     )
 
 

@@ -1,6 +1,7 @@
 """Refit the physics head's material classifier on the frozen encoder's pooled features.
 
     python -m physgm.train.refit_material CKPT --data ROOT [ROOT ...] --out OUT [--epochs 60] [--seed 0]
+        [--procedural-expert]
 
 Stage 1 trains the material classifier on global token 0, jointly with everything else. On the
 synthetic assets a classifier of the frozen MobileNetV2's pyramid, pooled over space and views,
@@ -13,6 +14,11 @@ annotation), scored on single views and on fixed sets of 4. Several roots pool t
 and their val splits (more procedural assets make a better classifier: docs/model.md). Only the
 feature cache is read, so a fit takes minutes on the CPU. OUT keeps CKPT's hyper-parameters
 (prior weight, calibration offsets) and is written atomically.
+
+``--procedural-expert`` keeps the token classifier instead and fits the same classifier as the
+head's second, procedural expert (``physics_head.procedural_expert``): the domain gate mixes it in
+for scenes that look procedural, and the token classifier with the semantic prior keeps the real
+objects. CKPT needs a domain gate (``python -m physgm.train.fit_gate``).
 """
 
 from __future__ import annotations
@@ -22,9 +28,10 @@ import copy
 import json
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from types import MappingProxyType
 
 import torch
 from torch import Tensor
@@ -49,6 +56,7 @@ class RefitConfig:
     dropout: tuple[float, float] = (0.2, 0.3)  # on the standardised input, on the hidden layer
     p_single: float = 0.5  # share of 1-view draws; the rest average 4 views
     seed: int = 0
+    procedural_expert: bool = False  # fit the head's procedural expert, keep its main classifier
 
 
 @dataclass
@@ -186,29 +194,42 @@ def refit(ckpt_path: Path, data: Path | Sequence[Path], out: Path, cfg: RefitCon
             "frozen mobilenet_v2's cached features"
         )
     config = copy.deepcopy(old.config)
-    config.physics_head.material_input, config.physics_head.feature_hidden = "features", cfg.hidden
+    head = config.physics_head
+    if cfg.procedural_expert:
+        if not head.domain_gate or head.material_input != "token":
+            raise UserError(
+                f"{ckpt_path}: a procedural expert sits beside a token material classifier and is mixed "
+                f"in by the domain gate (this head: material_input={head.material_input!r}, "
+                f"domain_gate={head.domain_gate}); fit the gate first: python -m physgm.train.fit_gate"
+            )
+        head.procedural_expert, refitted = True, "physics_head.procedural."
+    else:
+        head.material_input, refitted = "features", "physics_head.material."
+    head.feature_hidden = cfg.hidden
     torch.manual_seed(cfg.seed)  # the new classifier's initial weights are the seed's, whatever ran before
     model = PhysGM(config, load_pretrained=False)
-    kept = {k: v for k, v in old.state_dict().items() if not k.startswith("physics_head.material.")}
+    kept = {k: v for k, v in old.state_dict().items() if not k.startswith(refitted)}
     missing, unexpected = model.load_state_dict(kept, strict=False)
-    if unexpected or not all(k.startswith("physics_head.material.") for k in missing):
+    if unexpected or not all(k.startswith(refitted) for k in missing):
         raise RuntimeError(f"refit lost weights other than the material classifier: {missing} {unexpected}")
+    classifier = model.physics_head.procedural if cfg.procedural_expert else model.physics_head.material
     start = time.perf_counter()
     resolution = input_size(old, ckpt.hparams)
     train, val = pooled_splits(roots, "train", resolution), pooled_splits(roots, "val", resolution)
     log(f"refit: {len(train.ids)} train / {len(val.ids)} val assets, {train.views.shape[1]} views each")
-    best = fit(model.physics_head.material, train, val, cfg, log)
+    best = fit(classifier, train, val, cfg, log)
     record = {
         "source": str(ckpt_path),
         "data": [str(r) for r in roots],
         "assets": {"train": len(train.ids), "val": len(val.ids)},
         "config": asdict(cfg),
         "best": best,
-        "train_accuracy_annotated": accuracy(model.physics_head.material, train.views, train.annotated),
+        "train_accuracy_annotated": accuracy(classifier, train.views, train.annotated),
         "seconds": round(time.perf_counter() - start, 1),
     }
     roots_arg = " ".join(map(str, roots))
     recipe = f"python -m physgm.train.refit_material {ckpt_path} --data {roots_arg} --epochs {cfg.epochs}"
+    recipe += " --procedural-expert" if cfg.procedural_expert else ""
     save_refit(ckpt, ckpt_path, model, out, recipe, "refit_material", record)
     return record
 
@@ -229,10 +250,19 @@ def save_refit(
     read_checkpoint(out)  # the layout check every reader does
 
 
-def refit_arguments(prog: str, description: str, epochs: int, seed: int, argv: list[str] | None):
+def refit_arguments(
+    prog: str,
+    description: str,
+    epochs: int,
+    seed: int,
+    argv: list[str] | None,
+    flags: Mapping[str, str] = MappingProxyType({}),
+):
     """The command line every refit takes, ``CKPT --data ROOT [ROOT ...] --out OUT [--epochs N] [--seed S]``,
-    checked."""
+    plus the tool's own on/off ``flags`` (name -> help), checked."""
     p = argparse.ArgumentParser(prog=prog, description=description)
+    for name, help in flags.items():
+        p.add_argument(name, action="store_true", help=help)
     p.add_argument("ckpt", type=Path, help="stage-1 checkpoint")
     p.add_argument(
         "--data",
@@ -264,10 +294,12 @@ def run_refit(fn, a: argparse.Namespace, cfg) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     doc = __doc__.split("\n")[0]
+    flags = {"--procedural-expert": "fit the head's procedural expert beside its token classifier"}
     a = refit_arguments(
-        "python -m physgm.train.refit_material", doc, RefitConfig.epochs, RefitConfig.seed, argv
+        "python -m physgm.train.refit_material", doc, RefitConfig.epochs, RefitConfig.seed, argv, flags
     )
-    return run_refit(refit, a, RefitConfig(epochs=a.epochs, seed=a.seed))
+    cfg = RefitConfig(epochs=a.epochs, seed=a.seed, procedural_expert=a.procedural_expert)
+    return run_refit(refit, a, cfg)
 
 
 def _stderr(msg: str) -> None:

@@ -55,7 +55,7 @@ class TokenSplit:
     """What the E regression reads and fits, per input set (each asset once with 4 views, once with 1)."""
 
     tokens: Tensor  # [N, D] global token 1
-    material_logits: Tensor  # [N, M] the head's own (prior weight 0)
+    material_logits: Tensor  # [N, M] the model's at prior weight 0 (its procedural expert's, if gated)
     material: Tensor  # [N] true material, else the annotation
     log10_E: Tensor  # [N] true log10 E, else the annotation
     views: Tensor  # [N] 1 or 4
@@ -63,10 +63,8 @@ class TokenSplit:
 
 def token_split(model: PhysGM, root: Path, split: str, resolution: int) -> TokenSplit:
     """Run the frozen model once per asset and input-view count; keep what the physics head reads."""
-    seen: list[tuple[Tensor, Tensor]] = []
-    hook = model.physics_head.register_forward_hook(
-        lambda mod, args, out: seen.append((args[0][:, 1].detach(), out.material_logits.detach()))
-    )
+    seen: list[Tensor] = []
+    hook = model.physics_head.register_forward_hook(lambda mod, args, out: seen.append(args[0][:, 1]))
     parts: list[tuple[Tensor, ...]] = []
     try:
         for views in (4, 1):
@@ -74,8 +72,8 @@ def token_split(model: PhysGM, root: Path, split: str, resolution: int) -> Token
             for batch in dm.test_dataloader():
                 seen.clear()
                 with torch.no_grad():
-                    model(batch.images, batch.masks, batch.c2w, batch.Ks, batch.features)
-                tokens, logits = seen[-1]
+                    out = model(batch.images, batch.masks, batch.c2w, batch.Ks, batch.features)
+                tokens, logits = seen[-1], out.physics.material_logits
                 known = batch.true_known
                 material = torch.where(known, batch.true_material, batch.material)
                 log10_E = torch.where(known, batch.true_log10_E, batch.log10_E)
