@@ -38,7 +38,11 @@ def features_head_config() -> dict:
     """The tiny model on the frozen MobileNetV2, its material read from the pooled pyramid."""
     cfg = tiny_model_config()
     cfg["backbone"]["encoder"] = {
-        "kind": "mobilenet_v2", "patch_size": 16, "embed_dim": 448, "freeze": True, "img_size": 32
+        "kind": "mobilenet_v2",
+        "patch_size": 16,
+        "embed_dim": 448,
+        "freeze": True,
+        "img_size": 32,
     }
     cfg["physics_head"]["material_input"] = "features"
     cfg["physics_head"]["feature_hidden"] = 16
@@ -156,18 +160,34 @@ def test_reference_is_a_frozen_copy_outside_the_module_tree(tmp_path):
     assert trainable == {id(p) for p in lit.model.physics_head.parameters()}
 
 
-@pytest.mark.parametrize("material_input", ["token", "features"])
+def experts_config() -> dict:
+    """The shipped model's layout: token classifier and semantic prior, a domain gate and a procedural
+    expert, at a prior weight and a material temperature other than the defaults."""
+    cfg = features_head_config()
+    head = cfg["physics_head"]
+    head.update(material_input="token", domain_gate=True, procedural_expert=True)
+    head.update(semantic_prior_weight=4.0, material_temperature=1.5)
+    return cfg
+
+
+@pytest.mark.parametrize("material_input", ["token", "features", "experts"])
 def test_cached_head_inputs_give_the_full_forward_posteriors(tmp_path, material_input):
-    model = features_head_config() if material_input == "features" else None
+    model = {"token": None, "features": features_head_config(), "experts": experts_config()}[material_input]
     lit = LitDPO(init_ckpt=stage1_checkpoint(tmp_path / "s1.ckpt", model=model), loss={"beta": 0.5})
     records, inputs = fake_pairs(n=4)
     with torch.no_grad():
         lit.model.physics_head.young[-1].bias += 0.3  # policy != reference
+        if material_input == "experts":  # both experts and the gate's mixture count
+            lit.model.physics_head.procedural.out.bias.normal_()
+            lit.model.physics_head.material[-1].bias.normal_()
+            lit.reference.domain_gate.bias.fill_(0.4)
+            lit.model.domain_gate.bias.fill_(0.4)
     batch = collate_pairs([PairDataset(records, inputs)[i] for i in (2, 0, 3)])
     policy, reference = lit.posteriors(batch)
     lit.posteriors(collate_pairs([PairDataset(records, inputs)[i] for i in (1, 0)]))  # partly cached
     assert set(lit._head_inputs) == {"s0", "s1", "s2", "s3"}
-    assert all((pooled is None) == (material_input == "token") for _, pooled in lit._head_inputs.values())
+    assert all((x.pooled is None) == (material_input == "token") for x in lit._head_inputs.values())
+    assert all((x.gate is None) == (material_input != "experts") for x in lit._head_inputs.values())
     with torch.no_grad():
         full = lit.model(batch.images, batch.masks, batch.c2w, batch.Ks).physics
         full_ref = lit.reference(batch.images, batch.masks, batch.c2w, batch.Ks).physics

@@ -32,13 +32,16 @@ def record(scene="a", round_=0, settings="s1", distances=(0.3, 0.1, 0.5), index=
     return SceneRecord(scene, index, round_, settings, "p1", cands, w, l, 7, note)
 
 
-@pytest.mark.parametrize("distances,expected", [
-    ((0.3, 0.1, 0.5), (1, 2)),
-    ((0.05, 0.9, 0.2, 0.4), (0, 1)),
-    ((0.2, 0.2, 0.7), (0, 2)),  # equal best: the first one wins (deterministic)
-    ((0.4, None, 0.1), (2, 1)),  # a failed rollout loses
-    ((float("nan"), 0.3, 0.1), (2, 0)),  # so does a non-finite distance
-])
+@pytest.mark.parametrize(
+    "distances,expected",
+    [
+        ((0.3, 0.1, 0.5), (1, 2)),
+        ((0.05, 0.9, 0.2, 0.4), (0, 1)),
+        ((0.2, 0.2, 0.7), (0, 2)),  # equal best: the first one wins (deterministic)
+        ((0.4, None, 0.1), (2, 1)),  # a failed rollout loses
+        ((float("nan"), 0.3, 0.1), (2, 0)),  # so does a non-finite distance
+    ],
+)
 def test_lowest_distance_wins_highest_loses(distances, expected):
     w, l, note = select_pair([cand(d) for d in distances], min_gap=0.002)
     assert (w, l) == expected
@@ -124,6 +127,11 @@ def test_policy_fingerprint_follows_the_weights():
     with torch.no_grad():
         b.bias[0] += 1e-7
     assert policy_fingerprint(a) != policy_fingerprint(b)
+    # a 0-dim buffer (the domain gate's bias) counts like any other weight
+    a.register_buffer("offset", torch.zeros(()))
+    before = policy_fingerprint(a)
+    a.offset.fill_(0.5)
+    assert policy_fingerprint(a) != before
 
 
 def test_settings_hash_is_stable_and_sensitive():

@@ -117,6 +117,20 @@ class PhysGM(nn.Module):
                 gate = self.domain_gate.scene_probability(per_view)
         head = self.physics_head(out.global_tokens, pooled)
         procedural = self.physics_head.procedural_logits(pooled)
+        physics = self.fused_posterior(head, log_prior, gate, procedural)
+        return PhysGMOutput(gaussians, physics, log_prior, head.material_logits, gate, procedural)
+
+    def fused_posterior(
+        self,
+        head: PhysicsPosterior,  # [B] the physics head's own
+        log_prior: Tensor | None,  # [B, M] semantic_log_prior, or None
+        gate: Tensor | None,  # [B] the domain gate's P(real object), or None
+        procedural: Tensor | None,  # [B, M] the procedural expert's logits, or None
+    ) -> PhysicsPosterior:
+        """The model's posterior from its physics head's: the material distribution fused with the
+        semantic prior, the domain gate and the procedural expert at this model's w and temperature
+        (``fuse_material_logits``). The DPO stage calls it on cached head inputs."""
+        cfg = self.config.physics_head
         fused = fuse_material_logits(
             head.material_logits,
             log_prior,
@@ -125,8 +139,7 @@ class PhysGM(nn.Module):
             gate,
             procedural,
         )
-        physics = dataclasses.replace(head, material_logits=fused)
-        return PhysGMOutput(gaussians, physics, log_prior, head.material_logits, gate, procedural)
+        return dataclasses.replace(head, material_logits=fused)
 
     def encode_views(
         self,

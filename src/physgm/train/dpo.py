@@ -108,6 +108,28 @@ def freeze(module: torch.nn.Module) -> torch.nn.Module:
     return module.eval()
 
 
+@dataclass
+class HeadInputs:
+    """What the frozen parts of a model hand its physics head and the fusion of its material
+    distribution, for [B] scenes or (``scene``) one."""
+
+    tokens: Tensor  # [B, G, D] the global tokens
+    pooled: Tensor | None  # [B, P] pooled encoder features (a features classifier or a gate), or None
+    log_prior: Tensor | None  # [B, M] the semantic prior (CNN encoder), or None
+    gate: Tensor | None  # [B] the domain gate's P(real object), or None
+
+    def parts(self) -> tuple[Tensor | None, ...]:
+        return self.tokens, self.pooled, self.log_prior, self.gate
+
+    def scene(self, k: int) -> HeadInputs:
+        return HeadInputs(*(None if t is None else t[k].detach() for t in self.parts()))
+
+    @staticmethod
+    def stack(scenes: list[HeadInputs], device) -> HeadInputs:
+        fields = zip(*(s.parts() for s in scenes), strict=True)
+        return HeadInputs(*(None if t[0] is None else torch.stack(t).to(device) for t in fields))
+
+
 class LitDPO(L.LightningModule):
     """PhysGM policy + frozen reference + the DPO loss on preference pairs.
 
@@ -165,8 +187,8 @@ class LitDPO(L.LightningModule):
             self._reference.append(freeze(copy.deepcopy(self.model)))
         freeze(self.model.backbone)
         freeze(self.model.gaussian_head)
-        # scene id -> what the frozen backbone hands the physics head: tokens [G, D], pooled [P] or None
-        self._head_inputs: dict[str, tuple[Tensor, Tensor | None]] = {}  # (not saved)
+        # scene id -> what the frozen parts hand the physics head and its fusion (not saved)
+        self._head_inputs: dict[str, HeadInputs] = {}
         self.loss_cfg = DPOLossConfig(**(loss or {}))
         self.optim_cfg = OptimConfig(**(optim or {}))
         self.total_steps = total_steps
@@ -216,13 +238,12 @@ class LitDPO(L.LightningModule):
     ) -> DPOBatch:
         return batch.to(device)
 
-    def head_inputs(self, batch: DPOBatch) -> tuple[Tensor, Tensor | None]:  # [B, G, D], [B, P] | None
-        """What the physics head reads for the batch's scenes, computed once per scene: the frozen
-        backbone's global tokens, and the pooled encoder features when the head's material
-        classifier reads them (``material_input="features"``; else None).
+    def head_inputs(self, batch: DPOBatch) -> HeadInputs:  # [B, ...]
+        """What the physics head and the fusion of its material distribution read for the batch's
+        scenes, computed once per scene (``HeadInputs``).
 
-        Exact, not an approximation: the backbone is frozen and in eval mode, and the reference's
-        backbone is a bit-identical copy of it, so both physics heads read the same inputs.
+        Exact, not an approximation: the backbone, the encoder and the gate are frozen and in eval
+        mode, and the reference's are bit-identical copies, so both physics heads read the same inputs.
         """
         missing = [i for i, s in enumerate(batch.scenes) if s not in self._head_inputs]
         if missing:
@@ -230,27 +251,30 @@ class LitDPO(L.LightningModule):
             hook = self.model.physics_head.register_forward_hook(lambda mod, args, out: seen.append(args))
             try:
                 with torch.no_grad():
-                    self.model(
+                    out = self.model(
                         batch.images[missing], batch.masks[missing], batch.c2w[missing], batch.Ks[missing]
                     )
             finally:
                 hook.remove()
-            tokens, pooled = seen[0][0].detach(), seen[0][1]
+            found = HeadInputs(seen[0][0], seen[0][1], out.semantic_log_prior, out.domain_real)
             for k, i in enumerate(missing):
-                scene_pooled = None if pooled is None else pooled[k].detach()
-                self._head_inputs[batch.scenes[i]] = (tokens[k], scene_pooled)
-        inputs = [self._head_inputs[s] for s in batch.scenes]
-        tokens = torch.stack([t for t, _ in inputs]).to(self.device)
-        pooled = None if inputs[0][1] is None else torch.stack([p for _, p in inputs]).to(self.device)
-        return tokens, pooled
+                self._head_inputs[batch.scenes[i]] = found.scene(k)
+        return HeadInputs.stack([self._head_inputs[s] for s in batch.scenes], self.device)
 
     def posteriors(self, batch: DPOBatch) -> tuple[PhysicsPosterior, PhysicsPosterior]:
-        """(policy, reference) physics posteriors [B] of the batch's scenes."""
-        tokens, pooled = self.head_inputs(batch)
-        policy = self.model.physics_head(tokens, pooled)
+        """(policy, reference) physics posteriors [B] of the batch's scenes: what each model's forward
+        gives (``PhysGM.fused_posterior``), from the cached head inputs."""
+        x = self.head_inputs(batch)
+        policy = self._posterior(self.model, x)
         with torch.no_grad():
-            reference = self.reference.physics_head(tokens, pooled)
+            reference = self._posterior(self.reference, x)
         return policy, reference
+
+    @staticmethod
+    def _posterior(model: PhysGM, x: HeadInputs) -> PhysicsPosterior:
+        head = model.physics_head(x.tokens, x.pooled)
+        procedural = model.physics_head.procedural_logits(x.pooled)
+        return model.fused_posterior(head, x.log_prior, x.gate, procedural)
 
     def log_prob(self, posterior: PhysicsPosterior, sample, batch: DPOBatch) -> Tensor:  # [B]
         """log pi of one [B, 1] sample: the exact joint, or its factorised form (see DPOLossConfig)."""

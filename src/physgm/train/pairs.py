@@ -148,7 +148,8 @@ def policy_fingerprint(model: torch.nn.Module) -> str:
     h = hashlib.sha1()
     for name, p in sorted(model.state_dict().items()):
         h.update(name.encode())
-        h.update(p.detach().cpu().contiguous().view(torch.uint8).numpy().tobytes() if p.numel() else b"")
+        flat = p.detach().cpu().reshape(-1).contiguous()  # a 0-dim buffer (the gate's bias) as one element
+        h.update(flat.view(torch.uint8).numpy().tobytes() if p.numel() else b"")
     return h.hexdigest()[:16]
 
 
