@@ -67,7 +67,7 @@ def evaluate_examples(model, size: int, folder: Path, weights: list[float], log=
                 right[w] += ok
                 chosen[f"{w:g}"] = {"material": material, "behaviour_right": ok}
             row = {"input": name, "label": truth, "by_prior_weight": chosen}
-            if model.domain_gate is not None:  # how real the views look to the gate, which scales w
+            if model.domain_gate is not None:  # how real the views look to the gate: the real expert's weight
                 with torch.no_grad():
                     features = model.encode_views(inp.images, inp.classifier_images)
                     row["domain_gate"] = round(float(model.domain_gate(features, 1)), 3)
