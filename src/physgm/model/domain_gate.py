@@ -10,11 +10,10 @@ The gate is that regression, applied to every view and averaged in logit space o
 views. Its probability ``g`` weighs two experts: the material distribution is the mixture
 ``g * norm(p_head * p_prior^w) + (1 - g) * p_procedural`` (``fuse_material_logits``), the prior's
 fusion where the scene looks real and the procedural expert (the head itself when the model has
-none) where it looks procedural. It is fitted after stage
-1 by ``python -m physgm.train.fit_gate`` on the synthetic training assets against real objects of
-their own set (``python -m physgm.data.real_objects --set gate``), never on the real evaluation
-set. Its numbers are buffers: no stage trains them, and DPO's log-probabilities see them as
-constants.
+none) where it looks procedural. It is fitted after stage 1 by ``python -m physgm.train.fit_gate``
+on the synthetic training assets against real objects of their own set (``python -m
+physgm.data.real_objects --set gate``), never on the real evaluation set. Its numbers are
+buffers: no stage trains them, and DPO's log-probabilities see them as constants.
 """
 
 from __future__ import annotations
