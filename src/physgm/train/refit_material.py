@@ -261,8 +261,8 @@ def refit_arguments(
     """The command line every refit takes, ``CKPT --data ROOT [ROOT ...] --out OUT [--epochs N] [--seed S]``,
     plus the tool's own on/off ``flags`` (name -> help), checked."""
     p = argparse.ArgumentParser(prog=prog, description=description)
-    for name, help in flags.items():
-        p.add_argument(name, action="store_true", help=help)
+    for name, text in flags.items():
+        p.add_argument(name, action="store_true", help=text)
     p.add_argument("ckpt", type=Path, help="stage-1 checkpoint")
     p.add_argument(
         "--data",
