@@ -224,3 +224,6 @@ def test_shipped_checkpoint_runs_every_shipped_photo(make_cfg):
         report = run_pipeline(cfg).report
         check_run_folder(cfg.output_dir, report)
         assert report["checkpoint"]["input_size"] == 128
+        # the shipped file's domain gate: renders of real meshes look real, the procedural ones do not
+        gate = json.loads((cfg.output_dir / "physics.json").read_text())["posterior"]["domain_real"]
+        assert gate < 0.5 if photo in synthetic else gate > 0.5, (photo, gate)

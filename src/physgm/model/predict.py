@@ -6,11 +6,22 @@ rollouts and their evaluation, so all three see the same Gaussians for the same 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 from torch import Tensor
 
 from physgm.gaussians import Gaussians
 from physgm.model.posterior import PhysicsPosterior
+
+
+@dataclass
+class ScenePrediction:
+    """What the model predicts for one scene, on the CPU."""
+
+    gaussians: Gaussians  # [N] the valid ones, asset frame, float32
+    posterior: PhysicsPosterior  # [1]
+    domain_real: float | None  # the domain gate's P(real object), None for a model without a gate
 
 
 def predict_scene(
@@ -20,8 +31,8 @@ def predict_scene(
     c2w: Tensor,  # [V, 4, 4] OpenCV camera-to-world
     Ks: Tensor,  # [V, 3, 3]
     classifier_images: Tensor | None = None,  # [V, 3, h, w] the views at a higher resolution, or None
-) -> tuple[Gaussians, PhysicsPosterior]:
-    """The model's valid Gaussians [N] (asset frame, float32, CPU) and physics posterior [1] (CPU).
+) -> ScenePrediction:
+    """The model's valid Gaussians, physics posterior and domain gate for one scene.
 
     Runs in eval mode without gradients on the model's own device; every submodule's train/eval
     flag is restored afterwards one by one, so a module frozen in eval (the DPO policy's backbone)
@@ -47,5 +58,5 @@ def predict_scene(
             m.training = mode
     g = out.gaussians.to_gaussians(0)
     g = Gaussians(*(t.detach().float().cpu() for t in (g.means, g.quats, g.scales, g.opacities, g.colors)))
-    post = out.physics.detach()
-    return g, post.cpu_float()
+    gate = None if out.domain_real is None else float(out.domain_real[0])
+    return ScenePrediction(g, out.physics.detach().cpu_float(), gate)

@@ -127,12 +127,20 @@ def choose_physics(post: PhysicsPosterior | None, over: PhysicsOverrides, seed: 
 
 
 def physics_json(
-    post: PhysicsPosterior | None, over: PhysicsOverrides, runs: list[PhysicsChoice], videos: dict[str, str]
+    post: PhysicsPosterior | None,
+    over: PhysicsOverrides,
+    runs: list[PhysicsChoice],
+    videos: dict[str, str],
+    domain_real: float | None = None,
 ) -> dict:
-    """Contents of physics.json."""
+    """Contents of physics.json. ``domain_real``: the model's domain gate, P(the views show a real
+    object), which weighs the semantic prior's expert against the procedural one (None: no gate)."""
+    posterior = None if post is None else posterior_summary(post)
+    if posterior is not None and domain_real is not None:
+        posterior["domain_real"] = round(domain_real, 4)
     return {
         "source": "model" if post is not None else "none (a .ply input has no prediction)",
-        "posterior": None if post is None else posterior_summary(post),
+        "posterior": posterior,
         "overrides": {k: v for k, v in asdict(over).items() if k != "samples"},
         "samples": over.samples,
         "runs": [{**asdict(r), "video": videos.get(r.name)} for r in runs],

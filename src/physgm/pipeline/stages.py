@@ -109,12 +109,14 @@ def _load_model(cfg: RunConfig):
 
 
 def _predict(model, inp):
-    """The model's Gaussians (valid pixels only, CPU) and physics posterior (CPU) for one scene."""
+    """The model's Gaussians (valid pixels only, CPU), physics posterior (CPU) and domain gate for
+    one scene (``physgm.model.predict.ScenePrediction``)."""
     import torch
 
     from physgm.model.predict import predict_scene
 
-    g, post = predict_scene(model, inp.images, inp.masks, inp.c2w, inp.Ks, inp.classifier_images)
+    pred = predict_scene(model, inp.images, inp.masks, inp.c2w, inp.Ks, inp.classifier_images)
+    g, post = pred.gaussians, pred.posterior
     if len(g) == 0:
         raise UserError("the model placed no Gaussian inside the object mask; check the mask (mask.png)")
     values = [g.means, g.scales, g.opacities, g.colors, post.material_logits, post.z_E_mean, post.z_nu_mean]
@@ -123,7 +125,7 @@ def _predict(model, inp):
             "the model produced non-finite values for this input; the checkpoint is probably broken (NaN "
             "weights)"
         )
-    return g, post
+    return pred
 
 
 def _simulate(g, choice, cfg: RunConfig, camera, overrides: dict):
@@ -214,7 +216,8 @@ def _execute(cfg: RunConfig) -> RunResult:
         sec["load"] = time.perf_counter() - t0
         # -- model + physics choice + placement -------------------------------------------------
         t0 = time.perf_counter()
-        g, post = _predict(model, inp) if model is not None else (inp.gaussians, None)
+        pred = _predict(model, inp) if model is not None else None
+        g, post = (pred.gaussians, pred.posterior) if pred is not None else (inp.gaussians, None)
         runs = choose_physics(post, cfg.physics, cfg.seed)
         min_opacity = float(cfg.planner.get("min_opacity", 0.05))
         ground = scene.ground_height
@@ -275,7 +278,7 @@ def _execute(cfg: RunConfig) -> RunResult:
         else:
             save_png(tmp / "mask.png", inp.mask_image)
             save_png(tmp / "input.png", inp.preview)
-        phys = physics_json(post, cfg.physics, runs, videos)
+        phys = physics_json(post, cfg.physics, runs, videos, None if pred is None else pred.domain_real)
         write_json(tmp / "physics.json", phys)
         lines = _sheet_lines(phys, results, cfg)
         save_png(tmp / "contact_sheet.png", contact_sheet(inp.preview, sheet_rows, lines, cfg.output.fps))
@@ -299,6 +302,8 @@ def _sheet_lines(phys: dict, results: list[FutureResult], cfg: RunConfig) -> lis
         e = post["E_Pa"]
         lines.append(f"predicted E: {e['mean']:.3g} Pa [{e['low_1sigma']:.2g}, {e['high_1sigma']:.2g}]")
         lines.append(f"predicted nu: {post['nu']['mean']:.3f} +- {post['nu']['std']:.3f}")
+        if post.get("domain_real") is not None:
+            lines.append(f"looks real: {post['domain_real']:.2f} (domain gate)")
     else:
         lines.append("no prediction (.ply input)")
     lines.append("simulated:")

@@ -18,8 +18,6 @@ import json
 import sys
 from pathlib import Path
 
-import torch
-
 from physgm.errors import UserError
 from physgm.model.checkpoint import input_size, load_model
 from physgm.model.predict import predict_scene
@@ -58,19 +56,18 @@ def evaluate_examples(model, size: int, folder: Path, weights: list[float], log=
     try:
         for name, truth in labels.items():
             inp = prepare_input(folder / name, size)
-            chosen = {}
+            chosen, gate = {}, None
             for w in weights:
                 head.semantic_prior_weight = w
-                _, post = predict_scene(model, inp.images, inp.masks, inp.c2w, inp.Ks, inp.classifier_images)
-                material = choose_physics(post, PhysicsOverrides(), seed=0)[0].material
+                pred = predict_scene(model, inp.images, inp.masks, inp.c2w, inp.Ks, inp.classifier_images)
+                gate = pred.domain_real  # how real the views look to the gate: the real expert's weight
+                material = choose_physics(pred.posterior, PhysicsOverrides(), seed=0)[0].material
                 ok = MATERIAL_BEHAVIOUR[material] == MATERIAL_BEHAVIOUR[truth]
                 right[w] += ok
                 chosen[f"{w:g}"] = {"material": material, "behaviour_right": ok}
             row = {"input": name, "label": truth, "by_prior_weight": chosen}
-            if model.domain_gate is not None:  # how real the views look to the gate: the real expert's weight
-                with torch.no_grad():
-                    features = model.encode_views(inp.images, inp.classifier_images)
-                    row["domain_gate"] = round(float(model.domain_gate(features, 1)), 3)
+            if gate is not None:
+                row["domain_gate"] = round(gate, 3)
             rows.append(row)
             gate = f" gate={row['domain_gate']:.2f}" if "domain_gate" in row else ""
             picks = " ".join(f"w={w}: {c['material']}" for w, c in chosen.items())

@@ -168,7 +168,8 @@ def render_camera(scene: RolloutScene, resolution: int | None) -> Cameras:
 
 def predict(model: torch.nn.Module, inputs: SceneInputs) -> tuple[Gaussians, PhysicsPosterior]:
     """The model's Gaussians (asset frame, CPU) and physics posterior [1] for one scene."""
-    return predict_scene(model, inputs.images, inputs.masks, inputs.c2w, inputs.Ks)
+    pred = predict_scene(model, inputs.images, inputs.masks, inputs.c2w, inputs.Ks)
+    return pred.gaussians, pred.posterior
 
 
 def physics_spec(sample: PhysicsSample, k: int = 0) -> PhysicsSpec:
