@@ -8,6 +8,7 @@ from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 
 from physgm.data.datamodule import PhysAssetsDataModule
+from physgm.errors import UserError
 from physgm.model.checkpoint import load_model
 from physgm.train.pretrain import LitPretrain
 from physgm.train.run import run
@@ -156,3 +157,36 @@ def test_overfits_one_batch(tiny_dataset):
         loss.backward()
         opt.step()
     assert objective().item() < first / 10, (first, loss.item())
+
+
+def test_gaussian_head_fine_tune_keeps_every_other_weight_and_the_init_models_config(tiny_dataset, tmp_path):
+    """stage.trainable=gaussian_head: the init checkpoint's model config whole (here its E offset, which
+    the run's own config does not have), only the Gaussian head moves, and the frozen parts stay in
+    eval mode."""
+    first = tmp_path / "first"
+    base = [*tiny_overrides(tiny_dataset, first), "trainer.max_steps=2", "trainer.limit_val_batches=0"]
+    run(compose_train([*base, "model.physics_head.E_logvar_offset=0.7"]))
+    init = first / "checkpoints" / "last.ckpt"
+    out = tmp_path / "head"
+    tuned = [
+        *tiny_overrides(tiny_dataset, out),
+        "trainer.max_steps=3",
+        "trainer.limit_val_batches=0",
+        "stage.trainable=gaussian_head",
+        f"stage.init_ckpt={init}",
+        "stage.optim.lr=1e-2",
+    ]
+    run(compose_train(tuned))
+    before = torch.load(init, weights_only=False)
+    after = torch.load(out / "checkpoints" / "last.ckpt", weights_only=False)
+    assert after["hyper_parameters"]["model"] == before["hyper_parameters"]["model"]
+    assert after["hyper_parameters"]["model"]["physics_head"]["E_logvar_offset"] == 0.7
+    moved = {k for k, v in before["state_dict"].items() if not torch.equal(v, after["state_dict"][k])}
+    assert moved and all(k.startswith("model.gaussian_head.") for k in moved), sorted(moved)[:5]
+    module = LitPretrain(model=before["hyper_parameters"]["model"], trainable="gaussian_head").train()
+    assert module.model.gaussian_head.training and not module.model.backbone.training
+    assert not module.model.physics_head.training
+    with pytest.raises(UserError, match="stage.init_ckpt"):
+        run(compose_train([*tiny_overrides(tiny_dataset, tmp_path / "no"), "stage.trainable=gaussian_head"]))
+    with pytest.raises(ValueError, match="stage.trainable"):
+        LitPretrain(trainable="backbone")

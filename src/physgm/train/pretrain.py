@@ -12,8 +12,10 @@ from torch import Tensor
 from torchmetrics import MeanMetric
 
 from physgm import CHECKPOINT_FORMAT_VERSION
+from physgm.errors import UserError
 from physgm.metrics.image import ImageMetrics, save_panel
 from physgm.metrics.physics_metrics import PhysicsMetrics
+from physgm.model.checkpoint import read_checkpoint
 from physgm.model.config import PhysGMConfig
 from physgm.model.physgm import PhysGM, PhysGMOutput
 from physgm.render import rasterize_gaussians
@@ -22,6 +24,7 @@ from physgm.train.optim import OptimConfig, build_optimizer
 
 log = logging.getLogger(__name__)
 
+TRAINABLE = ("all", "gaussian_head")  # what stage 1 trains (stage.trainable)
 VIEW_KEYS = ("v1", "v4")  # validation metrics are kept apart for 1 and 4 input views
 
 
@@ -58,11 +61,18 @@ class LitPretrain(L.LightningModule):
         renderer: dict[str, Any] | None = None,
         total_steps: int = 1000,
         format_version: int = CHECKPOINT_FORMAT_VERSION,
+        trainable: str = "all",
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
+        if trainable not in TRAINABLE:
+            raise ValueError(f"stage.trainable must be one of {TRAINABLE}, got {trainable!r}")
         config = PhysGMConfig.from_dict(model or {})
         self.model = PhysGM(config)
+        self.trainable = trainable
+        if trainable == "gaussian_head":  # the backbone's tokens, and so every physics fit, stay as they are
+            for name, p in self.model.named_parameters():
+                p.requires_grad_(name.startswith("gaussian_head."))
         self.loss_cfg = PretrainLossConfig(**(loss or {}))
         self.optim_cfg = OptimConfig(**(optim or {}))
         self.renderer = dict(renderer or {"backend": "warp"})
@@ -87,8 +97,16 @@ class LitPretrain(L.LightningModule):
         self._lpips[0].to(self.device)
         return self._lpips[0]
 
+    def train(self, mode: bool = True) -> LitPretrain:
+        super().train(mode)
+        if getattr(self, "trainable", "all") == "gaussian_head":  # frozen parts stay in eval mode
+            self.model.backbone.eval()
+            self.model.physics_head.eval()
+        return self
+
     def configure_optimizers(self):
-        opt, sched = build_optimizer(self.model.named_parameters(), self.optim_cfg, self.total_steps)
+        params = [(n, p) for n, p in self.model.named_parameters() if p.requires_grad]
+        opt, sched = build_optimizer(params, self.optim_cfg, self.total_steps)
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
 
     # -- steps -------------------------------------------------------------------------------
@@ -182,12 +200,22 @@ def fit(cfg) -> dict[str, float]:
     L.seed_everything(cfg.seed, workers=True)
     ensure_data(cfg)
     datamodule = instantiate(cfg.data)
+    trainable = cfg.stage.get("trainable", "all")
+    model = plain(cfg.model)
+    if trainable == "gaussian_head":
+        if not cfg.stage.get("init_ckpt"):
+            raise UserError(
+                "stage.trainable=gaussian_head fine-tunes the Gaussian head of a trained model; give it "
+                "with stage.init_ckpt=PATH"
+            )
+        model = read_checkpoint(cfg.stage.init_ckpt).hparams["model"]  # its physics settings whole
     module = LitPretrain(
-        model=plain(cfg.model),
+        model=model,
         loss=plain(cfg.stage.loss),
         optim=plain(cfg.stage.optim),
         renderer=plain(cfg.renderer),
         total_steps=int(cfg.trainer.max_steps),
+        trainable=trainable,
     )
     if cfg.stage.get("init_ckpt"):
         from physgm.train.warm_start import warm_start
