@@ -56,18 +56,18 @@ def evaluate_examples(model, size: int, folder: Path, weights: list[float], log=
     try:
         for name, truth in labels.items():
             inp = prepare_input(folder / name, size)
-            chosen, gate = {}, None
+            chosen, real = {}, None
             for w in weights:
                 head.semantic_prior_weight = w
                 pred = predict_scene(model, inp.images, inp.masks, inp.c2w, inp.Ks, inp.classifier_images)
-                gate = pred.domain_real  # how real the views look to the gate: the real expert's weight
+                real = pred.domain_real  # how real the views look to the gate: the real expert's weight
                 material = choose_physics(pred.posterior, PhysicsOverrides(), seed=0)[0].material
                 ok = MATERIAL_BEHAVIOUR[material] == MATERIAL_BEHAVIOUR[truth]
                 right[w] += ok
                 chosen[f"{w:g}"] = {"material": material, "behaviour_right": ok}
             row = {"input": name, "label": truth, "by_prior_weight": chosen}
-            if gate is not None:
-                row["domain_gate"] = round(gate, 3)
+            if real is not None:
+                row["domain_gate"] = round(real, 3)
             rows.append(row)
             gate = f" gate={row['domain_gate']:.2f}" if "domain_gate" in row else ""
             picks = " ".join(f"w={w}: {c['material']}" for w, c in chosen.items())

@@ -69,7 +69,6 @@ class LitPretrain(L.LightningModule):
             raise ValueError(f"stage.trainable must be one of {TRAINABLE}, got {trainable!r}")
         config = PhysGMConfig.from_dict(model or {})
         self.model = PhysGM(config)
-        self.trainable = trainable
         if trainable == "gaussian_head":  # the backbone's tokens, and so every physics fit, stay as they are
             for name, p in self.model.named_parameters():
                 p.requires_grad_(name.startswith("gaussian_head."))
@@ -99,7 +98,7 @@ class LitPretrain(L.LightningModule):
 
     def train(self, mode: bool = True) -> LitPretrain:
         super().train(mode)
-        if getattr(self, "trainable", "all") == "gaussian_head":  # frozen parts stay in eval mode
+        if self.hparams.get("trainable") == "gaussian_head":  # frozen parts stay in eval mode
             self.model.backbone.eval()
             self.model.physics_head.eval()
         return self
