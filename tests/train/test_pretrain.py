@@ -186,7 +186,10 @@ def test_gaussian_head_fine_tune_keeps_every_other_weight_and_the_init_models_co
     module = LitPretrain(model=before["hyper_parameters"]["model"], trainable="gaussian_head").train()
     assert module.model.gaussian_head.training and not module.model.backbone.training
     assert not module.model.physics_head.training
+    assert all(not m.training for n, m in module.model.named_children() if n != "gaussian_head")
     with pytest.raises(UserError, match="stage.init_ckpt"):
         run(compose_train([*tiny_overrides(tiny_dataset, tmp_path / "no"), "stage.trainable=gaussian_head"]))
     with pytest.raises(ValueError, match="stage.trainable"):
         LitPretrain(trainable="backbone")
+    with pytest.raises(UserError, match="stage.trainable"):
+        run(compose_train([*tiny_overrides(tiny_dataset, tmp_path / "bad"), "stage.trainable=backbone"]))

@@ -98,9 +98,10 @@ class LitPretrain(L.LightningModule):
 
     def train(self, mode: bool = True) -> LitPretrain:
         super().train(mode)
-        if self.hparams.get("trainable") == "gaussian_head":  # frozen parts stay in eval mode
-            self.model.backbone.eval()
-            self.model.physics_head.eval()
+        if self.hparams.get("trainable") == "gaussian_head":  # every frozen part stays in eval mode
+            for name, child in self.model.named_children():
+                if name != "gaussian_head":
+                    child.eval()
         return self
 
     def configure_optimizers(self):
@@ -196,10 +197,10 @@ def fit(cfg) -> dict[str, float]:
 
     from physgm.train.run import build_trainer, ensure_data, plain
 
-    L.seed_everything(cfg.seed, workers=True)
-    ensure_data(cfg)
-    datamodule = instantiate(cfg.data)
+    # Settings are checked before ensure_data, which may spend minutes generating a data set.
     trainable = cfg.stage.get("trainable", "all")
+    if trainable not in TRAINABLE:
+        raise UserError(f"stage.trainable must be one of {', '.join(TRAINABLE)}, got {trainable!r}")
     model = plain(cfg.model)
     if trainable == "gaussian_head":
         if not cfg.stage.get("init_ckpt"):
@@ -208,6 +209,9 @@ def fit(cfg) -> dict[str, float]:
                 "with stage.init_ckpt=PATH"
             )
         model = read_checkpoint(cfg.stage.init_ckpt).hparams["model"]  # its physics settings whole
+    L.seed_everything(cfg.seed, workers=True)
+    ensure_data(cfg)
+    datamodule = instantiate(cfg.data)
     module = LitPretrain(
         model=model,
         loss=plain(cfg.stage.loss),
