@@ -19,4 +19,5 @@ test-slow: setup
 	$(VENV)/bin/python -m pytest -m slow
 
 lint: setup
-	$(VENV)/bin/ruff check src tests train.py simulate.py
+	$(VENV)/bin/ruff check src tests train.py simulate.py examples scripts
+	$(VENV)/bin/ruff format --check src tests train.py simulate.py examples scripts

@@ -48,7 +48,7 @@ def rgba(asset: Path, view: int) -> np.ndarray:
 
 
 def composite(obj: np.ndarray, background: np.ndarray, at: tuple[int, int], shadow: float, rng) -> np.ndarray:
-    """Object RGBA [h, w, 4] over background [H, W, 3] with its top-left corner at ``at``, plus a contact shadow."""
+    """Object RGBA [h, w, 4] over background [H, W, 3], top-left corner at ``at``, with a contact shadow."""
     out = background.copy()
     h, w = obj.shape[:2]
     y0, x0 = at

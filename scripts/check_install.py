@@ -45,6 +45,7 @@ def _ignore(folder: str, names: list[str]) -> list[str]:
     top = Path(folder) == REPO
     return [n for n in names if (top and n in TOP_IGNORE) or n == "__pycache__" or n.endswith(".egg-info")]
 
+
 CHECK_REQUIREMENTS = """
 import importlib.metadata as md, json, physgm
 from packaging.requirements import Requirement
@@ -100,8 +101,8 @@ def check_install(work: Path) -> dict:
     py = venv / "bin" / "python"
     t, _ = _run([str(py), "-m", "pip", "install", "--no-deps", "-q", str(wheel)], cwd=elsewhere, env=env)
     report["install_s"] = round(t, 1)
-    site = Path(subprocess.check_output([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
-                                        text=True).strip())  # fmt: skip
+    purelib = "import sysconfig; print(sysconfig.get_paths()['purelib'])"
+    site = Path(subprocess.check_output([str(py), "-c", purelib], text=True).strip())
     # Only the dependencies: .pth files inside that folder (the checkout's editable install) are
     # not processed, because it is not a site directory of the new venv.
     (site / "zz_physgm_deps.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")

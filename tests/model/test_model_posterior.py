@@ -190,7 +190,11 @@ def test_wide_proposal_floor_is_in_decades_of_the_material_frame():
     from physgm.train.proposal import widen
 
     post = PhysicsPosterior(
-        torch.tensor([[0.0, 5.0]]), torch.zeros(1), torch.tensor([-20.0]), torch.zeros(1), torch.zeros(1),
+        torch.tensor([[0.0, 5.0]]),
+        torch.zeros(1),
+        torch.tensor([-20.0]),
+        torch.zeros(1),
+        torch.zeros(1),
         E_ranges=torch.tensor([[3.0, 5.0], [10.0, 11.0]]),
     )
     # Material 1 spans 1 decade: 0.5 decades a unit of z, so a 0.3-decade floor is a z std of 0.6.

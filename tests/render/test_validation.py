@@ -109,8 +109,12 @@ def test_warp_views_check_their_element_type_and_keep_the_memory():
     np.testing.assert_array_equal(out.numpy(), np.arange(24, dtype=np.float32).reshape(4, 6)[:, ::2])
     mats = _arr(torch.zeros(5, 2, 4, 4), wp.mat44)
     assert (mats.ndim, mats.shape[0], mats.shape[1], mats.strides[0], mats.strides[1]) == (2, 5, 2, 128, 64)
-    for bad, dtype in ((torch.zeros(5, 3, dtype=torch.float64), wp.vec3), (torch.zeros(5, 4), wp.vec3),
-                       (torch.zeros(5), wp.vec2), (torch.zeros(5, dtype=torch.int64), wp.int32)):
+    for bad, dtype in (
+        (torch.zeros(5, 3, dtype=torch.float64), wp.vec3),
+        (torch.zeros(5, 4), wp.vec3),
+        (torch.zeros(5), wp.vec2),
+        (torch.zeros(5, dtype=torch.int64), wp.int32),
+    ):
         with pytest.raises(ValueError, match="does not hold"):
             _arr(bad, dtype)
 

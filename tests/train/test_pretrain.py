@@ -21,9 +21,18 @@ EXPERIMENTS = sorted(
 
 def tiny_overrides(root: Path, out: Path) -> list[str]:
     return [
-        "trainer=cpu", "renderer=warp", "synth=null", "logger=csv",
-        f"data.root={root}", "data.val_split=train", "data.test_split=train", "data.num_workers=0",
-        "data.batch_size=2", "data.input_resolution=32", "data.target_resolution=32", "data.num_targets=5",
+        "trainer=cpu",
+        "renderer=warp",
+        "synth=null",
+        "logger=csv",
+        f"data.root={root}",
+        "data.val_split=train",
+        "data.test_split=train",
+        "data.num_workers=0",
+        "data.batch_size=2",
+        "data.input_resolution=32",
+        "data.target_resolution=32",
+        "data.num_targets=5",
         f"paths.output_dir={out}",
     ]
 
@@ -80,8 +89,12 @@ def test_fast_dev_run_every_experiment(experiment, tiny_dataset, tmp_path):
 
 def test_resume_continues_step_count_and_checkpoint_predicts_the_same(tiny_dataset, tmp_path):
     out = tmp_path / "run"
-    base = [*tiny_overrides(tiny_dataset, out), "callbacks.model_checkpoint.every_n_train_steps=2",
-            "trainer.val_check_interval=2", "trainer.limit_val_batches=1"]
+    base = [
+        *tiny_overrides(tiny_dataset, out),
+        "callbacks.model_checkpoint.every_n_train_steps=2",
+        "trainer.val_check_interval=2",
+        "trainer.limit_val_batches=1",
+    ]
     run(compose_train([*base, "trainer.max_steps=2"]))
     last = out / "checkpoints" / "last.ckpt"
     assert torch.load(last, weights_only=False)["global_step"] == 2

@@ -32,8 +32,9 @@ def small_model() -> PhysGM:
 
 def test_run_summary_counts_parameters_and_times_the_forward(tmp_path):
     model = small_model()
-    path = write_run_summary(tmp_path, model, {"val/v4/psnr": 20.5, "train/loss": 1.0}, steps=7,
-                             overrides=["a=1"], repeats=2)
+    path = write_run_summary(
+        tmp_path, model, {"val/v4/psnr": 20.5, "train/loss": 1.0}, steps=7, overrides=["a=1"], repeats=2
+    )
     s = json.loads(path.read_text())
     assert s["parameters"] == sum(p.numel() for p in model.parameters())
     assert s["input_resolution"] == 16 and s["steps"] == 7 and s["overrides"] == "a=1"
@@ -70,11 +71,25 @@ def test_table_orders_runs_by_speed_and_draws_the_plot(tmp_path):
 
 def test_hydra_multirun_writes_one_row_per_job(tiny_dataset, tmp_path):
     sweep = tmp_path / "sweep"
-    cmd = [sys.executable, str(ROOT / "train.py"), "-m", "experiment=sweep_cpu", "synth=null",
-           f"data.root={tiny_dataset}", "data.val_split=train", "data.num_workers=0", "data.batch_size=2",
-           "data.target_resolution=32", "data.num_targets=5", "+trainer.fast_dev_run=1", "torch_threads=1",
-           "model.backbone.width=64,128", "data.input_resolution=32",  # these replace the config's grid
-           f"hydra.sweep.dir={sweep}", "callbacks.progress_bar=null"]
+    cmd = [
+        sys.executable,
+        str(ROOT / "train.py"),
+        "-m",
+        "experiment=sweep_cpu",
+        "synth=null",
+        f"data.root={tiny_dataset}",
+        "data.val_split=train",
+        "data.num_workers=0",
+        "data.batch_size=2",
+        "data.target_resolution=32",
+        "data.num_targets=5",
+        "+trainer.fast_dev_run=1",
+        "torch_threads=1",
+        "model.backbone.width=64,128",
+        "data.input_resolution=32",  # these replace the config's grid
+        f"hydra.sweep.dir={sweep}",
+        "callbacks.progress_bar=null",
+    ]
     done = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=480)
     assert done.returncode == 0, done.stderr[-3000:]
     rows = list(csv.DictReader(open(sweep / "sweep.csv")))

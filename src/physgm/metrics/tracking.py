@@ -97,8 +97,11 @@ class LucasKanadeTracker:
         xy = np.zeros((t, q, 2), np.float32)
         visible = np.zeros((t, q), bool)
         xy[0], visible[0] = queries, True
-        params = dict(winSize=(self.window, self.window), maxLevel=self.levels,
-                      criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+        params = dict(
+            winSize=(self.window, self.window),
+            maxLevel=self.levels,
+            criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
+        )
         for i in range(1, t):
             prev = xy[i - 1].reshape(-1, 1, 2)
             nxt, ok, _ = cv2.calcOpticalFlowPyrLK(grey[i - 1], grey[i], prev, None, **params)

@@ -12,6 +12,7 @@ from physgm.model.physgm import PhysGM
 
 def count_parameters(model: PhysGM) -> dict[str, int]:
     """Parameters in total, trainable, and per part."""
+
     def n(params) -> int:
         return sum(p.numel() for p in params)
 

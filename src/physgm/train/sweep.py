@@ -132,8 +132,13 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
         for r in rows:
             y = r.get(f"val/v4/{metric}")
             if y is not None:
-                ax.annotate(f"{r['parameters'] / 1e6:.1f}M, {r['input_resolution']}px", (r["forward_ms"], y),
-                            fontsize=7, xytext=(4, 4), textcoords="offset points")
+                ax.annotate(
+                    f"{r['parameters'] / 1e6:.1f}M, {r['input_resolution']}px",
+                    (r["forward_ms"], y),
+                    fontsize=7,
+                    xytext=(4, 4),
+                    textcoords="offset points",
+                )
         ax.set_xscale("log")
         ax.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())  # 20, 50, 100 rather than 2x10^1
         ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())

@@ -170,8 +170,13 @@ def test_surface_friction_matches_the_numpy_twin(monkeypatch):
     solver = MPMSolver(p, [mat], grid, scene, SolverConfig(flip=0.0, threads=1))
     s0 = solver.state()
     state = {
-        "x": s0.x, "v": s0.v, "C": s0.C, "F": s0.F, "plastic": s0.plastic,
-        "mass": 1000.0 * np.broadcast_to(p.volume, len(p)), "vol0": np.broadcast_to(p.volume, len(p)),
+        "x": s0.x,
+        "v": s0.v,
+        "C": s0.C,
+        "F": s0.F,
+        "plastic": s0.plastic,
+        "mass": 1000.0 * np.broadcast_to(p.volume, len(p)),
+        "vol0": np.broadcast_to(p.volume, len(p)),
     }
     state = {k: np.asarray(val, dtype=np.float64) for k, val in state.items()}
     state["material"] = p.material

@@ -91,8 +91,13 @@ def test_block_skipping_grid_update_matches_twin_across_blocks(threads):
     solver = MPMSolver(p, soft, grid, scene, SolverConfig(flip=0.0, threads=threads))
     s0 = solver.state()
     ref = {
-        "x": s0.x, "v": s0.v, "C": s0.C, "F": s0.F, "plastic": s0.plastic,
-        "mass": np.full(40, 1e-3), "vol0": np.full(40, 1e-6),
+        "x": s0.x,
+        "v": s0.v,
+        "C": s0.C,
+        "F": s0.F,
+        "plastic": s0.plastic,
+        "mass": np.full(40, 1e-3),
+        "vol0": np.full(40, 1e-6),
     }
     ref = {k: np.asarray(val, dtype=np.float64) for k, val in ref.items()}
     ref["material"] = p.material

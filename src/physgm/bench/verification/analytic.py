@@ -281,7 +281,10 @@ def colliding_spheres(fast: bool = True) -> dict:
 
 
 def ball_restitution(
-    fast: bool = True, E: float = 1e5, held_depth: float = 0.0, contact: str | None = None,
+    fast: bool = True,
+    E: float = 1e5,
+    held_depth: float = 0.0,
+    contact: str | None = None,
     damping: float | None = None,
 ) -> dict:
     """Elastic ball dropped on a slip, separating floor bounces back with restitution >= 0.7.

@@ -47,7 +47,9 @@ def hertz_contact(
     sp = dx / 2
     centre = np.array([0.0, 0.0, radius + gap_cells * dx])
     p = Particles.lattice(
-        tuple(centre - radius), tuple(centre + radius), sp,
+        tuple(centre - radius),
+        tuple(centre + radius),
+        sp,
         inside=lambda x: ((x - centre) ** 2).sum(1) < radius**2,
     )
     p.v = np.tile([0.0, 0.0, -speed], (len(p), 1))
