@@ -109,7 +109,7 @@ def _tile_ranges(work: Tensor, parts: int) -> list[tuple[int, int]]:
 
 
 def _binning(settings: RasterSettings, device: torch.device) -> str:
-    """ "counting" (serial counting sort, CPU only) or "sort" (a global key sort, any device)."""
+    """The binning: "counting" (serial counting sort, CPU only) or "sort" (a global key sort, any device)."""
     if settings.warp_binning == "auto":
         return "counting" if device.type == "cpu" else "sort"
     if settings.warp_binning == "counting" and device.type != "cpu":
@@ -121,7 +121,7 @@ def _binning(settings: RasterSettings, device: torch.device) -> str:
 
 
 def _layout(settings: RasterSettings, device: torch.device) -> str:
-    """ "tile" (CPU, tiles of at most 16 px: one SIMD row each) or "pixel" (CUDA, or larger tiles)."""
+    """Layout: "tile" (CPU, tiles of at most 16 px: one SIMD row each) or "pixel" (CUDA, larger tiles)."""
     if settings.warp_layout == "pixel":
         return "pixel"
     if settings.tile_size > T.LANES:

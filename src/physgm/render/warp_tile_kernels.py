@@ -64,15 +64,12 @@ auto exp_lane = [](float x) -> float {
 };
 """
 
-_EXP_KERNEL = (
-    _EXP
-    + """
+_EXP_KERNEL = _EXP + """
 float* __restrict out_lanes = reinterpret_cast<float*>(wp::address(out, i));
 const float* __restrict x_lanes = reinterpret_cast<const float*>(wp::address(x, i));
 #pragma clang loop vectorize(enable) vectorize_width(16) interleave(disable)
 for (int j = 0; j < 16; ++j) out_lanes[j] = exp_lane(x_lanes[j]);
-"""
-)
+"""  # fmt: skip
 
 
 @wp.func_native(_EXP_KERNEL)
@@ -88,10 +85,7 @@ def exp16_kernel(x: wp.array(dtype=vec16), out: wp.array(dtype=vec16)):
 # One entry over rows v_first .. v_first + num_rows - 1 of its tile, front to back. Per lane it is
 # the pixel layout's step: skip (q > qmax, alpha < 1/255, pixel done), stop (T would drop below
 # T_MIN: the pixel is done, nothing added), or composite. Returns the number of pixels that stopped.
-_FORWARD_ENTRY = (
-    _CONSTANTS
-    + _EXP
-    + """
+_FORWARD_ENTRY = _CONSTANTS + _EXP + """
 int stops = 0;
 for (int r = 0; r < num_rows; ++r) {
     const int k = row_first + r;
@@ -123,8 +117,7 @@ for (int r = 0; r < num_rows; ++r) {
     ROW_OUT(on, rows, 4); __builtin_memcpy(wp::address(row_end, k), end, 64);
 }
 return stops;
-"""
-)
+"""  # fmt: skip
 
 
 @wp.func_native(_FORWARD_ENTRY)
@@ -137,10 +130,7 @@ def composite_entry(
 
 # One entry over its rows, back to front: per lane the pixel layout's `pair_grads`, masked;
 # the entry's gradients are summed per lane, then over the lanes by halving, and stored once.
-_BACKWARD_ENTRY = (
-    _CONSTANTS
-    + _EXP
-    + """
+_BACKWARD_ENTRY = _CONSTANTS + _EXP + """
 float s_mx[16], s_my[16], s_c0[16], s_c1[16], s_c2[16], s_o[16], s_r[16], s_g[16], s_b[16];
 for (int i = 0; i < 16; ++i) {
     s_mx[i] = s_my[i] = s_c0[i] = s_c1[i] = s_c2[i] = s_o[i] = s_r[i] = s_g[i] = s_b[i] = 0.0f;
@@ -200,8 +190,7 @@ for (int h = 8; h >= 1; h /= 2) {
 *wp::address(v_conics, e) = wp::vec3(s_c0[0], s_c1[0], s_c2[0]);
 *wp::address(v_opacities, e) = s_o[0];
 *wp::address(v_colors, e) = wp::vec3(s_r[0], s_g[0], s_b[0]);
-"""
-)
+"""  # fmt: skip
 
 
 @wp.func_native(_BACKWARD_ENTRY)
