@@ -16,6 +16,7 @@ SUITES = {
     "model": "physgm.bench.model_speed",
     "dpo-landscape": "physgm.bench.dpo_landscape",
     "material-probe": "physgm.bench.material_probe",
+    "clips": "physgm.bench.clips",
 }
 
 
