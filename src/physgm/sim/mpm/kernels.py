@@ -39,11 +39,10 @@ from physgm.sim.constitutive.common import EYE, MaterialStruct, det_minus_one
 from physgm.sim.constitutive.dispatch import constitutive_update
 from physgm.sim.mpm.boundary import BoxStruct, GroundStruct, box_velocity, ground_grip, ground_velocity
 from physgm.sim.mpm.particle_ground import fold_ground_force, particle_ground_force, touches_ground
+from physgm.sim.mpm.stencil_sums import gather_moments, scatter_affine, vec8
 from physgm.sim.mpm.substep_params import SubstepParams
 
 wp.set_module_options({"enable_backward": False})
-
-vec8 = wp.types.vector(length=8, dtype=wp.float32)
 
 # Columns of the per-sub-step statistics (one row per worker thread).
 STAT_VMAX = wp.constant(0)  # max squared particle speed, m^2/s^2
@@ -102,28 +101,6 @@ def set_node_velocity(grid_v: wp.array3d(dtype=vec8), i: int, j: int, k: int, ve
 
 
 @wp.func
-def scatter_column(
-    grid: wp.array(dtype=vec8),
-    row: int,
-    wz: wp.vec3,
-    wij: float,
-    m: float,
-    q: wp.vec3,
-    f: wp.vec3,
-    az: wp.vec3,
-    fz: wp.vec3,
-):
-    """Add the three nodes row, row+1, row+2 (k = 0, 1, 2) of one stencil column."""
-    for k in range(3):
-        w = wij * wz[k]
-        wp.atomic_add(
-            grid, row + k, vec8(w * q[0], w * q[1], w * q[2], w * m, w * f[0], w * f[1], w * f[2], 0.0)
-        )
-        q = q + az
-        f = f + fz
-
-
-@wp.func
 def scatter_particle(
     grid: wp.array(dtype=vec8),  # [G] flat accumulator of this thread
     xp: wp.vec3,
@@ -144,7 +121,8 @@ def scatter_particle(
     each axis, so stamping the base block tells grid_update about all of them.
 
     MLS-MPM (Hu et al. 2018): node i receives w (m v + m C (x_i - x_p)) and the force
-    w (-(4 / dx^2) V0 tau (x_i - x_p)), both built incrementally along i, j, k (adds only).
+    w (-(4 / dx^2) V0 tau (x_i - x_p)), both affine in the node's offset (i, j, k) in the stencil,
+    which is the form ``scatter_affine`` adds.
     """
     inv_dx = 1.0 / dx
     base, fx, w = stencil((xp - origin) * inv_dx, shape)
@@ -161,18 +139,19 @@ def scatter_particle(
     fx_ = wp.vec3(s[0, 0], s[1, 0], s[2, 0])
     fy_ = wp.vec3(s[0, 1], s[1, 1], s[2, 1])
     fz_ = wp.vec3(s[0, 2], s[1, 2], s[2, 2])
-    wz = wp.vec3(w[0, 2], w[1, 2], w[2, 2])
     nyz = shape[1] * shape[2]
     b0 = (base[0] * shape[1] + base[1]) * shape[2] + base[2]
-    for i in range(3):
-        qj = q
-        fj = f
-        for j in range(3):
-            scatter_column(grid, b0 + i * nyz + j * shape[2], wz, w[i, 0] * w[j, 1], m, qj, fj, az, fz_)
-            qj = qj + ay
-            fj = fj + fy_
-        q = q + ax
-        f = f + fx_
+    scatter_affine(
+        grid,
+        b0,
+        nyz,
+        shape[2],
+        w,
+        vec8(q[0], q[1], q[2], m, f[0], f[1], f[2], 0.0),
+        vec8(ax[0], ax[1], ax[2], 0.0, fx_[0], fx_[1], fx_[2], 0.0),
+        vec8(ay[0], ay[1], ay[2], 0.0, fy_[0], fy_[1], fy_[2], 0.0),
+        vec8(az[0], az[1], az[2], 0.0, fz_[0], fz_[1], fz_[2], 0.0),
+    )
 
 
 @wp.kernel
@@ -350,25 +329,6 @@ def grid_update(
 
 
 @wp.func
-def gather_column(grid_v: wp.array(dtype=vec8), row: int, wz: wp.vec3):
-    """Over k = 0, 1, 2 of one column: sum w g and sum k w g (whole nodes: v and dv together)."""
-    a1 = wz[1] * grid_v[row + 1]
-    a2 = wz[2] * grid_v[row + 2]
-    return wz[0] * grid_v[row] + a1 + a2, a1 + a2 + a2
-
-
-@wp.func
-def gather_plane(grid_v: wp.array(dtype=vec8), row: int, nz: int, wy: wp.vec3, wz: wp.vec3):
-    """Over j, k of one plane: sum w g, sum j w g and sum k w g."""
-    s0, z0 = gather_column(grid_v, row, wz)
-    s1, z1 = gather_column(grid_v, row + nz, wz)
-    s2, z2 = gather_column(grid_v, row + 2 * nz, wz)
-    a1 = wy[1] * s1
-    a2 = wy[2] * s2
-    return wy[0] * s0 + a1 + a2, a1 + a2 + a2, wy[0] * z0 + wy[1] * z1 + wy[2] * z2
-
-
-@wp.func
 def moment_matrix(bi: vec8, bj: vec8, bk: vec8, c: int) -> wp.mat33:
     """Columns (bi, bj, bk) of node components c, c+1, c+2."""
     return wp.mat33(bi[c], bj[c], bk[c], bi[c + 1], bj[c + 1], bk[c + 1], bi[c + 2], bj[c + 2], bk[c + 2])
@@ -419,22 +379,16 @@ def g2p(
     inv_dx = 1.0 / dx
     xp = x[p]
     base, fx, w = stencil((xp - origin) * inv_dx, shape)
-    # Factored gather (``gather_plane``): sums of whole nodes with their first moments along
-    # each axis, so B = sum w v (node - fx)^T needs no per-node outer product; vec8 arithmetic
-    # does velocity and velocity change in one pass.
+    # Sums of whole nodes with their first moments along each axis (``gather_moments``), so
+    # B = sum w v (node - fx)^T needs no per-node outer product; velocity and velocity change
+    # come in one pass.
     nyz = shape[1] * shape[2]
     b0 = (base[0] * shape[1] + base[1]) * shape[2] + base[2]
-    wy = wp.vec3(w[0, 1], w[1, 1], w[2, 1])
-    wz = wp.vec3(w[0, 2], w[1, 2], w[2, 2])
-    s0, sj0, sk0 = gather_plane(grid_v, b0, shape[2], wy, wz)
-    s1, sj1, sk1 = gather_plane(grid_v, b0 + nyz, shape[2], wy, wz)
-    s2, sj2, sk2 = gather_plane(grid_v, b0 + 2 * nyz, shape[2], wy, wz)
-    a1 = w[1, 0] * s1
-    a2 = w[2, 0] * s2
-    total = w[0, 0] * s0 + a1 + a2
-    bi = a1 + a2 + a2
-    bj = w[0, 0] * sj0 + w[1, 0] * sj1 + w[2, 0] * sj2
-    bk = w[0, 0] * sk0 + w[1, 0] * sk1 + w[2, 0] * sk2
+    sums = gather_moments(grid_v, b0, nyz, shape[2], w)
+    total = sums[0]
+    bi = sums[1]
+    bj = sums[2]
+    bk = sums[3]
     vel = wp.vec3(total[0], total[1], total[2])
     dvel = wp.vec3(total[4], total[5], total[6])
     c_grid = (4.0 * inv_dx) * (moment_matrix(bi, bj, bk, 0) - wp.outer(vel, fx))

@@ -1,0 +1,137 @@
+"""The 27-node sums of a particle's stencil, as native loops over a node's 8 floats.
+
+A grid node is ``vec8`` (velocity or momentum xyz, mass, velocity change or force xyz, 0). Both
+transfers are one loop over the stencil's 27 nodes (offset i, j, k = 0..2 from the base node,
+weight w_n = w[i, 0] w[j, 1] w[k, 2]) with an inner loop over the node's 8 floats:
+
+    gather_moments   S = sum_n w_n (1, i, j, k) g_n, the sum and its first moments (4 x 8)
+    scatter_affine   g_n += w_n (b + i di + j dj + k dk)
+
+On the CPU the loops use clang's 8-float vector type, one AVX register a node; the same sums
+written with Warp's vec8, or as plain C++ loops, compile to scalar code inside g2p, which holds
+the whole constitutive update too (docs/measurements_sim.md section 16: the sub-step costs 1.25x
+less). CUDA compiles the portable loops, one thread a particle, with atomic adds for the scatter.
+``kernels.scatter_particle`` and ``kernels.g2p`` call these; tests hold both forms to numpy.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+vec8 = wp.types.vector(length=8, dtype=wp.float32)
+# Rows: sum w g, and its first moments sum i w g, sum j w g, sum k w g.
+mat48 = wp.types.matrix(shape=(4, 8), dtype=wp.float32)
+
+# Each sum has a portable form (plain loops; CUDA compiles it, one thread a particle) and a CPU
+# form on clang's 8-float vector type, one AVX register a node. The snippets pick by
+# ``__CUDA_ARCH__``; tests build the portable forms on the CPU too (``portable_stencil_sums``).
+GATHER_PORTABLE = """
+    wp::mat_t<4, 8, wp::float32> s;
+    for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 3; ++j) {
+            for (int k = 0; k < 3; ++k) {
+                const wp::vec_t<8, wp::float32> g = *wp::address(grid, row + i * nyz + j * nz + k);
+                const float wn = w.data[i][0] * w.data[j][1] * w.data[k][2];
+                for (int c = 0; c < 8; ++c) {
+                    const float t = wn * g.c[c];
+                    s.data[0][c] += t;
+                    s.data[1][c] += i * t;
+                    s.data[2][c] += j * t;
+                    s.data[3][c] += k * t;
+                }
+            }
+        }
+    }
+    return s;
+"""
+
+GATHER_CPU = """
+    typedef float f8 __attribute__((vector_size(32)));
+    f8 s0 = {}, s1 = {}, s2 = {}, s3 = {};
+    for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 3; ++j) {
+            const float wij = w.data[i][0] * w.data[j][1];
+            for (int k = 0; k < 3; ++k) {
+                f8 g;
+                memcpy(&g, wp::address(grid, row + i * nyz + j * nz + k), sizeof(g));
+                const f8 t = (wij * w.data[k][2]) * g;
+                s0 += t;
+                s1 += static_cast<float>(i) * t;
+                s2 += static_cast<float>(j) * t;
+                s3 += static_cast<float>(k) * t;
+            }
+        }
+    }
+    wp::mat_t<4, 8, wp::float32> s;
+    memcpy(s.data[0], &s0, sizeof(s0));
+    memcpy(s.data[1], &s1, sizeof(s1));
+    memcpy(s.data[2], &s2, sizeof(s2));
+    memcpy(s.data[3], &s3, sizeof(s3));
+    return s;
+"""
+
+SCATTER_PORTABLE = """
+    for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 3; ++j) {
+            for (int k = 0; k < 3; ++k) {
+                float* g = reinterpret_cast<float*>(wp::address(grid, row + i * nyz + j * nz + k));
+                const float wn = w.data[i][0] * w.data[j][1] * w.data[k][2];
+                for (int c = 0; c < 8; ++c) {
+                    wp::atomic_add(g + c, wn * (b.c[c] + i * di.c[c] + j * dj.c[c] + k * dk.c[c]));
+                }
+            }
+        }
+    }
+"""
+
+SCATTER_CPU = """
+    typedef float f8 __attribute__((vector_size(32)));
+    f8 b8, di8, dj8, dk8;
+    memcpy(&b8, b.c, sizeof(b8));
+    memcpy(&di8, di.c, sizeof(di8));
+    memcpy(&dj8, dj.c, sizeof(dj8));
+    memcpy(&dk8, dk.c, sizeof(dk8));
+    for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 3; ++j) {
+            const float wij = w.data[i][0] * w.data[j][1];
+            for (int k = 0; k < 3; ++k) {
+                float* g = reinterpret_cast<float*>(wp::address(grid, row + i * nyz + j * nz + k));
+                f8 node;
+                memcpy(&node, g, sizeof(node));
+                const f8 value = b8 + static_cast<float>(i) * di8 + static_cast<float>(j) * dj8
+                    + static_cast<float>(k) * dk8;
+                node += (wij * w.data[k][2]) * value;
+                memcpy(g, &node, sizeof(node));
+            }
+        }
+    }
+"""
+
+
+def by_device(portable: str, cpu: str) -> str:
+    """One snippet: the portable form on CUDA, the vector form on the CPU."""
+    return f"#if defined(__CUDA_ARCH__)\n{portable}\n#else\n{cpu}\n#endif\n"
+
+
+@wp.func_native(by_device(GATHER_PORTABLE, GATHER_CPU))
+def gather_moments(
+    grid: wp.array(dtype=vec8),  # [G] flat (i ny + j) nz + k
+    row: int,  # flat index of the stencil's base node
+    nyz: int,  # ny nz, the flat stride along x
+    nz: int,  # the flat stride along y
+    w: wp.mat33,  # quadratic weights, row = offset 0..2, column = axis
+) -> mat48: ...
+
+
+@wp.func_native(by_device(SCATTER_PORTABLE, SCATTER_CPU))
+def scatter_affine(
+    grid: wp.array(dtype=vec8),  # [G] flat (i ny + j) nz + k, added to
+    row: int,  # flat index of the stencil's base node
+    nyz: int,  # ny nz, the flat stride along x
+    nz: int,  # the flat stride along y
+    w: wp.mat33,  # quadratic weights, row = offset 0..2, column = axis
+    b: vec8,  # the value at the base node (offset 0, 0, 0) before weighting
+    di: vec8,  # its change per node along x
+    dj: vec8,  # along y
+    dk: vec8,  # along z
+): ...
