@@ -6,9 +6,11 @@ next sub-step (``kernels``); p2g runs only when the accumulators were invalidate
 Recording once (``wp.launch(..., record_cmd=True)``) and replaying keeps the Python cost of a
 sub-step to a few launches. The values that change between sub-steps (dt, time, damping, the
 block stamp, the active box) are read by the kernels from one device array (``substep_params``),
-so the launches never change; with one thread and nothing to run in Python between them (no
-grid hooks, side walls or observers), the solver replays whole runs of sub-steps from a graph
-captured once (``run_graph``), which costs about a microsecond per launch instead of ~5-10.
+so the launches never change; with nothing to run in Python between them (no grid hooks, side
+walls or observers), the solver replays whole runs of sub-steps from a graph captured once
+(``run_graph``), which costs about a microsecond per launch instead of ~5-10. With two CPU
+threads each replays a graph of its own, and the two meet at ``spin_barrier`` launches instead of
+handing off through Python every sub-step.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from physgm.sim.mpm.grid_arrays import GridArrays
 from physgm.sim.mpm.particle_ground import contact_plane, ground_stiffness
 from physgm.sim.mpm.particle_store import ParticleStore
 from physgm.sim.mpm.scene import Scene
+from physgm.sim.mpm.spin_barrier import LIMIT_CYCLES, YIELD_AFTER_CYCLES, abandoned, barrier, new_counter
 from physgm.sim.mpm.stepping import SolverConfig
 from physgm.sim.mpm.substep_params import SubstepParams, advance_clock
 from physgm.sim.mpm.surface_friction import surface_friction
@@ -69,7 +72,7 @@ class SubstepLaunches:
         self.device = device
         self._record(particles, grid, scene, config, threads, device)
         self._dt = None
-        self._graphs: dict[int, wp.Graph] = {}  # captured runs of n sub-steps (``run_graph``)
+        self._graphs: dict[int, list[wp.Graph]] = {}  # per thread, captured runs of n sub-steps
         self.replayed = 0  # sub-steps run from a graph so far
         self.scattered = False  # the accumulators hold the current particles' scatter
 
@@ -198,6 +201,13 @@ class SubstepLaunches:
                 record_cmd=True,
             )
         self._tick = wp.launch(advance_clock, 1, [self.params], device=dev, record_cmd=True)
+        # Where the two threads' graph replays meet (``run_graph``).
+        self._meeting = new_counter(dev) if threads == 2 else None
+        meet = [self._meeting, LIMIT_CYCLES, YIELD_AFTER_CYCLES]
+        self._barrier = [
+            wp.launch(barrier, 1, [meet[0], t, *meet[1:]], device=dev, record_cmd=True)
+            for t in range(threads if threads == 2 else 0)
+        ]
 
     def invalidate(self) -> None:
         """The particle state was replaced: clear the accumulators, scatter afresh next sub-step."""
@@ -270,32 +280,52 @@ class SubstepLaunches:
         self._advance_host(1)
         self.scattered = True
 
-    def run_graph(self, count: int) -> None:
-        """``count`` sub-steps of one thread, without hooks or walls, replayed from a launch graph
-        captured on first use (``wp.capture_begin``: a CUDA graph on a GPU, Warp's C++ replay of
-        the recorded launches on the CPU). Same launches, same order, same results as ``run``."""
-        if len(self.g2p) != 1:
-            raise ValueError("run_graph replays one thread's launches; the solver runs two")
+    def run_graph(self, count: int, worker=None) -> None:
+        """``count`` sub-steps without hooks or walls, replayed from launch graphs captured on first
+        use (``wp.capture_begin``: a CUDA graph on a GPU, Warp's C++ replay of the recorded launches
+        on the CPU). Same launches, same order, same results as ``run``. With two threads, this
+        thread replays the first half's graph and ``worker`` the second's, side by side."""
+        if len(self.g2p) == 2 and worker is None:
+            raise ValueError("run_graph with two threads needs the worker that replays the second half")
         self._sync()
         if not self.scattered:
-            self.p2g[0].launch()
-        graph = self._graphs.get(count)
-        if graph is None:
-            graph = self._graphs[count] = self._capture(count)
-        wp.capture_launch(graph)
+            _launch_halves(self.p2g, worker)
+        graphs = self._graphs.get(count)
+        if graphs is None:
+            graphs = self._graphs[count] = [self._capture(count, t) for t in range(len(self.g2p))]
+        if len(graphs) == 1:
+            wp.capture_launch(graphs[0])
+        else:
+            worker.run(lambda: wp.capture_launch(graphs[1]), lambda: wp.capture_launch(graphs[0]))
+            if abandoned(self._meeting):
+                raise RuntimeError(
+                    "the two MPM threads lost each other in a graph replay (one waited at a barrier "
+                    "past its time limit); the particle state is half-stepped. Run with "
+                    "solver.threads=1 and report this"
+                )
         self.replayed += count
         self._advance_host(count)
         self.scattered = True
 
-    def _capture(self, count: int):
+    def _capture(self, count: int, slot: int):
+        """The launches of ``count`` sub-steps for thread ``slot``. One thread: grid_update,
+        friction, g2p, clock. Two: the first thread does the grid, and both meet after it and
+        after their halves of g2p; the clock moves on only once both halves have read it."""
+        pair = len(self.g2p) == 2
         wp.capture_begin(device=self.device)
         try:
             for _ in range(count):
-                self.grid_update.launch()
-                if self.friction is not None:
-                    self.friction.launch()
-                self.g2p[0].launch()
-                self._tick.launch()
+                if slot == 0:
+                    self.grid_update.launch()
+                    if self.friction is not None:
+                        self.friction.launch()
+                if pair:
+                    self._barrier[slot].launch()
+                self.g2p[slot].launch()
+                if pair:
+                    self._barrier[slot].launch()
+                if slot == 0:
+                    self._tick.launch()
         finally:
             graph = wp.capture_end(device=self.device)
         return graph

@@ -251,7 +251,7 @@ class MPMSolver:
         could swallow another's launches; those solvers step in Python.
         """
         n = self.config.cfl_check_every
-        if not self.config.graphs or self.threads != 1 or self.hooks or self.observers or self._walls:
+        if not self.config.graphs or self.hooks or self.observers or self._walls:
             return 0
         if threading.current_thread() is not threading.main_thread():
             return 0
@@ -269,7 +269,7 @@ class MPMSolver:
         self._since_fit += count
         self._launches.set_dt(dt, self.scene.damping)
         self._launches.set_time(self.time)
-        self._launches.run_graph(count)
+        self._launches.run_graph(count, self._worker)
         for _ in range(count):  # the same float64 sums as stepping one at a time
             self.time += dt
 

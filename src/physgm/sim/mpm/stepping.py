@@ -45,7 +45,7 @@ class SolverConfig:
     threads: int = 0  # CPU worker threads for the particle kernels; 0 = auto (2 from 2k particles)
     cfl_check_every: int = 16  # sub-steps between re-evaluations of |v|max and dt
     # Replay each run of cfl_check_every sub-steps from a launch graph captured once (a CUDA graph,
-    # or Warp's C++ replay on the CPU) when the solver runs one thread with no grid hooks, side
+    # or Warp's C++ replay on the CPU, one graph per thread) when the solver has no grid hooks, side
     # walls or observers; same kernels, same results, less launch overhead (launches.run_graph).
     graphs: bool = True
     sort_every: int = 1  # frames between particle sorts by cell (0: only at start)
