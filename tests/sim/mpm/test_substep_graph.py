@@ -127,3 +127,21 @@ def test_a_barrier_without_its_partner_gives_up_and_the_replay_raises():
     with pytest.raises(RuntimeError, match="solver.threads=1"):
         solver.step_frame()
     solver.close()
+
+
+def test_two_threads_from_fewer_particles_when_the_sub_steps_are_replayed():
+    """Auto threads: 600 particles take two when graphs replay them (spin barriers), one when
+    every sub-step would hand off through Python (no graphs, or a solver off the main thread)."""
+
+    def solver(graphs: bool) -> MPMSolver:
+        rng = np.random.default_rng(1)
+        p = Particles(x=rng.uniform(0.1, 0.2, (600, 3)), volume=1e-6, material=0)
+        grid = GridSpec.fit((0.05, 0.05, 0.05), (0.25, 0.25, 0.25), 0.02)
+        return MPMSolver(p, [JELLY], grid, Scene(ground=GroundPlane(0.1)), SolverConfig(graphs=graphs))
+
+    with ThreadPoolExecutor(1) as pool:
+        off_main = pool.submit(solver, True).result()
+    chosen = [solver(True), solver(False), off_main]
+    assert [s.threads for s in chosen] == [2, 1, 1]
+    for s in chosen:
+        s.close()

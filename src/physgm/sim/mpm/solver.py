@@ -25,9 +25,11 @@ from physgm.sim.mpm.state import Energy, FrameStats, Particles, ParticleState, T
 from physgm.sim.mpm.stepping import SimulationDiverged, SolverConfig, step_wave_speed
 from physgm.sim.mpm.walls import SceneWalls
 
-# Two threads pay off from about 2k particles; below that the hand-off costs more than the split
-# saves.
+# Two threads pay off from about 2k particles when each sub-step hands off through Python; when
+# the sub-steps are replayed from graphs (the threads meeting at spin barriers) they break even
+# near 250 (docs/measurements_sim.md section 16). Below the threshold one thread runs.
 _AUTO_THREADS_MIN_PARTICLES = 2_000
+_AUTO_THREADS_MIN_PARTICLES_GRAPHS = 500
 _STATS_INIT = np.zeros(K.STATS_ROW, dtype=np.float32)
 _STATS_INIT[[K.STAT_JMIN, K.STAT_JMAX]] = [1.0e30, -1.0e30]  # running min and max of det F
 
@@ -109,9 +111,13 @@ class MPMSolver:
         self._check_inputs(particles)
         n = self.num_particles = len(particles)
         self.time, self.frame, self.escaped = 0.0, 0, 0
-        auto = (
-            2 if self.device.is_cpu and n >= _AUTO_THREADS_MIN_PARTICLES and (os.cpu_count() or 1) >= 2 else 1
+        replays = (
+            self.config.graphs
+            and not (self.scene.walls or self.scene.periodic)
+            and threading.current_thread() is threading.main_thread()
         )
+        least = _AUTO_THREADS_MIN_PARTICLES_GRAPHS if replays else _AUTO_THREADS_MIN_PARTICLES
+        auto = 2 if self.device.is_cpu and n >= least and (os.cpu_count() or 1) >= 2 else 1
         self.threads = min(self.config.threads or auto, 2) if self.device.is_cpu else 1
         self._c_max = step_wave_speed(self.materials, ground, particles, self.grid.dx)
         self.particles = ParticleStore(particles, self.materials, self.device)
