@@ -330,3 +330,30 @@ def test_volume_barrier_holds_when_lam_vanishes(model):
     assert pressure[2] < -5 * p.mu, pressure / p.mu
     _, tau_ref, _ = ref.update(p, F, np.zeros(len(F)), DT)
     np.testing.assert_allclose(got["tau"], tau_ref, rtol=1e-4, atol=1e-3 * p.mu)
+
+
+@pytest.mark.parametrize("model", ["von_mises", "foam"])
+@pytest.mark.parametrize("rotated", [False, True])
+def test_small_elastic_strains_match_numpy_to_float32_precision(model, rotated):
+    """Below HENCKY_SERIES_MAX the Hencky models take the strain's series instead of its
+    eigenvectors: the stress must still be the twin's, relative to itself, up to the edge of the
+    series (||b - I|| = 0.05). A pure stretch from 1e-6 strain (F - I is exact in float32 there);
+    a rotated one from 1e-3, since rounding the rotated F to float32 costs b - I ~1e-7 absolute."""
+    rng = np.random.default_rng(7)
+    p = dataclasses.replace(PARAMS[model], yield_stress=1e9)  # elastic throughout
+    n = 400
+    sym = rng.standard_normal((n, 3, 3))
+    sym = 0.5 * (sym + sym.transpose(0, 2, 1))
+    size = 10.0 ** rng.uniform(-3 if rotated else -6, np.log10(0.024), n)  # strain ~ ||b - I|| / 2
+    F = np.eye(3) + sym * (size / np.linalg.norm(sym, axis=(1, 2)))[:, None, None]
+    if rotated:
+        q, _ = np.linalg.qr(rng.standard_normal((n, 3, 3)))
+        F = q * np.sign(np.linalg.det(q))[:, None, None] @ F
+    F = F.astype(np.float32).astype(np.float64)
+    assert np.linalg.norm(F @ F.transpose(0, 2, 1) - np.eye(3), axis=(1, 2)).max() < 0.05  # series path
+    got = run_warp(p, F, np.zeros(n))
+    _, tau_ref, _ = ref.update(p, F, np.zeros(n), DT)
+    err = np.abs(got["tau"] - tau_ref).max(axis=(1, 2)) / np.abs(tau_ref).max(axis=(1, 2))
+    assert err.max() < (1e-3 if rotated else 2e-5), (np.median(err), err.max())
+    # Elastic: H untouched; F - I + I in float32 rounds a rotated F's entries by up to an ulp.
+    np.testing.assert_allclose(got["F"], F, rtol=0, atol=2.5e-7)
