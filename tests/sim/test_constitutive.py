@@ -332,18 +332,23 @@ def test_volume_barrier_holds_when_lam_vanishes(model):
     np.testing.assert_allclose(got["tau"], tau_ref, rtol=1e-4, atol=1e-3 * p.mu)
 
 
-@pytest.mark.parametrize("model", ["von_mises", "foam"])
+@pytest.mark.parametrize("model", ["von_mises", "foam", "drucker_prager"])
 @pytest.mark.parametrize("rotated", [False, True])
 def test_small_elastic_strains_match_numpy_to_float32_precision(model, rotated):
     """Below HENCKY_SERIES_MAX the Hencky models take the strain's series instead of its
     eigenvectors: the stress must still be the twin's, relative to itself, up to the edge of the
     series (||b - I|| = 0.05). A pure stretch from 1e-6 strain (F - I is exact in float32 there);
-    a rotated one from 1e-3, since rounding the rotated F to float32 costs b - I ~1e-7 absolute."""
+    a rotated one from 1e-3, since rounding the rotated F to float32 costs b - I ~1e-7 absolute.
+    Elastic throughout: von Mises and foam with a high yield stress, sand compressed inside its
+    cone (the deviatoric part a fifth of the volumetric one)."""
     rng = np.random.default_rng(7)
-    p = dataclasses.replace(PARAMS[model], yield_stress=1e9)  # elastic throughout
+    p = dataclasses.replace(PARAMS[model], yield_stress=1e9) if model != "drucker_prager" else PARAMS[model]
     n = 400
     sym = rng.standard_normal((n, 3, 3))
     sym = 0.5 * (sym + sym.transpose(0, 2, 1))
+    if model == "drucker_prager":
+        dev = sym - np.trace(sym, axis1=1, axis2=2)[:, None, None] / 3 * np.eye(3)
+        sym = -np.eye(3) + 0.2 * dev / np.linalg.norm(dev, axis=(1, 2))[:, None, None]
     size = 10.0 ** rng.uniform(-3 if rotated else -6, np.log10(0.024), n)  # strain ~ ||b - I|| / 2
     F = np.eye(3) + sym * (size / np.linalg.norm(sym, axis=(1, 2)))[:, None, None]
     if rotated:

@@ -146,6 +146,23 @@ def hencky_strain_series(D: wp.mat33) -> wp.mat33:
 
 
 @wp.func
+def hencky_small_strain(H: wp.mat33):
+    """(True, eps as a matrix) when b - I of F = I + H is within HENCKY_SERIES_MAX, else (False, 0):
+    the Hencky models decide a small elastic step on it (its invariants are the principal
+    strains') and call ``hencky_decompose`` only for a large or yielding one."""
+    D = green_minus_identity(H)
+    if wp.ddot(D, D) <= HENCKY_SERIES_MAX * HENCKY_SERIES_MAX:
+        return True, hencky_strain_series(D)
+    return False, wp.mat33(0.0)
+
+
+@wp.func
+def hencky_stress(eps: wp.mat33, mu: float, lam: float) -> wp.mat33:
+    """StVK-Hencky Kirchhoff stress 2 mu eps + lam tr(eps) I of a strain given as a matrix, Pa."""
+    return 2.0 * mu * eps + (lam * wp.trace(eps)) * EYE
+
+
+@wp.func
 def hencky_finish(
     H: wp.mat33,
     U: wp.mat33,

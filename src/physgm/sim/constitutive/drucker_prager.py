@@ -16,7 +16,14 @@ from __future__ import annotations
 
 import warp as wp
 
-from physgm.sim.constitutive.common import MaterialStruct, hencky_decompose, hencky_finish
+from physgm.sim.constitutive.common import (
+    EYE,
+    MaterialStruct,
+    hencky_decompose,
+    hencky_finish,
+    hencky_small_strain,
+    hencky_stress,
+)
 
 
 @wp.func
@@ -38,6 +45,17 @@ def drucker_prager_project(eps: wp.vec3, mat: MaterialStruct):
 
 @wp.func
 def drucker_prager_update(H: wp.mat33, mat: MaterialStruct, plastic: float, dt: float):
+    # A small strain inside the cone (a resting pile's interior) needs no eigenvectors
+    # (``hencky_small_strain``); the cone test is on invariants.
+    small, eps_m = hencky_small_strain(H)
+    if small:
+        tr = wp.trace(eps_m)
+        dev = eps_m - (tr / 3.0) * EYE
+        dev_norm = wp.sqrt(wp.ddot(dev, dev))
+        slope = mat.alpha * (3.0 * mat.lam + 2.0 * mat.mu) / (2.0 * mat.mu)
+        inside = dev_norm <= 0.0 or dev_norm + slope * (tr - mat.tension_strain) <= 0.0
+        if tr < mat.tension_strain and inside:
+            return H, hencky_stress(eps_m, mat.mu, mat.lam), plastic
     U, sigma, eps, clamped = hencky_decompose(H)
     eps_new, dgamma = drucker_prager_project(eps, mat)
     H_new, tau = hencky_finish(H, U, sigma, eps, eps_new, clamped or dgamma > 0.0, clamped, mat.mu, mat.lam)

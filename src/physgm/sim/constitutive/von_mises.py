@@ -18,12 +18,11 @@ import warp as wp
 from physgm.sim.constitutive.common import (
     EYE,
     HENCKY_DEV_MAX,
-    HENCKY_SERIES_MAX,
     MaterialStruct,
-    green_minus_identity,
     hencky_decompose,
     hencky_finish,
-    hencky_strain_series,
+    hencky_small_strain,
+    hencky_stress,
 )
 
 SQRT_2_3 = wp.constant(0.816496580927726)
@@ -49,16 +48,14 @@ def von_mises_return(H: wp.mat33, mat: MaterialStruct, plastic: float, viscous_t
     """``update`` with the radial return of `von_mises_project`: (H_new, tau [Pa], kappa_new).
 
     A small elastic strain (the body at rest, most particles between impacts) is decided on the
-    strain's series form, whose invariants are the principal strains' (``hencky_strain_series``);
-    only a large or yielding one needs the eigenvectors."""
-    D = green_minus_identity(H)
-    if wp.ddot(D, D) <= HENCKY_SERIES_MAX * HENCKY_SERIES_MAX:
-        eps_m = hencky_strain_series(D)
-        tr = wp.trace(eps_m)
-        dev = eps_m - (tr / 3.0) * EYE
+    strain's series form (``hencky_small_strain``); only a large or yielding one needs the
+    eigenvectors."""
+    small, eps_m = hencky_small_strain(H)
+    if small:
+        dev = eps_m - (wp.trace(eps_m) / 3.0) * EYE
         radius = SQRT_2_3 * (mat.yield_stress + mat.hardening * plastic) / (2.0 * mat.mu)
         if wp.ddot(dev, dev) <= radius * radius:
-            return H, 2.0 * mat.mu * eps_m + (mat.lam * tr) * EYE, plastic
+            return H, hencky_stress(eps_m, mat.mu, mat.lam), plastic
     U, sigma, eps, clamped = hencky_decompose(H)
     eps_new, kappa = von_mises_project(eps, mat, plastic, viscous_term)
     H_new, tau = hencky_finish(
