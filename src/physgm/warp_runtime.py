@@ -52,9 +52,10 @@ KERNEL_MODULES = (
     "physgm.sim.mpm.implicit_algebra",
     "physgm.sim.mpm.substep_params",
     "physgm.render.warp_tile_kernels",
+    "physgm.sim.mpm.spin_barrier",
 )
 # Modules whose kernels only ever run on the CPU (C++ snippets written for the host compiler).
-CPU_ONLY_MODULES = ("physgm.render.warp_tile_kernels",)
+CPU_ONLY_MODULES = ("physgm.render.warp_tile_kernels", "physgm.sim.mpm.spin_barrier")
 
 
 def preload(device="cpu") -> None:

@@ -203,6 +203,8 @@ class SubstepLaunches:
         self._tick = wp.launch(advance_clock, 1, [self.params], device=dev, record_cmd=True)
         # Where the two threads' graph replays meet (``run_graph``).
         self._meeting = new_counter(dev) if threads == 2 else None
+        if threads == 2:
+            ensure_loaded(barrier, dev)
         meet = [self._meeting, LIMIT_CYCLES, YIELD_AFTER_CYCLES]
         self._barrier = [
             wp.launch(barrier, 1, [meet[0], t, *meet[1:]], device=dev, record_cmd=True)

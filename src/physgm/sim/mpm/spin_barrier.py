@@ -4,7 +4,7 @@ spins on a shared counter.
 The two-thread solver splits the particles in halves, and each sub-step needs both halves'
 scatter before grid_update and grid_update before both halves' gather. Handing off through
 Python costs ~110 us a sub-step (the GIL and two lock round-trips), as much as a whole one-thread
-sub-step of 400 plasticine particles. Inside the replays the two threads meet at ``barrier`` launches
+sub-step of ~600 particles. Inside the replays the two threads meet at ``barrier`` launches
 instead, which cost well under a microsecond when the partner is already there.
 
 State, one int64 array ``counter``: [0] arrivals, [1 + slot] barriers passed by thread ``slot``,
@@ -13,7 +13,8 @@ thread ``slot``'s n-th barrier opens when the arrivals reach 2 n. A thread that 
 than ``limit_cycles`` (the partner failed or never started) sets [3], and every barrier after that
 returns at once; the caller checks [3] after the replay (``abandoned``) and raises instead of using
 the half-stepped state. Past ``yield_after_cycles`` a waiting thread gives up its core at every
-turn (``sched_yield``), for hosts with more busy threads than cores. The atomics are the
+turn (``sched_yield``, Linux), for hosts with more busy threads than cores. Cycles are the x86
+time-stamp counter; elsewhere a turn of the loop counts as 1000. The atomics are the
 compiler's, so the counter lives in host memory: CPU only (a GPU runs the solver on one stream
 and never needs this).
 """
@@ -44,20 +45,27 @@ _WAIT = """
     const long long mine = c[1 + slot] + 1;  // this thread's own count: no other thread writes it
     c[1 + slot] = mine;
     __atomic_fetch_add(c, 1LL, __ATOMIC_ACQ_REL);
-#if defined(__linux__) || defined(__APPLE__)
+#if defined(__linux__)
     extern int physgm_sched_yield() __asm__("sched_yield");
 #endif
-    const unsigned long long start = __builtin_readcyclecounter();
+#if defined(__x86_64__) || defined(__i386__)
+    const unsigned long long start = __builtin_ia32_rdtsc();
+#else
+    unsigned long long turns = 0;
+#endif
     while (__atomic_load_n(c, __ATOMIC_ACQUIRE) < 2 * mine) {
-        const unsigned long long waited = __builtin_readcyclecounter() - start;
+#if defined(__x86_64__) || defined(__i386__)
+        const unsigned long long waited = __builtin_ia32_rdtsc() - start;
+        __builtin_ia32_pause();
+#else
+        // No cycle counter user code may read everywhere: count about 1000 cycles a turn.
+        const unsigned long long waited = 1000ULL * turns++;
+#endif
         if (waited > static_cast<unsigned long long>(limit_cycles)) {
             __atomic_store_n(c + 3, 1LL, __ATOMIC_RELEASE);
             return;
         }
-#if defined(__x86_64__) || defined(__i386__)
-        __builtin_ia32_pause();
-#endif
-#if defined(__linux__) || defined(__APPLE__)
+#if defined(__linux__)
         if (waited > static_cast<unsigned long long>(yield_after_cycles)) {
             physgm_sched_yield();  // the partner may be waiting for this core
         }

@@ -24,7 +24,7 @@ mat48 = wp.types.matrix(shape=(4, 8), dtype=wp.float32)
 
 # Each sum has a portable form (plain loops; CUDA compiles it, one thread a particle) and a CPU
 # form on clang's 8-float vector type, one AVX register a node. The snippets pick by
-# ``__CUDA_ARCH__``; tests build the portable forms on the CPU too (``portable_stencil_sums``).
+# ``__CUDA_ARCH__``; tests build the portable forms on the CPU too (tests/sim/mpm/test_stencil_sums.py).
 GATHER_PORTABLE = """
     wp::mat_t<4, 8, wp::float32> s;
     for (int i = 0; i < 3; ++i) {
