@@ -332,21 +332,22 @@ def test_volume_barrier_holds_when_lam_vanishes(model):
     np.testing.assert_allclose(got["tau"], tau_ref, rtol=1e-4, atol=1e-3 * p.mu)
 
 
-@pytest.mark.parametrize("model", ["von_mises", "foam", "drucker_prager"])
+@pytest.mark.parametrize("model", ["von_mises", "foam", "drucker_prager", "mohr_coulomb"])
 @pytest.mark.parametrize("rotated", [False, True])
 def test_small_elastic_strains_match_numpy_to_float32_precision(model, rotated):
     """Below HENCKY_SERIES_MAX the Hencky models take the strain's series instead of its
     eigenvectors: the stress must still be the twin's, relative to itself, up to the edge of the
     series (||b - I|| = 0.05). A pure stretch from 1e-6 strain (F - I is exact in float32 there);
     a rotated one from 1e-3, since rounding the rotated F to float32 costs b - I ~1e-7 absolute.
-    Elastic throughout: von Mises and foam with a high yield stress, sand compressed inside its
-    cone (the deviatoric part a fifth of the volumetric one)."""
+    Elastic throughout: von Mises and foam with a high yield stress, the granular models
+    compressed inside their yield surfaces (the deviatoric part a fifth of the volumetric one)."""
     rng = np.random.default_rng(7)
-    p = dataclasses.replace(PARAMS[model], yield_stress=1e9) if model != "drucker_prager" else PARAMS[model]
+    granular = model in ("drucker_prager", "mohr_coulomb")
+    p = PARAMS[model] if granular else dataclasses.replace(PARAMS[model], yield_stress=1e9)
     n = 400
     sym = rng.standard_normal((n, 3, 3))
     sym = 0.5 * (sym + sym.transpose(0, 2, 1))
-    if model == "drucker_prager":
+    if granular:
         dev = sym - np.trace(sym, axis1=1, axis2=2)[:, None, None] / 3 * np.eye(3)
         sym = -np.eye(3) + 0.2 * dev / np.linalg.norm(dev, axis=(1, 2))[:, None, None]
     size = 10.0 ** rng.uniform(-3 if rotated else -6, np.log10(0.024), n)  # strain ~ ||b - I|| / 2
@@ -362,3 +363,27 @@ def test_small_elastic_strains_match_numpy_to_float32_precision(model, rotated):
     assert err.max() < (1e-3 if rotated else 2e-5), (np.median(err), err.max())
     # Elastic: H untouched; F - I + I in float32 rounds a rotated F's entries by up to an ulp.
     np.testing.assert_allclose(got["F"], F, rtol=0, atol=2.5e-7)
+
+
+@pytest.mark.parametrize("model", ["drucker_prager", "mohr_coulomb"])
+def test_small_strains_on_both_sides_of_the_granular_yield_surface_match_numpy(model):
+    """The granular models' series path decides elastic from a bound on invariants: a strain
+    just outside the yield surface must still be returned as the twin returns it."""
+    rng = np.random.default_rng(11)
+    p = PARAMS[model]
+    n = 600
+    sym = rng.standard_normal((n, 3, 3))
+    sym = 0.5 * (sym + sym.transpose(0, 2, 1))
+    dev = sym - np.trace(sym, axis1=1, axis2=2)[:, None, None] / 3 * np.eye(3)
+    shear = rng.uniform(0.0, 6.0, n)[:, None, None]  # deviator over volumetric: both sides of yield
+    F = np.eye(3) + 0.003 * (-np.eye(3) + shear * dev / np.linalg.norm(dev, axis=(1, 2))[:, None, None])
+    F = F.astype(np.float32).astype(np.float64)
+    assert np.linalg.norm(F @ F.transpose(0, 2, 1) - np.eye(3), axis=(1, 2)).max() < 0.05  # series path
+    got = run_warp(p, F, np.zeros(n))
+    F_ref, tau_ref, pl_ref = ref.update(p, F, np.zeros(n), DT)
+    yielded = pl_ref > 0
+    assert 0.1 < yielded.mean() < 0.9  # both sides sampled
+    np.testing.assert_array_equal(got["plastic"] > 0, yielded)
+    scale = np.abs(tau_ref).max(axis=(1, 2))
+    assert (np.abs(got["tau"] - tau_ref).max(axis=(1, 2)) / scale).max() < 1e-3
+    np.testing.assert_allclose(got["F"], F_ref, rtol=0, atol=1e-6)
