@@ -30,17 +30,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from physgm.sim.constitutive.common import (
-    EYE,
-    MaterialStruct,
-    hencky_decompose,
-    hencky_finish,
-    hencky_small_strain,
-    hencky_stress,
-)
-
-SQRT_2 = wp.constant(1.4142135623730951)
-INV_SQRT_6 = wp.constant(0.4082482904638631)
+from physgm.sim.constitutive.common import MaterialStruct, hencky_decompose, hencky_finish
 
 
 @wp.func
@@ -113,20 +103,6 @@ def mohr_coulomb_project(eps: wp.vec3, mat: MaterialStruct):
 
 @wp.func
 def mohr_coulomb_update(H: wp.mat33, mat: MaterialStruct, plastic: float, dt: float):
-    # A small strain well inside the hexagon (a resting heap's interior) needs no eigenvectors
-    # (``hencky_small_strain``). The test is an upper bound of f13 from invariants: of principal
-    # strains with deviator norm |dev|, e1 - e3 <= sqrt(2) |dev| and e1 + e3 <= 2 tr / 3 +
-    # |dev| / sqrt(6), and f13 grows with both (mu, sin(phi) >= 0). States near yield take the
-    # exact path.
-    small, eps_m = hencky_small_strain(H)
-    if small:
-        tr = wp.trace(eps_m)
-        dev = eps_m - (tr / 3.0) * EYE
-        dn = wp.sqrt(wp.ddot(dev, dev))
-        diff = SQRT_2 * dn
-        total = 2.0 * tr / 3.0 + INV_SQRT_6 * dn
-        if tr < mat.tension_strain and mc_yield(0.5 * (total + diff), 0.5 * (total - diff), tr, mat) <= 0.0:
-            return H, hencky_stress(eps_m, mat.mu, mat.lam), plastic
     U, sigma, eps, clamped = hencky_decompose(H)
     eps_new, dgamma = mohr_coulomb_project(eps, mat)
     H_new, tau = hencky_finish(H, U, sigma, eps, eps_new, clamped or dgamma > 0.0, clamped, mat.mu, mat.lam)
