@@ -7,11 +7,14 @@ mode alike:
     python:   one thread, each sub-step's launches from Python (``SolverConfig(graphs=False)``);
     graph:    one thread, runs of ``cfl_check_every`` sub-steps replayed from a captured launch
               graph (``graphs=True``, the default);
-    threads2: two threads, launches from Python (the only mode with two threads).
+    threads2_python: two threads, each sub-step's launches from Python, handed off through a lock
+              (``graphs=False``);
+    threads2: two threads, each replaying its half's graph, meeting at spin barriers (the
+              default, ``launches.run_graph``).
 
 Prints one JSON object: per material and size, the median microseconds per sub-step of each mode,
 wall-clock (with the spread over the rounds) and CPU time (``_cpu_us``: the process's, so for
-threads2 the sum over both threads), the median of the per-round ratios python / graph of each,
+the threads2 modes the sum over both threads), the median of the per-round ratios python / graph of each,
 and a least-squares fit us = fixed + per_particle x P per mode over the sizes. The file also runs as a
 script against a tree without graph replay (``PYTHONPATH=<tree>/src python sim_substep.py``),
 which then times the modes it has. Wall-clock on a shared CPU; nothing asserts on it.
@@ -37,7 +40,8 @@ SIDE = 0.1  # m, block edge
 MODES = {
     "python": dict(threads=1, graphs=False),
     "graph": dict(threads=1, graphs=True),
-    "threads2": dict(threads=2),
+    "threads2_python": dict(threads=2, graphs=False),
+    "threads2": dict(threads=2, graphs=True),
 }
 
 
