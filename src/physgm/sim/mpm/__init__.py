@@ -57,8 +57,9 @@ cohesion=0, viscosity=0)``                          (``physgm.sim.constitutive``
 ``SolverConfig`` (stepping.py; conf/sim/solver/default.yaml)
     frame_dt 0.04 s, cfl 0.4, flip 0.95 (affine-FLIP share of the particle (v, C) update, 0 = pure
     APIC; positions always move with the grid velocity), max_retries, j_min / j_max (divergence
-    guard), boundary_cells, threads (0 = auto: 2 CPU threads from 2k particles), cfl_check_every,
-    graphs (replay runs of sub-steps from a captured launch graph), sort_every, max_substeps;
+    guard), boundary_cells, threads (0 = auto: 2 CPU threads from 500 particles, from 2k when it
+    steps in Python), cfl_check_every, graphs (replay runs of sub-steps from captured launch graphs,
+    one per thread), sort_every, max_substeps;
     integrator "explicit" | "implicit", implicit_dt 0.01 s, implicit_theta 1.0 (the implicit
     step's settings, below).
     ``SolverConfig.load("default")`` reads the YAML.

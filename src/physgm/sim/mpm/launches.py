@@ -202,14 +202,13 @@ class SubstepLaunches:
             )
         self._tick = wp.launch(advance_clock, 1, [self.params], device=dev, record_cmd=True)
         # Where the two threads' graph replays meet (``run_graph``).
-        self._meeting = new_counter(dev) if threads == 2 else None
+        self._meeting, self._barrier = None, []
         if threads == 2:
             ensure_loaded(barrier, dev)
-        meet = [self._meeting, LIMIT_CYCLES, YIELD_AFTER_CYCLES]
-        self._barrier = [
-            wp.launch(barrier, 1, [meet[0], t, *meet[1:]], device=dev, record_cmd=True)
-            for t in range(threads if threads == 2 else 0)
-        ]
+            self._meeting = new_counter(dev)
+            for t in range(2):
+                args = [self._meeting, t, LIMIT_CYCLES, YIELD_AFTER_CYCLES]
+                self._barrier.append(wp.launch(barrier, 1, args, device=dev, record_cmd=True))
 
     def invalidate(self) -> None:
         """The particle state was replaced: clear the accumulators, scatter afresh next sub-step."""

@@ -26,8 +26,7 @@ import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
-ARRIVALS = 0
-ABANDONED = 3
+ABANDONED = 3  # index of the abandoned flag in the counter
 # About 10 s at 3 GHz: far beyond any sub-step, short enough to end a replay whose partner died.
 LIMIT_CYCLES = 30_000_000_000
 # About 10 us: past this a waiting thread yields its core at every turn of the loop, so two solvers

@@ -42,7 +42,7 @@ class SolverConfig:
     j_min: float = 0.0  # det F must stay above this, in [0, 1)
     j_max: float = 1.0e4  # largest det F accepted
     boundary_cells: int = 3  # separating-wall margin at the grid faces, cells
-    threads: int = 0  # CPU worker threads for the particle kernels; 0 = auto (2 from 2k particles)
+    threads: int = 0  # CPU threads for the particle kernels; 0 = auto (2 from 500 particles, solver.py)
     cfl_check_every: int = 16  # sub-steps between re-evaluations of |v|max and dt
     # Replay each run of cfl_check_every sub-steps from a launch graph captured once (a CUDA graph,
     # or Warp's C++ replay on the CPU, one graph per thread) when the solver has no grid hooks, side
