@@ -52,26 +52,39 @@ def pixel_error(cameras: Cameras, a: GaussianTrajectory, b: GaussianTrajectory) 
     return {"error_px": float(per_frame.mean()), "error_px_worst_frame": float(per_frame.max())}
 
 
+FRAME_SUBSTEPS = 160  # sub-steps of each ``step_frame`` the throughput rows time
+
+
 def throughput(sizes: list[int], substeps: int, device: str, repeats: int = 15) -> list[dict]:
     """Raw solver speed: a jelly block resting on the ground, 8 particles per cell, 1 and 2 threads.
 
     Each size runs ``repeats`` blocks of ``substeps`` sub-steps; the row gives the median block and
-    the spread (min, max), because a shared CPU makes single timings swing by tens of percent.
+    the spread (min, max), because a shared CPU makes single timings swing by tens of percent. The
+    blocks call ``substep`` (every sub-step launched from Python); ``frames_particle_substeps_per_s``
+    is the median over frames of FRAME_SUBSTEPS sub-steps through ``step_frame``, the path a
+    simulation takes (graph replay, CFL checks, statistics, the per-frame particle sort and backup;
+    the README demo's frames take ~300), one after every fifth block.
     """
     out = []
     for n, threads in [(n, t) for n in sizes for t in (1, 2)]:
         solver = resting_block(n, SolverConfig(threads=threads), device, JELLY_E)
         count, grid = solver.num_particles, solver.grid
-        blocks = []
+        blocks, frames = [], []
         try:
             dt = solver.stable_dt()
             for _ in range(3):  # warm-up (first launch, caches)
                 solver.substep(dt)
-            for _ in range(repeats):
+            frame_dt = FRAME_SUBSTEPS * dt * (1.0 - 1e-6)  # that many CFL steps while at rest
+            solver.step_frame(frame_dt)  # warm-up: captures the graphs
+            for block in range(repeats):
                 start = time.perf_counter()
                 for _ in range(substeps):
                     solver.substep(dt)
                 blocks.append((time.perf_counter() - start) / substeps)
+                if block % 5 == 0:
+                    start = time.perf_counter()
+                    taken = solver.step_frame(frame_dt).substeps
+                    frames.append((time.perf_counter() - start) / taken)
         finally:
             solver.close()
         rates = sorted(count / b for b in blocks)
@@ -85,6 +98,7 @@ def throughput(sizes: list[int], substeps: int, device: str, repeats: int = 15) 
                 "particle_substeps_per_s_min": rates[0],
                 "particle_substeps_per_s_max": rates[-1],
                 "ms_per_substep": 1e3 * statistics.median(blocks),
+                "frames_particle_substeps_per_s": statistics.median(count / f for f in frames),
                 "repeats": repeats,
             }
         )
