@@ -68,6 +68,10 @@ def test_clips_of_different_inputs_are_refused():
         clips.compare(ref, other, RES)
     with pytest.raises(ValueError, match="output.frames"):
         clips.compare(ref, _still(5), RES)
+    behind = ref.means.copy()
+    behind[:, 1, 2] = -1.0  # the second Gaussian behind the camera: no pixel to compare
+    with pytest.raises(ValueError, match="behind the camera"):
+        clips.compare(ref, _sequence(behind, 4), RES)
 
 
 def test_main_reads_run_folders(tmp_path, capsys):

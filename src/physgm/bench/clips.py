@@ -24,20 +24,24 @@ import math
 from pathlib import Path
 
 import numpy as np
+import torch
 
+from physgm.bench.drop_scene import project
+from physgm.cameras import Cameras, intrinsics_from_fov
 from physgm.view.sequence import SEQUENCE_FILE, GaussianSequence
 
 
 def pixel_coordinates(seq: GaussianSequence, camera: GaussianSequence, resolution: int) -> np.ndarray:
     """Centres of all T frames of ``seq`` [T, N, 2] in pixels of ``camera``'s square image."""
     t = np.minimum(np.arange(seq.n_frames), seq.stored_frames - 1)
-    means = seq.means[t].astype(np.float64)  # [T, N, 3]
-    w2c = np.linalg.inv(camera.camera_c2w.astype(np.float64))
-    cam = means @ w2c[:3, :3].T + w2c[:3, 3]
-    if not (cam[..., 2] > 0).all():
-        raise ValueError("a Gaussian lies behind the reference clip's camera; the clips are not comparable")
-    focal = 0.5 * resolution / math.tan(0.5 * camera.camera_fov_y)
-    return focal * cam[..., :2] / cam[..., 2:3]
+    fov_deg = math.degrees(camera.camera_fov_y)  # square image: the horizontal field of view too
+    cameras = Cameras(
+        c2w=torch.as_tensor(camera.camera_c2w, dtype=torch.float64)[None],
+        Ks=intrinsics_from_fov(fov_deg, resolution, resolution).double()[None],
+        width=resolution,
+        height=resolution,
+    )
+    return project(cameras, torch.as_tensor(seq.means[t], dtype=torch.float64)).numpy()
 
 
 def compare(reference: GaussianSequence, run: GaussianSequence, resolution: int) -> dict[str, float]:

@@ -47,9 +47,11 @@ def bench_camera(side: float, bottom: float, width: int = 256) -> Cameras:
 
 
 def project(cameras: Cameras, x: torch.Tensor) -> torch.Tensor:
-    """Pixel coordinates [..., 2] of world points [..., 3] in the first camera."""
+    """Pixel coordinates [..., 2] of world points [..., 3] in the first camera (all in front of it)."""
     view = cameras.viewmats[0].to(x)
     cam = x @ view[:3, :3].T + view[:3, 3]
+    if not (cam[..., 2] > 0).all():
+        raise ValueError("a point lies behind the camera: its pixel coordinates are not defined")
     uvw = cam @ cameras.Ks[0].to(x).T
     return uvw[..., :2] / uvw[..., 2:3]
 
