@@ -27,6 +27,12 @@ from physgm.sim.constitutive.common import (
 
 
 @wp.func
+def cone_multiplier(tr: float, dev_norm: float, mat: MaterialStruct) -> float:
+    """dgamma of the module docstring from the strain's invariants: > 0 outside the cone."""
+    return dev_norm + mat.alpha * (3.0 * mat.lam + 2.0 * mat.mu) / (2.0 * mat.mu) * (tr - mat.tension_strain)
+
+
+@wp.func
 def drucker_prager_project(eps: wp.vec3, mat: MaterialStruct):
     """Return-mapped principal log strain and the plastic multiplier."""
     tr = eps[0] + eps[1] + eps[2]
@@ -35,9 +41,7 @@ def drucker_prager_project(eps: wp.vec3, mat: MaterialStruct):
         return wp.vec3(mat.tension_strain / 3.0), wp.length(eps - wp.vec3(tr / 3.0)) + delta
     dev = eps - wp.vec3(tr / 3.0)
     dev_norm = wp.length(dev)
-    dgamma = dev_norm + mat.alpha * (3.0 * mat.lam + 2.0 * mat.mu) / (2.0 * mat.mu) * (
-        tr - mat.tension_strain
-    )
+    dgamma = cone_multiplier(tr, dev_norm, mat)
     if dgamma <= 0.0 or dev_norm <= 0.0:
         return eps, 0.0
     return eps - (dgamma / dev_norm) * dev, dgamma
@@ -52,9 +56,7 @@ def drucker_prager_update(H: wp.mat33, mat: MaterialStruct, plastic: float, dt: 
         tr = wp.trace(eps_m)
         dev = eps_m - (tr / 3.0) * EYE
         dev_norm = wp.sqrt(wp.ddot(dev, dev))
-        slope = mat.alpha * (3.0 * mat.lam + 2.0 * mat.mu) / (2.0 * mat.mu)
-        inside = dev_norm <= 0.0 or dev_norm + slope * (tr - mat.tension_strain) <= 0.0
-        if tr < mat.tension_strain and inside:
+        if tr < mat.tension_strain and (dev_norm <= 0.0 or cone_multiplier(tr, dev_norm, mat) <= 0.0):
             return H, hencky_stress(eps_m, mat.mu, mat.lam), plastic
     U, sigma, eps, clamped = hencky_decompose(H)
     eps_new, dgamma = drucker_prager_project(eps, mat)

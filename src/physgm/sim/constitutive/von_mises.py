@@ -29,12 +29,18 @@ SQRT_2_3 = wp.constant(0.816496580927726)
 
 
 @wp.func
+def yield_radius(mat: MaterialStruct, kappa: float) -> float:
+    """||dev eps|| at which the hardened yield surface is reached."""
+    return SQRT_2_3 * (mat.yield_stress + mat.hardening * kappa) / (2.0 * mat.mu)
+
+
+@wp.func
 def von_mises_project(eps: wp.vec3, mat: MaterialStruct, kappa: float, viscous_term: float):
     """Radial return; ``viscous_term`` eta / (2 mu dt) turns it into a Perzyna (foam) update."""
     tr = eps[0] + eps[1] + eps[2]
     dev = eps - wp.vec3(tr / 3.0)
     dev_norm = wp.length(dev)
-    radius = SQRT_2_3 * (mat.yield_stress + mat.hardening * kappa) / (2.0 * mat.mu)
+    radius = yield_radius(mat, kappa)
     if dev_norm <= wp.min(radius, HENCKY_DEV_MAX):
         return eps, kappa
     dgamma = wp.max(dev_norm - radius, 0.0) / (1.0 + mat.hardening / (3.0 * mat.mu) + viscous_term)
@@ -53,7 +59,7 @@ def von_mises_return(H: wp.mat33, mat: MaterialStruct, plastic: float, viscous_t
     small, eps_m = hencky_small_strain(H)
     if small:
         dev = eps_m - (wp.trace(eps_m) / 3.0) * EYE
-        radius = SQRT_2_3 * (mat.yield_stress + mat.hardening * plastic) / (2.0 * mat.mu)
+        radius = yield_radius(mat, plastic)
         if wp.ddot(dev, dev) <= radius * radius:
             return H, hencky_stress(eps_m, mat.mu, mat.lam), plastic
     U, sigma, eps, clamped = hencky_decompose(H)
