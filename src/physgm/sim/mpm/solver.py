@@ -75,6 +75,17 @@ class GridHook(Protocol):
     def apply(self, solver: MPMSolver, dt: float) -> None: ...
 
 
+def _may_replay(config: SolverConfig, scene: Scene) -> bool:
+    """Can this solver's sub-steps run from launch graphs (hooks and observers aside, which can be
+    added later)? Not without ``graphs``, not with side walls or periodic axes (``walls`` runs in
+    Python every sub-step), and only on the main thread (``_graph_run``)."""
+    return (
+        config.graphs
+        and not (scene.walls or scene.periodic)
+        and threading.current_thread() is threading.main_thread()
+    )
+
+
 class MPMSolver:
     """MLS-MPM on a box grid for one or more materials (see physgm.sim.mpm for the full contract).
 
@@ -111,11 +122,7 @@ class MPMSolver:
         self._check_inputs(particles)
         n = self.num_particles = len(particles)
         self.time, self.frame, self.escaped = 0.0, 0, 0
-        replays = (
-            self.config.graphs
-            and not (self.scene.walls or self.scene.periodic)
-            and threading.current_thread() is threading.main_thread()
-        )
+        replays = _may_replay(self.config, self.scene)
         least = _AUTO_THREADS_MIN_PARTICLES_GRAPHS if replays else _AUTO_THREADS_MIN_PARTICLES
         auto = 2 if self.device.is_cpu and n >= least and (os.cpu_count() or 1) >= 2 else 1
         self.threads = min(self.config.threads or auto, 2) if self.device.is_cpu else 1
@@ -257,9 +264,7 @@ class MPMSolver:
         could swallow another's launches; those solvers step in Python.
         """
         n = self.config.cfl_check_every
-        if not self.config.graphs or self.hooks or self.observers or self._walls:
-            return 0
-        if threading.current_thread() is not threading.main_thread():
+        if self.hooks or self.observers or not _may_replay(self.config, self.scene):
             return 0
         t = self.time
         for _ in range(n):
