@@ -46,6 +46,8 @@ class FutureResult:
     nu: float
     mode: str  # the planner's choice: rigid | mpm_capped | mpm
     predicted_error_px: float
+    error_terms: dict[str, float]  # the planner's named parts of its estimate, pixels
+    px_per_m: float  # pixels per metre at the object in the closest output camera
     E_used: float  # Pa, as simulated (capped in mpm_capped)
     nu_used: float  # as simulated (lowered by the bulk-stiffness cap)
     particles: int
@@ -166,6 +168,8 @@ def _future_result(choice, traj, seconds: dict, finite: bool, video: str) -> Fut
         particles=int(len(traj.particles.x)),
         mode=plan.mode,
         predicted_error_px=plan.predicted_error_px,
+        error_terms={k: round(float(v), 4) for k, v in plan.error_terms.items()},
+        px_per_m=round(float(plan.px_per_m), 2),
         E_used=plan.E_used,
         nu_used=plan.nu_used,
         dx_m=plan.dx,
