@@ -77,6 +77,8 @@ def test_default_contact_is_on_the_particles_except_for_sticky_or_held_grounds()
     assert GroundPlane().on_nodes().contact == "nodes"
     with pytest.raises(ValueError, match="damping"):
         GroundPlane(contact="particles", damping=MAX_DAMPING + 0.01)
+    with pytest.raises(ValueError, match="rest_damping"):
+        GroundPlane(rest_damping=-0.1)
 
 
 def test_node_ground_at_the_plane_holds_bodies_a_cell_high():
@@ -227,3 +229,33 @@ def test_contact_dashpot_takes_energy_at_impact():
         first = int(np.argmin(com[:30]))
         peaks.append(max(com[first:]))
     assert GroundPlane().damping > 0 and peaks[1] < peaks[0] - 0.002, peaks
+
+
+def test_resting_dashpot_stops_a_tilted_block_rocking_sooner():
+    # A stiff 8 x 8 x 5 cm block tilted 15 degrees lands on one edge and rocks on its springs; the
+    # resting dashpot (particle_ground) damps the slow approaches of that rocking on the grid, so
+    # every particle comes to rest sooner: measured at frame 21 against 32 without it (20 ms frames,
+    # largest per-frame motion under 0.01 mm).
+    def quiet_frame(rest_damping: float) -> int:
+        p = Particles.lattice((-0.04, -0.04, -0.025), (0.04, 0.04, 0.025), SP)
+        a = np.radians(15.0)
+        x = p.x @ np.array([[1, 0, 0], [0, np.cos(a), np.sin(a)], [0, -np.sin(a), np.cos(a)]])
+        x[:, 2] += 0.02 + SP / 2 - x[:, 2].min()  # lowest particle surface 2 cm up
+        mat = MaterialParams("fixed_corotated", 1e6, 0.3, 1000.0)
+        grid = GridSpec.fit((-0.1, -0.1, 0.0), (0.1, 0.1, 0.12), DX)
+        ground = GroundPlane(0.0, friction=0.3, contact="particles", rest_damping=rest_damping)
+        solver = MPMSolver(
+            Particles(x=x, volume=p.volume, material=0), [mat], grid, Scene(ground=ground),
+            SolverConfig(frame_dt=0.02, threads=1),
+        )  # fmt: skip
+        previous, moved = solver.state().x, []
+        for _ in range(40):
+            solver.step_frame()
+            now = solver.state().x
+            moved.append(float(np.linalg.norm(now - previous, axis=1).max()))
+            previous = now
+        solver.close()
+        return int(np.argmax(np.array(moved) < 1e-5)) + 1
+
+    default = GroundPlane().rest_damping
+    assert default > 0 and quiet_frame(default) + 8 <= quiet_frame(0.0)

@@ -16,9 +16,11 @@ below it) is under the plane is pushed out by a penalty spring as stiff as a lay
 its material's shear modulus G, with a normal dashpot (``damping`` = zeta 0.2), so impacts
 begin at the surface, bodies rest there (their surface sinks rho g H s / G: 0.14 cell for a
 10 cm jelly cube at E = 1e4 Pa), and an elastic ball keeps most of its bounce (restitution
-0.914); the nodes two cells or more below the plane stay held as a safety net that a resting
-body never reaches. Without the dashpot the elastic contact kept a hard-hit jelly bouncing and
-moved two test observables out of their bounds (docs/measurements_sim.md, section 11). Sticky
+0.909); slow approaches are damped on the grid against the weight each spring carries
+(``rest_damping``), so a body resting on its springs stops rocking; the nodes two cells or more
+below the plane stay held as a safety net that a resting body never reaches. Without the dashpot
+the elastic contact kept a hard-hit jelly bouncing and moved two test observables out of their
+bounds (docs/measurements_sim.md, section 11). Sticky
 grounds stay on the nodes at the plane: no surface variant kept both a sand heap's slope and a
 column collapse's run-out (section 7).
 """
@@ -57,6 +59,9 @@ class GroundStruct:
     depth: float  # held_depth, cells
     particles: int  # 1: penalty contact on the particles (particle_ground), nodes held from NET_DEPTH down
     damping: float  # zeta of the particle contact's normal dashpot (particle_ground)
+    rest_damping: float  # zeta of its resting dashpot on the grid (particle_ground)
+    rest_speed: float  # m/s, approaches slower than this are damped on the grid (0: never)
+    inv_gravity: float  # s^2/m, 1 / |g| of the scene (0 without gravity)
 
 
 @wp.struct
@@ -83,6 +88,9 @@ class GroundPlane:
     G and M its material's shear and P-wave moduli (``particle_ground``).
     damping: zeta of the particle contact's normal dashpot, c = 2 zeta sqrt(k m), in [0, 0.25]
     (``particle_ground``); 0 makes the contact elastic.
+    rest_damping: zeta of the resting dashpot, c = 2 zeta sqrt(k W / g) with W the weight the
+    spring carries, applied on the grid to approaches slower than a fall through half a particle
+    spacing (``particle_ground``); 0 turns it off.
     held_depth: nodes contact only: 0 holds the nodes at or below the plane (contact starts ~1.25
     cells up, bodies rest a cell high); ``SURFACE_DEPTH`` puts contact and the rest of light bodies
     at the plane but lets soft or heavy bodies sink (module docstring).
@@ -95,6 +103,7 @@ class GroundPlane:
     contact: str | None = None  # None: "particles" unless sticky or held_depth > 0, then "nodes"
     stiffness: float = 1.0  # kappa of the particle contact (particle_ground)
     damping: float = 0.2  # zeta of the particle contact's normal dashpot (particle_ground)
+    rest_damping: float = 0.5  # zeta of its resting dashpot on the grid (particle_ground)
 
     def __post_init__(self) -> None:
         if self.contact is None:
@@ -115,6 +124,8 @@ class GroundPlane:
                 f"ground damping={self.damping!r} must be in [0, {MAX_DAMPING}] (the dashpot is capped "
                 "at the spring's period there); try 0"
             )
+        if not (math.isfinite(self.rest_damping) and self.rest_damping >= 0.0):
+            raise ValueError(f"ground rest_damping={self.rest_damping!r} must be finite and >= 0; try 0.5")
         if self.contact not in _CONTACTS:
             raise ValueError(f"ground contact {self.contact!r} unknown; use one of {', '.join(_CONTACTS)}")
         if self.contact == "particles" and (self.mode == "sticky" or self.held_depth > 0):
@@ -150,6 +161,9 @@ class GroundPlane:
         s.depth = float(self.held_depth)
         s.particles = int(self.on_particles)
         s.damping = float(self.damping)
+        s.rest_damping = float(self.rest_damping)
+        s.rest_speed = 0.0  # set with the scene's gravity and particles (particle_ground.rest_contact)
+        s.inv_gravity = 0.0
         return s
 
 
@@ -194,6 +208,9 @@ def no_ground() -> GroundStruct:
     s.enabled = 0
     s.particles = 0
     s.damping = 0.0
+    s.rest_damping = 0.0
+    s.rest_speed = 0.0
+    s.inv_gravity = 0.0
     return s
 
 

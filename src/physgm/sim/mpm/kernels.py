@@ -14,7 +14,8 @@ next step's dt is known, particles are read once per sub-step, and a CPU sub-ste
 thread hand-off instead of two. ``p2g`` is the same scatter as a kernel of its own, for the
 first sub-step and whenever the particle state was replaced (frame retry, new velocities).
 
-Grid nodes are ``vec8``. Accumulators: (APIC momentum xyz, mass, stress force xyz, 0). Velocity
+Grid nodes are ``vec8``. Accumulators: (APIC momentum xyz, mass, stress force xyz, the ground
+contact's resting dashpot c, ``particle_ground``). Velocity
 grid ``grid_v``: (velocity xyz, mass, velocity change of this step xyz, 0); a hook that overrides
 a node velocity adds the same change to components 4-6 (``set_node_velocity``).
 
@@ -114,8 +115,10 @@ def scatter_particle(
     touched: wp.array3d(dtype=wp.int32),  # [bx, by, bz] sub-step number that last reached each block
     stamp: wp.int32,  # number of the sub-step whose grid_update consumes this scatter
     f_ext: wp.vec3,  # N, external force on the particle (its ground contact, particle_ground)
+    c_rest: float,  # N s/m, its contact's resting dashpot (particle_ground)
 ):
-    """Add one particle's APIC momentum, mass, stress force and ``f_ext`` to its 27 stencil nodes.
+    """Add one particle's APIC momentum, mass, stress force, ``f_ext`` and ``c_rest`` to its 27
+    stencil nodes.
 
     The stencil (base .. base + 2 per axis) lies in the base node's block and the next one along
     each axis, so stamping the base block tells grid_update about all of them.
@@ -147,7 +150,7 @@ def scatter_particle(
         nyz,
         shape[2],
         w,
-        vec8(q[0], q[1], q[2], m, f[0], f[1], f[2], 0.0),
+        vec8(q[0], q[1], q[2], m, f[0], f[1], f[2], c_rest),
         vec8(ax[0], ax[1], ax[2], 0.0, fx_[0], fx_[1], fx_[2], 0.0),
         vec8(ay[0], ay[1], ay[2], 0.0, fy_[0], fy_[1], fy_[2], 0.0),
         vec8(az[0], az[1], az[2], 0.0, fz_[0], fz_[1], fz_[2], 0.0),
@@ -178,9 +181,12 @@ def p2g(
     p = wp.tid() + offset
     sp = params[0]
     fg = wp.vec3(0.0)
+    cg = float(0.0)  # noqa: UP018 (Warp: set in a branch)
     if touches_ground(ground.particles, ground.height, x[p][2], vol0[p]):
-        fg = particle_ground_force(ground, ground_k, material[p], x[p], v[p], mass[p], vol0[p], pending, slot)
-    scatter_particle(grid, x[p], v[p], C[p], stress[p], mass[p], origin, dx, shape, touched, sp.stamp, fg)
+        fg, cg = particle_ground_force(
+            ground, ground_k, material[p], x[p], v[p], mass[p], vol0[p], pending, slot
+        )
+    scatter_particle(grid, x[p], v[p], C[p], stress[p], mass[p], origin, dx, shape, touched, sp.stamp, fg, cg)
 
 
 @wp.func
@@ -230,6 +236,11 @@ def update_node(
             vel = box_velocity(boxes[b], pos, t, vel)
         # Mechanical work of the imposed impulse m (v_box - v_free) moving at v_box.
         wp.atomic_add(work, slot, WORK_DRIVER, wp.float64(m * wp.dot(vel - v_free, vel)))
+    if g[7] > 0.0 and vel[2] < 0.0 and vel[2] > -ground.rest_speed:
+        # The contact's resting dashpot, implicit (particle_ground): slow approaches only.
+        vz = vel[2] * m / (m + dt * g[7])
+        add_impulse(work, slot, WORK_GROUND, wp.vec3(0.0, 0.0, m * (vz - vel[2])))
+        vel[2] = vz
     v_free = vel
     vel = ground_velocity(ground, pos, dx, vel)
     grip = float(0.0)  # noqa: UP018 (Warp: set in a branch); N s left for the surface layer above
@@ -446,12 +457,13 @@ def g2p(
         wp.atomic_min(stats, slot, STAT_JMIN, J)
         wp.atomic_max(stats, slot, STAT_JMAX, J)
         fg = wp.vec3(0.0)
+        cg = float(0.0)  # noqa: UP018 (Warp: set in a branch)
         if touches_ground(ground.particles, ground.height, x_new[2], vol0[p]):
-            fg = particle_ground_force(
+            fg, cg = particle_ground_force(
                 ground, ground_k, material[p], x_new, v_new, mass[p], vol0[p], pending, slot
             )
         tau_v = vol0[p] * tau
-        scatter_particle(acc, x_new, v_new, c_new, tau_v, mass[p], origin, dx, shape, touched, stamp, fg)
+        scatter_particle(acc, x_new, v_new, c_new, tau_v, mass[p], origin, dx, shape, touched, stamp, fg, cg)
     x[p] = x_new
     v[p] = v_new
     C[p] = c_new

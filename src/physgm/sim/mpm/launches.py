@@ -24,7 +24,7 @@ from physgm.sim.mpm import kernels as K
 from physgm.sim.mpm.boundary import no_ground
 from physgm.sim.mpm.grid import GridSpec
 from physgm.sim.mpm.grid_arrays import GridArrays
-from physgm.sim.mpm.particle_ground import contact_plane, ground_stiffness
+from physgm.sim.mpm.particle_ground import contact_plane, ground_stiffness, rest_contact
 from physgm.sim.mpm.particle_store import ParticleStore
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.spin_barrier import LIMIT_CYCLES, YIELD_AFTER_CYCLES, abandoned, barrier, new_counter
@@ -85,6 +85,7 @@ class SubstepLaunches:
         ground = scene.ground.pack() if scene.ground is not None else no_ground()
         if scene.ground is not None and scene.ground.on_particles:
             ground.height = contact_plane(scene.ground, ps.x.numpy(), ps.vol0.numpy())
+            ground = rest_contact(ground, scene.gravity, ps.vol0.numpy())
         self.contact_height = float(ground.height)  # m, the plane the particle contact pushes from
         self.ground_k = wp.array(ground_stiffness(scene.ground, ps.materials), dtype=wp.vec2, device=dev)
         num_boxes = len(scene.boxes)

@@ -33,6 +33,18 @@ reverses the normal velocity within a sub-step. It acts on the bottom layer only
 of an elastic ball's bounce (restitution 0.938 elastic, 0.914 at 0.2; docs/measurements_sim.md
 section 11).
 
+A resting body rocks on its springs: each spring carries the column above it, so for the body's
+slow modes the dashpot above, sized by the particle's own mass, is a damping ratio of about
+zeta sqrt(m / m_column) (~0.05 for a 15-particle column), and a plasticine lump kept rocking
+through a 2 s clip (docs/measurements_sim.md, sections 15-17). The resting dashpot damps those
+modes without touching impacts: each particle also scatters c_r = 2 zeta_r sqrt(k W / g), W = k d
+the weight its spring carries (at least m g), zeta_r = ``GroundPlane.rest_damping`` (0.5), into
+the accumulators' spare component, and grid_update applies the sum c to a node whose velocity
+approaches the ground slower than ``rest_speed`` = sqrt(|g| s), a fall through half a spacing:
+v_z <- v_z m / (m + c dt), implicit, so stable at any c, and it only pushes. Impacts come in
+faster than that and keep their bounce (the ball's restitution 0.914 -> 0.909); a resting body's
+motions are slower. Its impulse joins the ground impulse.
+
 The force enters the scatter like the stress force (``kernels.scatter_particle``), so it reaches
 the grid as gravity does; ``pending`` sums what the particles got, and the next grid_update
 adds it times that step's dt to the ground impulse (``kernels.WORK_GROUND``), which the
@@ -80,17 +92,19 @@ def particle_ground_force(
     vol0: float,  # rest volume, m^3
     pending: wp.array2d(dtype=wp.float64),  # [2, 4] out: the force is added to row ``slot``, N
     slot: int,
-) -> wp.vec3:
-    """Force of the ground on one particle that ``touches_ground``, N (module docstring)."""
+):
+    """Force of the ground on one particle that ``touches_ground``, N, and its resting dashpot's
+    coefficient c_r, N s/m (module docstring)."""
     h = xp[2] - ground.height
     s = wp.pow(vol0, 1.0 / 3.0)
     depth = 0.5 * s - h
     if depth <= 0.0:
-        return wp.vec3(0.0)
+        return wp.vec3(0.0), 0.0
     k_mat = ground_k[material]
     inv_tau = k_mat[1] / s  # 1 / tau = omega / 2
+    k = k_mat[0] * s
     # The dashpot 2 zeta m omega = 4 zeta m / tau on the normal velocity; the total never pulls.
-    fn = wp.max(k_mat[0] * s * depth - 4.0 * ground.damping * m * inv_tau * vp[2], 0.0)
+    fn = wp.max(k * depth - 4.0 * ground.damping * m * inv_tau * vp[2], 0.0)
     f = wp.vec3(0.0, 0.0, fn)
     speed = wp.sqrt(vp[0] * vp[0] + vp[1] * vp[1])
     if ground.mode != GROUND_SLIP and speed > 0.0:
@@ -98,7 +112,8 @@ def particle_ground_force(
         f = wp.vec3(-ft * vp[0], -ft * vp[1], f[2])
     for a in range(3):
         wp.atomic_add(pending, slot, a, wp.float64(f[a]))
-    return f
+    carried = wp.max(m, k * depth * ground.inv_gravity)  # kg, the weight its spring carries / g
+    return f, 2.0 * ground.rest_damping * wp.sqrt(k * carried)
 
 
 @wp.func
@@ -134,6 +149,16 @@ def ground_stiffness(ground: GroundPlane | None, materials: Sequence[MaterialPar
         x = contact_modulus(ground, m)
         rows.append((x, 0.5 * math.sqrt(x / m.density)))
     return np.array(rows, dtype=np.float32)
+
+
+def rest_contact(struct: GroundStruct, gravity: Sequence[float], volume: np.ndarray) -> GroundStruct:
+    """``struct`` with the resting dashpot's speed limit sqrt(|g| s), s the smallest particle
+    spacing, and 1 / |g| (module docstring); both 0 without gravity, which turns it off."""
+    g = float(np.linalg.norm(np.asarray(gravity, dtype=np.float64)))
+    s = float(np.cbrt(np.min(volume))) if np.size(volume) else 0.0
+    struct.rest_speed = math.sqrt(g * s) if g > 0.0 else 0.0
+    struct.inv_gravity = 1.0 / g if g > 0.0 else 0.0
+    return struct
 
 
 def contact_plane(ground: GroundPlane, x: np.ndarray, volume: np.ndarray) -> float:

@@ -11,7 +11,7 @@ import numpy as np
 
 from physgm.sim.constitutive import reference as cref
 from physgm.sim.mpm.boundary import NET_DEPTH
-from physgm.sim.mpm.particle_ground import ground_stiffness
+from physgm.sim.mpm.particle_ground import ground_stiffness, rest_contact
 
 
 def _weights(fx: np.ndarray) -> np.ndarray:  # fx: [3] -> [3 (node), 3 (axis)]
@@ -53,20 +53,30 @@ def _ground_velocity(ground, pos, dx, v):
     return vt * (1 + ground.friction * v[2] / n)
 
 
-def _particle_ground_force(ground, k_mat, x, v, m, vol0):
-    """The ground's penalty and friction force on one particle, N (``particle_ground``)."""
+def _particle_ground_force(ground, k_mat, x, v, m, vol0, inv_gravity=0.0):
+    """The ground's penalty and friction force on one particle, N, and its resting dashpot's
+    coefficient, N s/m (``particle_ground``)."""
     if ground is None or not ground.on_particles:
-        return np.zeros(3)
+        return np.zeros(3), 0.0
     s = vol0 ** (1.0 / 3.0)
     depth = ground.height + 0.5 * s - x[2]
     if depth <= 0:
-        return np.zeros(3)
+        return np.zeros(3), 0.0
     inv_tau = k_mat[1] / s
-    f = np.array([0.0, 0.0, max(k_mat[0] * s * depth - 4.0 * ground.damping * m * inv_tau * v[2], 0.0)])
+    k = k_mat[0] * s
+    f = np.array([0.0, 0.0, max(k * depth - 4.0 * ground.damping * m * inv_tau * v[2], 0.0)])
     speed = np.linalg.norm(v[:2])
     if ground.mode == "separate" and speed > 0:
         f[:2] = -min(ground.friction * f[2], m * speed * inv_tau) * v[:2] / speed
-    return f
+    return f, 2.0 * ground.rest_damping * np.sqrt(k * max(m, k * depth * inv_gravity))
+
+
+def _rest_limits(scene, vol0) -> tuple[float, float]:
+    """The resting dashpot's speed limit and 1 / |g| (``particle_ground.rest_contact``)."""
+    if scene.ground is None or not scene.ground.on_particles:
+        return 0.0, 0.0
+    struct = rest_contact(scene.ground.pack(), scene.gravity, vol0)
+    return struct.rest_speed, struct.inv_gravity
 
 
 def _grip(ground, m, v_free, vel):
@@ -96,7 +106,9 @@ def _surface_friction(ground, grid, gm, gv, gdv, grip):
 
 def substep(state: dict, params: list, grid, scene, dt: float, t: float, flip: float, bound: int) -> dict:
     """One sub-step. ``state``: x [P,3], v [P,3], C [P,3,3], F [P,3,3], plastic [P], mass [P],
-    vol0 [P], material [P]; ``params``: [M] MaterialParams. Returns the new state and ``grid_v``."""
+    vol0 [P], material [P]; ``params``: [M] MaterialParams. Returns the new state, ``grid_v`` and
+    ``ground_impulse`` [3], N s: what the particle contact gave this sub-step (springs, friction
+    and the resting dashpot)."""
     x, v, C, F = state["x"], state["v"], state["C"], state["F"]
     mass, vol0, material, plastic = state["mass"], state["vol0"], state["material"], state["plastic"]
     res, dx, origin = np.array(grid.res), grid.dx, np.asarray(grid.origin)
@@ -112,6 +124,9 @@ def substep(state: dict, params: list, grid, scene, dt: float, t: float, flip: f
     mom = np.zeros((*res, 3))
     force = np.zeros((*res, 3))
     gm = np.zeros(tuple(res))
+    gc = np.zeros(tuple(res))
+    rest_speed, inv_gravity = _rest_limits(scene, vol0)
+    ground_impulse = np.zeros(3)
     stencils = []
     for p in range(n):
         xp = (x[p] - origin) / dx
@@ -120,7 +135,11 @@ def substep(state: dict, params: list, grid, scene, dt: float, t: float, flip: f
         w = _weights(fx)
         stencils.append((base, fx, w))
         impulse = -dt * 4 / dx**2 * vol0[p] * tau[p]
-        external = dt * _particle_ground_force(ground, ground_k[material[p]], x[p], v[p], mass[p], vol0[p])
+        contact, c_rest = _particle_ground_force(
+            ground, ground_k[material[p]], x[p], v[p], mass[p], vol0[p], inv_gravity
+        )
+        external = dt * contact
+        ground_impulse += external
         affine = mass[p] * C[p] + impulse
         for o in np.ndindex(3, 3, 3):
             wi = w[o[0], 0] * w[o[1], 1] * w[o[2], 2]
@@ -129,6 +148,7 @@ def substep(state: dict, params: list, grid, scene, dt: float, t: float, flip: f
             mom[node] += wi * (mass[p] * v[p] + affine @ dpos + external)
             force[node] += wi * (impulse @ dpos + external)
             gm[node] += wi * mass[p]
+            gc[node] += wi * c_rest
     gv = np.zeros((*res, 3))
     gdv = np.zeros((*res, 3))
     grip = np.zeros(tuple(res))
@@ -140,6 +160,10 @@ def substep(state: dict, params: list, grid, scene, dt: float, t: float, flip: f
         pos = origin + np.array(node) * dx
         for box in scene.boxes:
             vel = _box_velocity(box, pos, t, vel)
+        if gc[node] > 0 and -rest_speed < vel[2] < 0:
+            vz = vel[2] * m / (m + dt * gc[node])
+            ground_impulse[2] += m * (vz - vel[2])
+            vel[2] = vz
         v_free = vel
         vel = _ground_velocity(scene.ground, pos, dx, vel)
         grip[node] = _grip(scene.ground, m, v_free, vel)
@@ -150,6 +174,7 @@ def substep(state: dict, params: list, grid, scene, dt: float, t: float, flip: f
     _surface_friction(scene.ground, grid, gm, gv, gdv, grip)
     out = {k: np.array(val, dtype=np.float64, copy=True) for k, val in state.items()}
     out["grid_v"] = gv
+    out["ground_impulse"] = ground_impulse
     for p in range(n):
         base, fx, w = stencils[p]
         vel, dvel, B, dB = np.zeros(3), np.zeros(3), np.zeros((3, 3)), np.zeros((3, 3))
