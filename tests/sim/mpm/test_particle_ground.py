@@ -41,8 +41,8 @@ def _twin_state(solver: MPMSolver, p: Particles, density: float) -> dict:
 def test_contact_matches_the_numpy_twin_and_reports_its_force(mode, damping, speed):
     # A block hitting the plane at ``speed`` while sliding, its surface ``speed`` x 50 us above
     # it: four sub-steps against the twin; the contact acts (without it the bottom layer falls
-    # on), and the ground impulse is the twin's, step by step. At 2 m/s the resting dashpot stays
-    # off (faster than sqrt(g s) = 0.22 m/s); at 0.1 m/s it acts on the grid too.
+    # on), and the ground impulse is the twin's, step by step. At 2 m/s (faster than the resting
+    # dashpot's sqrt(g s) = 0.31 m/s) that dashpot takes almost nothing; at 0.1 m/s a share.
     gap = speed * 5e-5
     p = Particles.lattice((-0.02, -0.02, gap), (0.02, 0.02, gap + 0.03), SP)
     p.v = np.tile([0.5, 0.1, -speed], (len(p), 1))

@@ -42,8 +42,9 @@ the weight its spring carries (at least m g), zeta_r = ``GroundPlane.rest_dampin
 the accumulators' spare component, and grid_update applies the sum c to a node whose velocity
 approaches the ground slower than ``rest_speed`` = sqrt(|g| s), a fall through half a spacing:
 v_z <- v_z m / (m + c dt), implicit, so stable at any c, and it only pushes. Impacts come in
-faster than that and keep their bounce (the ball's restitution 0.914 -> 0.909); a resting body's
-motions are slower. Its impulse joins the ground impulse.
+faster than that and keep their bounce (the test ball's restitution: 0.909 with it, 0.914
+without; docs/measurements_sim.md section 17); a resting body's motions are slower. Its impulse
+joins the ground impulse.
 
 The force enters the scatter like the stress force (``kernels.scatter_particle``), so it reaches
 the grid as gravity does; ``pending`` sums what the particles got, and the next grid_update
