@@ -52,16 +52,17 @@ def test_contact_matches_the_numpy_twin_and_reports_its_force(mode, damping, spe
     solver = MPMSolver(p, [JELLY], grid, scene, SolverConfig(flip=0.0, threads=1))
     assert solver.launches.contact_height == 0.0  # nothing started under the plane
     state = _twin_state(solver, p, 1000.0)
-    bound = SolverConfig().boundary_cells
+    bound, cfl = SolverConfig().boundary_cells, SolverConfig().cfl
     k_mat = np.array([JELLY.mu, 0.5 * np.sqrt(JELLY.mu / 1000.0)])
     impulse, springs = np.zeros(3), np.zeros(3)
     for dt in (2e-4, 1.5e-4, 2e-4, 2e-4):
         for i in range(len(p)):
             f, _ = reference_mpm._particle_ground_force(
-                scene.ground, k_mat, state["x"][i], state["v"][i], state["mass"][i], state["vol0"][i]
-            )
+                scene.ground, k_mat, state["x"][i], state["v"][i], state["mass"][i], state["vol0"][i],
+                friction_rate=1.0 / cfl,
+            )  # fmt: skip
             springs += dt * f
-        out = reference_mpm.substep(state, [JELLY], solver.grid, scene, dt, solver.time, 0.0, bound)
+        out = reference_mpm.substep(state, [JELLY], solver.grid, scene, dt, solver.time, 0.0, bound, cfl)
         impulse += out["ground_impulse"]
         solver.substep(dt)
         state.update({k: out[k] for k in ("x", "v", "C", "F", "plastic")})
@@ -77,8 +78,8 @@ def test_contact_matches_the_numpy_twin_and_reports_its_force(mode, damping, spe
     np.testing.assert_allclose(s1.v, state["v"], rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(s1.x, state["x"], rtol=1e-6, atol=1e-6)
     low = s1.x[:, 2] < s1.x[:, 2].min() + 0.5 * SP  # the lowest layer of particles
-    free = reference_mpm.substep(state, [JELLY], solver.grid, Scene(), 2e-4, solver.time, 0.0, bound)
-    held = reference_mpm.substep(state, [JELLY], solver.grid, scene, 2e-4, solver.time, 0.0, bound)
+    free = reference_mpm.substep(state, [JELLY], solver.grid, Scene(), 2e-4, solver.time, 0.0, bound, cfl)
+    held = reference_mpm.substep(state, [JELLY], solver.grid, scene, 2e-4, solver.time, 0.0, bound, cfl)
     assert held["v"][low, 2].mean() > free["v"][low, 2].mean() + 0.025 * speed  # m/s, in one sub-step
     solver.close()
 

@@ -62,6 +62,7 @@ class GroundStruct:
     rest_damping: float  # zeta of its resting dashpot on the grid (particle_ground)
     rest_speed: float  # m/s, approaches slower than this are damped on the grid (0: never)
     inv_gravity: float  # s^2/m, 1 / |g| of the scene (0 without gravity)
+    friction_rate: float  # 1 / cfl of the solver: the particle friction's cap (particle_ground)
 
 
 @wp.struct
@@ -164,6 +165,7 @@ class GroundPlane:
         s.rest_damping = float(self.rest_damping)
         s.rest_speed = 0.0  # set with the scene's gravity and particles (particle_ground.rest_contact)
         s.inv_gravity = 0.0
+        s.friction_rate = 1.0  # the solver's 1 / cfl (launches)
         return s
 
 
@@ -211,6 +213,7 @@ def no_ground() -> GroundStruct:
     s.rest_damping = 0.0
     s.rest_speed = 0.0
     s.inv_gravity = 0.0
+    s.friction_rate = 1.0
     return s
 
 

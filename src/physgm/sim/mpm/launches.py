@@ -86,6 +86,7 @@ class SubstepLaunches:
         if scene.ground is not None and scene.ground.on_particles:
             ground.height = contact_plane(scene.ground, ps.x.numpy(), ps.vol0.numpy())
             ground = rest_contact(ground, scene.gravity, ps.vol0.numpy())
+            ground.friction_rate = 1.0 / cfg.cfl  # every step is at most cfl tau (particle_ground)
         self.contact_height = float(ground.height)  # m, the plane the particle contact pushes from
         self.ground_k = wp.array(ground_stiffness(scene.ground, ps.materials), dtype=wp.vec2, device=dev)
         num_boxes = len(scene.boxes)

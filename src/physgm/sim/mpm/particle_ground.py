@@ -20,10 +20,13 @@ than the uncapped one; and a spring as stiff as M made the bouncing ball's botto
 (restitution 0.908 against 0.938 with G).
 
 On a Coulomb ground a tangential force opposes the particle's sliding velocity v_t, at most mu f_n
-and at most m |v_t| / tau, tau = 2 / omega below. The solver's step never exceeds tau (last
-paragraph), so friction never reverses the motion; a slow particle is stopped within a few
-sub-steps. The cap uses tau, not the sub-step dt, because the scatter runs before the next sub-step's
-dt is known (``kernels``: the fused scatter must not depend on dt).
+and at most m |v_t| / (cfl tau), tau = 2 / omega below. The solver's step never exceeds cfl tau
+(last paragraph), so this is the strongest viscous friction that never reverses the motion within
+a sub-step: a slow particle stops within about one sub-step, as close to sticking as an explicit
+force comes. (With m |v_t| / tau instead, a plasticine lump that had landed kept turning and
+sliding a few um a frame to the end of a 2 s clip; docs/measurements_sim.md section 17.) The
+cap uses tau, not the sub-step dt, because the scatter runs before the next sub-step's dt is known
+(``kernels``: the fused scatter must not depend on dt).
 
 A normal dashpot takes energy at impact, as real contacts do (the conservative spring alone kept
 a jelly hit at twice its wave speed bouncing): f_n = max(k d - c v_n, 0), c = 2 zeta sqrt(k m) =
@@ -109,7 +112,7 @@ def particle_ground_force(
     f = wp.vec3(0.0, 0.0, fn)
     speed = wp.sqrt(vp[0] * vp[0] + vp[1] * vp[1])
     if ground.mode != GROUND_SLIP and speed > 0.0:
-        ft = wp.min(ground.friction * f[2], m * speed * inv_tau) / speed
+        ft = wp.min(ground.friction * f[2], ground.friction_rate * m * speed * inv_tau) / speed
         f = wp.vec3(-ft * vp[0], -ft * vp[1], f[2])
     for a in range(3):
         wp.atomic_add(pending, slot, a, wp.float64(f[a]))

@@ -53,7 +53,7 @@ def _ground_velocity(ground, pos, dx, v):
     return vt * (1 + ground.friction * v[2] / n)
 
 
-def _particle_ground_force(ground, k_mat, x, v, m, vol0, inv_gravity=0.0):
+def _particle_ground_force(ground, k_mat, x, v, m, vol0, inv_gravity=0.0, friction_rate=1.0):
     """The ground's penalty and friction force on one particle, N, and its resting dashpot's
     coefficient, N s/m (``particle_ground``)."""
     if ground is None or not ground.on_particles:
@@ -67,7 +67,7 @@ def _particle_ground_force(ground, k_mat, x, v, m, vol0, inv_gravity=0.0):
     f = np.array([0.0, 0.0, max(k * depth - 4.0 * ground.damping * m * inv_tau * v[2], 0.0)])
     speed = np.linalg.norm(v[:2])
     if ground.mode == "separate" and speed > 0:
-        f[:2] = -min(ground.friction * f[2], m * speed * inv_tau) * v[:2] / speed
+        f[:2] = -min(ground.friction * f[2], friction_rate * m * speed * inv_tau) * v[:2] / speed
     return f, 2.0 * ground.rest_damping * np.sqrt(k * max(m, k * depth * inv_gravity))
 
 
@@ -104,9 +104,12 @@ def _surface_friction(ground, grid, gm, gv, gdv, grip):
         gv[node] = vel
 
 
-def substep(state: dict, params: list, grid, scene, dt: float, t: float, flip: float, bound: int) -> dict:
+def substep(
+    state: dict, params: list, grid, scene, dt: float, t: float, flip: float, bound: int, cfl: float = 1.0
+) -> dict:
     """One sub-step. ``state``: x [P,3], v [P,3], C [P,3,3], F [P,3,3], plastic [P], mass [P],
-    vol0 [P], material [P]; ``params``: [M] MaterialParams. Returns the new state, ``grid_v`` and
+    vol0 [P], material [P]; ``params``: [M] MaterialParams; ``cfl``: the solver's, which sets the
+    particle friction's cap (``particle_ground``). Returns the new state, ``grid_v`` and
     ``ground_impulse`` [3], N s: what the particle contact gave this sub-step (springs, friction
     and the resting dashpot)."""
     x, v, C, F = state["x"], state["v"], state["C"], state["F"]
@@ -136,7 +139,7 @@ def substep(state: dict, params: list, grid, scene, dt: float, t: float, flip: f
         stencils.append((base, fx, w))
         impulse = -dt * 4 / dx**2 * vol0[p] * tau[p]
         contact, c_rest = _particle_ground_force(
-            ground, ground_k[material[p]], x[p], v[p], mass[p], vol0[p], inv_gravity
+            ground, ground_k[material[p]], x[p], v[p], mass[p], vol0[p], inv_gravity, 1.0 / cfl
         )
         external = dt * contact
         ground_impulse += external
