@@ -31,8 +31,8 @@ cap uses tau, not the sub-step dt, because the scatter runs before the next sub-
 A normal dashpot takes energy at impact, as real contacts do (the conservative spring alone kept
 a jelly hit at twice its wave speed bouncing): f_n = max(k d - c v_n, 0), c = 2 zeta sqrt(k m) =
 4 zeta m / tau, zeta = ``GroundPlane.damping`` (0.2), so the ground never pulls. At the largest
-zeta, 0.25, c v_n reaches m |v_n| / tau, the friction's cap, so (dt <= tau) the dashpot never
-reverses the normal velocity within a sub-step. It acts on the bottom layer only and keeps most
+zeta, 0.25, c v_n reaches m |v_n| / tau, so (dt <= cfl tau <= tau) the dashpot never reverses
+the normal velocity within a sub-step. It acts on the bottom layer only and keeps most
 of an elastic ball's bounce (restitution 0.938 elastic, 0.914 at 0.2; docs/measurements_sim.md
 section 11).
 
