@@ -163,9 +163,9 @@ class GroundPlane:
         s.particles = int(self.on_particles)
         s.damping = float(self.damping)
         s.rest_damping = float(self.rest_damping)
-        s.rest_speed = 0.0  # set with the scene's gravity and particles (particle_ground.rest_contact)
+        s.rest_speed = 0.0  # the particle contact's are set by particle_ground.pack_contact
         s.inv_gravity = 0.0
-        s.friction_rate = 1.0  # the solver's 1 / cfl (launches)
+        s.friction_rate = 1.0
         return s
 
 

@@ -24,7 +24,7 @@ from physgm.sim.mpm import kernels as K
 from physgm.sim.mpm.boundary import no_ground
 from physgm.sim.mpm.grid import GridSpec
 from physgm.sim.mpm.grid_arrays import GridArrays
-from physgm.sim.mpm.particle_ground import contact_plane, ground_stiffness, rest_contact
+from physgm.sim.mpm.particle_ground import ground_stiffness, pack_contact
 from physgm.sim.mpm.particle_store import ParticleStore
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.spin_barrier import LIMIT_CYCLES, YIELD_AFTER_CYCLES, abandoned, barrier, new_counter
@@ -82,11 +82,12 @@ class SubstepLaunches:
         a = self.arrays
         origin = wp.vec3(*g.origin)
         lo, hi = g.interior(1)
-        ground = scene.ground.pack() if scene.ground is not None else no_ground()
-        if scene.ground is not None and scene.ground.on_particles:
-            ground.height = contact_plane(scene.ground, ps.x.numpy(), ps.vol0.numpy())
-            ground = rest_contact(ground, scene.gravity, ps.vol0.numpy())
-            ground.friction_rate = 1.0 / cfg.cfl  # every step is at most cfl tau (particle_ground)
+        if scene.ground is None:
+            ground = no_ground()
+        elif scene.ground.on_particles:
+            ground = pack_contact(scene.ground, scene.gravity, ps.x.numpy(), ps.vol0.numpy(), cfg.cfl)
+        else:
+            ground = scene.ground.pack()
         self.contact_height = float(ground.height)  # m, the plane the particle contact pushes from
         self.ground_k = wp.array(ground_stiffness(scene.ground, ps.materials), dtype=wp.vec2, device=dev)
         num_boxes = len(scene.boxes)

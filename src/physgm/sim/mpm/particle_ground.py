@@ -155,13 +155,24 @@ def ground_stiffness(ground: GroundPlane | None, materials: Sequence[MaterialPar
     return np.array(rows, dtype=np.float32)
 
 
-def rest_contact(struct: GroundStruct, gravity: Sequence[float], volume: np.ndarray) -> GroundStruct:
-    """``struct`` with the resting dashpot's speed limit sqrt(|g| s), s the smallest particle
-    spacing, and 1 / |g| (module docstring); both 0 without gravity, which turns it off."""
+def pack_contact(
+    ground: GroundPlane,
+    gravity: Sequence[float],  # m/s^2, the scene's
+    x: np.ndarray,  # [P, 3] particles at the start, m
+    volume: np.ndarray,  # [P] rest volumes, m^3
+    cfl: float,  # the solver's CFL number
+) -> GroundStruct:
+    """The kernels' struct of a particle-contact ground (module docstring): the springs push from
+    ``contact_plane``; the resting dashpot acts below sqrt(|g| s), s the smallest particle spacing,
+    with 1 / |g| (both 0 without gravity, which turns it off); the friction's cap is m |v_t| /
+    (cfl tau)."""
+    struct = ground.pack()
+    struct.height = contact_plane(ground, x, volume)
     g = float(np.linalg.norm(np.asarray(gravity, dtype=np.float64)))
     s = float(np.cbrt(np.min(volume))) if np.size(volume) else 0.0
     struct.rest_speed = math.sqrt(g * s) if g > 0.0 else 0.0
     struct.inv_gravity = 1.0 / g if g > 0.0 else 0.0
+    struct.friction_rate = 1.0 / cfl
     return struct
 
 

@@ -11,7 +11,7 @@ import numpy as np
 
 from physgm.sim.constitutive import reference as cref
 from physgm.sim.mpm.boundary import NET_DEPTH
-from physgm.sim.mpm.particle_ground import ground_stiffness, rest_contact
+from physgm.sim.mpm.particle_ground import ground_stiffness, pack_contact
 
 
 def _weights(fx: np.ndarray) -> np.ndarray:  # fx: [3] -> [3 (node), 3 (axis)]
@@ -71,12 +71,12 @@ def _particle_ground_force(ground, k_mat, x, v, m, vol0, inv_gravity=0.0, fricti
     return f, 2.0 * ground.rest_damping * np.sqrt(k * max(m, k * depth * inv_gravity))
 
 
-def _rest_limits(scene, vol0) -> tuple[float, float]:
-    """The resting dashpot's speed limit and 1 / |g| (``particle_ground.rest_contact``)."""
+def _contact_limits(scene, x, vol0, cfl) -> tuple[float, float, float]:
+    """The resting dashpot's speed limit, 1 / |g| and the friction's rate (``pack_contact``)."""
     if scene.ground is None or not scene.ground.on_particles:
-        return 0.0, 0.0
-    struct = rest_contact(scene.ground.pack(), scene.gravity, vol0)
-    return struct.rest_speed, struct.inv_gravity
+        return 0.0, 0.0, 1.0
+    struct = pack_contact(scene.ground, scene.gravity, x, vol0, cfl)
+    return struct.rest_speed, struct.inv_gravity, struct.friction_rate
 
 
 def _grip(ground, m, v_free, vel):
@@ -128,7 +128,7 @@ def substep(
     force = np.zeros((*res, 3))
     gm = np.zeros(tuple(res))
     gc = np.zeros(tuple(res))
-    rest_speed, inv_gravity = _rest_limits(scene, vol0)
+    rest_speed, inv_gravity, friction_rate = _contact_limits(scene, x, vol0, cfl)
     ground_impulse = np.zeros(3)
     stencils = []
     for p in range(n):
@@ -139,7 +139,7 @@ def substep(
         stencils.append((base, fx, w))
         impulse = -dt * 4 / dx**2 * vol0[p] * tau[p]
         contact, c_rest = _particle_ground_force(
-            ground, ground_k[material[p]], x[p], v[p], mass[p], vol0[p], inv_gravity, 1.0 / cfl
+            ground, ground_k[material[p]], x[p], v[p], mass[p], vol0[p], inv_gravity, friction_rate
         )
         external = dt * contact
         ground_impulse += external
