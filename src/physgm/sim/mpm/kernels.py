@@ -15,9 +15,10 @@ thread hand-off instead of two. ``p2g`` is the same scatter as a kernel of its o
 first sub-step and whenever the particle state was replaced (frame retry, new velocities).
 
 Grid nodes are ``vec8``. Accumulators: (APIC momentum xyz, mass, stress force xyz, the ground
-contact's resting dashpot c, ``particle_ground``). Velocity
-grid ``grid_v``: (velocity xyz, mass, velocity change of this step xyz, 0); a hook that overrides
-a node velocity adds the same change to components 4-6 (``set_node_velocity``).
+contact's resting dashpot c, ``particle_ground``). Velocity grid ``grid_v``: (velocity xyz,
+mass, velocity change of this step xyz, the friction impulse a held node leaves for the layer
+above, ``boundary.ground_grip``); a hook that overrides a node velocity adds the same change to
+components 4-6 (``set_node_velocity``).
 
 Particle kernels take an ``offset`` so the CPU solver can split the particles over threads,
 each thread scattering into its own accumulator. The scatter also stamps the 4^3-node block of
