@@ -45,11 +45,12 @@ def test_summary_counts_crushed_cells_in_and_out_of_scope():
 
 def test_the_default_cfl_is_where_the_stiff_fluid_drop_stops_gaining_energy(capsys):
     """docs/measurements_sim.md section 13: at cfl 0.6 the fluid's contact spring (as stiff as its
-    bulk modulus) rings past stable and the dropped cube gains energy; at the default it does not.
-    (Energy ratio at 0.6 measured 29.1 at nu = 0.01; at nu = 0.3 the cube no longer gains energy
-    on the contact of section 17.)"""
+    bulk modulus) rings past stable, and the dropped cube gains energy or its frames need retries at
+    a lower CFL; at the default neither happens. (At 0.6 and nu = 0.01: energy ratio 29.1 before
+    the fast-math kernels of section 18, 1.0 after 5 retries with them; at nu = 0.3 the cube no
+    longer gains energy on the contact of section 17.)"""
     args = ["--models", "fluid", "--E", "1e9", "--nu", "0.01", "--scenes", "drop"]
     (default,) = sim_stability.main(args)["cells"]
     (larger,) = sim_stability.main(args + ["--cfl", "0.6"])["cells"]
     assert default["finite"] and default["energy_ratio"] <= 1.05 and default["retries"] == 0
-    assert larger["energy_ratio"] > 1.5
+    assert larger["energy_ratio"] > 1.5 or larger["retries"] > 0

@@ -405,8 +405,9 @@ def test_a_solver_started_from_another_ones_state_carries_on_as_it_would():
         Particles(s.x, p.volume, p.material, v=s.v, F=s.F, C=s.C, plastic=s.plastic), MATS, grid, scene, cfg
     )
     np.testing.assert_array_equal(restarted.state().C, s.C)
-    # (the first stress evaluation re-applies the return mapping: equal to float32 rounding)
-    np.testing.assert_allclose(restarted.state().plastic, s.plastic, rtol=1e-5)
+    # (the first stress evaluation re-applies the return mapping: equal to float32 rounding of a
+    # strain of order one, 1.2e-7; measured 7e-8 with the fast-math kernels)
+    np.testing.assert_allclose(restarted.state().plastic, s.plastic, rtol=1e-5, atol=2e-7)
     forgetful = MPMSolver(Particles(s.x, p.volume, p.material, v=s.v, F=s.F), MATS, grid, scene, cfg)
     runs = [solver.step_frame() and solver.state() for solver in (original, restarted, forgetful)]
     for solver in (original, restarted, forgetful):

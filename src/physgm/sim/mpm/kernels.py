@@ -43,8 +43,9 @@ from physgm.sim.mpm.boundary import BoxStruct, GroundStruct, box_velocity, groun
 from physgm.sim.mpm.particle_ground import fold_ground_force, particle_ground_force, touches_ground
 from physgm.sim.mpm.stencil_sums import gather_moments, scatter_affine, vec8
 from physgm.sim.mpm.substep_params import SubstepParams
+from physgm.warp_runtime import FAST_CPU_FLAGS
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "cpu_compiler_flags": FAST_CPU_FLAGS})
 
 # Columns of the per-sub-step statistics (one row per worker thread).
 STAT_VMAX = wp.constant(0)  # max squared particle speed, m^2/s^2
