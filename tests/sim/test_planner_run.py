@@ -15,6 +15,7 @@ from physgm.physics.materials import PhysicsSpec
 from physgm.sim.gaussian_trajectory import ballistic_frames, simulate
 from physgm.sim.mpm.boundary import GroundPlane
 from physgm.sim.mpm.scene import Scene
+from physgm.sim.mpm_run import motion_left_px
 from physgm.sim.planner import PlannerConfig
 
 G = 9.81
@@ -162,6 +163,48 @@ def test_early_stop_holds_frames_once_still():
     # The held frames cost nothing: fewer sub-steps than planned for the whole clip.
     assert traj.substeps < traj.plan.substeps_per_frame * 29 * 0.8
     assert traj.face_contacts == 0  # the slide stayed inside the planned grid
+
+
+def test_held_frames_stay_within_the_rest_budget_of_the_unstopped_run():
+    # A block slides on a frictionless floor under air drag: its motion decays by 0.82 a frame and
+    # never stops, so only the budget on the extrapolated creep decides when the frames are held.
+    scene = Scene(ground=GroundPlane(0.0, friction=0.0), damping=5.0)
+    gs, physics = _shell_cube(bottom=0.0), PhysicsSpec("rubber", E=1e6, nu=0.3)
+    base = dict(cells_across=8, particles_per_cell=1, allow_rigid=False, allow_stiffness_cap=False)
+    full = simulate(
+        gs,
+        physics,
+        (scene, [0.3, 0.0, 0.0]),
+        CAMERAS,
+        n_frames=40,
+        planner=PlannerConfig(**base, rest_frames=10**6),
+    )
+    assert full.rest_frame is None
+    stops = []
+    for budget in (0.1, 0.03):  # measured: held at frames 29 and 34, 0.091 and 0.027 px from the full run
+        traj = simulate(
+            gs,
+            physics,
+            (scene, [0.3, 0.0, 0.0]),
+            CAMERAS,
+            n_frames=40,
+            planner=PlannerConfig(**base, rest_budget_px=budget),
+        )
+        k = traj.rest_frame
+        np.testing.assert_array_equal(full.x[:k], traj.x[:k])
+        held_px = np.linalg.norm(full.x[k:] - traj.x[k:], axis=2).max() * traj.plan.px_per_m
+        assert budget / 3 < held_px < budget, (budget, held_px)
+        stops.append(k)
+    assert stops[0] < stops[1]
+
+
+def test_motion_left_continues_the_fitted_decay():
+    # Halving every frame: 0.0625 px in the last frame, then 1/32 + 1/64 + 1/128 over three more.
+    assert motion_left_px([1.0, 0.5, 0.25, 0.125, 0.0625], 3) == pytest.approx(0.0625 * 0.875)
+    # A steady slide or a growing motion goes on at the last frame's pace.
+    assert motion_left_px([0.04] * 5, 10) == pytest.approx(0.4)
+    assert motion_left_px([0.01, 0.02, 0.03, 0.04, 0.05], 10) == pytest.approx(0.5)
+    assert motion_left_px([0.1, 0.05], 0) == 0.0
 
 
 def test_physics_spec_reads_table_and_overrides():

@@ -378,6 +378,7 @@ def test_evaluate_physics_wiring(dpo_root, monkeypatch):
         "min_opacity": pytest.approx(0.05),
         "bound_px": pytest.approx(d.bound_px / 2),
         "rest_px": pytest.approx(d.rest_px / 2),
+        "rest_budget_px": pytest.approx(d.rest_budget_px / 2),
         "cells_across": 7,
     }
     torch.testing.assert_close(seen["cams"].c2w, scene.camera.c2w)

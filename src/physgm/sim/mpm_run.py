@@ -65,6 +65,26 @@ class MPMRun:
     coast_predicted_px: float = 0.0  # the largest predicted error of a coasted flight, pixels
 
 
+def motion_left_px(window: list[float], frames_left: int) -> float:
+    """The motion a settling body still has in it: the largest per-frame particle motion of the
+    last frames (``window``, pixels, oldest first) continued over ``frames_left`` frames as the
+    geometric decay fitted to them (least squares on their logarithms), pixels.
+
+    Holding the frames from here on moves no particle by more than this if the decay goes on; a
+    window that does not decay (a slide at constant speed, a body starting to tip) continues at its
+    last frame's motion, which the budget then refuses unless few frames are left.
+    """
+    m = np.maximum(np.asarray(window, dtype=np.float64), 1e-12)
+    last = float(m[-1])
+    if len(m) < 2:
+        return last * frames_left
+    steps = np.arange(len(m), dtype=np.float64)
+    ratio = math.exp(float(np.polyfit(steps, np.log(m), 1)[0]))
+    if ratio >= 1.0:
+        return last * frames_left
+    return last * ratio * (1.0 - ratio**frames_left) / (1.0 - ratio)
+
+
 def _can_coast(scene: Scene, budget_px: float) -> bool:
     """Flights may be coasted: there is a pixel budget and only gravity and the ground act
     (nothing prescribed, no walls, no drag)."""
@@ -111,7 +131,7 @@ def run_mpm(
     particles = Particles(x=xs[k0 - 1], volume=volume, material=0, v=v0 + g * t0)
     solver = make_solver(particles, [material], grid, scene, solver_cfg, device)
     coast_ok = _can_coast(scene, coast_budget_px)
-    substeps, quiet, rest_frame, coasted, faces, coast_px = 0, 0, None, 0, 0, 0.0
+    substeps, moved, rest_frame, coasted, faces, coast_px = 0, [], None, 0, 0, 0.0
     try:
         k = k0
         while k < T:
@@ -121,16 +141,17 @@ def run_mpm(
             substeps += stats.substeps
             state = solver.state()
             xs[k], Fs[k] = state.x, state.F
-            # Still = no particle moved a visible amount in this frame, nor over the quiet window
-            # (a slow creep). Instantaneous speeds are not used: MPM particles jitter at high
+            # Still = no particle moved a visible amount in each of the last rest_frames frames,
+            # and the motion they extrapolate to over the frames left (a slow creep) stays under
+            # the budget. Instantaneous speeds are not used: MPM particles jitter at high
             # frequency with invisible amplitude long after the object has settled.
-            moved = float(np.linalg.norm(xs[k] - xs[k - 1], axis=1).max()) * plan.px_per_m
-            quiet = quiet + 1 if moved < plan.rest_px else 0
-            if quiet >= plan.rest_frames:
-                window = xs[k] - xs[max(k - plan.rest_frames, 0)]
-                if float(np.linalg.norm(window, axis=1).max()) * plan.px_per_m >= plan.rest_px:
-                    quiet = 0
-            if quiet >= plan.rest_frames:
+            moved.append(float(np.linalg.norm(xs[k] - xs[k - 1], axis=1).max()) * plan.px_per_m)
+            window = moved[-plan.rest_frames :]
+            if (
+                len(window) == plan.rest_frames
+                and max(window) < plan.rest_px
+                and motion_left_px(window, T - 1 - k) < plan.rest_budget_px
+            ):
                 rest_frame = k + 1
                 xs[k + 1 :], Fs[k + 1 :] = xs[k], Fs[k]
                 break
@@ -160,7 +181,7 @@ def run_mpm(
                 coasted += flight.frames
                 coast_px = max(coast_px, flight.predicted_px)
                 k += flight.frames
-                quiet = 0
+                moved = []
             k += 1
         faces += solver.face_contacts
     finally:

@@ -225,7 +225,11 @@ def simulate_clip(
     scale = camera.width / scene.camera.width
     if scale != 1.0:
         defaults = PlannerConfig()
-        planner.update(bound_px=defaults.bound_px * scale, rest_px=defaults.rest_px * scale)
+        planner.update(
+            bound_px=defaults.bound_px * scale,
+            rest_px=defaults.rest_px * scale,
+            rest_budget_px=defaults.rest_budget_px * scale,
+        )
     planner.update(settings.planner)
     run = bounded_simulate(
         world,

@@ -106,6 +106,7 @@ def plan_simulation(
         n_frames=n_frames,
         rest_px=cfg.rest_px,
         rest_frames=cfg.rest_frames,
+        rest_budget_px=cfg.rest_budget_px,
         restitution=cfg.restitution,
         alternatives=cost,
     )

@@ -36,7 +36,10 @@ class PlannerConfig:
     rigid_dt: float = 1e-3  # rigid-body step, s
     restitution: float = 0.6  # rigid-path ground restitution (the material table has none)
     rest_px: float = 0.05  # a frame is still when no particle moved more than this, pixels
-    rest_frames: int = 5  # still frames in a row before the remaining frames are held
+    rest_frames: int = 5  # still frames in a row before the remaining frames may be held
+    # ... and held only once the motion those frames extrapolate to over the rest of the clip (their
+    # fitted geometric decay, ``mpm_run.motion_left_px``) is below this, pixels
+    rest_budget_px: float = 0.1
     spread_factor: float = 0.5  # horizontal grid margin for sagging / splashing, object sizes
     ballistic: bool = True  # free flight before the first contact in closed form
     # Flights after a bounce in closed form too (sim/coast.py), while the vibration they leave out
@@ -54,5 +57,14 @@ class PlannerConfig:
             raise ValueError(f"planner bulk_wave_ratio={self.bulk_wave_ratio!r} must be > 1 (c_p > c_s)")
         if not 0.0 <= self.cap_budget <= 1.0:
             raise ValueError(f"planner cap_budget={self.cap_budget!r} must be in [0, 1]")
+        if not self.rest_frames >= 1:
+            raise ValueError(
+                f"planner rest_frames={self.rest_frames!r} must be >= 1 (a huge value never stops)"
+            )
+        for name in ("rest_px", "rest_budget_px"):
+            if not getattr(self, name) >= 0.0:
+                raise ValueError(
+                    f"planner setting {name}={getattr(self, name)!r} must be >= 0 (0: never stop early)"
+                )
         if not 0.0 <= self.restitution <= 1.0:
             raise ValueError(f"planner restitution={self.restitution!r} must be in [0, 1]")

@@ -23,8 +23,9 @@ class Plan:
         dx: grid cell size, m.  particle_spacing: m.
         substeps_per_frame: predicted (rigid: integration steps per frame).
         predicted_cost: predicted particle-substeps (rigid: body steps).
-        rest_px, rest_frames: early stop once no particle moved more than rest_px pixels per
-            frame for rest_frames frames.
+        rest_px, rest_frames, rest_budget_px: early stop once no particle moved more than rest_px
+            pixels per frame for rest_frames frames, and the motion those frames extrapolate to
+            over the remaining frames is below rest_budget_px.
         reason: one human-readable sentence.
         walls: contact planes ((n, d), ...) of the scene's still walls, for the rigid path.
     """
@@ -49,6 +50,7 @@ class Plan:
     n_frames: int
     rest_px: float
     rest_frames: int
+    rest_budget_px: float
     restitution: float
     reason: str
     alternatives: dict[str, float] = field(default_factory=dict)  # mode -> predicted cost
