@@ -212,6 +212,10 @@ def test_yaml_config_matches_dataclass_defaults():
     assert PlannerConfig(**values) == PlannerConfig()
     with pytest.raises(ValueError, match="bound_px"):
         PlannerConfig(bound_px=0.0)
+    with pytest.raises(ValueError, match="rest_frames=0"):
+        PlannerConfig(rest_frames=0)
+    with pytest.raises(ValueError, match="rest_budget_px"):
+        PlannerConfig(rest_budget_px=-0.1)
 
 
 def test_stiff_object_thrown_at_a_still_wall_is_rigid_and_a_soft_one_is_not():
