@@ -38,7 +38,7 @@ _WAIT = """
     return;
 #else
     long long* c = reinterpret_cast<long long*>(counter.data);
-    if (__atomic_load_n(c + 3, __ATOMIC_ACQUIRE) != 0) {
+    if (__atomic_load_n(c + ABANDONED, __ATOMIC_ACQUIRE) != 0) {
         return;
     }
     const long long mine = c[1 + slot] + 1;  // this thread's own count: no other thread writes it
@@ -61,7 +61,7 @@ _WAIT = """
         const unsigned long long waited = 1000ULL * turns++;
 #endif
         if (waited > static_cast<unsigned long long>(limit_cycles)) {
-            __atomic_store_n(c + 3, 1LL, __ATOMIC_RELEASE);
+            __atomic_store_n(c + ABANDONED, 1LL, __ATOMIC_RELEASE);
             return;
         }
 #if defined(__linux__)
@@ -71,7 +71,7 @@ _WAIT = """
 #endif
     }
 #endif
-"""
+""".replace("ABANDONED", str(ABANDONED))
 
 
 @wp.func_native(_WAIT)
