@@ -171,25 +171,22 @@ def test_held_frames_stay_within_the_rest_budget_of_the_unstopped_run():
     scene = Scene(ground=GroundPlane(0.0, friction=0.0), damping=5.0)
     gs, physics = _shell_cube(bottom=0.0), PhysicsSpec("rubber", E=1e6, nu=0.3)
     base = dict(cells_across=8, particles_per_cell=1, allow_rigid=False, allow_stiffness_cap=False)
-    full = simulate(
-        gs,
-        physics,
-        (scene, [0.3, 0.0, 0.0]),
-        CAMERAS,
-        n_frames=40,
-        planner=PlannerConfig(**base, rest_frames=10**6),
-    )
-    assert full.rest_frame is None
-    stops = []
-    for budget in (0.1, 0.03):  # measured: held at frames 29 and 34, 0.091 and 0.027 px from the full run
-        traj = simulate(
+
+    def slide(**planner):
+        return simulate(
             gs,
             physics,
             (scene, [0.3, 0.0, 0.0]),
             CAMERAS,
             n_frames=40,
-            planner=PlannerConfig(**base, rest_budget_px=budget),
+            planner=PlannerConfig(**base, **planner),
         )
+
+    full = slide(rest_frames=10**6)
+    assert full.rest_frame is None
+    stops = []
+    for budget in (0.1, 0.03):  # measured: held at frames 29 and 34, 0.091 and 0.027 px from the full run
+        traj = slide(rest_budget_px=budget)
         k = traj.rest_frame
         np.testing.assert_array_equal(full.x[:k], traj.x[:k])
         held_px = np.linalg.norm(full.x[k:] - traj.x[k:], axis=2).max() * traj.plan.px_per_m
