@@ -23,8 +23,8 @@ import warp as wp
 # CPU compiler flags of the MPM kernels: Warp's own (host features, its inlining limits) plus
 # three of the fast-math rewrites. `-mreassociate` lets clang reorder sums (the stencil's
 # vector sums, the constitutive algebra), `-fno-signed-zeros` drops the sign of zero, and
-# `-ffp-contract=fast` fuses multiply-adds across statements. The MPM sub-step runs about 1.2x
-# faster on the CPU (docs/measurements_sim.md section 18); results move at round-off. Left out:
+# `-ffp-contract=fast` fuses multiply-adds across statements. The MPM runs 1.1-1.3x faster on
+# the CPU (docs/measurements_sim.md section 18); results move at round-off. Left out:
 # `-ffinite-math-only` (part of `-ffast-math`), under which the solver's finiteness check in
 # ``kernels.g2p`` would compile away, and `-freciprocal-math`, under which the Mohr-Coulomb sand
 # heap of tests/sim/mpm/test_particle_ground.py collapsed to det F = 0 in its first frame.
