@@ -64,10 +64,28 @@ class MaterialStruct:
     j_floor: float  # smallest det F of the elastic trial state a step may produce (divergence guard)
 
 
+# A value the compiler must treat as unknown: the kernels compile with reassociation on the CPU
+# (``physgm.warp_runtime.FAST_CPU_FLAGS``), under which clang folds (1 + x) - 1 to x and
+# log(exp(x)) to x, which would undo the two tricks below (log1p of a 1e-6 strain then lost ~6 %;
+# docs/measurements_sim.md section 18). An empty asm statement that may rewrite it keeps it as
+# rounded. CUDA does not reassociate (Warp's default), so the value passes through there.
+_OPAQUE = """
+    float y = x;
+#if !defined(__CUDA_ARCH__)
+    __asm__ volatile("" : "+m"(y));
+#endif
+    return y;
+"""
+
+
+@wp.func_native(_OPAQUE)
+def opaque(x: float) -> float: ...
+
+
 @wp.func
 def log1p(x: float) -> float:
-    """log(1 + x), accurate for small x (Goldberg's trick)."""
-    u = 1.0 + x
+    """log(1 + x), accurate for small x (Goldberg's trick on the rounded 1 + x)."""
+    u = opaque(1.0 + x)
     if u == 1.0:
         return x
     return wp.log(u) * x / (u - 1.0)
@@ -75,8 +93,8 @@ def log1p(x: float) -> float:
 
 @wp.func
 def expm1(x: float) -> float:
-    """exp(x) - 1, accurate for small x (Kahan's trick)."""
-    u = wp.exp(x)
+    """exp(x) - 1, accurate for small x (Kahan's trick on the rounded exp(x))."""
+    u = opaque(wp.exp(x))
     if u == 1.0:
         return x
     um1 = u - 1.0

@@ -1,6 +1,9 @@
 """Particle-wise helper kernels: initial stress, energies, bounds, sorting, pointwise stress.
 
-The numpy twins of the constitutive functions these call are in ``constitutive.reference``.
+The numpy twins of the constitutive functions these call are in ``constitutive.reference``. The
+module compiles with the CPU flags of ``kernels`` (``FAST_CPU_FLAGS``), so the constitutive models
+run here as they run in the sub-step, and the tests that hold these kernels to the twins hold the
+solver's compiled models.
 """
 
 from __future__ import annotations
@@ -9,8 +12,9 @@ import warp as wp
 
 from physgm.sim.constitutive.common import MaterialStruct
 from physgm.sim.constitutive.dispatch import constitutive_update, energy_density
+from physgm.warp_runtime import FAST_CPU_FLAGS
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "cpu_compiler_flags": FAST_CPU_FLAGS})
 
 
 @wp.kernel
