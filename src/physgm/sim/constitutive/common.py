@@ -66,7 +66,7 @@ class MaterialStruct:
 
 # A value the compiler must treat as unknown: the kernels compile with reassociation on the CPU
 # (``physgm.warp_runtime.FAST_CPU_FLAGS``), under which clang folds (1 + x) - 1 to x and
-# log(exp(x)) to x, which would undo the two tricks below (log1p of a 1e-6 strain then lost ~6 %;
+# log(exp(x)) to x, which would undo the two tricks below (log1p(1e-6) then came out 4.6 % off;
 # docs/measurements_sim.md section 18). An empty asm statement that may rewrite it keeps it as
 # rounded. CUDA does not reassociate (Warp's default), so the value passes through there.
 _OPAQUE = """

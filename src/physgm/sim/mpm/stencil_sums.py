@@ -1,9 +1,9 @@
 """The 27-node sums of a particle's stencil, as native loops over a node's 8 floats.
 
 A grid node is ``vec8`` (velocity or momentum xyz, mass, velocity change or force xyz, and an
-eighth float: ``kernels`` lists what each grid keeps there). Both
-transfers are one loop over the stencil's 27 nodes (offset i, j, k = 0..2 from the base node,
-weight w_n = w[i, 0] w[j, 1] w[k, 2]) with an inner loop over the node's 8 floats:
+eighth float: ``kernels`` lists what each grid keeps there). Both transfers are one loop over the
+stencil's 27 nodes (offset i, j, k = 0..2 from the base node, weight w_n = w[i, 0] w[j, 1]
+w[k, 2]) with an inner loop over the node's 8 floats:
 
     gather_moments   S = sum_n w_n (1, i, j, k) g_n, the sum and its first moments (4 x 8)
     scatter_affine   g_n += w_n (b + i di + j dj + k dk)
