@@ -63,9 +63,9 @@ def test_graph_replay_gives_the_same_particles_as_python_stepping(name, threads)
     fast, fast_steps = _drop("cpu", True, scene, materials, threads=threads)
     assert ref.threads == fast.threads == threads
     assert ref.launches.replayed == 0 and fast_steps == steps
-    # Most sub-steps ran from the graph; in Python: a frame's last run of cfl_check_every when
-    # round-off makes its final step the shortened one, and the tail.
-    assert fast.launches.replayed >= 0.5 * steps
+    # Every sub-step ran from a graph, the frame's tail too, but a frame's last one when
+    # round-off makes it the shortened one (at most one in Python per frame).
+    assert fast.launches.replayed >= steps - 3
     start = _drop("cpu", False, scene, materials, frames=0)[0].state().x
     a, b = ref.state(), fast.state()
     assert np.abs(a.x - start).max() > 0.02  # moved two cells: not a comparison of a still state

@@ -294,13 +294,17 @@ class SubstepLaunches:
         self._sync()
         if not self.scattered:
             _launch_halves(self.p2g, worker)
-        graphs = self._graphs.get(count)
-        if graphs is None:
-            graphs = self._graphs[count] = [self._capture(count, t) for t in range(len(self.g2p))]
-        if len(graphs) == 1:
-            wp.capture_launch(graphs[0])
-        else:
-            worker.run(lambda: wp.capture_launch(graphs[1]), lambda: wp.capture_launch(graphs[0]))
+        # A count is replayed as its binary digits (13 = 8 + 4 + 1), each from a graph of that
+        # length: a capture costs about a millisecond per sub-step recorded, so a graph per count
+        # (the frame tails take every length below cfl_check_every) would cost more than it saves.
+        for piece in (1 << b for b in reversed(range(count.bit_length())) if count >> b & 1):
+            graphs = self._graphs.get(piece)
+            if graphs is None:
+                graphs = self._graphs[piece] = [self._capture(piece, t) for t in range(len(self.g2p))]
+            if len(graphs) == 1:
+                wp.capture_launch(graphs[0])
+                continue
+            worker.run(lambda g=graphs: wp.capture_launch(g[1]), lambda g=graphs: wp.capture_launch(g[0]))
             if abandoned(self._meeting):
                 raise RuntimeError(
                     "the two MPM threads lost each other in a graph replay (one waited at a barrier "

@@ -257,21 +257,21 @@ class MPMSolver:
     def _graph_run(self, dt: float, t_end: float, frame_dt: float) -> int:
         """Sub-steps of ``dt`` the next launch-graph replay can take (0: step in Python).
 
-        A replay takes ``cfl_check_every`` sub-steps, exactly those ``_advance`` would take one at
-        a time: nothing needs Python between them, and none is the frame's shortened last step.
+        A replay takes up to ``cfl_check_every`` sub-steps, exactly those ``_advance`` would take
+        one at a time: nothing needs Python between them, and none is the frame's shortened last
+        step. The frame's tail (fewer than ``cfl_check_every`` whole steps before its end) is a
+        replay too, from a graph of that length (``launches.run_graph`` keeps one per length).
         Only on the main thread: a Warp capture records (instead of running) every launch on its
         device from any thread, so a solver in a worker thread (DPO rollouts run several at once)
         could swallow another's launches; those solvers step in Python.
         """
-        n = self.config.cfl_check_every
         if self.hooks or self.observers or not _may_replay(self.config, self.scene):
             return 0
-        t = self.time
-        for _ in range(n):
-            if t_end - t < dt or t_end - t <= 1e-9 * frame_dt:
-                return 0
+        t, count = self.time, 0
+        while count < self.config.cfl_check_every and t_end - t >= dt and t_end - t > 1e-9 * frame_dt:
             t += dt
-        return n
+            count += 1
+        return count
 
     def _substeps_graph(self, dt: float, count: int) -> None:
         """``count`` sub-steps of ``dt`` replayed from a launch graph (``launches.run_graph``)."""
