@@ -111,9 +111,10 @@ Design notes (why the code looks the way it does)
   each p2g thread with its own accumulator grid; particles are re-sorted by cell every frame.
 * dt, time, the block stamp and the active box live in a one-element device array
   (substep_params.py), so the launches never change: with one thread (small scenes, any CUDA
-  run) and no hooks, side walls or observers, each run of ``cfl_check_every`` sub-steps is
-  replayed from a launch graph captured once (``wp.capture_begin``; Warp replays CPU graphs in
-  C++), bit-identical to stepping in Python.
+  run) and no hooks, side walls or observers, each run of ``cfl_check_every`` sub-steps, and
+  a frame's shorter tail as its binary pieces (8 + 4 + 1), is replayed from launch graphs
+  captured once (``wp.capture_begin``; Warp replays CPU graphs in C++), bit-identical to
+  stepping in Python.
 * grid_update only covers the active box around the particles (re-fitted every
   ``cfl_check_every`` steps); a particle that outruns it is flagged and the frame retried.
 * The deformation state is H = F - I and every constitutive model works in H (b - I, det F - 1,
