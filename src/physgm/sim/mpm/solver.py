@@ -260,7 +260,7 @@ class MPMSolver:
         A replay takes up to ``cfl_check_every`` sub-steps, exactly those ``_advance`` would take
         one at a time: nothing needs Python between them, and none is the frame's shortened last
         step. The frame's tail (fewer than ``cfl_check_every`` whole steps before its end) is a
-        replay too, from a graph of that length (``launches.run_graph`` keeps one per length).
+        replay too (``launches.run_graph`` replays a count as its binary pieces).
         Only on the main thread: a Warp capture records (instead of running) every launch on its
         device from any thread, so a solver in a worker thread (DPO rollouts run several at once)
         could swallow another's launches; those solvers step in Python.
