@@ -58,7 +58,7 @@ def block(n: int) -> tuple[Particles, float]:
 
 def time_mode(particles: Particles, dx: float, material, mode: dict, substeps: int) -> tuple[float, float]:
     """Wall-clock and CPU (process, all threads) microseconds per sub-step of ``step_frame`` over
-    frames of ~256 sub-steps (the README demo takes ~800 a frame), after one warm-up frame (which
+    frames of ~256 sub-steps (the README demo takes ~317 a frame), after one warm-up frame (which
     also captures the graph). On a shared CPU the wall clock also counts the time other jobs held
     the core; the CPU time does not."""
     frame_dt = 256 * cfl_dt(dx, [material], 0.0, SolverConfig().cfl)
