@@ -35,7 +35,7 @@ class PlannerConfig:
     cfl: float = 0.4  # CFL number for predicting sub-steps (the solver's config runs)
     rigid_dt: float = 1e-3  # rigid-body step, s
     restitution: float = 0.6  # rigid-path ground restitution (the material table has none)
-    rest_px: float = 0.05  # a frame is still when no particle moved more than this, pixels
+    rest_px: float = 0.1  # a frame is still when no particle moved more than this, pixels
     rest_frames: int = 5  # still frames in a row before the remaining frames may be held
     # ... and held only once the motion those frames extrapolate to over the rest of the clip (their
     # fitted geometric decay, ``mpm_run.motion_left_px``) is below this, pixels
