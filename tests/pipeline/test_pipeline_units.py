@@ -307,18 +307,21 @@ def test_a_run_whose_object_reached_the_region_edge_warns(monkeypatch, capsys, t
     """The grid-face walls are a safety net: when they stopped the object, the user is told."""
     from physgm.pipeline import stages
 
-    def future(name: str, faces: int) -> stages.FutureResult:
+    def future(name: str, faces: int, nu_used: float = 0.45) -> stages.FutureResult:
         return stages.FutureResult(
             name=name, video=f"{name}.mp4", material="rubber", E=3e7, nu=0.45, mode="mpm",
-            predicted_error_px=0.0, error_terms={}, px_per_m=500.0, E_used=3e7, nu_used=0.45,
+            predicted_error_px=0.0, error_terms={}, px_per_m=500.0, E_used=3e7, nu_used=nu_used,
             particles=100, grid_cells=[8, 8, 8],
             dx_m=0.01, substeps=10, rest_frame=None, face_contacts=faces, ballistic_frames=1,
             reason="", finite=True, seconds={},
         )  # fmt: skip
 
-    futures = [future("video", 0), future("sample1", 632)]
+    futures = [future("video", 0, nu_used=0.4), future("sample1", 632)]
     cfg = type("C", (), {"scene": "drop", "size_m": 0.2})()
     sheet = stages._sheet_lines({"posterior": None}, futures, cfg)
+    # A capped run says what was simulated, under what was asked for.
+    assert sheet.count("    run as E=3e+07 nu=0.40") == 1
+    assert sheet.index("    run as E=3e+07 nu=0.40") == sheet.index("  video: rubber E=3e+07 nu=0.45") + 1
     assert sheet.count("    held by the region's edge (see the warning)") == 1
     assert sheet.index("    held by the region's edge (see the warning)") == len(sheet) - 1  # under sample1
     result = stages.RunResult({"seconds": {"total": 1.0}}, futures)

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from physgm.cameras import orbit_cameras
-from physgm.sim.bulk_cap import capped_material, choose_bulk_cap, nu_for_wave_ratio, wave_ratio
+from physgm.sim.bulk_cap import DENT_GAIN, capped_material, choose_bulk_cap, nu_for_wave_ratio, wave_ratio
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.mpm.boundary import GroundPlane
 from physgm.sim.mpm.scene import Scene
@@ -19,6 +19,7 @@ CAMERAS = orbit_cameras(
     [30.0], [20.0], radius=1.0, fov_deg=40.0, width=256, height=256, target=(0.0, 0.0, 0.3)
 )
 RUBBER = MaterialParams("neo_hookean", E=5e6, nu=0.48, density=1100.0)
+PLASTICINE = MaterialParams("von_mises", E=1e6, nu=0.45, density=1500.0, yield_stress=1e4)
 
 
 def _plan(material: MaterialParams, bottom: float = 0.5, **cfg):
@@ -64,6 +65,34 @@ def test_choose_bulk_cap_stays_within_budget_and_is_monotone():
     assert choose_bulk_cap(RUBBER, deformation_px, 40.0, True, 0.0, 2.0) is None
     sand = MaterialParams("drucker_prager", E=3.5e5, nu=0.45, density=1600.0, friction_angle=30.0)
     assert choose_bulk_cap(sand, deformation_px, 40.0, False, 5.0, 2.0) is None  # pressure-sensitive
+
+
+def test_a_dent_has_its_own_term_and_no_rebound():
+    def sag_px(M: float) -> float:  # sag of a 10 cm lump, 400 px/m
+        return 1500 * 9.81 * 0.01 / M * 400
+
+    pick = choose_bulk_cap(PLASTICINE, sag_px, 40.0, False, 0.2, 2.0, dent=True)
+    assert pick.ratio > 2.0 and pick.rebound_px == 0.0 and pick.dent_px > pick.deformation_px
+    x = 1.0 - pick.material.wave_speed() / PLASTICINE.wave_speed()
+    assert pick.dent_px == pytest.approx(DENT_GAIN * x * 40.0)
+    # The dent term was fitted to whole clips, sag included: the larger term counts, not the sum.
+    assert pick.predicted_px == pytest.approx(max(pick.dent_px, pick.deformation_px))
+    assert pick.predicted_px == pytest.approx(0.2, rel=1e-6)  # spends the budget exactly
+    with pytest.raises(ValueError, match="elastic .* or a dent"):
+        choose_bulk_cap(PLASTICINE, sag_px, 40.0, True, 0.2, 2.0, dent=True)
+
+
+def test_a_landing_lump_gets_the_whole_bound_when_the_stiffness_cap_saves_nothing():
+    # A plasticine cube dropped 0.5 m dents (no rebound): the bulk cap is priced by the dent
+    # term. Lowering E saves too little here, so the bulk cap may spend the whole bound instead of
+    # its shared half, and caps further than with the half.
+    plan = _plan(PLASTICINE, allow_rigid=False)
+    half = _plan(PLASTICINE, allow_rigid=False, cap_budget=0.5, bound_px=0.25, allow_stiffness_cap=False)
+    assert plan.error_terms["stiffness_cap_px"] == 0.0 and plan.E_used < PLASTICINE.E
+    assert plan.error_terms["bulk_cap_dent_px"] > 0.25 and plan.error_terms["bulk_cap_rebound_px"] == 0.0
+    assert plan.predicted_error_px <= PlannerConfig().bound_px + 1e-9
+    assert plan.nu_used < half.nu_used < PLASTICINE.nu
+    assert plan.predicted_cost <= half.predicted_cost < plan.alternatives["mpm"]
 
 
 def test_planner_takes_bulk_cap_only_under_its_bound():

@@ -313,6 +313,8 @@ def _sheet_lines(phys: dict, results: list[FutureResult], cfg: RunConfig) -> lis
     lines.append("simulated:")
     for r in results:
         lines.append(f"  {r.name}: {r.material} E={r.E:.3g} nu={r.nu:.2f}")
+        if (r.E_used, r.nu_used) != (r.E, r.nu):  # a cap the planner took, counted in the error
+            lines.append(f"    run as E={r.E_used:.3g} nu={r.nu_used:.2f}")
         lines.append(f"    {r.mode}, error {r.predicted_error_px:.2f} px, {r.substeps} steps")
         if r.face_contacts:
             lines.append("    held by the region's edge (see the warning)")

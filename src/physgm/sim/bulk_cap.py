@@ -20,7 +20,10 @@ a body whose base is held by friction, or hit flat, responds with M more than wi
   the object's size in pixels; the same factor fits the stiffness cap's rebound (plastic,
   E -2 % / -20 %: 0.12 / 1.3 px). With the default 0.5 px bound an impact therefore never
   pays for a cap of a 15 cm object at 256 px: the bulk cap is for resting, gripped and slowly
-  loaded bodies.
+  loaded bodies;
+- a lump that lands and dents (plasticine) does not rebound, and the elastic compression at M
+  over-predicts what the eye sees 3-10x: the clip moves by ``dent_px``, the rebound's form with a
+  gain 16x smaller, fitted to eight plasticine drops (docs/measurements_sim.md section 20).
 The cap takes the smallest r >= ``min_ratio`` whose predicted error stays within the budget.
 """
 
@@ -38,6 +41,12 @@ from physgm.sim.constitutive import MaterialParams
 # E -2 % / -20 %: 0.12 / 1.3 px (0.23-0.24); rubber's bulk cap at r = 3 / 2: 4.2 / 8.6 px (0.20 /
 # 0.27). The largest is taken.
 REBOUND_GAIN = 0.27
+
+# A dent: the mean shift of a lump that lands and yields, per unit relative change of the P-wave
+# speed and per object size in pixels. Fitted to plasticine drops at 12 cells across (E 1e5-1e7 Pa,
+# nu 0.4-0.45, c_p / c_s capped to 2-2.8; docs/measurements_sim.md section 20): 0.0043-0.0161 over
+# 15 runs, so the largest, rounded up, is taken.
+DENT_GAIN = 0.017
 
 # Constitutive models whose pressure enters the yield or flow law: a capped bulk modulus would
 # change how they flow, not only how much they compress.
@@ -76,18 +85,26 @@ def rebound_px(material: MaterialParams, capped: MaterialParams, size_px: float)
     return REBOUND_GAIN * max(1.0 - capped.wave_speed() / material.wave_speed(), 0.0) * size_px
 
 
+def dent_px(material: MaterialParams, capped: MaterialParams, size_px: float) -> float:
+    """Predicted shift of a lump that lands and dents when ``material`` is simulated as ``capped``, pixels."""
+    return DENT_GAIN * max(1.0 - capped.wave_speed() / material.wave_speed(), 0.0) * size_px
+
+
 @dataclass(frozen=True)
 class BulkCap:
     """A chosen bulk cap: the material to simulate and its predicted visual error."""
 
     material: MaterialParams  # capped E and nu, same mu
     ratio: float  # c_p / c_s after the cap
-    deformation_px: float  # extra sag + impact compression at the P-wave modulus, pixels
+    deformation_px: float  # extra sag (+ impact compression, unless it dents) at the P-wave modulus, pixels
     rebound_px: float  # change of an elastic rebound, pixels (0 without an elastic impact)
+    dent_px: float = 0.0  # change of a landing that dents, pixels (0 without one)
 
     @property
     def predicted_px(self) -> float:
-        return self.deformation_px + self.rebound_px
+        # The dent term was fitted to whole clips, their sag included, so it is not added to the
+        # sag term: the larger of the two counts (the sag term bounds lumps softer than those fitted).
+        return max(self.deformation_px, self.dent_px) + self.rebound_px
 
 
 def choose_bulk_cap(
@@ -98,6 +115,7 @@ def choose_bulk_cap(
     budget_px: float,
     min_ratio: float,
     force: bool = False,
+    dent: bool = False,  # it lands and yields (then ``deformation_px`` should leave the impact out)
 ) -> BulkCap | None:
     """The strongest bulk cap (smallest ratio >= min_ratio) whose predicted error <= budget_px.
 
@@ -105,6 +123,8 @@ def choose_bulk_cap(
     ratio's, or when even the mildest cap costs more than the budget. ``force`` takes min_ratio
     whatever its error (benchmarks measure it instead).
     """
+    if elastic_impact and dent:
+        raise ValueError("an impact is either elastic (it rebounds) or a dent, not both")
     if material.model in PRESSURE_SENSITIVE or wave_ratio(material.nu) <= min_ratio:
         return None
     base = deformation_px(p_modulus(material))
@@ -112,7 +132,8 @@ def choose_bulk_cap(
     def option(ratio: float) -> BulkCap:
         capped = capped_material(material, ratio)
         rebound = rebound_px(material, capped, size_px) if elastic_impact else 0.0
-        return BulkCap(capped, ratio, max(deformation_px(p_modulus(capped)) - base, 0.0), rebound)
+        dented = dent_px(material, capped, size_px) if dent else 0.0
+        return BulkCap(capped, ratio, max(deformation_px(p_modulus(capped)) - base, 0.0), rebound, dented)
 
     strongest = option(min_ratio)
     if force or strongest.predicted_px <= budget_px:

@@ -14,8 +14,10 @@ chooses, in order of cost:
    simulated and reported. Not after an elastic impact, whose rebound depends on E (see the
    comment in ``plan_simulation``).
    Before it, a **bulk cap** (``physgm.sim.bulk_cap``) lowers only the bulk modulus of a nearly
-   incompressible solid (rubber, jelly) so its P-wave is at most ``bulk_wave_ratio`` times its
-   shear wave, within its own share of the bound (that one also counts the rebound).
+   incompressible solid (rubber, jelly, plasticine) so its P-wave is at most ``bulk_wave_ratio``
+   times its shear wave, within its own share of the bound (that one also counts the rebound of an
+   elastic impact, or the dent of a landing that yields); when the stiffness cap would save
+   nothing, the bulk cap alone may use the whole bound.
 3. **MPM at full stiffness** (the reference).
 
 Modules, in the order a reader needs them:

@@ -7,6 +7,7 @@ of each is in ``deformation.py`` (and ``physgm.sim.bulk_cap``), the grid in ``do
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
 from torch import Tensor
@@ -27,6 +28,18 @@ FLOWING_MODELS = frozenset({"drucker_prager", "mohr_coulomb", "fluid"})
 
 # Materials that never go rigid whatever their stiffness (granular: they pour and heap).
 NEVER_RIGID_MATERIALS = frozenset({"sand", "snow"})
+
+
+@dataclass
+class _Choice:
+    """One way to run the MPM: the material simulated, its sub-steps per frame and why."""
+
+    material: MaterialParams
+    steps: int
+    notes: list[str] = field(default_factory=list)
+    bulk_px: float = 0.0  # predicted error of the bulk cap, pixels
+    cap_px: float = 0.0  # of the stiffness cap
+    terms: dict[str, float] = field(default_factory=dict)  # the caps' own error terms
 
 
 def plan_simulation(
@@ -151,59 +164,87 @@ def plan_simulation(
     # (A body resting on the ground, its lowest particles half a spacing up, does not impact; nor
     # does one a cell up: the grid does not resolve the gap, and sqrt(2 g dx) is a tap.)
     falls = ground is not None and float(lo[2]) - ground > dx
-    elastic_impact = (falls or v_throw > 0.0) and deform.plastic * px_per_m <= cfg.bound_px
-    simulated, n_steps, notes, cap_px, bulk_px = material, steps["mpm"], [], 0.0, 0.0
+    impacts = falls or v_throw > 0.0
+    elastic_impact = impacts and deform.plastic * px_per_m <= cfg.bound_px
+    dent = impacts and not elastic_impact  # it lands and yields: no rebound (bulk_cap.dent_px)
     cap_impacts = cfg.cap_elastic_impacts or cfg.force_caps
     caps_E = cfg.allow_stiffness_cap and (cap_impacts or not elastic_impact)
-    if cfg.allow_bulk_cap and not flows:
+
+    def with_bulk_cap(share: float) -> _Choice:
+        """Full stiffness, or the bulk cap within ``share`` px if it saves min_cap_gain."""
+        full = _Choice(material, steps["mpm"])
+        if not cfg.allow_bulk_cap or flows:
+            return full
 
         def deformation_px(modulus: float) -> float:
             d = deformation_estimate(modulus, material.density, size, v_load, g)
-            return (d.sag + d.impact) * px_per_m
+            return (d.sag + (0.0 if dent else d.impact)) * px_per_m
 
-        share = cfg.bound_px * (1.0 - (cfg.cap_budget if caps_E else 0.0))
-        object_px = size * px_per_m
         bulk = choose_bulk_cap(
-            material, deformation_px, object_px, elastic_impact, share, cfg.bulk_wave_ratio, cfg.force_caps
+            material,
+            deformation_px,
+            size * px_per_m,
+            elastic_impact,
+            share,
+            cfg.bulk_wave_ratio,
+            cfg.force_caps,
+            dent=dent,
         )
-        bulk_steps = bulk and substeps_per_frame(grid_dx, [bulk.material], v_max, cfg.cfl, frame_dt)
-        if bulk is not None and (cfg.force_caps or n_steps >= cfg.min_cap_gain * bulk_steps):
-            notes.append(
-                f"bulk capped to nu={bulk.material.nu:.3g} (c_p = {bulk.ratio:.3g} c_s; {n_steps} -> "
-                f"{bulk_steps} sub-steps/frame, ~{bulk.predicted_px:.2g} px)"
-            )
-            simulated, n_steps, bulk_px = bulk.material, bulk_steps, bulk.predicted_px
-            terms["bulk_cap_rebound_px"] = bulk.rebound_px
-    terms["bulk_cap_px"] = bulk_px
+        if bulk is None:
+            return full
+        bulk_steps = substeps_per_frame(grid_dx, [bulk.material], v_max, cfg.cfl, frame_dt)
+        if not (cfg.force_caps or full.steps >= cfg.min_cap_gain * bulk_steps):
+            return full
+        note = (
+            f"bulk capped to nu={bulk.material.nu:.3g} (c_p = {bulk.ratio:.3g} c_s; {full.steps} -> "
+            f"{bulk_steps} sub-steps/frame, ~{bulk.predicted_px:.2g} px)"
+        )
+        own = {"bulk_cap_rebound_px": bulk.rebound_px, "bulk_cap_dent_px": bulk.dent_px}
+        return _Choice(bulk.material, bulk_steps, [note], bulk_px=bulk.predicted_px, terms=own)
+
+    def with_stiffness_cap(base: _Choice) -> _Choice:
+        """``base`` with E capped within cap_budget of the bound, if it saves min_cap_gain."""
+        bound = cfg.cap_budget * cfg.bound_px / px_per_m
+        cap = stiffness_cap(base.material.E, material.density, size, v_load, bound, g)
+        softer = base.material.with_elasticity(E=cap)
+        cap_steps = substeps_per_frame(grid_dx, [softer], v_max, cfg.cfl, frame_dt)
+        if base.steps < cfg.min_cap_gain * cap_steps:
+            return base
+        soft = deformation_estimate(cap, material.density, size, v_load, g)
+        hard = deformation_estimate(base.material.E, material.density, size, v_load, g)
+        cap_px = (soft.sag + soft.impact - hard.sag - hard.impact) * px_per_m
+        own = dict(base.terms)
+        if elastic_impact:  # opted in: the rebound error is predicted, not bounded
+            own["stiffness_cap_rebound_px"] = rebound_px(base.material, softer, size * px_per_m)
+            cap_px += own["stiffness_cap_rebound_px"]
+        note = f"E capped to {cap:.3g} Pa ({base.steps} -> {cap_steps} sub-steps/frame)"
+        return _Choice(softer, cap_steps, base.notes + [note], base.bulk_px, cap_px, own)
+
+    if caps_E:
+        # The bound is shared when both caps apply; when the stiffness cap saves nothing, the bulk
+        # cap alone may use all of it. The cheaper of the two is taken (the shared one on a tie).
+        shared = with_stiffness_cap(with_bulk_cap(cfg.bound_px * (1.0 - cfg.cap_budget)))
+        alone = with_bulk_cap(cfg.bound_px)
+        choice = alone if alone.steps < shared.steps else shared
+    else:
+        choice = with_bulk_cap(cfg.bound_px)
     if cfg.allow_stiffness_cap and not caps_E:
-        notes.append(
+        choice.notes.append(
             "E not capped (an elastic impact: the rebound depends on E; planner.cap_elastic_impacts)"
         )
-    elif caps_E:
-        bound = cfg.cap_budget * cfg.bound_px / px_per_m
-        cap = stiffness_cap(simulated.E, material.density, size, v_load, bound, g)
-        cap_steps = substeps_per_frame(grid_dx, [simulated.with_elasticity(E=cap)], v_max, cfg.cfl, frame_dt)
-        if n_steps >= cfg.min_cap_gain * cap_steps:
-            notes.append(f"E capped to {cap:.3g} Pa ({n_steps} -> {cap_steps} sub-steps/frame)")
-            soft = deformation_estimate(cap, material.density, size, v_load, g)
-            hard = deformation_estimate(simulated.E, material.density, size, v_load, g)
-            cap_px = (soft.sag + soft.impact - hard.sag - hard.impact) * px_per_m
-            softer = simulated.with_elasticity(E=cap)
-            if elastic_impact:  # opted in: the rebound error is predicted, not bounded
-                terms["stiffness_cap_rebound_px"] = rebound_px(simulated, softer, size * px_per_m)
-                cap_px += terms["stiffness_cap_rebound_px"]
-            simulated, n_steps = softer, cap_steps
-    terms["stiffness_cap_px"] = cap_px
-    cost["mpm_capped"] = float((n_frames - 1) * n_steps * P)
-    note = "".join(f"; {n}" for n in notes)
+    terms.update(choice.terms)
+    terms["bulk_cap_px"] = choice.bulk_px
+    terms["stiffness_cap_px"] = choice.cap_px
+    cost["mpm_capped"] = float((n_frames - 1) * choice.steps * P)
+    note = "".join(f"; {n}" for n in choice.notes)
     reason = f"MPM because {why}{note}; grid {n_nodes} nodes, dx={grid_dx:.3g} m"
     return Plan(
         "mpm",
-        E_used=simulated.E,
-        nu_used=simulated.nu,
-        predicted_error_px=cap_px + bulk_px,
+        E_used=choice.material.E,
+        nu_used=choice.material.nu,
+        predicted_error_px=choice.cap_px + choice.bulk_px,
         error_terms=terms,
-        substeps_per_frame=n_steps,
+        substeps_per_frame=choice.steps,
         predicted_cost=cost["mpm_capped"],
         reason=reason,
         **common,

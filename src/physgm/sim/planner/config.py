@@ -24,7 +24,8 @@ class PlannerConfig:
     min_cap_gain: float = 1.25  # cap only if it saves at least this factor of sub-steps
     cap_budget: float = 0.5  # fraction of bound_px the stiffness cap may use (rebound changes too)
     # Bulk cap (sim/bulk_cap.py): keep the shear modulus, lower nu until c_p <= ratio c_s. It may
-    # use bound_px minus the stiffness cap's share, and counts the rebound of an elastic impact.
+    # use bound_px minus the stiffness cap's share (all of it when the stiffness cap saves nothing),
+    # and counts the rebound of an elastic impact or the dent of a landing that yields.
     allow_bulk_cap: bool = True
     bulk_wave_ratio: float = 2.0  # smallest c_p / c_s the bulk cap may reach (2: nu = 1/3)
     force_caps: bool = False  # benchmarks: take each allowed cap whatever its predicted error
