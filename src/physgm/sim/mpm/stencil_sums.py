@@ -49,17 +49,20 @@ GATHER_PORTABLE = """
 GATHER_CPU = """
     typedef float f8 __attribute__((vector_size(32)));
     // Separable: the k sums of each (i, j) column first, then j, then i (80 vector products
-    // instead of 27 x 5).
+    // instead of 27 x 5). Nodes are addressed from the base node's pointer and the array's byte
+    // stride: wp::address per node would redo the index's sign test and multiply 27 times.
+    const char* base = reinterpret_cast<const char*>(wp::address(grid, row));
+    const long long stride = grid.strides[0];
     const float wk0 = w.data[0][2], wk1 = w.data[1][2], wk2 = w.data[2][2];
     f8 s0 = {}, s1 = {}, s2 = {}, s3 = {};
     for (int i = 0; i < 3; ++i) {
         f8 u = {}, uj = {}, uk = {};
         for (int j = 0; j < 3; ++j) {
-            const wp::vec_t<8, wp::float32>* col = wp::address(grid, row + i * nyz + j * nz);
+            const char* col = base + static_cast<long long>(i * nyz + j * nz) * stride;
             f8 g0, g1, g2;
             memcpy(&g0, col, sizeof(g0));
-            memcpy(&g1, col + 1, sizeof(g1));
-            memcpy(&g2, col + 2, sizeof(g2));
+            memcpy(&g1, col + stride, sizeof(g1));
+            memcpy(&g2, col + 2 * stride, sizeof(g2));
             const f8 t = wk0 * g0 + wk1 * g1 + wk2 * g2;
             const f8 tk = wk1 * g1 + (2.0f * wk2) * g2;
             const float wj = w.data[j][1];
@@ -102,18 +105,25 @@ SCATTER_CPU = """
     memcpy(&di8, di.c, sizeof(di8));
     memcpy(&dj8, dj.c, sizeof(dj8));
     memcpy(&dk8, dk.c, sizeof(dk8));
+    const f8 dk2 = dk8 + dk8;
+    char* base = reinterpret_cast<char*>(wp::address(grid, row));  // as in the gather
+    const long long stride = grid.strides[0];
+    const float wk0 = w.data[0][2], wk1 = w.data[1][2], wk2 = w.data[2][2];
     for (int i = 0; i < 3; ++i) {
         for (int j = 0; j < 3; ++j) {
+            char* col = base + static_cast<long long>(i * nyz + j * nz) * stride;
             const float wij = w.data[i][0] * w.data[j][1];
-            for (int k = 0; k < 3; ++k) {
-                float* g = reinterpret_cast<float*>(wp::address(grid, row + i * nyz + j * nz + k));
-                f8 node;
-                memcpy(&node, g, sizeof(node));
-                const f8 value = b8 + static_cast<float>(i) * di8 + static_cast<float>(j) * dj8
-                    + static_cast<float>(k) * dk8;
-                node += (wij * w.data[k][2]) * value;
-                memcpy(g, &node, sizeof(node));
-            }
+            const f8 v0 = b8 + static_cast<float>(i) * di8 + static_cast<float>(j) * dj8;
+            f8 n0, n1, n2;
+            memcpy(&n0, col, sizeof(n0));
+            memcpy(&n1, col + stride, sizeof(n1));
+            memcpy(&n2, col + 2 * stride, sizeof(n2));
+            n0 += (wij * wk0) * v0;
+            n1 += (wij * wk1) * (v0 + dk8);
+            n2 += (wij * wk2) * (v0 + dk2);
+            memcpy(col, &n0, sizeof(n0));
+            memcpy(col + stride, &n1, sizeof(n1));
+            memcpy(col + 2 * stride, &n2, sizeof(n2));
         }
     }
 """
