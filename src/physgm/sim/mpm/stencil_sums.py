@@ -10,7 +10,9 @@ w[k, 2]) with an inner loop over the node's 8 floats:
 
 On the CPU the loops use clang's 8-float vector type, one AVX register a node: the sub-step runs
 1.25x faster than with the same sums in Warp's vec8 arithmetic, and plain C++ loops were slower
-than both (docs/measurements_sim.md section 16). CUDA compiles the portable loops, one thread a
+than both (docs/measurements_sim.md section 16). There the gather sums each (i, j) column over k
+first, then over j and i (the weights factor per axis), and both address the nodes from the base
+node's pointer and the byte stride (section 21). CUDA compiles the portable loops, one thread a
 particle, with atomic adds for the scatter.
 ``kernels.scatter_particle`` and ``kernels.g2p`` call these; tests hold both forms to numpy.
 """
