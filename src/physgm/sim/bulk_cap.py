@@ -19,8 +19,8 @@ a body whose base is held by friction, or hit flat, responds with M more than wi
   r = 2 and 4.2 px at r = 3. ``rebound_px`` scales that with the relative change of c_p and
   the object's size in pixels; the same factor fits the stiffness cap's rebound (plastic,
   E -2 % / -20 %: 0.12 / 1.3 px). With the default 0.5 px bound an impact therefore never
-  pays for a cap of a 15 cm object at 256 px: the bulk cap is for resting, gripped and slowly
-  loaded bodies;
+  pays for a cap of a 15 cm object at 256 px: the bulk cap is for resting bodies (not for
+  gripped ones: a stretched body necks by nu, and the planner caps nothing that boxes drive);
 - a lump that lands and dents (plasticine) does not rebound, and the elastic compression at M
   over-predicts what the eye sees 3-10x: the clip moves by ``dent_px``, the rebound's form with a
   gain 16x smaller, fitted to eight plasticine drops (docs/measurements_sim.md section 20).

@@ -11,8 +11,8 @@ chooses, in order of cost:
 2. **MPM with a stiffness cap**: the explicit step scales as dx / c_p with the P-wave speed
    c_p ~ sqrt(E / rho), so a stiff object costs many sub-steps. The cap is the smallest E' whose
    *extra* deformation over the true E stays under (a share of) the bound; E' = min(E, cap) is
-   simulated and reported. Not after an elastic impact, whose rebound depends on E (see the
-   comment in ``plan_simulation``).
+   simulated and reported. Not after an elastic impact, whose rebound depends on E, nor for a
+   body that moving boxes drive (see the comment in ``plan_simulation``).
    Before it, a **bulk cap** (``physgm.sim.bulk_cap``) lowers only the bulk modulus of a nearly
    incompressible solid (rubber, jelly, plasticine) so its P-wave is at most ``bulk_wave_ratio``
    times its shear wave, within its own share of the bound (that one also counts the rebound of an
