@@ -87,7 +87,7 @@ def test_a_landing_lump_gets_the_whole_bound_when_the_stiffness_cap_saves_nothin
     # term. Lowering E saves too little here, so the bulk cap may spend the whole bound instead of
     # its shared half, and caps further than with the half.
     plan = _plan(PLASTICINE, allow_rigid=False)
-    half = _plan(PLASTICINE, allow_rigid=False, cap_budget=0.5, bound_px=0.25, allow_stiffness_cap=False)
+    half = _plan(PLASTICINE, allow_rigid=False, bound_px=0.25, allow_stiffness_cap=False)  # the shared half
     assert plan.error_terms["stiffness_cap_px"] == 0.0 and plan.E_used < PLASTICINE.E
     assert plan.error_terms["bulk_cap_dent_px"] > 0.25 and plan.error_terms["bulk_cap_rebound_px"] == 0.0
     assert plan.predicted_error_px <= PlannerConfig().bound_px + 1e-9
