@@ -39,8 +39,9 @@ from physgm.sim.constitutive import MaterialParams
 # unit relative change of the P-wave speed (mean over frames and Gaussians). Fitted to drops of a
 # 15 cm cube at 256 px (51.6 px across; docs/measurements_sim.md, "Fewer sub-steps"): plastic,
 # E -2 % / -20 %: 0.12 / 1.3 px (0.23-0.24); rubber's bulk cap at r = 3 / 2: 4.2 / 8.6 px (0.20 /
-# 0.27). The largest is taken.
-REBOUND_GAIN = 0.27
+# 0.27); measured again on jelly (E 1e5 Pa, section 20): r = 3 / 2.5: 4.38 / 6.54 px (0.89 /
+# 0.52), a wobbling body whose bounce a small change sends elsewhere. The largest is taken.
+REBOUND_GAIN = 0.9
 
 # A dent: the mean shift of a lump that lands and yields, per unit relative change of the P-wave
 # speed and per object size in pixels. Fitted to plasticine drops at 12 cells across (E 1e5-1e7 Pa,
