@@ -18,7 +18,14 @@ from physgm.sim.constitutive import MODELS, MaterialParams
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.stepping import substeps_per_frame
 from physgm.sim.planner.config import PlannerConfig
-from physgm.sim.planner.deformation import deformation_estimate, impact_speed, pixels_per_metre, stiffness_cap
+from physgm.sim.planner.deformation import (
+    deformation_estimate,
+    impact_speed,
+    pixels_per_metre,
+    stiffness_cap,
+    stiffness_dent_floor,
+    stiffness_dent_px,
+)
 from physgm.sim.planner.domain import grid_region
 from physgm.sim.planner.plan import Plan
 from physgm.sim.rigid import static_walls
@@ -159,8 +166,9 @@ def plan_simulation(
     # (a drop or a push without a visible dent) the rebound decides the trajectory, and E moves it
     # far more than the squash: measured on a bouncing 15 cm plastic block (E = 5e7 Pa, 256 px),
     # E 20 % lower moved it 1.3 px on average, the capped 2.4e7 Pa 3.2 px, while the deformation
-    # estimate promised 0.25 px. So an elastic impact is never capped; resting bodies and impacts
-    # that end in a plastic dent (the rebound is small) are. Nor is a body that moving boxes drive
+    # estimate promised 0.25 px. So an elastic impact is never capped; resting bodies are, and
+    # impacts that end in a plastic dent as far as the dent's own term allows (a lower E moves the
+    # dent with the wave speed: deformation.STIFFNESS_DENT_GAIN). Nor is a body that moving boxes drive
     # (grips, pushers): neither cap's model holds there. The stretch scene (0.2 m, pulled to twice
     # its length) moved 1.47 px with rubber's E capped (0.25 px predicted), 1.32 px with both caps
     # (0.39) and 2.55 px with a jelly's bulk capped (0.5): the stretch's necking follows nu, its
@@ -211,6 +219,9 @@ def plan_simulation(
         """``base`` with E capped within cap_budget of the bound, if it saves min_cap_gain."""
         bound = cfg.cap_budget * cfg.bound_px / px_per_m
         cap = stiffness_cap(base.material.E, material.density, size, v_load, bound, g)
+        if dent:  # the dent moves with the wave speed, which the deformation estimate does not see
+            floor = stiffness_dent_floor(base.material.E, cfg.cap_budget * cfg.bound_px, size * px_per_m)
+            cap = max(cap, floor)
         softer = base.material.with_elasticity(E=cap)
         cap_steps = substeps_per_frame(grid_dx, [softer], v_max, cfg.cfl, frame_dt)
         if base.steps < cfg.min_cap_gain * cap_steps:
@@ -219,6 +230,9 @@ def plan_simulation(
         hard = deformation_estimate(base.material.E, material.density, size, v_load, g)
         cap_px = (soft.sag + soft.impact - hard.sag - hard.impact) * px_per_m
         own = dict(base.terms)
+        if dent:  # the larger term counts, as for the bulk cap's dent
+            own["stiffness_cap_dent_px"] = stiffness_dent_px(base.material.E, cap, size * px_per_m)
+            cap_px = max(cap_px, own["stiffness_cap_dent_px"])
         if elastic_impact:  # opted in: the rebound error is predicted, not bounded
             own["stiffness_cap_rebound_px"] = rebound_px(base.material, softer, size * px_per_m)
             cap_px += own["stiffness_cap_rebound_px"]
