@@ -89,7 +89,7 @@ def deformation_estimate(
 # A landing that dents moves with the wave speed under a stiffness cap too, more than under the bulk
 # cap (bulk_cap.DENT_GAIN: there the shear modulus is kept). Mean shift per unit relative change of
 # c_p (sqrt(E' / E)) per object size in pixels, measured on six plasticine drops with E lowered
-# (E 1e6-1e8 Pa, by 20-45 %; docs/measurements_sim.md section 20): 0.0065-0.073, the largest for
+# (E 1e6-1e8 Pa, by 20-50 %; docs/measurements_sim.md section 20): 0.0065-0.073, the largest for
 # the softest lump, whose flow after landing follows E. The largest, rounded up, is taken.
 STIFFNESS_DENT_GAIN = 0.075
 
