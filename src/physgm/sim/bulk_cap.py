@@ -81,14 +81,20 @@ def capped_material(material: MaterialParams, ratio: float) -> MaterialParams:
     return material.with_elasticity(E=2.0 * material.mu * (1.0 + nu), nu=nu)
 
 
+def wave_shift_px(gain: float, material: MaterialParams, capped: MaterialParams, size_px: float) -> float:
+    """``gain`` x the relative fall of the P-wave speed x the object's size, pixels: the form of
+    every impact term of the caps (a rebound, a dent; the stiffness cap's dent in the planner)."""
+    return gain * max(1.0 - capped.wave_speed() / material.wave_speed(), 0.0) * size_px
+
+
 def rebound_px(material: MaterialParams, capped: MaterialParams, size_px: float) -> float:
     """Predicted shift of an elastic rebound when ``material`` is simulated as ``capped``, pixels."""
-    return REBOUND_GAIN * max(1.0 - capped.wave_speed() / material.wave_speed(), 0.0) * size_px
+    return wave_shift_px(REBOUND_GAIN, material, capped, size_px)
 
 
 def dent_px(material: MaterialParams, capped: MaterialParams, size_px: float) -> float:
     """Predicted shift of a lump that lands and dents when ``material`` is simulated as ``capped``, pixels."""
-    return DENT_GAIN * max(1.0 - capped.wave_speed() / material.wave_speed(), 0.0) * size_px
+    return wave_shift_px(DENT_GAIN, material, capped, size_px)
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,7 @@ chooses, in order of cost:
    *extra* deformation over the true E stays under (a share of) the bound; E' = min(E, cap) is
    simulated and reported. Not after an elastic impact, whose rebound depends on E, nor for a
    body that moving boxes drive; after a landing that dents only as far as the dent's own term
-   allows (``deformation.stiffness_dent_px``; see the comment in ``plan_simulation``).
+   allows (``deformation.STIFFNESS_DENT_GAIN``; see the comment in ``plan_simulation``).
    Before it, a **bulk cap** (``physgm.sim.bulk_cap``) lowers only the bulk modulus of a nearly
    incompressible solid (rubber, jelly, plasticine) so its P-wave is at most ``bulk_wave_ratio``
    times its shear wave, within its own share of the bound (that one also counts the rebound of an

@@ -13,18 +13,18 @@ import numpy as np
 from torch import Tensor
 
 from physgm.cameras import Cameras
-from physgm.sim.bulk_cap import choose_bulk_cap, rebound_px
+from physgm.sim.bulk_cap import choose_bulk_cap, rebound_px, wave_shift_px
 from physgm.sim.constitutive import MODELS, MaterialParams
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.stepping import substeps_per_frame
 from physgm.sim.planner.config import PlannerConfig
 from physgm.sim.planner.deformation import (
+    STIFFNESS_DENT_GAIN,
     deformation_estimate,
     impact_speed,
     pixels_per_metre,
     stiffness_cap,
     stiffness_dent_floor,
-    stiffness_dent_px,
 )
 from physgm.sim.planner.domain import grid_region
 from physgm.sim.planner.plan import Plan
@@ -182,6 +182,7 @@ def plan_simulation(
     cap_impacts = cfg.cap_elastic_impacts or cfg.force_caps
     driven = box_speed > 0.0 and not cfg.force_caps
     caps_E = cfg.allow_stiffness_cap and (cap_impacts or not elastic_impact) and not driven
+    size_px = size * px_per_m
 
     def with_bulk_cap(share: float) -> _Choice:
         """Full stiffness, or the bulk cap within ``share`` px if it saves min_cap_gain."""
@@ -196,7 +197,7 @@ def plan_simulation(
         bulk = choose_bulk_cap(
             material,
             deformation_px,
-            size * px_per_m,
+            size_px,
             elastic_impact,
             share,
             cfg.bulk_wave_ratio,
@@ -217,11 +218,10 @@ def plan_simulation(
 
     def with_stiffness_cap(base: _Choice) -> _Choice:
         """``base`` with E capped within cap_budget of the bound, if it saves min_cap_gain."""
-        bound = cfg.cap_budget * cfg.bound_px / px_per_m
-        cap = stiffness_cap(base.material.E, material.density, size, v_load, bound, g)
+        share_px = cfg.cap_budget * cfg.bound_px
+        cap = stiffness_cap(base.material.E, material.density, size, v_load, share_px / px_per_m, g)
         if dent:  # the dent moves with the wave speed, which the deformation estimate does not see
-            floor = stiffness_dent_floor(base.material.E, cfg.cap_budget * cfg.bound_px, size * px_per_m)
-            cap = max(cap, floor)
+            cap = max(cap, stiffness_dent_floor(base.material.E, share_px, size_px))
         softer = base.material.with_elasticity(E=cap)
         cap_steps = substeps_per_frame(grid_dx, [softer], v_max, cfg.cfl, frame_dt)
         if base.steps < cfg.min_cap_gain * cap_steps:
@@ -231,10 +231,10 @@ def plan_simulation(
         cap_px = (soft.sag + soft.impact - hard.sag - hard.impact) * px_per_m
         own = dict(base.terms)
         if dent:  # the larger term counts, as for the bulk cap's dent
-            own["stiffness_cap_dent_px"] = stiffness_dent_px(base.material.E, cap, size * px_per_m)
+            own["stiffness_cap_dent_px"] = wave_shift_px(STIFFNESS_DENT_GAIN, base.material, softer, size_px)
             cap_px = max(cap_px, own["stiffness_cap_dent_px"])
         if elastic_impact:  # opted in: the rebound error is predicted, not bounded
-            own["stiffness_cap_rebound_px"] = rebound_px(base.material, softer, size * px_per_m)
+            own["stiffness_cap_rebound_px"] = rebound_px(base.material, softer, size_px)
             cap_px += own["stiffness_cap_rebound_px"]
         note = f"E capped to {cap:.3g} Pa ({base.steps} -> {cap_steps} sub-steps/frame)"
         return _Choice(softer, cap_steps, base.notes + [note], base.bulk_px, cap_px, own)

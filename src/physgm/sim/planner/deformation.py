@@ -6,8 +6,8 @@ Deformation model (object size L, density rho, impact speed v, P-wave speed c_p)
     plastic dent past yield    d_pl   = rho L v^2 / (2 sigma_y)   if rho c_p v > sigma_y
 All three are order-of-magnitude estimates: the plan reports them so the choice can be audited.
 The rigid path errs by the whole deformation; a stiffness cap by the extra deformation of the
-softer E' (``stiffness_cap``), and after a landing that dents by ``stiffness_dent_px``; the bulk
-cap by its own model (``physgm.sim.bulk_cap``).
+softer E' (``stiffness_cap``), and after a landing that dents by its dent term
+(``STIFFNESS_DENT_GAIN``); the bulk cap by its own model (``physgm.sim.bulk_cap``).
 ``pixels_per_metre`` turns metres into pixels at the closest output camera.
 """
 
@@ -94,13 +94,9 @@ def deformation_estimate(
 STIFFNESS_DENT_GAIN = 0.075
 
 
-def stiffness_dent_px(E: float, E_cap: float, size_px: float) -> float:
-    """Predicted shift of a landing that dents when E is simulated as E_cap, pixels."""
-    return STIFFNESS_DENT_GAIN * max(1.0 - math.sqrt(E_cap / E), 0.0) * size_px
-
-
 def stiffness_dent_floor(E: float, budget_px: float, size_px: float) -> float:
-    """Smallest E' whose ``stiffness_dent_px`` stays within ``budget_px``, Pa."""
+    """Smallest E' whose dent term, ``STIFFNESS_DENT_GAIN`` (1 - sqrt(E' / E)) x ``size_px``
+    (``bulk_cap.wave_shift_px``: c_p grows as sqrt(E) at a fixed nu), stays within ``budget_px``, Pa."""
     keep = 1.0 - budget_px / (STIFFNESS_DENT_GAIN * size_px)
     return E * keep * keep if keep > 0.0 else 0.0
 
