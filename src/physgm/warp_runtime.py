@@ -26,7 +26,7 @@ import warp as wp
 # `-ffp-contract=fast` fuses multiply-adds across statements. The MPM runs 1.1-1.3x faster on
 # the CPU (docs/measurements_sim.md section 18); results move at round-off. Left out:
 # `-ffinite-math-only` (part of `-ffast-math`), under which the solver's finiteness check in
-# ``kernels.g2p`` would compile away, and `-freciprocal-math`, under which the Mohr-Coulomb sand
+# ``kernels.g2p_kernel`` would compile away, and `-freciprocal-math`, under which the Mohr-Coulomb sand
 # heap of tests/sim/mpm/test_particle_ground.py collapsed to det F = 0 in its first frame.
 FAST_MATH_FLAGS = "-mreassociate -fno-signed-zeros -ffp-contract=fast"
 FAST_CPU_FLAGS = f"{wp.config.cpu_compiler_flags or '-march=native'} {FAST_MATH_FLAGS}"

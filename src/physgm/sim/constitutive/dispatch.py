@@ -42,6 +42,26 @@ def constitutive_update(H: wp.mat33, mat: MaterialStruct, plastic: float, dt: fl
     return fluid_update(H, mat, plastic, dt)
 
 
+# Each model's return mapping by id: ``kernels.g2p_kernel`` compiles a g2p for one model with it.
+UPDATES = {
+    FIXED_COROTATED: fixed_corotated_update,
+    NEO_HOOKEAN: neo_hookean_update,
+    DRUCKER_PRAGER: drucker_prager_update,
+    MOHR_COULOMB: mohr_coulomb_update,
+    VON_MISES: von_mises_update,
+    FOAM: foam_update,
+    FLUID: fluid_update,
+}
+
+
+def update_for(models: tuple[int, ...]) -> wp.Function:
+    """The return mapping for particles of these model ids: one model's own, else the switch."""
+    unknown = set(models) - set(UPDATES)
+    if unknown or not models:
+        raise ValueError(f"model ids must be a non-empty subset of {sorted(UPDATES)}, got {models}")
+    return UPDATES[models[0]] if len(set(models)) == 1 else constitutive_update
+
+
 @wp.func
 def energy_density(H: wp.mat33, mat: MaterialStruct) -> float:
     """Strain energy per unit rest volume of F = I + H, J/m^3 (H keeps small strains exact)."""

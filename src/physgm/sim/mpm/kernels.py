@@ -7,6 +7,7 @@ A sub-step is two launches once the first scatter is done (G2P2G, Fei et al. 202
     g2p          grid -> particle velocity and affine matrix C (APIC blended with affine FLIP),
                  F update, return mapping, Kirchhoff stress, advection, domain clamp, statistics,
                  and the particle's scatter for the next sub-step
+                 (``g2p_kernel``: one kernel per set of constitutive models, compiled on first use)
 
 The scatter (``scatter_particle``) does not depend on dt: the accumulators hold APIC momentum,
 mass and the stress force separately, and grid_update applies dt. So g2p can scatter before the
@@ -35,17 +36,21 @@ The numpy twin of one sub-step is ``physgm.sim.mpm.reference_mpm`` (tests only).
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Iterable
+
 import warp as wp
 
 from physgm.sim.constitutive.common import EYE, MaterialStruct, det_minus_one
-from physgm.sim.constitutive.dispatch import constitutive_update
+from physgm.sim.constitutive.dispatch import update_for
 from physgm.sim.mpm.boundary import BoxStruct, GroundStruct, box_velocity, ground_grip, ground_velocity
 from physgm.sim.mpm.particle_ground import fold_ground_force, particle_ground_force, touches_ground
 from physgm.sim.mpm.stencil_sums import gather_moments, scatter_affine, vec8
 from physgm.sim.mpm.substep_params import SubstepParams
 from physgm.warp_runtime import FAST_CPU_FLAGS
 
-wp.set_module_options({"enable_backward": False, "cpu_compiler_flags": FAST_CPU_FLAGS})
+MODULE_OPTIONS = {"enable_backward": False, "cpu_compiler_flags": FAST_CPU_FLAGS}
+wp.set_module_options(MODULE_OPTIONS)
 
 # Columns of the per-sub-step statistics (one row per worker thread).
 STAT_VMAX = wp.constant(0)  # max squared particle speed, m^2/s^2
@@ -347,128 +352,147 @@ def moment_matrix(bi: vec8, bj: vec8, bk: vec8, c: int) -> wp.mat33:
     return wp.mat33(bi[c], bj[c], bk[c], bi[c + 1], bj[c + 1], bk[c + 1], bi[c + 2], bj[c + 2], bk[c + 2])
 
 
-@wp.kernel
-def g2p(
-    grid_v: wp.array(dtype=vec8),  # [G] flat: velocity, mass, velocity change
-    shape: wp.vec3i,  # grid node counts
-    origin: wp.vec3,
-    dx: float,
-    params: wp.array(dtype=SubstepParams),  # [1] dt, time, the active box's inner bounds, stamp
-    clamp_lo: wp.vec3,  # particles are kept inside [clamp_lo, clamp_hi], m
-    clamp_hi: wp.vec3,
-    boxes: wp.array(dtype=BoxStruct),
-    num_boxes: int,
-    flip: float,  # affine-FLIP share of the particle (v, C) update; 0 = pure APIC
-    materials: wp.array(dtype=MaterialStruct),  # [M]
-    material: wp.array(dtype=int),  # [P] index into materials
-    vol0: wp.array(dtype=float),  # [P] rest volume, m^3
-    mass: wp.array(dtype=float),  # [P] kg
-    offset: int,
-    slot: int,
-    x: wp.array(dtype=wp.vec3),  # [P] in/out
-    v: wp.array(dtype=wp.vec3),  # [P] in/out
-    C: wp.array(dtype=wp.mat33),  # [P] in/out
-    H: wp.array(dtype=wp.mat33),  # [P] in/out, F - I of the elastic deformation gradient F
-    stress: wp.array(dtype=wp.mat33),  # [P] out, rest volume x Kirchhoff stress
-    plastic: wp.array(dtype=float),  # [P] in/out, plastic history scalar
-    escaped: wp.array(dtype=int),  # [P] in/out, 1 once the clamp stopped the particle
-    stats: wp.array2d(dtype=float),  # [threads, STATS_ROW] running reductions in the first NUM_STATS columns
-    work: wp.array2d(
-        dtype=wp.float64
-    ),  # [threads, WORK_ROW] energy put in by the velocity boxes (column 0), J
-    ground: GroundStruct,
-    ground_k: wp.array(dtype=wp.vec2),  # [M] the particle contact's stiffness (particle_ground)
-    pending: wp.array2d(dtype=wp.float64),  # [2, 4] out: ground force on the particles, N
-    touched: wp.array3d(dtype=wp.int32),  # [bx, by, bz] out: blocks reached by the next scatter
-    acc: wp.array(dtype=vec8),  # [G] flat, out: this thread's scatter for the next sub-step
-):
-    p = wp.tid() + offset
-    sp = params[0]
-    dt = float(sp.dt)
-    t = float(sp.t)
-    active_lo = sp.inner_lo  # particles must stay inside the active grid box until the next re-fit
-    active_hi = sp.inner_hi
-    stamp = sp.stamp + 1  # the next sub-step's number
-    inv_dx = 1.0 / dx
-    xp = x[p]
-    base, fx, w = stencil((xp - origin) * inv_dx, shape)
-    # Sums of whole nodes with their first moments along each axis (``gather_moments``), so
-    # B = sum w v (node - fx)^T needs no per-node outer product; velocity and velocity change
-    # come in one pass.
-    nyz = shape[1] * shape[2]
-    b0 = (base[0] * shape[1] + base[1]) * shape[2] + base[2]
-    sums = gather_moments(grid_v, b0, nyz, shape[2], w)
-    total = sums[0]
-    bi = sums[1]
-    bj = sums[2]
-    bk = sums[3]
-    vel = wp.vec3(total[0], total[1], total[2])
-    dvel = wp.vec3(total[4], total[5], total[6])
-    c_grid = (4.0 * inv_dx) * (moment_matrix(bi, bj, bk, 0) - wp.outer(vel, fx))
-    # Affine FLIP: the particle keeps its own (v, C) plus the grid's change of them this step,
-    # blended with the APIC (PIC) values. Pure APIC damps every mode the grid cannot hold on
-    # each transfer, so stiff materials (many sub-steps) lose energy quickly; incrementing C
-    # along with v keeps angular momentum exact.
-    dc = (4.0 * inv_dx) * (moment_matrix(bi, bj, bk, 4) - wp.outer(dvel, fx))
-    v_new = vel + flip * (v[p] + dvel - vel)
-    c_new = c_grid + flip * (C[p] + dc - c_grid)
-    # Particles inside a velocity box move with it: grid conditions alone let the particles at
-    # the box edge (whose stencil reaches free nodes) creep out of a clamp or a grip.
-    v_move = vel
-    if num_boxes > 0:
-        v_free = v_new
-        for b in range(num_boxes):
-            v_new = box_velocity(boxes[b], xp, t, v_new)
-            v_move = box_velocity(boxes[b], xp, t, v_move)
-        wp.atomic_add(work, slot, WORK_DRIVER, wp.float64(mass[p] * wp.dot(v_new - v_free, v_new)))
-    # The state is H = F - I: stiff materials take steps with strain increments below float32's
-    # resolution of numbers near 1, and accumulating F itself would round them away (creep).
-    H_trial = H[p] + dt * c_grid * (EYE + H[p])
-    mat = materials[material[p]]
-    if 1.0 + det_minus_one(H_trial) < mat.j_floor:
-        # Checked before the return mapping, which would hide an inversion by clamping it.
-        wp.atomic_add(stats, slot, STAT_FLOOR, 1.0)
-    H_new, tau, pl = constitutive_update(H_trial, mat, plastic[p], dt)
-    # Positions move with the grid velocity, as in Fei et al. 2021, not with the FLIP share: F
-    # follows the grid's velocity gradient, and particles moved by their own noisier velocity
-    # slide past each other in ways F never sees. After a hard impact F then describes a crush the
-    # positions no longer have, a residual stress that never relaxes (issue 24: a 16-cell jelly hit
-    # at twice its wave speed kept 1.2 % of its particles at J < 0.1 and mean J 0.8 after 0.5 s).
-    x_new = xp + dt * v_move
-    clamped = wp.min(wp.max(x_new, clamp_lo), clamp_hi)
-    if clamped[0] != x_new[0] or clamped[1] != x_new[1] or clamped[2] != x_new[2]:
-        x_new = clamped
-        v_new = wp.vec3(0.0)
-        if escaped[p] == 0:
-            escaped[p] = 1
-            wp.atomic_add(stats, slot, STAT_ESCAPED, 1.0)
-    for a in range(3):
-        if x_new[a] < active_lo[a] or x_new[a] > active_hi[a]:
-            wp.atomic_add(stats, slot, STAT_OVERRUN, 1.0)
-            break
-    J = 1.0 + det_minus_one(H_new)
-    # One finiteness test: a NaN or inf anywhere in the new state propagates into this sum.
-    check = wp.dot(x_new + v_new, wp.vec3(1.0)) + J + wp.ddot(tau, wp.mat33(1.0))
-    if not wp.isfinite(check):
-        # Keep the state usable for indexing; the solver rejects the frame (and re-scatters).
-        wp.atomic_add(stats, slot, STAT_BAD, 1.0)
-        x_new = xp
-        v_new = wp.vec3(0.0)
-    else:
-        wp.atomic_max(stats, slot, STAT_VMAX, wp.dot(v_new, v_new))  # squared; the solver takes the root
-        wp.atomic_min(stats, slot, STAT_JMIN, J)
-        wp.atomic_max(stats, slot, STAT_JMAX, J)
-        fg = wp.vec3(0.0)
-        cg = float(0.0)  # noqa: UP018 (Warp: set in a branch)
-        if touches_ground(ground.particles, ground.height, x_new[2], vol0[p]):
-            fg, cg = particle_ground_force(
-                ground, ground_k, material[p], x_new, v_new, mass[p], vol0[p], pending, slot
+def g2p_kernel(models: Iterable[int]) -> wp.Kernel:
+    """g2p for particles of the given constitutive model ids, compiled on first use.
+
+    With one model the return mapping is that model's alone (``dispatch.UPDATES``), which the
+    compiler can inline: a sub-step 4-7 % cheaper than through ``constitutive_update``'s switch
+    over every model (docs/measurements_sim.md section 22). Several models take the switch. Each
+    variant is a Warp module of its own, so a run compiles only the ones it uses.
+    """
+    return _g2p_kernel(tuple(sorted(set(models))))
+
+
+@functools.cache
+def _g2p_kernel(models: tuple[int, ...]) -> wp.Kernel:
+    update = update_for(models)
+
+    @wp.kernel(module="unique", module_options=MODULE_OPTIONS)
+    def g2p(
+        grid_v: wp.array(dtype=vec8),  # [G] flat: velocity, mass, velocity change
+        shape: wp.vec3i,  # grid node counts
+        origin: wp.vec3,
+        dx: float,
+        params: wp.array(dtype=SubstepParams),  # [1] dt, time, the active box's inner bounds, stamp
+        clamp_lo: wp.vec3,  # particles are kept inside [clamp_lo, clamp_hi], m
+        clamp_hi: wp.vec3,
+        boxes: wp.array(dtype=BoxStruct),
+        num_boxes: int,
+        flip: float,  # affine-FLIP share of the particle (v, C) update; 0 = pure APIC
+        materials: wp.array(dtype=MaterialStruct),  # [M]
+        material: wp.array(dtype=int),  # [P] index into materials
+        vol0: wp.array(dtype=float),  # [P] rest volume, m^3
+        mass: wp.array(dtype=float),  # [P] kg
+        offset: int,
+        slot: int,
+        x: wp.array(dtype=wp.vec3),  # [P] in/out
+        v: wp.array(dtype=wp.vec3),  # [P] in/out
+        C: wp.array(dtype=wp.mat33),  # [P] in/out
+        H: wp.array(dtype=wp.mat33),  # [P] in/out, F - I of the elastic deformation gradient F
+        stress: wp.array(dtype=wp.mat33),  # [P] out, rest volume x Kirchhoff stress
+        plastic: wp.array(dtype=float),  # [P] in/out, plastic history scalar
+        escaped: wp.array(dtype=int),  # [P] in/out, 1 once the clamp stopped the particle
+        stats: wp.array2d(dtype=float),  # [threads, STATS_ROW] running reductions, first NUM_STATS columns
+        work: wp.array2d(
+            dtype=wp.float64
+        ),  # [threads, WORK_ROW] energy put in by the velocity boxes (column 0), J
+        ground: GroundStruct,
+        ground_k: wp.array(dtype=wp.vec2),  # [M] the particle contact's stiffness (particle_ground)
+        pending: wp.array2d(dtype=wp.float64),  # [2, 4] out: ground force on the particles, N
+        touched: wp.array3d(dtype=wp.int32),  # [bx, by, bz] out: blocks reached by the next scatter
+        acc: wp.array(dtype=vec8),  # [G] flat, out: this thread's scatter for the next sub-step
+    ):
+        p = wp.tid() + offset
+        sp = params[0]
+        dt = float(sp.dt)
+        t = float(sp.t)
+        active_lo = sp.inner_lo  # particles must stay inside the active grid box until the next re-fit
+        active_hi = sp.inner_hi
+        stamp = sp.stamp + 1  # the next sub-step's number
+        inv_dx = 1.0 / dx
+        xp = x[p]
+        base, fx, w = stencil((xp - origin) * inv_dx, shape)
+        # Sums of whole nodes with their first moments along each axis (``gather_moments``), so
+        # B = sum w v (node - fx)^T needs no per-node outer product; velocity and velocity change
+        # come in one pass.
+        nyz = shape[1] * shape[2]
+        b0 = (base[0] * shape[1] + base[1]) * shape[2] + base[2]
+        sums = gather_moments(grid_v, b0, nyz, shape[2], w)
+        total = sums[0]
+        bi = sums[1]
+        bj = sums[2]
+        bk = sums[3]
+        vel = wp.vec3(total[0], total[1], total[2])
+        dvel = wp.vec3(total[4], total[5], total[6])
+        c_grid = (4.0 * inv_dx) * (moment_matrix(bi, bj, bk, 0) - wp.outer(vel, fx))
+        # Affine FLIP: the particle keeps its own (v, C) plus the grid's change of them this step,
+        # blended with the APIC (PIC) values. Pure APIC damps every mode the grid cannot hold on
+        # each transfer, so stiff materials (many sub-steps) lose energy quickly; incrementing C
+        # along with v keeps angular momentum exact.
+        dc = (4.0 * inv_dx) * (moment_matrix(bi, bj, bk, 4) - wp.outer(dvel, fx))
+        v_new = vel + flip * (v[p] + dvel - vel)
+        c_new = c_grid + flip * (C[p] + dc - c_grid)
+        # Particles inside a velocity box move with it: grid conditions alone let the particles at
+        # the box edge (whose stencil reaches free nodes) creep out of a clamp or a grip.
+        v_move = vel
+        if num_boxes > 0:
+            v_free = v_new
+            for b in range(num_boxes):
+                v_new = box_velocity(boxes[b], xp, t, v_new)
+                v_move = box_velocity(boxes[b], xp, t, v_move)
+            wp.atomic_add(work, slot, WORK_DRIVER, wp.float64(mass[p] * wp.dot(v_new - v_free, v_new)))
+        # The state is H = F - I: stiff materials take steps with strain increments below float32's
+        # resolution of numbers near 1, and accumulating F itself would round them away (creep).
+        H_trial = H[p] + dt * c_grid * (EYE + H[p])
+        mat = materials[material[p]]
+        if 1.0 + det_minus_one(H_trial) < mat.j_floor:
+            # Checked before the return mapping, which would hide an inversion by clamping it.
+            wp.atomic_add(stats, slot, STAT_FLOOR, 1.0)
+        H_new, tau, pl = update(H_trial, mat, plastic[p], dt)
+        # Positions move with the grid velocity, as in Fei et al. 2021, not with the FLIP share: F
+        # follows the grid's velocity gradient, and particles moved by their own noisier velocity
+        # slide past each other in ways F never sees. After a hard impact F then describes a crush the
+        # positions no longer have, a residual stress that never relaxes (issue 24: a 16-cell jelly hit
+        # at twice its wave speed kept 1.2 % of its particles at J < 0.1 and mean J 0.8 after 0.5 s).
+        x_new = xp + dt * v_move
+        clamped = wp.min(wp.max(x_new, clamp_lo), clamp_hi)
+        if clamped[0] != x_new[0] or clamped[1] != x_new[1] or clamped[2] != x_new[2]:
+            x_new = clamped
+            v_new = wp.vec3(0.0)
+            if escaped[p] == 0:
+                escaped[p] = 1
+                wp.atomic_add(stats, slot, STAT_ESCAPED, 1.0)
+        for a in range(3):
+            if x_new[a] < active_lo[a] or x_new[a] > active_hi[a]:
+                wp.atomic_add(stats, slot, STAT_OVERRUN, 1.0)
+                break
+        J = 1.0 + det_minus_one(H_new)
+        # One finiteness test: a NaN or inf anywhere in the new state propagates into this sum.
+        check = wp.dot(x_new + v_new, wp.vec3(1.0)) + J + wp.ddot(tau, wp.mat33(1.0))
+        if not wp.isfinite(check):
+            # Keep the state usable for indexing; the solver rejects the frame (and re-scatters).
+            wp.atomic_add(stats, slot, STAT_BAD, 1.0)
+            x_new = xp
+            v_new = wp.vec3(0.0)
+        else:
+            wp.atomic_max(stats, slot, STAT_VMAX, wp.dot(v_new, v_new))  # squared; the solver takes the root
+            wp.atomic_min(stats, slot, STAT_JMIN, J)
+            wp.atomic_max(stats, slot, STAT_JMAX, J)
+            fg = wp.vec3(0.0)
+            cg = float(0.0)  # noqa: UP018 (Warp: set in a branch)
+            if touches_ground(ground.particles, ground.height, x_new[2], vol0[p]):
+                fg, cg = particle_ground_force(
+                    ground, ground_k, material[p], x_new, v_new, mass[p], vol0[p], pending, slot
+                )
+            tau_v = vol0[p] * tau
+            scatter_particle(
+                acc, x_new, v_new, c_new, tau_v, mass[p], origin, dx, shape, touched, stamp, fg, cg
             )
-        tau_v = vol0[p] * tau
-        scatter_particle(acc, x_new, v_new, c_new, tau_v, mass[p], origin, dx, shape, touched, stamp, fg, cg)
-    x[p] = x_new
-    v[p] = v_new
-    C[p] = c_new
-    H[p] = H_new
-    stress[p] = vol0[p] * tau
-    plastic[p] = pl
+        x[p] = x_new
+        v[p] = v_new
+        C[p] = c_new
+        H[p] = H_new
+        stress[p] = vol0[p] * tau
+        plastic[p] = pl
+
+    return g2p

@@ -20,6 +20,7 @@ import math
 import numpy as np
 import warp as wp
 
+from physgm.sim.constitutive import MODELS
 from physgm.sim.mpm import kernels as K
 from physgm.sim.mpm.boundary import no_ground
 from physgm.sim.mpm.grid import GridSpec
@@ -95,7 +96,9 @@ class SubstepLaunches:
         shape = wp.vec3i(*g.res)
         split = [0, n] if threads == 1 else [0, n // 2, n]
         self.p2g, self.g2p = [], []
-        ensure_loaded(K.p2g, dev)  # all three kernels live in one module
+        ensure_loaded(K.p2g, dev)  # p2g and grid_update live in one module
+        g2p = K.g2p_kernel(MODELS[m.model].id for m in ps.materials)
+        ensure_loaded(g2p, dev)
         for t in range(threads):
             p0, count = split[t], split[t + 1] - split[t]
             self.p2g.append(
@@ -128,7 +131,7 @@ class SubstepLaunches:
             )
             self.g2p.append(
                 wp.launch(
-                    K.g2p,
+                    g2p,
                     count,
                     [
                         a.grid_v.flatten(),

@@ -14,7 +14,7 @@ than both (docs/measurements_sim.md section 16). There the gather sums each (i, 
 first, then over j and i (the weights factor per axis), and both address the nodes from the base
 node's pointer and the byte stride (section 21). CUDA compiles the portable loops, one thread a
 particle, with atomic adds for the scatter.
-``kernels.scatter_particle`` and ``kernels.g2p`` call these; tests hold both forms to numpy.
+``kernels.scatter_particle`` and ``kernels.g2p_kernel`` call these; tests hold both forms to numpy.
 """
 
 from __future__ import annotations
