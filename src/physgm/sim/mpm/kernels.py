@@ -181,12 +181,12 @@ def p2g(
     slot: int,
     shape: wp.vec3i,  # grid node counts
     touched: wp.array3d(dtype=wp.int32),  # [bx, by, bz] out: blocks reached (``scatter_particle``)
-    params: wp.array(dtype=SubstepParams),  # [1] stamps with this sub-step's number
+    params: wp.array(dtype=SubstepParams),  # [threads] row slot: this sub-step's number
     pending: wp.array2d(dtype=wp.float64),  # [2, 4] out: ground force on the particles, N
     grid: wp.array(dtype=vec8),  # [G] flat (i ny + j) nz + k: momentum, mass, stress force
 ):
     p = wp.tid() + offset
-    sp = params[0]
+    sp = params[slot]
     fg = wp.vec3(0.0)
     cg = float(0.0)  # noqa: UP018 (Warp: set in a branch)
     if touches_ground(ground.particles, ground.height, x[p][2], vol0[p]):
@@ -290,7 +290,7 @@ def grid_update(
     acc0: wp.array3d(dtype=vec8),  # [nx, ny, nz] first thread's accumulator, cleared here
     acc1: wp.array3d(dtype=vec8),  # [nx, ny, nz] second thread's accumulator (zeros if unused)
     touched: wp.array3d(dtype=wp.int32),  # [bx, by, bz] blocks reached by this sub-step's scatter
-    params: wp.array(dtype=SubstepParams),  # [1] dt, time, damping, stamp, active box
+    params: wp.array(dtype=SubstepParams),  # [threads] row slot: dt, time, damping, stamp, active box
     origin: wp.vec3,
     dx: float,
     gravity: wp.vec3,
@@ -298,7 +298,8 @@ def grid_update(
     ground: GroundStruct,
     boxes: wp.array(dtype=BoxStruct),
     num_boxes: int,
-    slot: int,
+    slot: int,  # this launch's part, its row of params and of work
+    parts: int,  # 1, or 2: the two threads each update half the active box's block columns along x
     pending: wp.array2d(dtype=wp.float64),  # [2, 4] ground force the scatter gave the particles, N; cleared
     work: wp.array2d(
         dtype=wp.float64
@@ -306,15 +307,18 @@ def grid_update(
     grid_v: wp.array3d(dtype=vec8),  # [nx, ny, nz] out: velocity, mass, velocity change
 ):
     """One thread per 4^3-node block of the grid; blocks outside the active box and blocks no
-    stencil reached are left as they are (no particle reads them this sub-step). The first
-    thread adds the particles' ground contact to the ground impulse (``particle_ground``)."""
+    stencil reached are left as they are (no particle reads them this sub-step), and so are the
+    blocks of the other part. Part 0's first thread adds the particles' ground contact to the
+    ground impulse (``particle_ground``)."""
     bi, bj, bk = wp.tid()
-    sp = params[0]
-    if bi == 0 and bj == 0 and bk == 0 and ground.particles != 0:
+    sp = params[slot]
+    if bi == 0 and bj == 0 and bk == 0 and slot == 0 and ground.particles != 0:
         fold_ground_force(pending, work, WORK_GROUND, float(sp.dt))
     lo = sp.block_lo
     hi = sp.block_hi
     if bi < lo[0] or bj < lo[1] or bk < lo[2] or bi > hi[0] or bj > hi[1] or bk > hi[2]:
+        return
+    if (bi - lo[0]) * parts // (hi[0] - lo[0] + 1) != slot:
         return
     if not block_reached(touched, bi, bj, bk, sp.stamp):
         return
@@ -373,7 +377,7 @@ def _g2p_kernel(models: tuple[int, ...]) -> wp.Kernel:
         shape: wp.vec3i,  # grid node counts
         origin: wp.vec3,
         dx: float,
-        params: wp.array(dtype=SubstepParams),  # [1] dt, time, the active box's inner bounds, stamp
+        params: wp.array(dtype=SubstepParams),  # [threads] row slot: dt, time, inner box, stamp
         clamp_lo: wp.vec3,  # particles are kept inside [clamp_lo, clamp_hi], m
         clamp_hi: wp.vec3,
         boxes: wp.array(dtype=BoxStruct),
@@ -403,7 +407,7 @@ def _g2p_kernel(models: tuple[int, ...]) -> wp.Kernel:
         acc: wp.array(dtype=vec8),  # [G] flat, out: this thread's scatter for the next sub-step
     ):
         p = wp.tid() + offset
-        sp = params[0]
+        sp = params[slot]
         dt = float(sp.dt)
         t = float(sp.t)
         active_lo = sp.inner_lo  # particles must stay inside the active grid box until the next re-fit

@@ -58,13 +58,14 @@ class SubstepLaunches:
         device,
     ) -> None:
         self.arrays = GridArrays.allocate(grid.res, scene.boxes, device)
-        self.params = wp.zeros(1, dtype=SubstepParams, device=device)  # what changes between sub-steps
+        # What changes between sub-steps, one row per thread (``substep_params``).
+        self.params = wp.zeros(threads, dtype=SubstepParams, device=device)
         # The host writes ``params`` through numpy field views (building Warp vectors costs ~10 us
         # each): on the CPU straight into the array, on a GPU into a host copy sent when it changed.
         self._staging = self.params if self.params.device.is_cpu else wp.zeros_like(self.params, device="cpu")
         view = self._staging.numpy()
         self._field = {name: view[name] for name in view.dtype.names}
-        self._field["damping"][0] = 1.0
+        self._field["damping"][:] = 1.0
         self._t = 0.0  # s, the device's t at the start of the next sub-step
         # The scatter stamps the blocks it reaches with the number of the sub-step that consumes it,
         # so stale stamps never match and nothing needs clearing; the first sub-step is number 1.
@@ -170,34 +171,41 @@ class SubstepLaunches:
                 )
             )
 
-        # With the empty blocks skipped, grid_update is a few percent of a sub-step: one launch on
-        # the calling thread costs less than another thread hand-off.
-        self.grid_update = wp.launch(
-            K.grid_update,
-            K.block_res(g.res),
-            [
-                a.acc[0],
-                a.acc[1],
-                a.touched,
-                self.params,
-                origin,
-                g.dx,
-                wp.vec3(*scene.gravity),
-                cfg.boundary_cells,
-                ground,
-                a.boxes,
-                num_boxes,
-                0,
-                a.pending,
-                a.work,
-                a.grid_v,
-            ],
-            device=dev,
-            record_cmd=True,
-        )
-        # Coulomb friction on the node layer at the surface (surface_friction).
-        self.friction = None
+        # Coulomb friction on the node layer at the surface (surface_friction), after the whole
+        # grid update.
         layer = None if scene.ground is None else scene.ground.surface_friction_layer(g)
+        # Two threads update half the active box each (the other waits out a whole update, 4-8 %
+        # of a two-thread sub-step otherwise: docs/measurements_sim.md section 22); with the
+        # surface friction, which needs the whole grid, the first thread updates it all.
+        parts = threads if layer is None else 1
+        self.grid_update = [
+            wp.launch(
+                K.grid_update,
+                K.block_res(g.res),
+                [
+                    a.acc[0],
+                    a.acc[1],
+                    a.touched,
+                    self.params,
+                    origin,
+                    g.dx,
+                    wp.vec3(*scene.gravity),
+                    cfg.boundary_cells,
+                    ground,
+                    a.boxes,
+                    num_boxes,
+                    part,
+                    parts,
+                    a.pending,
+                    a.work,
+                    a.grid_v,
+                ],
+                device=dev,
+                record_cmd=True,
+            )
+            for part in range(parts)
+        ]
+        self.friction = None
         if layer is not None:
             self.friction = wp.launch(
                 surface_friction,
@@ -206,7 +214,11 @@ class SubstepLaunches:
                 device=dev,
                 record_cmd=True,
             )
-        self._tick = wp.launch(advance_clock, 1, [self.params], device=dev, record_cmd=True)
+        # Every row's clock at once (``run``), or each thread its own (``run_graph``).
+        self._tick = wp.launch(advance_clock, threads, [self.params, 0], device=dev, record_cmd=True)
+        self._ticks = [
+            wp.launch(advance_clock, 1, [self.params, t], device=dev, record_cmd=True) for t in range(threads)
+        ]
         # Where the two threads' graph replays meet (``run_graph``).
         self._meeting, self._barrier = None, []
         if threads == 2:
@@ -230,8 +242,8 @@ class SubstepLaunches:
 
     def set_dt(self, dt: float, damping: float) -> None:
         if dt != self._dt:
-            self._field["dt"][0] = dt
-            self._field["damping"][0] = math.exp(-damping * dt) if damping > 0.0 else 1.0
+            self._field["dt"][:] = dt
+            self._field["damping"][:] = math.exp(-damping * dt) if damping > 0.0 else 1.0
             self._dt = dt
             self._dirty = True
 
@@ -247,19 +259,19 @@ class SubstepLaunches:
         """grid_update covers the blocks of nodes lo..hi; g2p flags particles that leave
         [inner_lo, inner_hi] (m) before the next re-fit."""
         f = self._field
-        f["block_lo"][0] = lo // K.BLOCK
-        f["block_hi"][0] = hi // K.BLOCK
-        f["node_lo"][0] = lo
-        f["node_hi"][0] = hi
-        f["inner_lo"][0] = inner_lo
-        f["inner_hi"][0] = inner_hi
+        f["block_lo"][:] = lo // K.BLOCK
+        f["block_hi"][:] = hi // K.BLOCK
+        f["node_lo"][:] = lo
+        f["node_hi"][:] = hi
+        f["inner_lo"][:] = inner_lo
+        f["inner_hi"][:] = inner_hi
         self._dirty = True
 
     def _sync(self) -> None:
         """Send the host's changes; time and stamp are the device's own (``_advance_host``)."""
         if self._dirty:
-            self._field["t"][0] = self._t
-            self._field["stamp"][0] = self._stamp
+            self._field["t"][:] = self._t
+            self._field["stamp"][:] = self._stamp
             if self._staging is not self.params:
                 wp.copy(self.params, self._staging)
             self._dirty = False
@@ -278,7 +290,10 @@ class SubstepLaunches:
             _launch_halves(self.p2g, worker)
         if before is not None:
             before()
-        self.grid_update.launch()
+        if len(self.grid_update) == 2:
+            _launch_halves(self.grid_update, worker)
+        else:
+            self.grid_update[0].launch()
         if self.friction is not None:
             self.friction.launch()
         between()
@@ -320,23 +335,23 @@ class SubstepLaunches:
 
     def _capture(self, count: int, slot: int):
         """The launches of ``count`` sub-steps for thread ``slot``. One thread: grid_update,
-        friction, g2p, clock. Two: the first thread does the grid, and both meet after it and
-        after their halves of g2p; the clock moves on only once both halves have read it."""
+        friction, g2p, clock. Two: each thread updates its part of the grid (the first all of
+        it when there is surface friction), and both meet after it and after their halves of
+        g2p; each moves its own row of the clock on."""
         pair = len(self.g2p) == 2
         wp.capture_begin(device=self.device)
         try:
             for _ in range(count):
-                if slot == 0:
-                    self.grid_update.launch()
-                    if self.friction is not None:
-                        self.friction.launch()
+                if slot < len(self.grid_update):
+                    self.grid_update[slot].launch()
+                if slot == 0 and self.friction is not None:
+                    self.friction.launch()
                 if pair:
                     self._barrier[slot].launch()
                 self.g2p[slot].launch()
                 if pair:
                     self._barrier[slot].launch()
-                if slot == 0:
-                    self._tick.launch()
+                self._ticks[slot].launch()
         finally:
             graph = wp.capture_end(device=self.device)
         return graph

@@ -1,7 +1,9 @@
 """The values that change between sub-steps, held on the device for the sub-step kernels.
 
 dt, time, damping, the sub-step's number (the scatter's block stamp) and the active grid box
-live in a one-element array that the kernels read, not in launch arguments. So a sequence of
+live in a small array that the kernels read, not in launch arguments: one row per CPU thread,
+each read and moved on only by its own thread, so two threads that replay graphs never race on
+the clock (the host writes every row alike). So a sequence of
 recorded launches means the same thing every time it runs: ``advance_clock`` moves time and
 the stamp on at the end of each sub-step, and the host writes the array (through numpy views of
 its fields) only when dt or the active box change, every ``cfl_check_every`` sub-steps at most.
@@ -32,9 +34,11 @@ class SubstepParams:
 
 
 @wp.kernel
-def advance_clock(params: wp.array(dtype=SubstepParams)):
-    """End of a sub-step: time moves on by dt and the next sub-step gets the next number."""
-    p = params[0]
+def advance_clock(params: wp.array(dtype=SubstepParams), first: int):
+    """End of a sub-step: row ``first`` + tid's time moves on by dt and its next sub-step gets the
+    next number."""
+    row = first + wp.tid()
+    p = params[row]
     p.t = p.t + p.dt
     p.stamp = p.stamp + 1
-    params[0] = p
+    params[row] = p

@@ -23,7 +23,7 @@ from physgm.sim.mpm.substep_params import SubstepParams
 def surface_friction(
     grid_v: wp.array3d(dtype=vec8),  # [nx, ny, nz] in/out: velocity, mass, velocity change, grip
     touched: wp.array3d(dtype=wp.int32),  # [bx, by, bz] blocks reached by this sub-step's scatter
-    params: wp.array(dtype=SubstepParams),  # [1] this sub-step's number and the active box
+    params: wp.array(dtype=SubstepParams),  # [threads] row 0: this sub-step's number, the active box
     layer: int,  # k of the top held node layer; the surface layer is layer + 1
     work: wp.array2d(dtype=wp.float64),  # [threads, WORK_ROW] running sums; the ground impulse is added
 ):
