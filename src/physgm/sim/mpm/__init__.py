@@ -108,8 +108,10 @@ Design notes (why the code looks the way it does)
 * Three fused kernels per sub-step (kernels.py): p2g (stress + APIC), grid_update, g2p (gather,
   F update, return mapping, stress, advection, clamp, statistics), recorded once and replayed
   (launches.py). On the CPU, particles are split over two threads (a launch releases the GIL),
-  each p2g thread with its own accumulator grid; particles are re-sorted by cell every frame.
-* dt, time, the block stamp and the active box live in a one-element device array
+  each p2g thread with its own accumulator grid, and each thread updates half the grid;
+  particles are re-sorted by cell every frame. g2p is compiled per set of constitutive models
+  (``kernels.g2p_kernel``): a one-material scene runs its model's return mapping inlined.
+* dt, time, the block stamp and the active box live in a device array, one row per CPU thread
   (substep_params.py), so the launches never change: with one thread (small scenes, any CUDA
   run) and no hooks, side walls or observers, each run of ``cfl_check_every`` sub-steps, and
   a frame's shorter tail as its binary pieces (8 + 4 + 1), is replayed from launch graphs

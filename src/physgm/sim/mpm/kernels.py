@@ -27,10 +27,10 @@ the particle's base node with the number of the sub-step it feeds (``touched``);
 one thread per block of the grid, returns at once outside the active box (the only region
 particles can reach before the next re-fit) and skips blocks no stencil reached, so empty space
 costs a few reads per 64 nodes instead of 64 node updates (most nodes of a falling object's
-active box hold no mass). dt, time, the stamp and the active box come from a one-element device
-array (``substep_params``), so the same recorded launches serve every sub-step and can be
-captured as a graph. Particle stencils are clamped inside the grid, so no index can leave an
-array whatever the state.
+active box hold no mass); two CPU threads each update half the active box. dt, time, the stamp
+and the active box come from a device array with a row per CPU thread (``substep_params``), so
+the same recorded launches serve every sub-step and can be captured as a graph. Particle
+stencils are clamped inside the grid, so no index can leave an array whatever the state.
 The numpy twin of one sub-step is ``physgm.sim.mpm.reference_mpm`` (tests only).
 """
 
