@@ -141,3 +141,20 @@ def test_hydra_config_builds_the_datamodule(tiny_root):
     dm.setup("fit")
     batch = next(iter(dm.val_dataloader()))
     assert batch.images.shape[-2:] == (64, 64) and batch.target_images.shape[1:] == (8, 3, 64, 64)
+
+
+def test_surface_points_are_the_assets_own_gaussian_centres_when_asked_for(tiny_root):
+    from physgm.gaussians import read_ply
+
+    off = _module(tiny_root)
+    off.setup("test")
+    assert next(iter(off.test_dataloader())).surface_points is None  # the default: none loaded
+    dm = _module(tiny_root, surface_points=64)
+    dm.setup("fit")
+    batch = next(iter(dm.train_dataloader()))
+    assert batch.surface_points.shape == (3, 64, 3) and batch.surface_known.all()
+    for i, aid in enumerate(batch.asset_ids):
+        centres = read_ply(tiny_root / aid / "gaussians.ply", keep_sh=False).means
+        # every point is one of the asset's own centres (in the cameras' world frame)
+        gap = (batch.surface_points[i][:, None] - centres[None]).norm(dim=-1).amin(dim=1)
+        assert gap.max() < 1e-6

@@ -61,3 +61,33 @@ def test_pretrain_losses_add_the_weighted_anisotropy_term():
     assert on["loss"].item() == pytest.approx(expected.item(), rel=1e-6)
     with pytest.raises(ValueError, match="scales"):
         pretrain_losses(PretrainLossConfig(aniso=0.5), rgb, alpha, target, mask, posterior, *labels)
+
+
+def test_surface_distance_is_the_mean_distance_to_the_nearest_true_point():
+    from physgm.train.losses import surface_distance
+
+    grid = torch.stack(torch.meshgrid(torch.arange(4.0), torch.arange(4.0), indexing="ij"), -1).reshape(-1, 2)
+    plane = torch.cat([grid, torch.zeros(16, 1)], dim=1)  # the true surface: z = 0, points 1 apart
+    means = torch.stack([plane, plane + torch.tensor([0.0, 0.0, 0.25])])  # on it, and 0.25 above
+    valid = torch.ones(2, 16, dtype=torch.bool)
+    valid[1, 8:] = False
+    points = torch.stack([plane, plane])
+    known = torch.tensor([True, True])
+    assert surface_distance(means, valid, points, known, 100).item() == pytest.approx(0.125)
+    # an asset without ground truth does not count; nor do centres beyond max_gaussians
+    one = torch.tensor([False, True])
+    assert surface_distance(means, valid, points, one, 100).item() == pytest.approx(0.25)
+    assert surface_distance(means, valid, points, known, 3).item() == pytest.approx(0.125)
+    with pytest.raises(ValueError, match="data.surface_points"):
+        surface_distance(means, valid, points, torch.tensor([False, False]), 100)
+
+
+def test_the_surface_term_pulls_the_centres_onto_the_surface():
+    from physgm.train.losses import surface_distance
+
+    points = torch.tensor([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]])
+    means = torch.tensor([[[0.1, 0.0, 0.3]]], requires_grad=True)
+    surface_distance(means, torch.ones(1, 1, dtype=torch.bool), points, torch.tensor([True]), 10).backward()
+    assert means.grad[0, 0, 2] > 0 and means.grad[0, 0, 0] > 0  # descent moves it down and towards x = 0
+    with pytest.raises(ValueError, match="loss.surface is a weight"):
+        PretrainLossConfig(surface=-1.0)

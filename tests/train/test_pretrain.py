@@ -87,6 +87,23 @@ def test_fast_dev_run_every_experiment(experiment, tiny_dataset, tmp_path):
     assert torch.isfinite(torch.tensor(metrics["train/loss"]))
 
 
+def test_the_surface_term_trains_and_validates_end_to_end(tiny_dataset, tmp_path):
+    overrides = [
+        "experiment=tiny_cpu",
+        *tiny_overrides(tiny_dataset, tmp_path / "run"),
+        "data.surface_points=32",
+        "stage.loss.surface=1.0",
+        "trainer.max_steps=2",
+        "trainer.val_check_interval=2",
+        "trainer.limit_val_batches=1",
+    ]
+    metrics = run(compose_train(overrides))
+    assert metrics["train/surface"] > 0 and torch.isfinite(torch.tensor(metrics["train/loss"]))
+    # the weight without the points is a clear error, not a silent zero
+    with pytest.raises(ValueError, match="data.surface_points"):
+        run(compose_train([*overrides, "data.surface_points=0", "trainer.max_steps=1"]))
+
+
 def test_resume_continues_step_count_and_checkpoint_predicts_the_same(tiny_dataset, tmp_path):
     out = tmp_path / "run"
     base = [

@@ -23,6 +23,7 @@ from torch.utils.data import DataLoader, Dataset
 from physgm.data.feature_cache import FeatureStore, build_feature_cache, mobilenet_key, stored_view_size
 from physgm.data.format import SPLITS, Asset, AssetError, load_asset, read_split
 from physgm.data.views import LOAD_ERRORS, Example, ViewConfig, build_example, example_rng
+from physgm.gaussians import read_ply
 from physgm.model.cnn_encoder import ImageFeatures
 
 CORRUPT_MODES = ("raise", "skip")
@@ -52,6 +53,8 @@ class Batch:
     asset_ids: list[str]
     skipped: list[str]  # corrupt assets dropped while making this batch (on_corrupt="skip")
     features: ImageFeatures | None = None  # [B, V, ...] cached frozen-encoder outputs of the inputs
+    surface_points: Tensor | None = None  # [B, S, 3] ground-truth surface points (zeros where unknown)
+    surface_known: Tensor | None = None  # [B] bool: the asset has them (synthetic assets)
 
     @property
     def num_views(self) -> int:
@@ -124,7 +127,18 @@ class Collate:
             asset_ids=[e.id for e in examples],
             skipped=skipped,
             features=_stack_features([e.input_features for e in examples], v),
+            **_stack_surface([e.surface_points for e in examples]),
         )
+
+
+def _stack_surface(items: list[Tensor | None]) -> dict[str, Tensor | None]:
+    """surface_points [B, S, 3] (zeros for assets without them) and surface_known [B], or Nones."""
+    known = [p is not None for p in items]
+    if not any(known):
+        return {"surface_points": None, "surface_known": None}
+    shape = next(p for p in items if p is not None).shape
+    points = torch.stack([p if p is not None else torch.zeros(shape) for p in items])
+    return {"surface_points": points, "surface_known": torch.tensor(known)}
 
 
 def _stack_features(items: list[ImageFeatures | None], v: int) -> ImageFeatures | None:
@@ -150,6 +164,10 @@ class FolderRecord:
 
     def load_rgba(self, indices: list[int]) -> np.ndarray:
         return self.asset.load_rgba(indices)
+
+    def load_surface(self) -> np.ndarray | None:
+        path = self.asset.gaussians_path
+        return None if path is None else read_ply(path, keep_sh=False).means.numpy()
 
 
 class FolderDataset(Dataset):
@@ -245,6 +263,7 @@ class PhysAssetsDataModule(L.LightningDataModule):
         target_resolution: int | None = None,
         background: float = 1.0,
         random_azimuth: bool = False,
+        surface_points: int = 0,
         on_corrupt: str = "raise",
         train_split: str = "train",
         val_split: str = "val",
@@ -282,6 +301,7 @@ class PhysAssetsDataModule(L.LightningDataModule):
             self.hp.target_resolution,
             self.hp.background,
             self.hp.random_azimuth and train,
+            surface_points=self.hp.surface_points,
         )
 
     def dataset(self, split: str, train: bool) -> Dataset:

@@ -108,6 +108,9 @@ class ShardRecord:
                 out.append(np.asarray(im.convert("RGBA")))
         return np.stack(out).astype(np.float32) / 255.0
 
+    def load_surface(self) -> None:  # the shards do not carry gaussians.ply
+        return None
+
 
 class ShardDataset(StreamingDataset):
     """Streams one split's shards and yields ``(Example | None, skipped ids)`` like ``FolderDataset``."""

@@ -44,6 +44,7 @@ class ViewConfig:
     background: float = 1.0  # grey level the RGBA views are composited over (1 = white)
     random_azimuth: bool = False  # rotate the input set to a random starting view
     input_elevation_deg: float = 0.0  # elevation of the input views
+    surface_points: int = 0  # ground-truth surface points per example (for loss.surface); 0: none
 
     def __post_init__(self) -> None:
         if self.num_targets < NUM_INPUT_SET:
@@ -72,6 +73,9 @@ class AssetRecord(Protocol):
     def load_rgba(self, indices: list[int]) -> np.ndarray:  # [V, H, W, 4] float32 in [0, 1]
         ...
 
+    def load_surface(self) -> np.ndarray | None:  # [N, 3] ground-truth Gaussian centres, or None
+        ...
+
 
 @dataclass
 class Example:
@@ -96,6 +100,7 @@ class Example:
     true_nu: float
     true_known: bool
     input_features: ImageFeatures | None = None  # [I, ...] cached frozen-encoder outputs of the inputs
+    surface_points: Tensor | None = None  # [S, 3] ground-truth surface points (cfg.surface_points)
 
 
 def view_directions(c2w: Tensor) -> np.ndarray:
@@ -215,7 +220,23 @@ def build_example(
         true_nu=phys.nu,
         true_known=phys.true_known,
         input_features=features.load(record.id, inputs) if features is not None else None,
+        surface_points=_surface_points(record, cfg.surface_points, rng),
     )
+
+
+def _surface_points(record: AssetRecord, count: int, rng: np.random.Generator | None) -> Tensor | None:
+    """``count`` of the asset's ground-truth Gaussian centres (None without them, or count 0):
+    drawn by ``rng``, else evenly spaced through the file."""
+    if count <= 0:
+        return None
+    points = record.load_surface()
+    if points is None or len(points) == 0:
+        return None
+    if rng is not None:
+        index = rng.choice(len(points), size=count, replace=len(points) < count)
+    else:
+        index = np.linspace(0, len(points) - 1, count).round().astype(np.int64)
+    return torch.as_tensor(np.asarray(points[index], dtype=np.float32))
 
 
 def example_rng(asset_id: str, deterministic: bool, seed: int = 0) -> np.random.Generator:

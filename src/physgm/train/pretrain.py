@@ -130,6 +130,9 @@ class LitPretrain(L.LightningModule):
             self.lpips_model,
             scales=out.gaussians.scales,
             valid=out.gaussians.valid,
+            means=out.gaussians.means,
+            surface_points=batch.surface_points,
+            surface_known=batch.surface_known,
         )
         return out, rgb, alpha, terms
 
