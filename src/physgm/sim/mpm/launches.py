@@ -290,10 +290,7 @@ class SubstepLaunches:
             _launch_halves(self.p2g, worker)
         if before is not None:
             before()
-        if len(self.grid_update) == 2:
-            _launch_halves(self.grid_update, worker)
-        else:
-            self.grid_update[0].launch()
+        _launch_halves(self.grid_update, worker)
         if self.friction is not None:
             self.friction.launch()
         between()
@@ -358,9 +355,9 @@ class SubstepLaunches:
 
 
 def _launch_halves(launches: list, worker) -> None:
-    """The whole launch on this thread (``launches[0]`` without a worker), or its two halves on
-    this thread and the worker's."""
-    if worker is None:
+    """A launch recorded whole, on this thread, or recorded in two halves, on this thread and
+    the worker's."""
+    if len(launches) == 1:
         launches[0].launch()
     else:
         worker.run(launches[1].launch, launches[0].launch)
