@@ -23,7 +23,6 @@ from torch.utils.data import DataLoader, Dataset
 from physgm.data.feature_cache import FeatureStore, build_feature_cache, mobilenet_key, stored_view_size
 from physgm.data.format import SPLITS, Asset, AssetError, load_asset, read_split
 from physgm.data.views import LOAD_ERRORS, Example, ViewConfig, build_example, example_rng
-from physgm.gaussians import read_ply
 from physgm.model.cnn_encoder import ImageFeatures
 
 CORRUPT_MODES = ("raise", "skip")
@@ -166,8 +165,9 @@ class FolderRecord:
         return self.asset.load_rgba(indices)
 
     def load_surface(self) -> np.ndarray | None:
-        path = self.asset.gaussians_path
-        return None if path is None else read_ply(path, keep_sh=False).means.numpy()
+        if self.asset.gaussians_path is None:
+            return None
+        return self.asset.load_gaussians(keep_sh=False).means.numpy()
 
 
 class FolderDataset(Dataset):

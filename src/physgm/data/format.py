@@ -110,12 +110,12 @@ class Asset:
         indices = range(len(self)) if indices is None else indices
         return np.stack([read_rgba(self.view_files[i]) for i in indices]).astype(np.float32) / 255.0
 
-    def load_gaussians(self):
+    def load_gaussians(self, keep_sh: bool = True):
         from physgm.gaussians import read_ply
 
         if self.gaussians_path is None:
             raise FileNotFoundError(f"asset {self.id} has no gaussians.ply")
-        return read_ply(self.gaussians_path)
+        return read_ply(self.gaussians_path, keep_sh=keep_sh)
 
 
 def read_rgba(path: Path | str) -> np.ndarray:
