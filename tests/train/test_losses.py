@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from physgm.model.posterior import PhysicsPosterior
-from physgm.train.losses import PretrainLossConfig, anisotropy_penalty, pretrain_losses
+from physgm.train.losses import PretrainLossConfig, anisotropy_penalty, pretrain_losses, token_anchor
 
 
 def test_anisotropy_penalty_is_the_mean_log_excess_over_valid_gaussians():
@@ -91,3 +91,12 @@ def test_the_surface_term_pulls_the_centres_onto_the_surface():
     assert means.grad[0, 0, 2] > 0 and means.grad[0, 0, 0] > 0  # descent moves it down and towards x = 0
     with pytest.raises(ValueError, match="loss.surface is a weight"):
         PretrainLossConfig(surface=-1.0)
+
+
+def test_token_anchor_is_the_relative_squared_distance_of_each_token():
+    reference = torch.tensor([[[3.0, 4.0], [0.0, 2.0]]])  # [B=1, G=2, D=2], |t_ref|^2 = 25 and 4
+    tokens = torch.tensor([[[3.0, 5.0], [0.0, 2.0]]])  # the first token 1 away, the second exact
+    assert token_anchor(tokens, tokens).item() == 0.0
+    assert token_anchor(tokens, reference).item() == pytest.approx((1 / 25 + 0) / 2)
+    with pytest.raises(ValueError, match="loss.anchor"):
+        PretrainLossConfig(anchor=-1.0)

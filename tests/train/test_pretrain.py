@@ -223,3 +223,59 @@ def test_gaussian_head_fine_tune_keeps_every_other_weight_and_the_init_models_co
         LitPretrain(trainable="backbone")
     with pytest.raises(UserError, match="stage.trainable"):
         run(compose_train([*tiny_overrides(tiny_dataset, tmp_path / "bad"), "stage.trainable=backbone"]))
+
+
+def _tokens(ckpt: Path) -> torch.Tensor:  # [1, G, D] for two fixed random views
+    model, _ = load_model(ckpt)
+    g = torch.Generator().manual_seed(0)
+    images = torch.rand(1, 2, 3, 32, 32, generator=g)
+    c2w = torch.eye(4).expand(1, 2, 4, 4).clone()
+    c2w[0, 1, :3, 3] = torch.tensor([0.3, 0.0, 0.0])
+    Ks = torch.tensor([[32.0, 0.0, 16.0], [0.0, 32.0, 16.0], [0.0, 0.0, 1.0]]).expand(1, 2, 3, 3)
+    with torch.no_grad():
+        return model.global_tokens(images, c2w, Ks)
+
+
+def test_geometry_fine_tune_trains_the_backbone_and_the_anchor_holds_the_physics_tokens(
+    tiny_dataset, tmp_path
+):
+    """stage.trainable=geometry: the backbone and the Gaussian head move, the physics head does not;
+    loss.anchor keeps the global tokens (all the physics head reads) near the starting model's."""
+    first = tmp_path / "first"
+    run(
+        compose_train(
+            [*tiny_overrides(tiny_dataset, first), "trainer.max_steps=2", "trainer.limit_val_batches=0"]
+        )
+    )
+    init = first / "checkpoints" / "last.ckpt"
+    start, drift, metrics = _tokens(init), {}, {}
+    for anchor in (0.0, 100.0):
+        out = tmp_path / f"anchor{anchor:g}"
+        tuned = [
+            *tiny_overrides(tiny_dataset, out),
+            "trainer.max_steps=4",
+            "trainer.limit_val_batches=0",
+            "stage.trainable=geometry",
+            f"stage.init_ckpt={init}",
+            f"stage.loss.anchor={anchor}",
+            "stage.optim.lr=1e-2",
+            "stage.optim.warmup_steps=0",
+        ]
+        metrics[anchor] = run(compose_train(tuned))
+        before = torch.load(init, weights_only=False)["state_dict"]
+        after = torch.load(out / "checkpoints" / "last.ckpt", weights_only=False)["state_dict"]
+        moved = {k for k, v in before.items() if not torch.equal(v, after[k])}
+        assert any(k.startswith("model.backbone.") for k in moved), sorted(moved)[:5]
+        assert all(k.startswith(("model.backbone.", "model.gaussian_head.")) for k in moved), sorted(moved)
+        tokens = _tokens(out / "checkpoints" / "last.ckpt")
+        drift[anchor] = float(((tokens - start).square().sum(-1) / start.square().sum(-1)).mean())
+    assert "train/anchor" not in metrics[0.0] and metrics[100.0]["train/anchor"] >= 0
+    assert drift[100.0] < drift[0.0] / 4, drift
+    module = LitPretrain(
+        model=torch.load(init, weights_only=False)["hyper_parameters"]["model"], trainable="geometry"
+    )
+    module.train()
+    assert module.model.backbone.training and module.model.gaussian_head.training
+    assert not module.model.physics_head.training
+    with pytest.raises(UserError, match="stage.trainable=geometry"):
+        run(compose_train([*tiny_overrides(tiny_dataset, tmp_path / "no"), "stage.loss.anchor=1"]))

@@ -30,6 +30,7 @@ class PhysGMOutput:
     head_material_logits: Tensor | None = None  # [B, M] the physics head's alone, before the prior
     domain_real: Tensor | None = None  # [B] the domain gate's P(real object), when the model has one
     procedural_material_logits: Tensor | None = None  # [B, M] the procedural expert's, when there is one
+    global_tokens: Tensor | None = None  # [B, G, D] the backbone's global tokens: all the physics head reads
 
 
 class PhysGM(nn.Module):
@@ -90,12 +91,8 @@ class PhysGM(nn.Module):
         attend to each other jointly. ``features`` (the frozen CNN encoder only) skips the encoder.
         """
         self._check_inputs(images, masks, c2w, Ks)
-        b, v, _, height, width = images.shape
-        cameras = Cameras(
-            c2w.reshape(b * v, 4, 4).to(images.dtype), Ks.reshape(b * v, 3, 3).to(images.dtype), width, height
-        )
-        plucker = plucker_rays(cameras).reshape(b, v, 6, height, width)  # (direction, moment)
-        out = self.backbone(images, plucker, features)
+        b, v = images.shape[:2]
+        out, plucker = self._backbone(images, c2w, Ks, features)
         directions = plucker[:, :, :3].permute(0, 1, 3, 4, 2)  # [B, V, H, W, 3] unit
         skips = out.features.levels() if out.features is not None else None
         gaussians = self.gaussian_head(
@@ -118,7 +115,28 @@ class PhysGM(nn.Module):
         head = self.physics_head(out.global_tokens, pooled)
         procedural = self.physics_head.procedural_logits(pooled)
         physics = self.fused_posterior(head, log_prior, gate, procedural)
-        return PhysGMOutput(gaussians, physics, log_prior, head.material_logits, gate, procedural)
+        return PhysGMOutput(
+            gaussians, physics, log_prior, head.material_logits, gate, procedural, out.global_tokens
+        )
+
+    def global_tokens(
+        self,
+        images: Tensor,  # [B, V, 3, H, W] RGB in [0, 1]
+        c2w: Tensor,  # [B, V, 4, 4] OpenCV camera-to-world
+        Ks: Tensor,  # [B, V, 3, 3] pixel intrinsics
+        features: ImageFeatures | None = None,  # [B, V, ...] cached frozen-encoder outputs
+    ) -> Tensor:  # [B, G, D]
+        """The backbone's global tokens alone (no Gaussians): what the physics head reads."""
+        return self._backbone(images, c2w, Ks, features)[0].global_tokens
+
+    def _backbone(self, images: Tensor, c2w: Tensor, Ks: Tensor, features: ImageFeatures | None):
+        """Backbone output and the views' Plücker rays [B, V, 6, H, W] (direction, moment)."""
+        b, v, _, height, width = images.shape
+        cameras = Cameras(
+            c2w.reshape(b * v, 4, 4).to(images.dtype), Ks.reshape(b * v, 3, 3).to(images.dtype), width, height
+        )
+        plucker = plucker_rays(cameras).reshape(b, v, 6, height, width)
+        return self.backbone(images, plucker, features), plucker
 
     def fused_posterior(
         self,

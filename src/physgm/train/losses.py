@@ -30,6 +30,9 @@ class PretrainLossConfig:
     # the paper; see ``surface_distance``); needs data.surface_points > 0
     surface: float = 0.0
     surface_max_gaussians: int = 4096  # centres drawn per asset for the surface term
+    # weight of the global tokens' relative squared distance to a frozen copy of the starting
+    # model's (``token_anchor``): keeps the physics while stage.trainable=geometry trains the backbone
+    anchor: float = 0.0
     lpips_net: str = "alex"  # LPIPS backbone: alex or vgg
     lpips_backbone_path: str | None = None  # local torchvision weights; default torchvision's cache
 
@@ -40,6 +43,8 @@ class PretrainLossConfig:
             raise ValueError(f"loss.aniso_ratio must be >= 1 (a sphere has ratio 1), got {self.aniso_ratio}")
         if self.surface < 0:
             raise ValueError(f"loss.surface is a weight and must be >= 0, got {self.surface}")
+        if self.anchor < 0:
+            raise ValueError(f"loss.anchor is a weight and must be >= 0, got {self.anchor}")
         if self.surface_max_gaussians < 1:
             raise ValueError(f"loss.surface_max_gaussians must be >= 1, got {self.surface_max_gaussians}")
 
@@ -51,6 +56,18 @@ def physics_nll(posterior: PhysicsPosterior, log10_E: Tensor, nu: Tensor) -> Ten
     )
     _, log_E, log_nu = posterior.log_prob_terms(labels)
     return -(log_E + log_nu)[:, 0]
+
+
+def token_anchor(
+    tokens: Tensor,  # [B, G, D] the trained backbone's global tokens
+    reference: Tensor,  # [B, G, D] the frozen starting backbone's, for the same views
+) -> Tensor:
+    """Mean over scenes and tokens of |t - t_ref|^2 / |t_ref|^2.
+
+    The physics head reads nothing but the global tokens, so holding them where the starting model
+    put them holds its material, E and nu while the backbone learns better Gaussians.
+    """
+    return ((tokens - reference).square().sum(-1) / reference.square().sum(-1).clamp_min(1e-12)).mean()
 
 
 def anisotropy_penalty(
@@ -122,6 +139,8 @@ def pretrain_losses(
     means: Tensor | None = None,  # [B, N, 3] predicted Gaussian centres, for loss.surface
     surface_points: Tensor | None = None,  # [B, S, 3] ground-truth surface points
     surface_known: Tensor | None = None,  # [B] bool
+    tokens: Tensor | None = None,  # [B, G, D] global tokens, for loss.anchor
+    reference_tokens: Tensor | None = None,  # [B, G, D] the frozen starting model's
 ) -> dict[str, Tensor]:
     """Weighted loss terms and their sum under ``"loss"``."""
     pred = rgb.permute(0, 1, 4, 2, 3)  # [B, T, 3, H, W]
@@ -150,5 +169,12 @@ def pretrain_losses(
         terms["surface"] = surface_distance(
             means, valid, surface_points, surface_known, cfg.surface_max_gaussians
         )
+    if cfg.anchor > 0:
+        if tokens is None or reference_tokens is None:
+            raise ValueError(
+                "loss.anchor > 0 needs the global tokens of a frozen starting model: train with "
+                "stage.trainable=geometry and stage.init_ckpt"
+            )
+        terms["anchor"] = token_anchor(tokens, reference_tokens)
     terms["loss"] = sum(getattr(cfg, name) * value for name, value in terms.items())
     return terms

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import logging
 import warnings
 from typing import Any
@@ -24,7 +25,11 @@ from physgm.train.optim import OptimConfig, build_optimizer
 
 log = logging.getLogger(__name__)
 
-TRAINABLE = ("all", "gaussian_head")  # what stage 1 trains (stage.trainable)
+# What stage 1 trains (stage.trainable): everything; the Gaussian head of stage.init_ckpt alone; or
+# its backbone and Gaussian head ("geometry"), with the physics head frozen and loss.anchor holding
+# the tokens it reads.
+TRAINABLE = ("all", "gaussian_head", "geometry")
+TRAINED_PARTS = {"gaussian_head": ("gaussian_head",), "geometry": ("gaussian_head", "backbone")}
 VIEW_KEYS = ("v1", "v4")  # validation metrics are kept apart for 1 and 4 input views
 
 
@@ -69,9 +74,10 @@ class LitPretrain(L.LightningModule):
             raise ValueError(f"stage.trainable must be one of {TRAINABLE}, got {trainable!r}")
         config = PhysGMConfig.from_dict(model or {})
         self.model = PhysGM(config)
-        if trainable == "gaussian_head":  # the backbone's tokens, and so every physics fit, stay as they are
+        if trainable in TRAINED_PARTS:  # the physics head, and so every physics fit, stays as it is
+            trained = TRAINED_PARTS[trainable]
             for name, p in self.model.named_parameters():
-                p.requires_grad_(name.startswith("gaussian_head."))
+                p.requires_grad_(p.requires_grad and name.split(".")[0] in trained)
         self.loss_cfg = PretrainLossConfig(**(loss or {}))
         self.optim_cfg = OptimConfig(**(optim or {}))
         self.renderer = dict(renderer or {"backend": "warp"})
@@ -81,6 +87,7 @@ class LitPretrain(L.LightningModule):
         self.val_images = torch.nn.ModuleDict({key: ImageMetrics() for key in VIEW_KEYS})
         self.val_loss = torch.nn.ModuleDict({key: MeanMetric() for key in VIEW_KEYS})
         self._lpips: list[torch.nn.Module] = []  # a list, so the frozen LPIPS net is not a submodule
+        self._reference: list[PhysGM] = []  # the frozen starting model of loss.anchor (a list: not saved)
 
     # -- setup -------------------------------------------------------------------------------
     def setup(self, stage: str) -> None:
@@ -98,11 +105,17 @@ class LitPretrain(L.LightningModule):
 
     def train(self, mode: bool = True) -> LitPretrain:
         super().train(mode)
-        if self.hparams.get("trainable") == "gaussian_head":  # every frozen part stays in eval mode
+        trained = TRAINED_PARTS.get(self.hparams.get("trainable"))
+        if trained is not None:  # every frozen part stays in eval mode
             for name, child in self.model.named_children():
-                if name != "gaussian_head":
+                if name not in trained:
                     child.eval()
         return self
+
+    def anchor_to_start(self) -> None:
+        """Keep a frozen copy of the model as it is now (the warm start) for ``loss.anchor``: never
+        trained, never in the checkpoint."""
+        self._reference[:] = [copy.deepcopy(self.model).requires_grad_(False).eval()]
 
     def configure_optimizers(self):
         params = [(n, p) for n, p in self.model.named_parameters() if p.requires_grad]
@@ -115,6 +128,11 @@ class LitPretrain(L.LightningModule):
 
     def _losses(self, batch) -> tuple[PhysGMOutput, Tensor, Tensor, dict[str, Tensor]]:
         out = self(batch)
+        reference = None
+        if self.loss_cfg.anchor > 0 and self._reference:
+            with torch.no_grad():
+                start = self._reference[0].to(self.device)
+                reference = start.global_tokens(batch.images, batch.c2w, batch.Ks, batch.features)
         h, w = batch.target_images.shape[-2:]
         rgb, alpha = render_targets(out, batch.target_c2w, batch.target_Ks, w, h, self.renderer)
         terms = pretrain_losses(
@@ -133,6 +151,8 @@ class LitPretrain(L.LightningModule):
             means=out.gaussians.means,
             surface_points=batch.surface_points,
             surface_known=batch.surface_known,
+            tokens=out.global_tokens,
+            reference_tokens=reference,
         )
         return out, rgb, alpha, terms
 
@@ -205,10 +225,15 @@ def fit(cfg) -> dict[str, float]:
     if trainable not in TRAINABLE:
         raise UserError(f"stage.trainable must be one of {', '.join(TRAINABLE)}, got {trainable!r}")
     model = plain(cfg.model)
-    if trainable == "gaussian_head":
+    if cfg.stage.loss.get("anchor", 0) > 0 and trainable != "geometry":
+        raise UserError(
+            "stage.loss.anchor holds the tokens of the starting model while the backbone trains: it "
+            "needs stage.trainable=geometry and stage.init_ckpt=PATH"
+        )
+    if trainable in TRAINED_PARTS:
         if not cfg.stage.get("init_ckpt"):
             raise UserError(
-                "stage.trainable=gaussian_head fine-tunes the Gaussian head of a trained model; give it "
+                f"stage.trainable={trainable} fine-tunes the Gaussians of a trained model; give it "
                 "with stage.init_ckpt=PATH"
             )
         model = read_checkpoint(cfg.stage.init_ckpt).hparams["model"]  # its physics settings whole
@@ -227,6 +252,8 @@ def fit(cfg) -> dict[str, float]:
         from physgm.train.warm_start import warm_start
 
         log.info(warm_start(module.model, cfg.stage.init_ckpt).summary())
+        if trainable == "geometry":
+            module.anchor_to_start()
     trainer = build_trainer(cfg)
     trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
