@@ -74,7 +74,7 @@ class LitPretrain(L.LightningModule):
             raise ValueError(f"stage.trainable must be one of {TRAINABLE}, got {trainable!r}")
         config = PhysGMConfig.from_dict(model or {})
         self.model = PhysGM(config)
-        if trainable in TRAINED_PARTS:  # the physics head, and so every physics fit, stays as it is
+        if trainable in TRAINED_PARTS:  # the physics head is frozen; with gaussian_head, so are its inputs
             trained = TRAINED_PARTS[trainable]
             for name, p in self.model.named_parameters():
                 p.requires_grad_(p.requires_grad and name.split(".")[0] in trained)
@@ -252,7 +252,7 @@ def fit(cfg) -> dict[str, float]:
         from physgm.train.warm_start import warm_start
 
         log.info(warm_start(module.model, cfg.stage.init_ckpt).summary())
-        if trainable == "geometry":
+        if trainable == "geometry" and module.loss_cfg.anchor > 0:
             module.anchor_to_start()
     trainer = build_trainer(cfg)
     trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
