@@ -28,7 +28,7 @@ class SolverConfig:
     # grid cannot hold on every transfer, so its energy loss grows with the number of sub-steps
     # (two elastic spheres lost 13 % of their energy in one collision at cfl 0.4, 21 % at 0.2);
     # 0.95 keeps it under 5 % and, because C is incremented with v, angular momentum stays exact.
-    # Positions move with the grid velocity whatever this is (kernels.g2p; issue 24).
+    # Positions move with the grid velocity whatever this is (kernels.g2p_kernel; issue 24).
     flip: float = 0.95
     max_retries: int = 4  # divergence-guard retries per frame, each halving the CFL number
     # det F bounds of the divergence guard. A step is rejected (and retried smaller) when det F
