@@ -126,12 +126,17 @@ def vibration(
     total, v_rel = float(mass.sum()), rigid_motion(x, v, mass).v_rel
     size = float(np.ptp(x, axis=0).max())
     omega_1 = math.pi * math.sqrt(material.mu / material.density) / max(size, 1e-9)
-    strain = 0.5 * (np.einsum("pki,pkj->pij", F, F) - np.eye(3))  # Green strain, rotation-free
+    # Green strain (rotation-free), rows of 9; a batched matmul, not einsum, which is twice as slow
+    # here (this runs after every frame in the air).
+    strain = np.matmul(F.transpose(0, 2, 1), F).reshape(-1, 9)
+    strain[:, ::4] -= 1.0
+    strain *= 0.5
+    squared = np.einsum("pi,pi->p", strain, strain)  # |E|^2
     w = mass / total
-    strain_rms = math.sqrt(float(w @ (strain * strain).sum((1, 2))))
+    strain_rms = math.sqrt(float(w @ squared))
     speed_rms = math.sqrt(float(w @ (v_rel * v_rel).sum(1)))
-    trace = np.trace(strain, axis1=1, axis2=2)
-    elastic = volume @ (material.mu * (strain * strain).sum((1, 2)) + 0.5 * material.lam * trace * trace)
+    trace = strain[:, ::4].sum(1)
+    elastic = volume @ (material.mu * squared + 0.5 * material.lam * trace * trace)
     kinetic = 0.5 * float(mass @ (v_rel * v_rel).sum(1))
     return Vibration(
         0.5 * size * strain_rms + speed_rms / omega_1,

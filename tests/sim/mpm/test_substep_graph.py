@@ -91,6 +91,33 @@ def test_graphs_are_not_used_with_observers():
         solver.close()
 
 
+@pytest.mark.parametrize("threads", [1, 2])
+def test_a_replay_leaves_the_particles_bounding_box_for_the_next_refit(threads):
+    """Each thread's graph ends with the box of its particles; the solver's re-fit reads it
+    instead of a pass over all particles, but only while nothing has stepped since."""
+    scene, materials = SCENES["particle_ground"]
+    solver = _drop("cpu", True, scene, materials, frames=1, threads=threads)[0]
+    dt = solver.stable_dt()
+    solver._substeps_graph(dt, 5)  # 4 + 1: the box comes from the last piece's graph
+    x = solver.particles.x.numpy()
+    lo, hi = solver.launches.replay_bounds()
+    np.testing.assert_array_equal(lo, x.min(0))
+    np.testing.assert_array_equal(hi, x.max(0))
+    solver._fit_active(dt)
+    replayed_box = [a.copy() for a in solver.active_box]
+    solver.launches._box_stamp = None  # the same re-fit from the solver's own pass
+    solver._fit_active(dt)
+    for a, b in zip(replayed_box, solver.active_box, strict=True):
+        np.testing.assert_array_equal(a, b)
+    solver._substeps_graph(dt, 2)
+    solver.substep(dt)  # a sub-step from Python: the box is stale
+    assert solver.launches.replay_bounds() is None
+    solver._substeps_graph(dt, 2)
+    solver.launches.invalidate()  # a new state: stale too
+    assert solver.launches.replay_bounds() is None
+    solver.close()
+
+
 @pytest.mark.gpu
 def test_cuda_graph_replay_matches_python_stepping_on_cuda():
     scene, materials = SCENES["friction_ground"]

@@ -27,3 +27,9 @@ def test_threads_are_reduced_per_column_and_speed_is_the_root():
 def test_a_bad_particle_or_a_nan_makes_the_state_not_finite():
     assert not SubstepStats.reduce(_row(1.0, 1.0, 1.0, 1, 0, 0)[None]).finite
     assert not SubstepStats.reduce(_row(1.0, float("nan"), 1.0, 0, 0, 0)[None]).finite
+    # in either thread's row, for every column (Python's min and max would keep the other value)
+    for col in range(3):
+        good, bad = _row(1.0, 1.0, 1.0, 0, 0, 0), _row(1.0, 1.0, 1.0, 0, 0, 0)
+        bad[col] = float("nan")
+        assert not SubstepStats.reduce(np.stack([good, bad])).finite
+        assert not SubstepStats.reduce(np.stack([bad, good])).finite

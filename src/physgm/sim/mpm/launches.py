@@ -22,6 +22,7 @@ import warp as wp
 
 from physgm.sim.constitutive import MODELS
 from physgm.sim.mpm import kernels as K
+from physgm.sim.mpm import particle_ops as ops
 from physgm.sim.mpm.boundary import no_ground
 from physgm.sim.mpm.grid import GridSpec
 from physgm.sim.mpm.grid_arrays import GridArrays
@@ -97,11 +98,23 @@ class SubstepLaunches:
         shape = wp.vec3i(*g.res)
         split = [0, n] if threads == 1 else [0, n // 2, n]
         self.p2g, self.g2p = [], []
+        # Each graph ends with the bounding box of its thread's particles (rows 2 t, 2 t + 1), which
+        # the solver's re-fit after a replay reads instead of a pass of its own over all particles.
+        self.box = wp.zeros(2 * threads, dtype=wp.vec3, device=dev)
+        self._box_view = self.box.numpy() if dev.is_cpu else None
+        self._box_launches = []
+        self._box_stamp = None  # the stamp the sub-steps had after the replay that wrote ``box``
         ensure_loaded(K.p2g, dev)  # p2g and grid_update live in one module
         g2p = K.g2p_kernel(MODELS[m.model].id for m in ps.materials)
         ensure_loaded(g2p, dev)
         for t in range(threads):
             p0, count = split[t], split[t + 1] - split[t]
+            self._box_launches.append(
+                [
+                    wp.launch(ops.reset_bounds, 1, [self.box, t], device=dev, record_cmd=True),
+                    wp.launch(ops.bounds, count, [ps.x, p0, self.box, t], device=dev, record_cmd=True),
+                ]
+            )
             self.p2g.append(
                 wp.launch(
                     K.p2g,
@@ -234,6 +247,18 @@ class SubstepLaunches:
             acc.zero_()
         self.arrays.pending.zero_()
         self.scattered = False
+        self._box_stamp = None
+
+    def replay_bounds(self) -> tuple[list[float], list[float]] | None:
+        """The particles' bounding box (min, max corners, m) as the last ``run_graph`` left them;
+        None when a sub-step from Python or a new state came after it."""
+        if self._box_stamp != self._stamp:
+            return None
+        rows = (self._box_view if self.device.is_cpu else self.box.numpy()).tolist()
+        return (
+            [min(r[a] for r in rows[0::2]) for a in range(3)],
+            [max(r[a] for r in rows[1::2]) for a in range(3)],
+        )
 
     @property
     def next_stamp(self) -> int:
@@ -329,6 +354,7 @@ class SubstepLaunches:
         self.replayed += count
         self._advance_host(count)
         self.scattered = True
+        self._box_stamp = self._stamp
 
     def _capture(self, count: int, slot: int):
         """The launches of ``count`` sub-steps for thread ``slot``. One thread: grid_update,
@@ -349,6 +375,8 @@ class SubstepLaunches:
                 if pair:
                     self._barrier[slot].launch()
                 self._ticks[slot].launch()
+            for launch in self._box_launches[slot]:
+                launch.launch()
         finally:
             graph = wp.capture_end(device=self.device)
         return graph

@@ -122,17 +122,19 @@ def evaluate_constitutive(
 
 
 @wp.kernel
-def reset_bounds(out: wp.array(dtype=wp.vec3)):  # [2] out: +inf, -inf, for ``bounds``
-    out[0] = wp.vec3(wp.inf)
-    out[1] = wp.vec3(-wp.inf)
+def reset_bounds(out: wp.array(dtype=wp.vec3), row: int):  # [2 rows] out: +inf, -inf, for ``bounds``
+    out[2 * row] = wp.vec3(wp.inf)
+    out[2 * row + 1] = wp.vec3(-wp.inf)
 
 
 @wp.kernel
 def bounds(
     x: wp.array(dtype=wp.vec3),  # [P] m
-    out: wp.array(dtype=wp.vec3),  # [2] in/out: running min and max (preset by ``reset_bounds``)
+    first: int,  # the launch covers particles first, first + 1, ...
+    out: wp.array(dtype=wp.vec3),  # [2 rows] in/out: row's running min and max (preset by ``reset_bounds``)
+    row: int,
 ):
-    """Bounding box of the particles (atomic min / max)."""
-    p = wp.tid()
-    wp.atomic_min(out, 0, x[p])
-    wp.atomic_max(out, 1, x[p])
+    """Bounding box of a range of particles (atomic min / max)."""
+    p = first + wp.tid()
+    wp.atomic_min(out, 2 * row, x[p])
+    wp.atomic_max(out, 2 * row + 1, x[p])

@@ -48,14 +48,21 @@ class SubstepStats:
 
     @classmethod
     def reduce(cls, rows: np.ndarray) -> SubstepStats:  # rows [threads, STATS_ROW], one per thread
+        # Python over the few values: numpy's reductions cost more per call than the data here
+        # (the solver reads these after every replay). A NaN in a column propagates.
+        cols = list(zip(*rows[:, : K.NUM_STATS].tolist(), strict=True))
+
+        def most(xs, pick):
+            return math.nan if any(x != x for x in xs) else pick(xs)
+
         return cls(
-            max_speed=math.sqrt(max(float(rows[:, K.STAT_VMAX].max()), 0.0)),  # the kernel keeps |v|^2
-            j_min=float(rows[:, K.STAT_JMIN].min()),
-            j_max=float(rows[:, K.STAT_JMAX].max()),
-            bad=int(rows[:, K.STAT_BAD].sum()),
-            escaped=int(rows[:, K.STAT_ESCAPED].sum()),
-            overrun=int(rows[:, K.STAT_OVERRUN].sum()),
-            floor_hits=int(rows[:, K.STAT_FLOOR].sum()),
+            max_speed=math.sqrt(max(most(cols[K.STAT_VMAX], max), 0.0)),  # the kernel keeps |v|^2
+            j_min=most(cols[K.STAT_JMIN], min),
+            j_max=most(cols[K.STAT_JMAX], max),
+            bad=int(sum(cols[K.STAT_BAD])),
+            escaped=int(sum(cols[K.STAT_ESCAPED])),
+            overrun=int(sum(cols[K.STAT_OVERRUN])),
+            floor_hits=int(sum(cols[K.STAT_FLOOR])),
         )
 
     @property
@@ -188,15 +195,23 @@ class MPMSolver:
         # Recorded once: a re-fit every cfl_check_every sub-steps is a visible share of a small
         # sub-step's fixed cost (docs/measurements.md).
         self._bounds_launches = [
-            wp.launch(ops.reset_bounds, 1, [self._bounds], device=dev, record_cmd=True),
+            wp.launch(ops.reset_bounds, 1, [self._bounds, 0], device=dev, record_cmd=True),
             wp.launch(
-                ops.bounds, self.num_particles, [self.particles.x, self._bounds], device=dev, record_cmd=True
+                ops.bounds,
+                self.num_particles,
+                [self.particles.x, 0, self._bounds, 0],
+                device=dev,
+                record_cmd=True,
             ),
         ]
         self._observed = wp.zeros(4, dtype=wp.float64, device=dev)
         self._dynamic = [*self.particles.dynamic, self.arrays.work, self._walls.impulse]
         self._backup = [wp.empty_like(a) for a in self._dynamic]
         self.active_box = (np.zeros(3, int), np.array(res) - 1)  # node index range grid_update covers
+        # On the CPU, numpy views of the arrays the host reads after every replay (a view costs
+        # ~5 us to make); a GPU array is copied each time.
+        self._bounds_view = self._bounds.numpy() if dev.is_cpu else None
+        self._stats_view = self.arrays.stats.numpy() if dev.is_cpu else None
 
     def _fit_active(self, dt: float, stats_read: bool = False) -> None:
         """Limit grid_update to the nodes particles can reach in the next ``cfl_check_every`` steps.
@@ -205,24 +220,33 @@ class MPMSolver:
         """
         g, cfg = self.grid, self.config
         self._since_fit = 0
-        for launch in self._bounds_launches:
-            launch.launch()
-        b = self._bounds.numpy().astype(np.float64)
+        box = self._launches.replay_bounds()
+        if box is None:
+            for launch in self._bounds_launches:
+                launch.launch()
+            box = (self._bounds_view if self.device.is_cpu else self._bounds.numpy()).tolist()
+        b_lo, b_hi = box
         vmax = self._vmax
         if not stats_read:
             seen = self._read_stats().max_speed
             vmax = max(self._vmax, seen) if math.isfinite(seen) else self._vmax
         reach = 2.0 * vmax * dt * cfg.cfl_check_every + 3.0 * g.dx  # doubled speed, 3-cell stencil pad
-        origin, res = np.asarray(g.origin), np.asarray(g.res)
-        lo = np.clip(np.floor((b[0] - reach - origin) / g.dx).astype(int), 0, res - 1)
-        hi = np.clip(np.ceil((b[1] + reach - origin) / g.dx).astype(int), 0, res - 1)
-        lo, hi = self._walls.widen_active(lo, hi)
+        # Three axes in Python floats: numpy's per-call cost on 3-vectors was ~65 us a re-fit, a
+        # visible share of a 16-sub-step replay (docs/measurements_sim.md section 24).
+        lo, hi, inner_lo, inner_hi = [], [], [], []
+        for a in range(3):
+            o, top = float(g.origin[a]), int(g.res[a]) - 1
+            lo.append(min(max(math.floor((b_lo[a] - reach - o) / g.dx), 0), top))
+            hi.append(min(max(math.ceil((b_hi[a] + reach - o) / g.dx), 0), top))
+        lo, hi = np.array(lo), np.array(hi)
+        if self._walls.periodic:
+            lo, hi = self._walls.widen_active(lo, hi)
+        for a in range(3):
+            o, top = float(g.origin[a]), int(g.res[a]) - 1
+            # Faces on the grid boundary never need a guard: the domain clamp holds particles there.
+            inner_lo.append(-math.inf if lo[a] == 0 else o + int(lo[a]) * g.dx + 1.5 * g.dx)
+            inner_hi.append(math.inf if hi[a] == top else o + int(hi[a]) * g.dx - 1.5 * g.dx)
         self.active_box = (lo, hi)
-        inner_lo = origin + lo * g.dx + 1.5 * g.dx
-        inner_hi = origin + hi * g.dx - 1.5 * g.dx
-        # Faces on the grid boundary never need a guard: the domain clamp holds particles there.
-        inner_lo = np.where(lo == 0, -np.inf, inner_lo)
-        inner_hi = np.where(hi == res - 1, np.inf, inner_hi)
         self._launches.set_active_box(lo, hi, inner_lo, inner_hi)
 
     # ----------------------------------------------------------------------------- stepping
@@ -325,7 +349,8 @@ class MPMSolver:
         return cfl * self.grid.dx / (self._c_max + self._vmax)
 
     def _read_stats(self) -> SubstepStats:
-        return SubstepStats.reduce(self.arrays.stats.numpy()[: self.threads])
+        rows = self._stats_view if self.device.is_cpu else self.arrays.stats.numpy()
+        return SubstepStats.reduce(rows[: self.threads])
 
     def _advance(self, frame_dt: float, cfl: float) -> tuple[int, float, float, SubstepStats]:
         """Sub-step through one frame; returns (sub-steps, dt_min, dt_max, stats)."""
