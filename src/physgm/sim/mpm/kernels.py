@@ -136,7 +136,11 @@ def scatter_particle(
     """
     inv_dx = 1.0 / dx
     base, fx, w = stencil((xp - origin) * inv_dx, shape)
-    touched[base[0] // BLOCK, base[1] // BLOCK, base[2] // BLOCK] = stamp
+    bi, bj, bk = base[0] // BLOCK, base[1] // BLOCK, base[2] // BLOCK
+    # Written only when it changes: the two threads' particles share the array's few cache lines,
+    # and a store from every particle made each thread take the lines from the other.
+    if touched[bi, bj, bk] != stamp:
+        touched[bi, bj, bk] = stamp
     force = -(4.0 * inv_dx * inv_dx) * stress_p
     affine = m * cp
     q = m * vp - affine * (fx * dx)
