@@ -104,6 +104,21 @@ def test_the_surface_term_trains_and_validates_end_to_end(tiny_dataset, tmp_path
         run(compose_train([*overrides, "data.surface_points=0", "trainer.max_steps=1"]))
 
 
+def test_the_perceptual_term_on_the_frozen_mobilenet_trains_without_a_backbone_file(tiny_dataset, tmp_path):
+    """The paper's LPIPS term on the CPU: ``lpips_net=mobilenet`` needs no torchvision file."""
+    overrides = [
+        "experiment=tiny_cpu",
+        *tiny_overrides(tiny_dataset, tmp_path / "run"),
+        "stage.loss.lpips=0.5",
+        "stage.loss.lpips_net=mobilenet",
+        "trainer.max_steps=2",
+        "trainer.val_check_interval=2",
+        "trainer.limit_val_batches=1",
+    ]
+    metrics = run(compose_train(overrides))
+    assert metrics["train/lpips"] > 0 and torch.isfinite(torch.tensor(metrics["train/loss"]))
+
+
 def test_resume_continues_step_count_and_checkpoint_predicts_the_same(tiny_dataset, tmp_path):
     out = tmp_path / "run"
     base = [

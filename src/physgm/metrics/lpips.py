@@ -3,7 +3,8 @@
 The package ships its small linear heads but downloads the torchvision backbone on first use;
 physgm never downloads. The backbone comes from ``backbone_path`` or torchvision's usual cache
 file, and a missing file stops with a message saying where to put it or how to switch LPIPS off,
-never a silently random backbone.
+never a silently random backbone. ``net="mobilenet"`` needs no file beyond the CPU model's own
+encoder: LPIPS's baseline recipe on the frozen MobileNetV2 (``physgm.metrics.perceptual``).
 """
 
 from __future__ import annotations
@@ -27,15 +28,20 @@ def load_lpips(net: str = "alex", backbone_path: str | Path | None = None) -> nn
     """An LPIPS network in eval mode with frozen weights.
 
     Args:
-        net: "alex" or "vgg".
-        backbone_path: torchvision ImageNet weights of that network; default: torchvision's cache.
+        net: "alex" or "vgg" (the ``lpips`` package's), or "mobilenet" (``FeatureDistance``).
+        backbone_path: torchvision ImageNet weights of that network; default: torchvision's cache
+            (for "mobilenet", the file the weights package ships).
     Raises:
         FileNotFoundError: the backbone file is not on disk (the message says what to do).
     """
+    if net == "mobilenet":
+        from physgm.metrics.perceptual import FeatureDistance
+
+        return FeatureDistance(None if backbone_path is None else str(backbone_path)).eval()
     import lpips
 
     if net not in BACKBONE_FILES:
-        raise ValueError(f"LPIPS net must be one of {sorted(BACKBONE_FILES)}, got {net!r}")
+        raise ValueError(f"LPIPS net must be one of {[*sorted(BACKBONE_FILES), 'mobilenet']}, got {net!r}")
     path = Path(backbone_path) if backbone_path else default_backbone_path(net)
     if not path.is_file():
         raise FileNotFoundError(

@@ -1,11 +1,15 @@
-"""A perceptual distance between two clips: deep-feature differences of a frozen ImageNet network.
+"""A perceptual distance from deep-feature differences of a frozen ImageNet network.
 
 LPIPS's recipe without its learned per-channel weights (the "baseline" variant of Zhang et al.
 2018): each of the frozen MobileNetV2's stride-4, -8 and -16 feature maps is normalised to unit
 length per pixel over its channels, the squared differences are summed over channels, averaged
-over pixels, then over levels and frames. The network is the one the CPU model already uses
+over pixels, then over levels. The network is the one the CPU model already uses
 (``physgm.model.cnn_encoder``, weights from a local package file), so nothing is downloaded; LPIPS
 itself needs a torchvision backbone file this project does not ship.
+
+Two uses: ``perceptual_distance`` between two clips (the DPO ablation's second metric), and
+``FeatureDistance``, differentiable in its first argument, as the training loss's LPIPS term
+(``stage.loss.lpips_net=mobilenet``, through ``physgm.metrics.lpips.load_lpips``).
 """
 
 from __future__ import annotations
@@ -13,25 +17,46 @@ from __future__ import annotations
 import numpy as np
 import torch
 import torch.nn.functional as F
+from torch import Tensor, nn
 
-_ENCODER: list = []  # one frozen encoder per process, built on first use
 LEVELS = ("s4", "s8", "s16")
+STRIDE = 16  # the deepest level's: image sizes must be its multiples
 
 
-def _encoder():
-    if not _ENCODER:
+class FeatureDistance(nn.Module):
+    """Per-image distance between images [N, 3, H, W] (H, W multiples of 16), frozen weights.
+
+    Called as ``lpips.LPIPS`` is: ``normalize=True`` for images in [0, 1], False for [-1, 1].
+
+    Args:
+        weights: a MobileNetV2 state dict file; default: the one the weights package ships.
+    """
+
+    def __init__(self, weights: str | None = None) -> None:
+        super().__init__()
         from physgm.model.cnn_encoder import MobileNetEncoder
 
-        _ENCODER.append(MobileNetEncoder())
-    return _ENCODER[0]
+        self.encoder = MobileNetEncoder(weights)
+
+    def forward(self, pred: Tensor, target: Tensor, normalize: bool = True) -> Tensor:  # [N]
+        if pred.shape != target.shape:
+            raise ValueError(
+                f"images to compare must have one shape, got {tuple(pred.shape)} and {tuple(target.shape)}"
+            )
+        h, w = pred.shape[-2:]
+        if h % STRIDE or w % STRIDE:
+            raise ValueError(f"image size {h}x{w} must be a multiple of {STRIDE} for the perceptual distance")
+        if not normalize:
+            pred, target = (pred + 1) / 2, (target + 1) / 2
+        a = self.encoder.pyramid(pred, last=LEVELS[-1])
+        with torch.no_grad():
+            b = self.encoder.pyramid(target, last=LEVELS[-1])
+        unit = {n: (F.normalize(a[n], dim=1, eps=1e-8), F.normalize(b[n], dim=1, eps=1e-8)) for n in LEVELS}
+        per_level = [((x - y) ** 2).sum(1).mean((1, 2)) for x, y in unit.values()]
+        return torch.stack(per_level).mean(0)
 
 
-def _features(frames: np.ndarray, size: int) -> list[torch.Tensor]:  # per level [T, C, h, w]
-    x = torch.from_numpy(np.ascontiguousarray(frames)).permute(0, 3, 1, 2).float() / 255.0
-    if x.shape[-1] != size or x.shape[-2] != size:
-        x = F.interpolate(x, size=(size, size), mode="area")
-    feats = _encoder().encode(x)
-    return [F.normalize(getattr(feats, name), dim=1, eps=1e-8) for name in LEVELS]
+_MODULE: list[FeatureDistance] = []  # one frozen network per process for the clip distance
 
 
 def perceptual_distance(
@@ -40,8 +65,13 @@ def perceptual_distance(
     size: int = 64,  # px, square; a multiple of 32
 ) -> float:
     """Mean feature distance over the frames both clips have (0: identical; about 0.1-1 for unlike images)."""
+    if not _MODULE:
+        _MODULE.append(FeatureDistance().eval())
     n = min(len(reference), len(candidate))
+
+    def frames(clip: np.ndarray) -> Tensor:
+        x = torch.from_numpy(np.ascontiguousarray(clip[:n])).permute(0, 3, 1, 2).float() / 255.0
+        return F.interpolate(x, size=(size, size), mode="area") if x.shape[-2:] != (size, size) else x
+
     with torch.no_grad():
-        ref, cand = _features(reference[:n], size), _features(candidate[:n], size)
-        per_level = [((a - b) ** 2).sum(1).mean() for a, b in zip(ref, cand, strict=True)]
-    return float(torch.stack(per_level).mean())
+        return float(_MODULE[0](frames(candidate), frames(reference)).mean())

@@ -114,13 +114,7 @@ class MobileNetEncoder(nn.Module):
             raise ValueError(
                 f"image size {h}x{w} must be a multiple of 32 for the MobileNetV2 encoder; resize the views"
             )
-        x = (images - self.mean) / self.std
-        out = {}
-        for i, block in enumerate(self.features):
-            x = block(x)
-            for name, end in _LEVEL_END.items():
-                if i == end:
-                    out[name] = x
+        out = self.pyramid(images)
         if classifier_images is not None and classifier_images.shape[0] != images.shape[0]:
             raise ValueError(
                 f"classifier_images holds {classifier_images.shape[0]} views but images holds "
@@ -128,6 +122,18 @@ class MobileNetEncoder(nn.Module):
             )
         logits = self.classify(images if classifier_images is None else classifier_images)
         return ImageFeatures(**out, imagenet_logits=logits)
+
+    def pyramid(self, images: Tensor, last: str = "s32") -> dict[str, Tensor]:
+        """The feature maps at strides 4 up to ``last`` of RGB images [B', 3, H, W] in [0, 1]
+        (H and W multiples of the last stride); differentiable in the images (a perceptual loss)."""
+        x = (images - self.mean) / self.std
+        out = {}
+        for i, block in enumerate(self.features[: _LEVEL_END[last] + 1]):
+            x = block(x)
+            for name, end in _LEVEL_END.items():
+                if i == end:
+                    out[name] = x
+        return out
 
     @torch.no_grad()
     def classify(

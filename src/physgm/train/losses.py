@@ -33,7 +33,7 @@ class PretrainLossConfig:
     # weight of the global tokens' relative squared distance to a frozen copy of the starting
     # model's (``token_anchor``): keeps the physics while stage.trainable=geometry trains the backbone
     anchor: float = 0.0
-    lpips_net: str = "alex"  # LPIPS backbone: alex or vgg
+    lpips_net: str = "alex"  # alex or vgg (the lpips package), mobilenet (physgm.metrics.perceptual)
     lpips_backbone_path: str | None = None  # local torchvision weights; default torchvision's cache
 
     def __post_init__(self) -> None:
