@@ -9,6 +9,7 @@ from hydra.core.global_hydra import GlobalHydra
 
 from physgm.data.datamodule import PhysAssetsDataModule
 from physgm.data.format import read_split
+from physgm.metrics.lpips import load_lpips
 from physgm.model.checkpoint import load_model
 from physgm.train.evaluate import evaluate_views, main
 from physgm.train.pretrain import LitPretrain, render_targets
@@ -40,6 +41,8 @@ def test_evaluate_reports_both_view_counts_and_matches_a_hand_computation(tiny_d
                 "train",
                 "--num-targets",
                 "5",
+                "--lpips-net",
+                "mobilenet",
                 "--out",
                 str(out),
             ]
@@ -47,6 +50,7 @@ def test_evaluate_reports_both_view_counts_and_matches_a_hand_computation(tiny_d
         == 0
     )
     report = json.loads(capsys.readouterr().out)
+    assert report["lpips_net"] == "mobilenet"
     assert json.loads(out.read_text()) == report
     n = len(read_split(tiny_dataset, "train"))
     for key in ("views1", "views4"):
@@ -68,7 +72,8 @@ def test_evaluate_reports_both_view_counts_and_matches_a_hand_computation(tiny_d
         target_resolution=32,
         test_split="train",
     )
-    psnrs, psnrs_inputs, opacities = [], [], []
+    psnrs, psnrs_inputs, opacities, perceptual = [], [], [], []
+    feature_distance = load_lpips("mobilenet")
     outside_error, all_error, outside_alpha = [], [], []
     with torch.no_grad():
         for batch in dm.test_dataloader():
@@ -85,10 +90,16 @@ def test_evaluate_reports_both_view_counts_and_matches_a_hand_computation(tiny_d
             psnrs.append(-10 * torch.log10(mse[:, 4:]).flatten())
             psnrs_inputs.append(-10 * torch.log10(mse[:, :4]).flatten())
             opacities.append(out_.gaussians.opacities[out_.gaussians.valid])
+            perceptual.append(
+                feature_distance(
+                    rendered[:, 4:].flatten(0, 1), batch.target_images[:, 4:].flatten(0, 1), normalize=True
+                )
+            )
     # different batching and renderer
     assert abs(float(torch.cat(psnrs).mean()) - report["views4"]["psnr"]) < 1e-3
     assert abs(float(torch.cat(psnrs_inputs).mean()) - report["views4"]["psnr_inputs"]) < 1e-3
     assert abs(float(torch.cat(opacities).median()) - report["views4"]["opacity_median"]) < 1e-5
+    assert abs(float(torch.cat(perceptual).mean()) - report["views4"]["lpips"]) < 1e-3
     share = float(torch.cat(outside_error).sum() / torch.cat(all_error).sum())
     assert 0 < share < 1 and abs(share - report["views4"]["error_outside_mask"]) < 1e-3
     assert abs(float(torch.cat(outside_alpha).mean()) - report["views4"]["alpha_outside_mask"]) < 1e-3

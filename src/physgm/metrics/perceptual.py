@@ -26,7 +26,7 @@ STRIDE = 16  # the deepest level's: image sizes must be its multiples
 class FeatureDistance(nn.Module):
     """Per-image distance between images [N, 3, H, W] (H, W multiples of 16), frozen weights.
 
-    Called as ``lpips.LPIPS`` is: ``normalize=True`` for images in [0, 1], False for [-1, 1].
+    Called as ``lpips.LPIPS`` is: images in [-1, 1], or in [0, 1] with ``normalize=True``.
 
     Args:
         weights: a MobileNetV2 state dict file; default: the one the weights package ships.
@@ -38,7 +38,7 @@ class FeatureDistance(nn.Module):
 
         self.encoder = MobileNetEncoder(weights)
 
-    def forward(self, pred: Tensor, target: Tensor, normalize: bool = True) -> Tensor:  # [N]
+    def forward(self, pred: Tensor, target: Tensor, normalize: bool = False) -> Tensor:  # [N]
         if pred.shape != target.shape:
             raise ValueError(
                 f"images to compare must have one shape, got {tuple(pred.shape)} and {tuple(target.shape)}"
@@ -74,4 +74,4 @@ def perceptual_distance(
         return F.interpolate(x, size=(size, size), mode="area") if x.shape[-2:] != (size, size) else x
 
     with torch.no_grad():
-        return float(_MODULE[0](frames(candidate), frames(reference)).mean())
+        return float(_MODULE[0](frames(candidate), frames(reference), normalize=True).mean())

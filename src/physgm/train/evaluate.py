@@ -240,6 +240,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--lpips-backbone", default=None, help="local LPIPS backbone file; adds LPIPS (see README)"
     )
+    p.add_argument(
+        "--lpips-net",
+        default=None,
+        choices=["alex", "vgg", "mobilenet"],
+        help="adds LPIPS with this network (default alex when --lpips-backbone is given); mobilenet "
+        "needs no file: the baseline recipe on the frozen encoder (physgm.metrics.perceptual)",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the fixed evaluation views")
     p.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     p.add_argument(
@@ -270,11 +277,11 @@ def main(argv: list[str] | None = None) -> int:
     sweep = tuple(float(w) for w in a.prior_sweep.split(",") if w.strip())
     renderer = checkpoint_renderer(ckpt.hparams)
     res = model.config.backbone.encoder.img_size
-    lpips_model = None
-    if a.lpips_backbone:
+    lpips_model, lpips_net = None, a.lpips_net or ("alex" if a.lpips_backbone else None)
+    if lpips_net is not None:
         from physgm.metrics.lpips import load_lpips
 
-        lpips_model = load_lpips("alex", a.lpips_backbone)
+        lpips_model = load_lpips(lpips_net, a.lpips_backbone)
     report = {
         "ckpt": a.ckpt,
         "data": a.data,
@@ -283,6 +290,7 @@ def main(argv: list[str] | None = None) -> int:
         "target_resolution": a.resolution or res,
         "num_targets": a.num_targets,
         "prior_temperature": model.config.physics_head.semantic_prior_temperature,
+        "lpips_net": lpips_net,
     }
     start = time.perf_counter()
     for v in views:
