@@ -1,8 +1,10 @@
+import numpy as np
 import pytest
 import torch
 import torchvision
 
 from physgm.metrics.lpips import load_lpips, lpips_distance
+from physgm.metrics.perceptual import perceptual_distance
 
 
 def test_missing_backbone_says_what_to_do(tmp_path):
@@ -33,10 +35,6 @@ def test_mobilenet_perceptual_needs_no_file_and_has_a_gradient_for_the_predictio
     """``net="mobilenet"``: LPIPS's baseline recipe on the CPU model's frozen encoder, the same
     numbers as the clip distance of ``physgm.metrics.perceptual``, and a loss the renders can
     train against."""
-    import numpy as np
-
-    from physgm.metrics.perceptual import perceptual_distance
-
     model = load_lpips("mobilenet")
     assert not any(p.requires_grad for p in model.parameters())
     torch.manual_seed(0)

@@ -62,7 +62,7 @@ _MODULE: list[FeatureDistance] = []  # one frozen network per process for the cl
 def perceptual_distance(
     reference: np.ndarray,  # [T, H, W, 3] uint8
     candidate: np.ndarray,  # [T', H', W', 3] uint8 (resized to the common size)
-    size: int = 64,  # px, square; a multiple of 32
+    size: int = 64,  # px, square; a multiple of 16
 ) -> float:
     """Mean feature distance over the frames both clips have (0: identical; about 0.1-1 for unlike images)."""
     if not _MODULE:
