@@ -87,16 +87,22 @@ def test_fast_dev_run_every_experiment(experiment, tiny_dataset, tmp_path):
     assert torch.isfinite(torch.tensor(metrics["train/loss"]))
 
 
-def test_the_surface_term_trains_and_validates_end_to_end(tiny_dataset, tmp_path):
-    overrides = [
+def two_steps_with(root: Path, out: Path, *term: str) -> list[str]:
+    """A two-step tiny_cpu run with one validation batch, plus the overrides that turn a loss term on."""
+    return [
         "experiment=tiny_cpu",
-        *tiny_overrides(tiny_dataset, tmp_path / "run"),
-        "data.surface_points=32",
-        "stage.loss.surface=1.0",
+        *tiny_overrides(root, out),
+        *term,
         "trainer.max_steps=2",
         "trainer.val_check_interval=2",
         "trainer.limit_val_batches=1",
     ]
+
+
+def test_the_surface_term_trains_and_validates_end_to_end(tiny_dataset, tmp_path):
+    overrides = two_steps_with(
+        tiny_dataset, tmp_path / "run", "data.surface_points=32", "stage.loss.surface=1.0"
+    )
     metrics = run(compose_train(overrides))
     assert metrics["train/surface"] > 0 and torch.isfinite(torch.tensor(metrics["train/loss"]))
     # the weight without the points is a clear error, not a silent zero
@@ -106,15 +112,9 @@ def test_the_surface_term_trains_and_validates_end_to_end(tiny_dataset, tmp_path
 
 def test_the_perceptual_term_on_the_frozen_mobilenet_trains_without_a_backbone_file(tiny_dataset, tmp_path):
     """The paper's LPIPS term on the CPU: ``lpips_net=mobilenet`` needs no torchvision file."""
-    overrides = [
-        "experiment=tiny_cpu",
-        *tiny_overrides(tiny_dataset, tmp_path / "run"),
-        "stage.loss.lpips=0.5",
-        "stage.loss.lpips_net=mobilenet",
-        "trainer.max_steps=2",
-        "trainer.val_check_interval=2",
-        "trainer.limit_val_batches=1",
-    ]
+    overrides = two_steps_with(
+        tiny_dataset, tmp_path / "run", "stage.loss.lpips=0.5", "stage.loss.lpips_net=mobilenet"
+    )
     metrics = run(compose_train(overrides))
     assert metrics["train/lpips"] > 0 and torch.isfinite(torch.tensor(metrics["train/loss"]))
 

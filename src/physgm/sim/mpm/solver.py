@@ -233,19 +233,20 @@ class MPMSolver:
         reach = 2.0 * vmax * dt * cfg.cfl_check_every + 3.0 * g.dx  # doubled speed, 3-cell stencil pad
         # Three axes in Python floats: numpy's per-call cost on 3-vectors was ~65 us a re-fit, a
         # visible share of a 16-sub-step replay (docs/measurements_sim.md section 24).
-        lo, hi, inner_lo, inner_hi = [], [], [], []
-        for a in range(3):
-            o, top = float(g.origin[a]), int(g.res[a]) - 1
-            lo.append(min(max(math.floor((b_lo[a] - reach - o) / g.dx), 0), top))
-            hi.append(min(max(math.ceil((b_hi[a] + reach - o) / g.dx), 0), top))
-        lo, hi = np.array(lo), np.array(hi)
+        origin, top = [float(o) for o in g.origin], [int(r) - 1 for r in g.res]
+        lo = np.array(
+            [min(max(math.floor((b_lo[a] - reach - origin[a]) / g.dx), 0), top[a]) for a in range(3)]
+        )
+        hi = np.array(
+            [min(max(math.ceil((b_hi[a] + reach - origin[a]) / g.dx), 0), top[a]) for a in range(3)]
+        )
         if self._walls.periodic:
             lo, hi = self._walls.widen_active(lo, hi)
-        for a in range(3):
-            o, top = float(g.origin[a]), int(g.res[a]) - 1
-            # Faces on the grid boundary never need a guard: the domain clamp holds particles there.
-            inner_lo.append(-math.inf if lo[a] == 0 else o + int(lo[a]) * g.dx + 1.5 * g.dx)
-            inner_hi.append(math.inf if hi[a] == top else o + int(hi[a]) * g.dx - 1.5 * g.dx)
+        # Faces on the grid boundary never need a guard: the domain clamp holds particles there.
+        inner_lo = [-math.inf if lo[a] == 0 else origin[a] + int(lo[a]) * g.dx + 1.5 * g.dx for a in range(3)]
+        inner_hi = [
+            math.inf if hi[a] == top[a] else origin[a] + int(hi[a]) * g.dx - 1.5 * g.dx for a in range(3)
+        ]
         self.active_box = (lo, hi)
         self._launches.set_active_box(lo, hi, inner_lo, inner_hi)
 
