@@ -20,7 +20,7 @@ from physgm.model.posterior import PhysicsPosterior, PhysicsSample
 @dataclass
 class PretrainLossConfig:
     mse: float = 1.0  # weight of the RGB mean squared error
-    lpips: float = 0.0  # weight of LPIPS (paper 0.5); needs the backbone file, see physgm.metrics.lpips
+    lpips: float = 0.0  # weight of LPIPS (paper 0.5); its network: lpips_net (physgm.metrics.lpips)
     alpha: float = 1.0  # weight of the MSE between rendered alpha and the object mask
     ce: float = 0.1  # weight of the material cross-entropy against the annotation
     nll: float = 0.1  # weight of the Gaussian NLL of the annotated (log10 E, nu)
