@@ -316,6 +316,41 @@ def test_training_moves_only_the_physics_head_and_never_the_reference(tmp_path):
         assert torch.equal(v, ref_before[k])
 
 
+def test_a_part_of_the_physics_head_trains_alone(tmp_path):
+    torch.set_num_threads(1)
+    PairsDPO.pairs = fake_pairs()
+    lit = PairsDPO(
+        init_ckpt=stage1_checkpoint(tmp_path / "s1.ckpt"),
+        optim={"lr": 3e-3, "warmup_steps": 1},
+        trainable="physics_head.young.3",
+    )
+    before = copy.deepcopy(lit.model.state_dict())
+    trainer = L.Trainer(
+        max_steps=3,
+        accelerator="cpu",
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        default_root_dir=tmp_path,
+    )
+    trainer.fit(lit)
+    in_opt = {id(p) for g in trainer.optimizers[0].param_groups for p in g["params"]}
+    assert in_opt == {id(p) for p in lit.model.physics_head.young[3].parameters()}
+    after = lit.model.state_dict()
+    moved = {k for k in after if not torch.equal(after[k], before[k])}
+    assert moved == {"physics_head.young.3.weight", "physics_head.young.3.bias"}
+    assert trainer.callback_metrics["rewards/margins"] > 0  # E's readout alone still learns the pairs
+
+
+def test_trainable_names_a_part_of_the_physics_head(tmp_path):
+    s1 = stage1_checkpoint(tmp_path / "s1.ckpt")
+    with pytest.raises(ValueError, match="starts with physics_head"):
+        LitDPO(init_ckpt=s1, trainable="backbone")
+    with pytest.raises(ValueError, match=r"physics_head\.\{.*young"):
+        LitDPO(init_ckpt=s1, trainable="physics_head.stiffness")
+
+
 def test_dpo_checkpoint_loads_without_the_stage1_file(tmp_path):
     s1 = stage1_checkpoint(tmp_path / "s1.ckpt")
     lit = LitDPO(init_ckpt=s1)

@@ -145,6 +145,9 @@ class LitDPO(L.LightningModule):
         prior_weight: the semantic prior weight w of the policy and the reference; None keeps the
             stage-1 checkpoint's. Procedural scenes need 0: their ImageNet classes say nothing about
             the material, so the prior a shipped model carries for real photos would pick it.
+        trainable: the part of the physics head that trains, a submodule path of the model
+            (``physics_head``, ``physics_head.young``, ``physics_head.young.3``, ...); the rest of
+            the head stays frozen with the backbone and the Gaussian head.
         format_version: checkpoint layout version (``physgm.CHECKPOINT_FORMAT_VERSION``), checked on load.
     """
 
@@ -157,6 +160,7 @@ class LitDPO(L.LightningModule):
         total_steps: int = 1000,
         inputs: dict[str, Any] | None = None,
         prior_weight: float | None = None,
+        trainable: str = "physics_head",
         format_version: int = CHECKPOINT_FORMAT_VERSION,
     ) -> None:
         super().__init__()
@@ -187,6 +191,8 @@ class LitDPO(L.LightningModule):
             self._reference.append(freeze(copy.deepcopy(self.model)))
         freeze(self.model.backbone)
         freeze(self.model.gaussian_head)
+        self.model.physics_head.requires_grad_(False)
+        trained_part(self.model, trainable).requires_grad_(True)
         # scene id -> what the frozen parts hand the physics head and its fusion (not saved)
         self._head_inputs: dict[str, HeadInputs] = {}
         self.loss_cfg = DPOLossConfig(**(loss or {}))
@@ -217,9 +223,8 @@ class LitDPO(L.LightningModule):
             self.reference  # noqa: B018 - fail before any rollout when the reference is missing
 
     def configure_optimizers(self):
-        opt, sched = build_optimizer(
-            self.model.physics_head.named_parameters(), self.optim_cfg, self.total_steps
-        )
+        trained = ((n, p) for n, p in self.model.physics_head.named_parameters() if p.requires_grad)
+        opt, sched = build_optimizer(trained, self.optim_cfg, self.total_steps)
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
 
     def train_dataloader(self):
@@ -343,6 +348,27 @@ class LitDPO(L.LightningModule):
             raise RuntimeError(f"DPO checkpoints hold only the policy (model.*); found {stray[:5]}")
 
 
+def trained_part(model: PhysGM, path: str) -> torch.nn.Module:
+    """The submodule of ``model`` at ``path`` that stage 2 trains: the physics head or a part of it.
+
+    Only the physics head may train: the backbone, the Gaussian head and the gate feed it inputs
+    that are computed once per scene and shared with the frozen reference (``LitDPO.head_inputs``).
+    """
+    if path != "physics_head" and not path.startswith("physics_head."):
+        raise ValueError(
+            f"stage.trainable={path!r}: stage 2 trains the physics head or a part of it, a path that "
+            "starts with physics_head (physics_head, physics_head.young, physics_head.young.3, ...)"
+        )
+    try:
+        return model.get_submodule(path)
+    except AttributeError:
+        parts = [n for n, _ in model.physics_head.named_modules() if n]
+        raise ValueError(
+            f"stage.trainable={path!r} is not a part of this model's physics head; its parts: "
+            f"physics_head.{{{', '.join(parts)}}}"
+        ) from None
+
+
 def _merge_overrides(cfg, key: str, overrides) -> None:
     """Merge ``stage.<key>`` over the top-level group ``<key>`` (only nodes that exist there)."""
     from omegaconf import OmegaConf, open_dict
@@ -412,6 +438,7 @@ def fit(cfg) -> dict[str, float]:
         total_steps=int(total),
         inputs=inputs,
         prior_weight=stage.get("prior_weight"),
+        trainable=stage.get("trainable", "physics_head"),
     )
     trainer.fit(module, ckpt_path=cfg.get("ckpt_path"))
     return {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
