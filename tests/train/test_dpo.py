@@ -13,8 +13,8 @@ from torch.utils.data import DataLoader
 from physgm.cameras import orbit_cameras
 from physgm.model import BackboneConfig, EncoderConfig, GaussianHeadConfig, PhysGMConfig
 from physgm.model.checkpoint import load_model
-from physgm.model.posterior import PhysicsPosterior
-from physgm.train.dpo import DPOLossConfig, LitDPO, dpo_loss, posterior_kl
+from physgm.model.posterior import PhysicsPosterior, material_E_ranges
+from physgm.train.dpo import DPOLossConfig, LitDPO, dpo_loss, log10_E_shift, posterior_kl
 from physgm.train.pairs import Candidate, PairDataset, SceneInputs, SceneRecord, collate_pairs
 from physgm.train.pretrain import LitPretrain
 
@@ -132,6 +132,19 @@ def test_analytic_kl_matches_torch_distributions():
     )
     torch.testing.assert_close(posterior_kl(p, q), expected)
     assert posterior_kl(p, p).abs().max() < 1e-6
+
+
+def test_the_logged_E_shift_is_in_decades_of_the_simulated_E():
+    jelly = 13  # E range 1e3-1e5 Pa: z = -1 .. 1 is 2 decades
+    logits = torch.full((1, 15), -9.0)
+    logits[0, jelly] = 9.0
+
+    def post(z_E: float) -> PhysicsPosterior:
+        zero = torch.zeros(1)
+        return PhysicsPosterior(logits, torch.tensor([z_E]), zero, zero, zero, material_E_ranges())
+
+    # half a unit of z in jelly's frame is half a decade (not half of the global 8.7-decade frame)
+    assert log10_E_shift(post(0.5), post(0.0)).item() == pytest.approx(0.5, abs=1e-6)
 
 
 def test_reference_is_a_frozen_copy_outside_the_module_tree(tmp_path):

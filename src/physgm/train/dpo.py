@@ -29,7 +29,7 @@ from physgm import CHECKPOINT_FORMAT_VERSION
 from physgm.model.checkpoint import load_model
 from physgm.model.config import PhysGMConfig
 from physgm.model.physgm import PhysGM
-from physgm.model.posterior import LOG10_E_RANGE, PhysicsPosterior
+from physgm.model.posterior import PhysicsPosterior
 from physgm.train.optim import OptimConfig, build_optimizer
 from physgm.train.pairs import DPOBatch
 
@@ -100,6 +100,12 @@ def posterior_kl(p: PhysicsPosterior, q: PhysicsPosterior) -> Tensor:  # [B]
         + gaussian(p.z_E_mean, p.z_E_logvar, q.z_E_mean, q.z_E_logvar)
         + gaussian(p.z_nu_mean, p.z_nu_logvar, q.z_nu_mean, q.z_nu_logvar)
     )
+
+
+def log10_E_shift(policy: PhysicsPosterior, reference: PhysicsPosterior) -> Tensor:  # []
+    """Mean |log10 E| distance, decades, between the E each model would simulate: its posterior
+    mean, read in its most likely material's range when E is relative to the material."""
+    return (policy.log10_E_mean.detach() - reference.log10_E_mean).abs().mean()
 
 
 def freeze(module: torch.nn.Module) -> torch.nn.Module:
@@ -318,11 +324,10 @@ class LitDPO(L.LightningModule):
         batch: DPOBatch,
     ) -> None:
         margins = terms.chosen_rewards - terms.rejected_rewards
-        decades = 0.5 * (LOG10_E_RANGE[1] - LOG10_E_RANGE[0])
         logs = {
             "train/loss": loss.detach(),
             "train/kl": kl.detach().mean(),
-            "train/log10_E_shift": ((policy.z_E_mean.detach() - reference.z_E_mean) * decades).abs().mean(),
+            "train/log10_E_shift": log10_E_shift(policy, reference),
         }
         if len(margins):
             logs.update(
