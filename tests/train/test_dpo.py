@@ -72,6 +72,21 @@ def fake_pairs(n: int = 6, v: int = 2, size: int = 32) -> tuple[list[SceneRecord
     return records, inputs
 
 
+def fit_on_pairs(lit: LitDPO, tmp_path, max_steps: int) -> L.Trainer:
+    """``max_steps`` optimiser steps of ``lit`` on the CPU, nothing written but under tmp_path."""
+    trainer = L.Trainer(
+        max_steps=max_steps,
+        accelerator="cpu",
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        default_root_dir=tmp_path,
+    )
+    trainer.fit(lit)
+    return trainer
+
+
 class PairsDPO(LitDPO):
     """LitDPO fed fixed pairs instead of a rollout callback (this file tests the module, not rollouts)."""
 
@@ -276,16 +291,7 @@ def test_training_moves_only_the_physics_head_and_never_the_reference(tmp_path):
     )
     ref_before = copy.deepcopy(lit.reference.state_dict())
     policy_before = copy.deepcopy(lit.model.state_dict())
-    trainer = L.Trainer(
-        max_steps=4,
-        accelerator="cpu",
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        default_root_dir=tmp_path,
-    )
-    trainer.fit(lit)
+    trainer = fit_on_pairs(lit, tmp_path, max_steps=4)
     opt = trainer.optimizers[0]
     in_opt = {id(p) for g in opt.param_groups for p in g["params"]}
     assert in_opt == {id(p) for p in lit.model.physics_head.parameters()}
@@ -338,16 +344,7 @@ def test_a_part_of_the_physics_head_trains_alone(tmp_path):
         trainable="physics_head.young.3",
     )
     before = copy.deepcopy(lit.model.state_dict())
-    trainer = L.Trainer(
-        max_steps=3,
-        accelerator="cpu",
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        default_root_dir=tmp_path,
-    )
-    trainer.fit(lit)
+    trainer = fit_on_pairs(lit, tmp_path, max_steps=3)
     in_opt = {id(p) for g in trainer.optimizers[0].param_groups for p in g["params"]}
     assert in_opt == {id(p) for p in lit.model.physics_head.young[3].parameters()}
     after = lit.model.state_dict()
