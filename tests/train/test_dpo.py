@@ -14,6 +14,7 @@ from physgm.cameras import orbit_cameras
 from physgm.model import BackboneConfig, EncoderConfig, GaussianHeadConfig, PhysGMConfig
 from physgm.model.checkpoint import load_model
 from physgm.model.posterior import PhysicsPosterior, material_E_ranges
+from physgm.physics.materials import MATERIAL_NAMES
 from physgm.train.dpo import DPOLossConfig, LitDPO, dpo_loss, log10_E_shift, posterior_kl
 from physgm.train.pairs import Candidate, PairDataset, SceneInputs, SceneRecord, collate_pairs
 from physgm.train.pretrain import LitPretrain
@@ -150,9 +151,8 @@ def test_analytic_kl_matches_torch_distributions():
 
 
 def test_the_logged_E_shift_is_in_decades_of_the_simulated_E():
-    jelly = 13  # E range 1e3-1e5 Pa: z = -1 .. 1 is 2 decades
-    logits = torch.full((1, 15), -9.0)
-    logits[0, jelly] = 9.0
+    logits = torch.full((1, len(MATERIAL_NAMES)), -9.0)
+    logits[0, MATERIAL_NAMES.index("jelly")] = 9.0  # E range 1e3-1e5 Pa: z = -1 .. 1 is 2 decades
 
     def post(z_E: float) -> PhysicsPosterior:
         zero = torch.zeros(1)

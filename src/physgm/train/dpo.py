@@ -108,6 +108,27 @@ def log10_E_shift(policy: PhysicsPosterior, reference: PhysicsPosterior) -> Tens
     return (policy.log10_E_mean.detach() - reference.log10_E_mean).abs().mean()
 
 
+def trained_part(model: PhysGM, path: str) -> torch.nn.Module:
+    """The submodule of ``model`` at ``path`` that stage 2 trains: the physics head or a part of it.
+
+    Only the physics head may train: the backbone, the Gaussian head and the gate feed it inputs
+    that are computed once per scene and shared with the frozen reference (``LitDPO.head_inputs``).
+    """
+    if path != "physics_head" and not path.startswith("physics_head."):
+        raise ValueError(
+            f"stage.trainable={path!r}: stage 2 trains the physics head or a part of it, a path that "
+            "starts with physics_head (physics_head, physics_head.young, physics_head.young.3, ...)"
+        )
+    try:
+        return model.get_submodule(path)
+    except AttributeError:
+        parts = [n for n, _ in model.physics_head.named_modules() if n]
+        raise ValueError(
+            f"stage.trainable={path!r} is not a part of this model's physics head; its parts: "
+            f"physics_head.{{{', '.join(parts)}}}"
+        ) from None
+
+
 def freeze(module: torch.nn.Module) -> torch.nn.Module:
     """No gradients and eval mode (dropout off, norms use their statistics)."""
     module.requires_grad_(False)
@@ -351,27 +372,6 @@ class LitDPO(L.LightningModule):
         stray = [k for k in checkpoint["state_dict"] if not k.startswith("model.")]
         if stray:
             raise RuntimeError(f"DPO checkpoints hold only the policy (model.*); found {stray[:5]}")
-
-
-def trained_part(model: PhysGM, path: str) -> torch.nn.Module:
-    """The submodule of ``model`` at ``path`` that stage 2 trains: the physics head or a part of it.
-
-    Only the physics head may train: the backbone, the Gaussian head and the gate feed it inputs
-    that are computed once per scene and shared with the frozen reference (``LitDPO.head_inputs``).
-    """
-    if path != "physics_head" and not path.startswith("physics_head."):
-        raise ValueError(
-            f"stage.trainable={path!r}: stage 2 trains the physics head or a part of it, a path that "
-            "starts with physics_head (physics_head, physics_head.young, physics_head.young.3, ...)"
-        )
-    try:
-        return model.get_submodule(path)
-    except AttributeError:
-        parts = [n for n, _ in model.physics_head.named_modules() if n]
-        raise ValueError(
-            f"stage.trainable={path!r} is not a part of this model's physics head; its parts: "
-            f"physics_head.{{{', '.join(parts)}}}"
-        ) from None
 
 
 def _merge_overrides(cfg, key: str, overrides) -> None:
