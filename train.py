@@ -9,9 +9,9 @@ import physgm  # noqa: F401
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="train")
 def main(cfg: DictConfig) -> None:
-    from physgm.train.run import run
+    from physgm.train.run import main as train
 
-    run(cfg)
+    train(cfg)
 
 
 if __name__ == "__main__":

@@ -31,9 +31,9 @@ def _simulate(cfg: DictConfig) -> None:
 
 
 def _train(cfg: DictConfig) -> None:
-    from physgm.train.run import run
+    from physgm.train.run import main
 
-    run(cfg)
+    main(cfg)
 
 
 def simulate() -> None:

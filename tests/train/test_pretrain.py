@@ -11,7 +11,7 @@ from physgm.data.datamodule import PhysAssetsDataModule
 from physgm.errors import UserError
 from physgm.model.checkpoint import load_model
 from physgm.train.pretrain import LitPretrain
-from physgm.train.run import run
+from physgm.train.run import main, run
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 EXPERIMENTS = sorted(
@@ -202,6 +202,18 @@ def test_overfits_one_batch(tiny_dataset):
         loss.backward()
         opt.step()
     assert objective().item() < first / 10, (first, loss.item())
+
+
+def test_train_py_shows_a_settings_mistake_as_one_error_line(tiny_dataset, tmp_path, capsys):
+    for override, message in [
+        ("stage.trainable=backbone", "error: stage.trainable must be one of"),
+        ("stage.name=finetune", "error: unknown stage 'finetune'"),
+        ("torch_threads=-1", "error: torch_threads must be >= 0"),
+    ]:
+        with pytest.raises(SystemExit) as stop:
+            main(compose_train([*tiny_overrides(tiny_dataset, tmp_path / "bad"), override]))
+        err = capsys.readouterr().err
+        assert stop.value.code == 2 and err.startswith(message) and "Traceback" not in err, err
 
 
 def test_gaussian_head_fine_tune_keeps_every_other_weight_and_the_init_models_config(tiny_dataset, tmp_path):

@@ -456,6 +456,30 @@ def test_fit_trains_and_resumes_mid_round_from_the_cache(dpo_root, stage1_ckpt, 
     assert (tmp_path / "pairs" / "round_0001" / "_summary.json").is_file()
 
 
+def test_fit_stops_on_a_part_outside_the_physics_head_before_any_rollout(
+    dpo_root, stage1_ckpt, tmp_path, monkeypatch
+):
+    from hydra import compose, initialize_config_dir
+
+    from physgm.errors import UserError
+    from physgm.train.run import run
+
+    stand_in = StandIn()
+    monkeypatch.setattr(rollout, "evaluate_physics", stand_in)
+    overrides = [
+        "stage=dpo",
+        f"stage.init_ckpt={stage1_ckpt}",
+        f"++data.root={dpo_root}",
+        f"paths.output_dir={tmp_path}",
+        "stage.trainable=backbone",
+    ]
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose("train", overrides=overrides)
+    with pytest.raises(UserError, match="starts with physics_head"):
+        run(cfg)
+    assert not stand_in.calls
+
+
 @pytest.mark.parametrize("experiment", [None, "tiny_cpu_dpo"])
 def test_fast_dev_run_trains_one_batch_and_rolls_out_only_its_scenes(
     experiment, dpo_root, stage1_ckpt, tmp_path, monkeypatch

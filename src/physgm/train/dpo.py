@@ -26,6 +26,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from physgm import CHECKPOINT_FORMAT_VERSION
+from physgm.errors import UserError
 from physgm.model.checkpoint import load_model
 from physgm.model.config import PhysGMConfig
 from physgm.model.physgm import PhysGM
@@ -399,8 +400,8 @@ def fit(cfg) -> dict[str, float]:
     stage = cfg.stage
     init = str(stage.init_ckpt)
     if not Path(init).is_file():
-        raise SystemExit(
-            f"error: stage.init_ckpt={init} is not a file; pass a stage-1 checkpoint, e.g. "
+        raise UserError(
+            f"stage.init_ckpt={init} is not a file; pass a stage-1 checkpoint, e.g. "
             "stage.init_ckpt=outputs/<run>/checkpoints/last.ckpt (the default, the shipped "
             "checkpoints/physgm_tiny.ckpt, is found from the repository's root folder)"
         )
@@ -417,7 +418,7 @@ def fit(cfg) -> dict[str, float]:
     _merge_overrides(cfg, "callbacks", stage.get("callbacks"))
     trainer = build_trainer(cfg, extra_callbacks=[callback])
     if trainer.reload_dataloaders_every_n_epochs != 1:
-        raise ValueError(
+        raise UserError(
             "the DPO stage needs trainer.reload_dataloaders_every_n_epochs=1 (pairs change every round)"
         )
     scenes = len(read_split(callback.cfg.data_root, callback.cfg.split))
@@ -429,21 +430,24 @@ def fit(cfg) -> dict[str, float]:
     # A fast_dev_run trains a batch or a few by design: its learning rate does not matter, only that
     # the code runs.
     if warmup >= total and not trainer.fast_dev_run:
-        raise ValueError(
+        raise UserError(
             f"stage.optim.warmup_steps={warmup} is not below the {total} optimiser steps of this DPO "
             f"run, so the "
             "learning rate would never reach its peak (a stage-1 experiment's optimiser settings?); "
             "lower stage.optim.warmup_steps or use experiment=tiny_cpu_dpo"
         )
     inputs = {k: getattr(callback.cfg, k) for k in ("num_views", "input_resolution", "background")}
-    module = LitDPO(
-        init_ckpt=init,
-        loss=plain(stage.loss),
-        optim=plain(stage.optim),
-        total_steps=int(total),
-        inputs=inputs,
-        prior_weight=stage.get("prior_weight"),
-        trainable=stage.get("trainable", "physics_head"),
-    )
+    try:  # every ValueError of the module's construction is about the stage's settings
+        module = LitDPO(
+            init_ckpt=init,
+            loss=plain(stage.loss),
+            optim=plain(stage.optim),
+            total_steps=int(total),
+            inputs=inputs,
+            prior_weight=stage.get("prior_weight"),
+            trainable=stage.get("trainable", "physics_head"),
+        )
+    except ValueError as err:
+        raise UserError(str(err)) from None
     trainer.fit(module, ckpt_path=cfg.get("ckpt_path"))
     return {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}

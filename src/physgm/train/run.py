@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import importlib
 import logging
+import sys
 from typing import Any
 
 import lightning as L
 import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
+
+from physgm.errors import UserError
 
 log = logging.getLogger(__name__)
 
@@ -20,14 +23,23 @@ STAGES = {
 }
 
 
+def main(cfg: DictConfig) -> None:
+    """Hydra entry (train.py, physgm-train): a user error prints ``error: ...`` and exits with code 2."""
+    try:
+        run(cfg)
+    except UserError as err:
+        print(f"error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
 def run(cfg: DictConfig) -> dict:
     """Train the stage named by ``cfg.stage.name`` and return its final metrics."""
     name = cfg.stage.name
     if name not in STAGES:
-        raise ValueError(f"unknown stage {name!r}; choose one of {sorted(STAGES)} (e.g. stage=pretrain)")
+        raise UserError(f"unknown stage {name!r}; choose one of {sorted(STAGES)} (e.g. stage=pretrain)")
     threads = int(cfg.get("torch_threads") or 0)
     if threads < 0:
-        raise ValueError(f"torch_threads must be >= 0 (0: torch's default), got {threads}")
+        raise UserError(f"torch_threads must be >= 0 (0: torch's default), got {threads}")
     if threads:
         torch.set_num_threads(threads)
     return importlib.import_module(STAGES[name]).fit(cfg)
