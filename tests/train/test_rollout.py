@@ -391,21 +391,29 @@ def test_evaluate_physics_wiring(dpo_root, monkeypatch):
     assert terms["profile"] < 0.1 and terms["silhouette"] < 0.2
 
 
-def test_fit_trains_and_resumes_mid_round_from_the_cache(dpo_root, stage1_ckpt, tmp_path, monkeypatch):
+def compose_dpo(dpo_root, stage1_ckpt, tmp_path, *overrides: str):
+    """``python train.py stage=dpo`` from the stage-1 file on the test scenes, writing under tmp_path."""
     from hydra import compose, initialize_config_dir
 
+    base = [
+        "stage=dpo",
+        f"stage.init_ckpt={stage1_ckpt}",
+        f"++data.root={dpo_root}",
+        f"paths.output_dir={tmp_path}",
+    ]
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose("train", overrides=[*base, *overrides])
+
+
+def test_fit_trains_and_resumes_mid_round_from_the_cache(dpo_root, stage1_ckpt, tmp_path, monkeypatch):
     from physgm.train.run import run
 
     torch.set_num_threads(1)
     stand_in = StandIn()
     monkeypatch.setattr(rollout, "evaluate_physics", stand_in)
     overrides = [
-        "stage=dpo",
         "experiment=tiny_cpu_dpo",
-        f"stage.init_ckpt={stage1_ckpt}",
-        f"++data.root={dpo_root}",
         "++data.input_resolution=32",
-        f"paths.output_dir={tmp_path}",
         "stage.rollout.refresh_every_n_epochs=2",
         "stage.rollout.batch_size=2",
         "stage.rollout.num_views=2",
@@ -416,8 +424,7 @@ def test_fit_trains_and_resumes_mid_round_from_the_cache(dpo_root, stage1_ckpt, 
     ]
 
     def train(*extra: str) -> dict:
-        with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-            return run(compose("train", overrides=[*overrides, *extra]))
+        return run(compose_dpo(dpo_root, stage1_ckpt, tmp_path, *overrides, *extra))
 
     metrics = train("stage.trainer.max_epochs=1")
     assert len(stand_in.calls) == COUNT * 3  # round 0: every scene, K = 3
@@ -459,24 +466,13 @@ def test_fit_trains_and_resumes_mid_round_from_the_cache(dpo_root, stage1_ckpt, 
 def test_fit_stops_on_a_part_outside_the_physics_head_before_any_rollout(
     dpo_root, stage1_ckpt, tmp_path, monkeypatch
 ):
-    from hydra import compose, initialize_config_dir
-
     from physgm.errors import UserError
     from physgm.train.run import run
 
     stand_in = StandIn()
     monkeypatch.setattr(rollout, "evaluate_physics", stand_in)
-    overrides = [
-        "stage=dpo",
-        f"stage.init_ckpt={stage1_ckpt}",
-        f"++data.root={dpo_root}",
-        f"paths.output_dir={tmp_path}",
-        "stage.trainable=backbone",
-    ]
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = compose("train", overrides=overrides)
     with pytest.raises(UserError, match="starts with physics_head"):
-        run(cfg)
+        run(compose_dpo(dpo_root, stage1_ckpt, tmp_path, "stage.trainable=backbone"))
     assert not stand_in.calls
 
 
@@ -486,27 +482,20 @@ def test_fast_dev_run_trains_one_batch_and_rolls_out_only_its_scenes(
 ):
     """stage.optim.warmup_steps=5 against fast_dev_run's 1 step used to stop the run; and a dev run
     rolled out every scene of the split (hours on the default data) before its one batch."""
-    from hydra import compose, initialize_config_dir
-
     from physgm.train.run import run
 
     stand_in = StandIn()
     monkeypatch.setattr(rollout, "evaluate_physics", stand_in)
     overrides = [
-        "stage=dpo",
         *([f"experiment={experiment}"] if experiment else []),
-        f"stage.init_ckpt={stage1_ckpt}",
-        f"++data.root={dpo_root}",
         "++data.input_resolution=32",
-        f"paths.output_dir={tmp_path}",
         "stage.rollout.batch_size=2",
         "stage.rollout.num_views=2",
         "stage.rollout.workers=1",
         "callbacks.progress_bar=null",
         "+trainer.fast_dev_run=true",
     ]
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = compose("train", overrides=overrides)
+    cfg = compose_dpo(dpo_root, stage1_ckpt, tmp_path, *overrides)
     assert cfg.stage.optim.warmup_steps == 5
     metrics = run(cfg)
     assert len(stand_in.calls) == 2 * 3  # one batch of 2 scenes (of 4) x K = 3 candidates
