@@ -88,8 +88,9 @@ def test_alpha_and_mask_file_win_and_empty_mask_fails(tmp_path):
 
 def test_frame_object_centres_and_scales():
     img, truth = synthetic_photo(textured=False)
-    rgb, mask = frame_object(img, truth, size=64, fill=0.8)
-    assert rgb.shape == (64, 64, 3) and mask.shape == (64, 64)
+    rgb, cover = frame_object(img, truth, size=64, fill=0.8)
+    assert rgb.shape == (64, 64, 3) and cover.shape == (64, 64)
+    mask = cover > 0.5
     ys, xs = np.nonzero(mask)
     assert abs((ys.min() + ys.max()) / 2 - 31.5) <= 1 and abs((xs.min() + xs.max()) / 2 - 31.5) <= 1
     assert max(ys.max() - ys.min(), xs.max() - xs.min()) + 1 == pytest.approx(0.8 * 64, abs=2)
@@ -97,6 +98,24 @@ def test_frame_object_centres_and_scales():
 
     outside = ~cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     assert np.allclose(rgb[outside], 1.0, atol=1e-5)  # white outside the object
+
+
+def test_a_translucent_photo_is_framed_over_white_like_the_training_renders(tmp_path):
+    """An RGBA photo's colour is composited over white with its alpha, as the training views are:
+    a black jelly at alpha 0.6 reads as grey 0.4 with coverage 0.6, not as an opaque black block."""
+    from PIL import Image
+
+    from physgm.pipeline.prepared_input import prepare_input
+
+    rgba = np.zeros((64, 64, 4), np.uint8)
+    rgba[16:48, 16:48, 3] = 153  # alpha 0.6 over a black object
+    Image.fromarray(rgba).save(tmp_path / "jelly.png")
+    inp = prepare_input(tmp_path / "jelly.png", 32)
+    centre = (slice(None), slice(12, 20), slice(12, 20))
+    assert inp.info["mask_source"] == "alpha"
+    assert np.allclose(inp.images[0][centre].numpy(), 0.4, atol=0.01)
+    assert np.allclose(inp.masks[0][centre].numpy(), 0.6, atol=0.01)
+    assert np.allclose(inp.classifier_images[0][:, 100:124, 100:124].numpy(), 0.4, atol=0.01)
 
 
 @pytest.mark.parametrize("profile", [None, "srgb"])

@@ -238,8 +238,14 @@ def frame_object(
     mask: np.ndarray,  # [H, W] bool
     size: int,
     fill: float,
-) -> tuple[np.ndarray, np.ndarray]:  # [size, size, 3], [size, size]
-    """Crop a square around the object so it spans ``fill`` of the side, on white, resized to ``size``."""
+    matte: np.ndarray | None = None,  # [H, W] coverage in [0, 1] (a photo's alpha); None: the mask
+) -> tuple[np.ndarray, np.ndarray]:  # [size, size, 3], [size, size] float in [0, 1]
+    """Crop a square around the object (``mask``'s bounding box) so it spans ``fill`` of the side,
+    resized to ``size``: the colour composited over white with ``matte``, and the matte.
+
+    With a photo's alpha as the matte, translucent parts (jelly, glass) keep the look of the
+    training renders, which are their RGBA composited over white, and soft edges stay soft.
+    """
     import cv2
 
     ys, xs = np.nonzero(mask)
@@ -251,9 +257,10 @@ def frame_object(
         [[size / (2 * half), 0, -x0 * size / (2 * half)], [0, size / (2 * half), -y0 * size / (2 * half)]],
         np.float32,
     )
-    comp = rgb * mask[..., None] + (1 - mask[..., None])
+    cover = (mask if matte is None else matte).astype(np.float32)
+    comp = rgb * cover[..., None] + (1 - cover[..., None])
     out_rgb = cv2.warpAffine(
         comp.astype(np.float32), m, (size, size), flags=cv2.INTER_AREA, borderValue=(1, 1, 1)
     )
-    out_mask = cv2.warpAffine(mask.astype(np.float32), m, (size, size), flags=cv2.INTER_LINEAR, borderValue=0)
-    return np.clip(out_rgb, 0, 1), out_mask > 0.5
+    out_cover = cv2.warpAffine(cover, m, (size, size), flags=cv2.INTER_LINEAR, borderValue=0)
+    return np.clip(out_rgb, 0, 1), np.clip(out_cover, 0, 1)

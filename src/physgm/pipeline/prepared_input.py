@@ -93,19 +93,21 @@ def _photo_and_mask(path: Path, mask: Path | None) -> tuple[Photo, np.ndarray, s
 
 def _prepare_photo(path: Path, size: int, mask: Path | None) -> PreparedInput:
     photo, obj, source = _photo_and_mask(path, mask)
-    rgb, m = frame_object(photo.rgb, obj, size, TRAINING_FILL)
-    if not m.any():
+    # Soft alpha like the training views (their RGBA over white); segmentation masks are hard.
+    soft = photo.alpha if source == "alpha" else None
+    rgb, m = frame_object(photo.rgb, obj, size, TRAINING_FILL, soft)
+    if not (m > 0.5).any():
         raise UserError(
             f"the object in {path} vanished when framed at {size} px; give a larger or tighter photo"
         )
-    preview, _ = frame_object(photo.rgb, obj, PREVIEW_SIZE, TRAINING_FILL)
-    classifier_view, _ = frame_object(photo.rgb, obj, CLASSIFIER_SIZE, TRAINING_FILL)
+    preview, _ = frame_object(photo.rgb, obj, PREVIEW_SIZE, TRAINING_FILL, soft)
+    classifier_view, _ = frame_object(photo.rgb, obj, CLASSIFIER_SIZE, TRAINING_FILL, soft)
     cams = orbit_cameras([0.0], [0.0], CAMERA_RADIUS, FOV_DEG, size, size)
     return PreparedInput(
         kind="photo",
         preview=preview,
         images=torch.from_numpy(rgb).permute(2, 0, 1)[None].float(),
-        masks=torch.from_numpy(m.astype(np.float32))[None, None],
+        masks=torch.from_numpy(m)[None, None],
         c2w=cams.c2w,
         Ks=cams.Ks,
         classifier_images=torch.from_numpy(classifier_view).permute(2, 0, 1)[None].float(),
