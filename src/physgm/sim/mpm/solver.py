@@ -17,7 +17,7 @@ from physgm.sim.constitutive import MODELS, MaterialParams
 from physgm.sim.mpm import kernels as K
 from physgm.sim.mpm import particle_ops as ops
 from physgm.sim.mpm.grid import GridSpec
-from physgm.sim.mpm.launches import SubstepLaunches
+from physgm.sim.mpm.launches import SubstepLaunches, host_reader
 from physgm.sim.mpm.observables import SubstepObservables, SubstepObserver, particle_momentum
 from physgm.sim.mpm.particle_store import ParticleStore
 from physgm.sim.mpm.scene import Scene
@@ -208,10 +208,9 @@ class MPMSolver:
         self._dynamic = [*self.particles.dynamic, self.arrays.work, self._walls.impulse]
         self._backup = [wp.empty_like(a) for a in self._dynamic]
         self.active_box = (np.zeros(3, int), np.array(res) - 1)  # node index range grid_update covers
-        # On the CPU, numpy views of the arrays the host reads after every replay (a view costs
-        # ~5 us to make); a GPU array is copied each time.
-        self._bounds_view = self._bounds.numpy() if dev.is_cpu else None
-        self._stats_view = self.arrays.stats.numpy() if dev.is_cpu else None
+        # What the host reads after every replay
+        self._read_bounds = host_reader(self._bounds)
+        self._read_stats_rows = host_reader(self.arrays.stats)
 
     def _fit_active(self, dt: float, stats_read: bool = False) -> None:
         """Limit grid_update to the nodes particles can reach in the next ``cfl_check_every`` steps.
@@ -224,7 +223,7 @@ class MPMSolver:
         if box is None:
             for launch in self._bounds_launches:
                 launch.launch()
-            box = (self._bounds_view if self.device.is_cpu else self._bounds.numpy()).tolist()
+            box = self._read_bounds().tolist()
         b_lo, b_hi = box
         vmax = self._vmax
         if not stats_read:
@@ -240,8 +239,7 @@ class MPMSolver:
         hi = np.array(
             [min(max(math.ceil((b_hi[a] + reach - origin[a]) / g.dx), 0), top[a]) for a in range(3)]
         )
-        if self._walls.periodic:
-            lo, hi = self._walls.widen_active(lo, hi)
+        lo, hi = self._walls.widen_active(lo, hi)
         # Faces on the grid boundary never need a guard: the domain clamp holds particles there.
         inner_lo = [-math.inf if lo[a] == 0 else origin[a] + int(lo[a]) * g.dx + 1.5 * g.dx for a in range(3)]
         inner_hi = [
@@ -350,8 +348,7 @@ class MPMSolver:
         return cfl * self.grid.dx / (self._c_max + self._vmax)
 
     def _read_stats(self) -> SubstepStats:
-        rows = self._stats_view if self.device.is_cpu else self.arrays.stats.numpy()
-        return SubstepStats.reduce(rows[: self.threads])
+        return SubstepStats.reduce(self._read_stats_rows()[: self.threads])
 
     def _advance(self, frame_dt: float, cfl: float) -> tuple[int, float, float, SubstepStats]:
         """Sub-step through one frame; returns (sub-steps, dt_min, dt_max, stats)."""

@@ -287,6 +287,8 @@ class SceneWalls:
 
     def widen_active(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The grid update must cover both images of a periodic axis, wherever the particles are."""
+        if not self.periodic:
+            return lo, hi
         lo, hi = lo.copy(), hi.copy()
         for p, (i0, i1) in zip(self.periodic, self.ranges, strict=True):
             lo[p.axis] = min(lo[p.axis], i0 - GHOST)
