@@ -306,3 +306,53 @@ def test_geometry_fine_tune_trains_the_backbone_and_the_anchor_holds_the_physics
     assert not module.model.physics_head.training
     with pytest.raises(UserError, match="stage.trainable=geometry"):
         run(compose_train([*tiny_overrides(tiny_dataset, tmp_path / "no"), "stage.loss.anchor=1"]))
+
+
+def test_geometry_blocks_fine_tune_moves_the_gaussians_and_leaves_the_physics_bit_identical(
+    tiny_dataset, tmp_path
+):
+    """stage.trainable=geometry_blocks: the Gaussian head and its own copies of the backbone's last
+    blocks train; every weight the checkpoint had but the Gaussian head's is unchanged, the global
+    tokens (all the physics head reads) are bit-identical, and the frozen parts stay in eval mode."""
+    first = tmp_path / "first"
+    base = [*tiny_overrides(tiny_dataset, first), "trainer.max_steps=2", "trainer.limit_val_batches=0"]
+    run(compose_train(base))
+    init = first / "checkpoints" / "last.ckpt"
+    out = tmp_path / "blocks"
+    tuned = [
+        *tiny_overrides(tiny_dataset, out),
+        "trainer.max_steps=3",
+        "trainer.limit_val_batches=0",
+        "stage.trainable=geometry_blocks",
+        "stage.geometry_blocks=2",
+        f"stage.init_ckpt={init}",
+        "stage.optim.lr=1e-2",
+        "stage.optim.warmup_steps=0",
+    ]
+    run(compose_train(tuned))
+    before = torch.load(init, weights_only=False)
+    after = torch.load(out / "checkpoints" / "last.ckpt", weights_only=False)
+    model = after["hyper_parameters"]["model"]
+    assert model["backbone"]["geometry_blocks"] == 2
+    assert {**model, "backbone": {**model["backbone"], "geometry_blocks": 0}} == before["hyper_parameters"][
+        "model"
+    ]
+    moved = {k for k, v in before["state_dict"].items() if not torch.equal(v, after["state_dict"][k])}
+    assert moved and all(k.startswith("model.gaussian_head.") for k in moved), sorted(moved)[:5]
+    own = [k for k in after["state_dict"] if k.startswith("model.backbone.geometry_blocks.")]
+    depth = model["backbone"]["depth"]
+    copies = {k: k.replace("geometry_blocks.0.", f"blocks.{depth - 2}.") for k in own if ".0." in k}
+    assert any(not torch.equal(after["state_dict"][k], before["state_dict"][v]) for k, v in copies.items())
+    assert torch.equal(_tokens(out / "checkpoints" / "last.ckpt"), _tokens(init))
+
+    module = LitPretrain(model=model, trainable="geometry_blocks").train()
+    assert module.model.gaussian_head.training and module.model.backbone.geometry_blocks.training
+    assert not any(m.training for m in (module.model.backbone.blocks, module.model.backbone.fuse))
+    assert not module.model.physics_head.training
+
+    settings = [o for o in tuned if not o.startswith(("stage.geometry_blocks", "stage.init_ckpt"))]
+    with pytest.raises(UserError, match="give 1 to"):
+        run(compose_train([*settings, f"stage.init_ckpt={init}", "stage.geometry_blocks=0"]))
+    again = f"stage.init_ckpt={out / 'checkpoints' / 'last.ckpt'}"
+    with pytest.raises(UserError, match="stage.geometry_blocks=2 to train them further"):
+        run(compose_train([*settings, again, "stage.geometry_blocks=3"]))

@@ -15,13 +15,14 @@ from tests.train.test_pretrain import compose_train, tiny_overrides
 OUTPUT_CONV = "gaussian_head.dpt.output.0.weight"
 
 
-def tiny_config(depth_prior: str = "range", width: int = 32) -> PhysGMConfig:
+def tiny_config(depth_prior: str = "range", width: int = 32, geometry_blocks: int = 0) -> PhysGMConfig:
     return PhysGMConfig.from_dict(
         {
             "backbone": {
                 "encoder": {"img_size": 32, "patch_size": 8, "embed_dim": 32, "depth": 1, "num_heads": 2},
                 **{"width": width, "depth": 4, "head_dim": 16, "camera_dim": 8, "camera_hidden": 16},
                 "out_layers": (0, 1, 2, 3),
+                "geometry_blocks": geometry_blocks,
             },
             "gaussian_head": {
                 "features": 8,
@@ -61,6 +62,49 @@ def test_the_hull_model_starts_from_a_range_checkpoint_and_its_head_computes_the
         got = model.gaussian_head.dpt(tokens, images, guide=torch.rand(2, 2, 32, 32))
     for name in want:
         torch.testing.assert_close(got[name], want[name], rtol=0, atol=1e-6)
+
+
+def test_geometry_blocks_start_as_copies_of_the_blocks_they_duplicate(tmp_path):
+    """A model whose Gaussian head has its own last 3 blocks, started from one without: the copies
+    hold the shared blocks' weights, so both heads compute exactly what the checkpoint's did."""
+    torch.manual_seed(0)
+    source = PhysGM(tiny_config()).eval()
+    save_checkpoint(source, tmp_path / "shared.ckpt")
+    torch.manual_seed(1)
+    model = PhysGM(tiny_config(geometry_blocks=3)).eval()
+    report = warm_start(model, tmp_path / "shared.ckpt")
+
+    assert report.new == [] and report.widened == []
+    assert len(report.copied) == len(source.state_dict())
+    assert len(report.branched) == 3 * len(source.backbone.blocks[0].state_dict())
+    torch.testing.assert_close(
+        model.backbone.geometry_blocks[0].attn.qkv.weight,
+        source.backbone.blocks[1].attn.qkv.weight,
+        rtol=0,
+        atol=0,
+    )
+    g = torch.Generator().manual_seed(0)
+    images, masks = torch.rand(1, 2, 3, 32, 32, generator=g), torch.ones(1, 2, 1, 32, 32)
+    c2w = torch.eye(4).expand(1, 2, 4, 4).clone()
+    c2w[0, :, 2, 3] = torch.tensor([-1.5, -1.6])
+    Ks = torch.tensor([[32.0, 0.0, 16.0], [0.0, 32.0, 16.0], [0.0, 0.0, 1.0]]).expand(1, 2, 3, 3)
+    with torch.no_grad():
+        want, got = source(images, masks, c2w, Ks), model(images, masks, c2w, Ks)
+    torch.testing.assert_close(got.global_tokens, want.global_tokens, rtol=0, atol=0)
+    torch.testing.assert_close(got.gaussians.means, want.gaussians.means, rtol=0, atol=0)
+    torch.testing.assert_close(got.gaussians.colors, want.gaussians.colors, rtol=0, atol=0)
+
+    # Once the copies differ, only the Gaussians change.
+    with torch.no_grad():
+        for p in model.backbone.geometry_blocks.parameters():
+            p.add_(0.05 * torch.randn(p.shape, generator=g))
+        moved = model(images, masks, c2w, Ks)
+    torch.testing.assert_close(moved.global_tokens, want.global_tokens, rtol=0, atol=0)
+    torch.testing.assert_close(moved.physics.z_E_mean, want.physics.z_E_mean, rtol=0, atol=0)
+    assert not torch.allclose(moved.gaussians.means, want.gaussians.means)
+
+    with pytest.raises(ValueError, match="geometry_blocks must be in"):
+        PhysGM(tiny_config(geometry_blocks=5))
 
 
 def test_another_architecture_is_refused_with_the_weights_named(tmp_path):

@@ -75,12 +75,15 @@ class Backbone(nn.Module):
         self.input_norm = nn.LayerNorm(cfg.width)
         # Random (not zero) init: identical global tokens would stay identical through every block.
         self.global_tokens = nn.Parameter(torch.randn(1, cfg.num_global_tokens, cfg.width) * 0.02)
-        self.blocks = nn.ModuleList(
-            Block(cfg.width, num_heads=cfg.width // cfg.head_dim, mlp_ratio=cfg.mlp_ratio)
-            for _ in range(cfg.depth)
-        )
-        for module in (self.camera_encoder, self.fuse, self.blocks):  # never the (maybe pretrained) encoder
-            module.apply(_init_linear)
+        if not 0 <= cfg.geometry_blocks <= cfg.depth:
+            raise ValueError(
+                f"backbone.geometry_blocks must be in [0, {cfg.depth}], got {cfg.geometry_blocks}"
+            )
+        self.blocks = nn.ModuleList(_blocks(cfg, cfg.depth))
+        # The Gaussian head's own copies of the last geometry_blocks blocks (none by default).
+        self.geometry_blocks = nn.ModuleList(_blocks(cfg, cfg.geometry_blocks))
+        for module in (self.camera_encoder, self.fuse, self.blocks, self.geometry_blocks):
+            module.apply(_init_linear)  # never the (maybe pretrained) encoder
 
     def forward(
         self,
@@ -112,16 +115,37 @@ class Backbone(nn.Module):
         tokens = torch.cat([self.global_tokens.expand(b, -1, -1), tokens.reshape(b, v * patches, -1)], dim=1)
         x = self.input_norm(tokens)  # [B, G + V*L, D]
 
+        # Blocks [0, split) serve both heads; from split on, the physics head's global tokens come
+        # from self.blocks and the Gaussian head's patch tokens from self.geometry_blocks.
+        split = self.cfg.depth - self.cfg.geometry_blocks
         taken: dict[int, Tensor] = {}
         g = self.cfg.num_global_tokens
         for i, block in enumerate(self.blocks):
-            if self.cfg.grad_checkpointing and self.training and torch.is_grad_enabled():
-                x = checkpoint(block, x, use_reentrant=False)
-            else:
-                x = block(x)
-            if i in self.cfg.out_layers:
+            if i == split:
+                geometry = x
+            x = self._run(block, x)
+            if i in self.cfg.out_layers and i < split:
                 taken[i] = x[:, g:].reshape(b * v, patches, -1)
+        for i, block in enumerate(self.geometry_blocks, start=split):
+            geometry = self._run(block, geometry)
+            if i in self.cfg.out_layers:
+                taken[i] = geometry[:, g:].reshape(b * v, patches, -1)
         return BackboneOutput(x[:, :g], [taken[i] for i in self.cfg.out_layers], features)
+
+    def _run(self, block: Block, x: Tensor) -> Tensor:
+        if self.cfg.grad_checkpointing and self.training and torch.is_grad_enabled():
+            return checkpoint(block, x, use_reentrant=False)
+        return block(x)
+
+    def geometry_block_source(self, index: int) -> int:
+        """The block of ``self.blocks`` whose weights geometry block ``index`` starts as a copy of."""
+        return self.cfg.depth - self.cfg.geometry_blocks + index
+
+
+def _blocks(cfg: BackboneConfig, count: int) -> list[Block]:
+    return [
+        Block(cfg.width, num_heads=cfg.width // cfg.head_dim, mlp_ratio=cfg.mlp_ratio) for _ in range(count)
+    ]
 
 
 def _init_linear(module: nn.Module) -> None:

@@ -45,6 +45,10 @@ class BackboneConfig:
     camera_hidden: int = 64  # hidden channels of the Plücker patchify conv
     out_layers: tuple[int, ...] = (1, 3, 4, 5)  # 0-based blocks fed to the DPT head (paper 4, 11, 17, 23)
     grad_checkpointing: bool = False  # recompute blocks in backward to save memory (large configs)
+    # Not in the paper: the last N blocks run a second time with weights of their own for the
+    # Gaussian head, so that training its geometry (stage.trainable=geometry_blocks) leaves the global
+    # tokens, and every physics output, as they were. 0: one stack of blocks serves both heads.
+    geometry_blocks: int = 0
 
 
 @dataclass

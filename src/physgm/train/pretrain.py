@@ -25,12 +25,22 @@ from physgm.train.optim import OptimConfig, build_optimizer
 
 log = logging.getLogger(__name__)
 
-# What stage 1 trains (stage.trainable): everything; the Gaussian head of stage.init_ckpt alone; or
+# What stage 1 trains (stage.trainable): everything; the Gaussian head of stage.init_ckpt alone;
 # its backbone and Gaussian head ("geometry"), with the physics head frozen and loss.anchor holding
-# the tokens it reads.
-TRAINABLE = ("all", "gaussian_head", "geometry")
-TRAINED_PARTS = {"gaussian_head": ("gaussian_head",), "geometry": ("gaussian_head", "backbone")}
+# the tokens it reads; or the Gaussian head and copies of the backbone's last stage.geometry_blocks
+# blocks made for it ("geometry_blocks"), which leaves every physics output bit-identical.
+TRAINABLE = ("all", "gaussian_head", "geometry", "geometry_blocks")
+TRAINED_PARTS = {
+    "gaussian_head": ("gaussian_head",),
+    "geometry": ("gaussian_head", "backbone"),
+    "geometry_blocks": ("gaussian_head", "backbone.geometry_blocks"),
+}
 VIEW_KEYS = ("v1", "v4")  # validation metrics are kept apart for 1 and 4 input views
+
+
+def _within(name: str, parts: tuple[str, ...]) -> bool:
+    """True when the parameter or module ``name`` is one of ``parts`` or inside one of them."""
+    return any(name == part or name.startswith(part + ".") for part in parts)
 
 
 def render_targets(
@@ -77,7 +87,7 @@ class LitPretrain(L.LightningModule):
         if trainable in TRAINED_PARTS:  # the physics head is frozen; with gaussian_head, so are its inputs
             trained = TRAINED_PARTS[trainable]
             for name, p in self.model.named_parameters():
-                p.requires_grad_(p.requires_grad and name.split(".")[0] in trained)
+                p.requires_grad_(p.requires_grad and _within(name, trained))
         self.loss_cfg = PretrainLossConfig(**(loss or {}))
         self.optim_cfg = OptimConfig(**(optim or {}))
         self.renderer = dict(renderer or {"backend": "warp"})
@@ -106,10 +116,11 @@ class LitPretrain(L.LightningModule):
     def train(self, mode: bool = True) -> LitPretrain:
         super().train(mode)
         trained = TRAINED_PARTS.get(self.hparams.get("trainable"))
-        if trained is not None:  # every frozen part stays in eval mode
-            for name, child in self.model.named_children():
-                if name not in trained:
-                    child.eval()
+        if trained is not None and mode:  # every frozen part stays in eval mode
+            for name, module in self.model.named_modules():
+                holds_trained = any(_within(part, (name,)) for part in trained)
+                if name and not holds_trained and not _within(name, trained):
+                    module.eval()
         return self
 
     def anchor_to_start(self) -> None:
@@ -237,6 +248,8 @@ def fit(cfg) -> dict[str, float]:
                 "with stage.init_ckpt=PATH"
             )
         model = read_checkpoint(cfg.stage.init_ckpt).hparams["model"]  # its physics settings whole
+        if trainable == "geometry_blocks":
+            model = _with_geometry_blocks(model, int(cfg.stage.get("geometry_blocks", 0)))
     L.seed_everything(cfg.seed, workers=True)
     ensure_data(cfg)
     datamodule = instantiate(cfg.data)
@@ -262,6 +275,23 @@ def fit(cfg) -> dict[str, float]:
 
         write_run_summary(cfg.paths.output_dir, module.model, metrics, trainer.global_step, _overrides())
     return metrics
+
+
+def _with_geometry_blocks(model: dict[str, Any], count: int) -> dict[str, Any]:
+    """A checkpoint's model config whose backbone gives the Gaussian head ``count`` blocks of its own."""
+    backbone = model["backbone"]
+    depth, had = backbone["depth"], backbone.get("geometry_blocks", 0)
+    if not 1 <= count <= depth:
+        raise UserError(
+            f"stage.trainable=geometry_blocks trains copies of the backbone's last stage.geometry_blocks "
+            f"blocks; give 1 to {depth} (the backbone's depth), got {count}"
+        )
+    if had and had != count:
+        raise UserError(
+            f"stage.init_ckpt already gives the Gaussian head its own last {had} blocks; set "
+            f"stage.geometry_blocks={had} to train them further"
+        )
+    return {**model, "backbone": {**backbone, "geometry_blocks": count}}
 
 
 def _overrides() -> list[str]:

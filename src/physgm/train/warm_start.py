@@ -12,6 +12,9 @@ Each weight of the new model is one of:
   otherwise. The checkpoint's channels are copied and the new ones set to zero, so the layer
   computes what it did as long as the new inputs come after the old ones (the hull guide is
   concatenated last);
+- **branched**: a weight of the backbone's geometry blocks (``model.backbone.geometry_blocks``)
+  that the checkpoint does not have starts as a copy of the shared block it duplicates, so the
+  new model computes what the checkpoint's did;
 - **new**: the checkpoint does not have it; it keeps its fresh initialisation.
 
 Anything else (a shape that differs in another way, or checkpoint weights the new model does not
@@ -21,6 +24,7 @@ have) means the configs describe different models, and is an error that names th
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -38,12 +42,15 @@ class WarmStart:
     path: Path
     copied: list[str] = field(default_factory=list)
     widened: list[str] = field(default_factory=list)
+    branched: list[str] = field(default_factory=list)
     new: list[str] = field(default_factory=list)
 
     def summary(self) -> str:
         parts = [f"{len(self.copied)} weights copied"]
         if self.widened:
             parts.append(f"{len(self.widened)} widened with zero input channels ({', '.join(self.widened)})")
+        if self.branched:
+            parts.append(f"{len(self.branched)} geometry-block weights copied from the blocks they duplicate")
         if self.new:
             parts.append(f"{len(self.new)} new ({', '.join(self.new)})")
         return f"stage 1 starts from {self.path}: " + "; ".join(parts)
@@ -85,7 +92,11 @@ def warm_start(model: nn.Module, path: Path | str) -> WarmStart:
     merged = {}
     for name, value in own.items():
         old = ckpt.state.get(name)
-        if old is None:
+        source = _branch_source(model, name)
+        if old is None and source in ckpt.state:
+            report.branched.append(name)
+            merged[name] = ckpt.state[source].to(value.dtype)
+        elif old is None:
             report.new.append(name)
             merged[name] = value
         elif old.shape == value.shape:
@@ -98,3 +109,12 @@ def warm_start(model: nn.Module, path: Path | str) -> WarmStart:
             merged[name] = grown
     model.load_state_dict(merged)
     return report
+
+
+def _branch_source(model: nn.Module, name: str) -> str | None:
+    """The shared block weight that geometry-block weight ``name`` duplicates, or None."""
+    match = re.fullmatch(r"backbone\.geometry_blocks\.(\d+)\.(.+)", name)
+    if match is None:
+        return None
+    block = model.backbone.geometry_block_source(int(match[1]))
+    return f"backbone.blocks.{block}.{match[2]}"
