@@ -7,6 +7,11 @@ backbone width, as in the paper. Three learned global tokens are prepended and t
 views attend jointly (sequence length 3 + V * h * w) in ``depth`` plain pre-norm transformer blocks.
 Positions need no extra embedding: the encoder embeds positions within a view and the Plücker rays
 tell apart every pixel of every view.
+
+With ``geometry_blocks`` = N > 0 (not in the paper) the last N blocks exist twice: the global tokens
+come out of the shared stack, the DPT head's patch tokens out of the Gaussian head's own copies, which
+read the same input at the split. Training the copies changes the Gaussians and nothing the physics
+head sees.
 """
 
 from __future__ import annotations
