@@ -122,7 +122,7 @@ class Backbone(nn.Module):
 
         # Blocks [0, split) serve both heads; from split on, the physics head's global tokens come
         # from self.blocks and the Gaussian head's patch tokens from self.geometry_blocks.
-        split = self.cfg.depth - self.cfg.geometry_blocks
+        split = self.split
         taken: dict[int, Tensor] = {}
         g = self.cfg.num_global_tokens
         for i, block in enumerate(self.blocks):
@@ -142,9 +142,19 @@ class Backbone(nn.Module):
             return checkpoint(block, x, use_reentrant=False)
         return block(x)
 
-    def geometry_block_source(self, index: int) -> int:
-        """The block of ``self.blocks`` whose weights geometry block ``index`` starts as a copy of."""
-        return self.cfg.depth - self.cfg.geometry_blocks + index
+    @property
+    def split(self) -> int:
+        """Index of the first block the Gaussian head has a copy of (``depth`` without copies)."""
+        return self.cfg.depth - self.cfg.geometry_blocks
+
+    def geometry_block_sources(self) -> dict[str, str]:
+        """Each geometry-block weight's name -> the shared block weight it duplicates (names within
+        the backbone): what a model without copies hands over to one with them."""
+        return {
+            f"geometry_blocks.{j}.{key}": f"blocks.{self.split + j}.{key}"
+            for j, block in enumerate(self.geometry_blocks)
+            for key in block.state_dict()
+        }
 
 
 def _blocks(cfg: BackboneConfig, count: int) -> list[Block]:

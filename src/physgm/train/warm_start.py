@@ -24,7 +24,6 @@ have) means the configs describe different models, and is an error that names th
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -89,10 +88,11 @@ def warm_start(model: nn.Module, path: Path | str) -> WarmStart:
             "Start from a checkpoint of the same architecture (the same model and backbone settings), or "
             "drop stage.init_ckpt to train from scratch"
         )
+    sources = {f"backbone.{k}": f"backbone.{v}" for k, v in model.backbone.geometry_block_sources().items()}
     merged = {}
     for name, value in own.items():
         old = ckpt.state.get(name)
-        source = _branch_source(model, name)
+        source = sources.get(name)
         if old is None and source in ckpt.state:
             report.branched.append(name)
             merged[name] = ckpt.state[source].to(value.dtype)
@@ -109,12 +109,3 @@ def warm_start(model: nn.Module, path: Path | str) -> WarmStart:
             merged[name] = grown
     model.load_state_dict(merged)
     return report
-
-
-def _branch_source(model: nn.Module, name: str) -> str | None:
-    """The shared block weight that geometry-block weight ``name`` duplicates, or None."""
-    match = re.fullmatch(r"backbone\.geometry_blocks\.(\d+)\.(.+)", name)
-    if match is None:
-        return None
-    block = model.backbone.geometry_block_source(int(match[1]))
-    return f"backbone.blocks.{block}.{match[2]}"
