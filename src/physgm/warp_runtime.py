@@ -64,6 +64,7 @@ KERNEL_MODULES = (
     "physgm.sim.mpm.substep_params",
     "physgm.render.warp_tile_kernels",
     "physgm.sim.mpm.spin_barrier",
+    "physgm.model.hull_kernels",
 )
 # Modules whose kernels only ever run on the CPU (C++ snippets written for the host compiler).
 CPU_ONLY_MODULES = ("physgm.render.warp_tile_kernels", "physgm.sim.mpm.spin_barrier")

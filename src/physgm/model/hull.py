@@ -12,19 +12,29 @@ Two passes per ray, both in closed form or vectorised over rays:
    view, exact): the hull lies inside that convex polyhedron, so only this segment is searched.
 2. Test ``samples`` evenly spaced points of the segment against every mask (the pixel a point
    falls in); the first and last point inside all of them, widened by one spacing so sampling
-   never cuts the surface off, give the range.
+   never cuts the surface off, give the range. A Warp kernel (``hull_kernels``) walks each ray
+   from both ends and stops at the first hit; ``_hull_segment_torch`` is its twin for tests.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
+import warp as wp
 from torch import Tensor
 
 from physgm.cameras import invert_rigid
+from physgm.model.hull_kernels import hull_segment_kernel
+from physgm.warp_runtime import ensure_loaded
 
-# Rays per chunk: the temporaries hold RAY_CHUNK * samples * V projected points (peak 120 MB at
-# 32 samples and 4 views, measured), whatever the image size.
+# Rays per chunk of the torch twin: its temporaries hold RAY_CHUNK * samples * V projected points
+# (peak 120 MB at 32 samples and 4 views, measured), whatever the image size.
 RAY_CHUNK = 1 << 14
+
+# pass 2 for one scene: (origin [R, 3], direction [R, 3], proj [V, 3, 4], boxes [V, 4],
+# masks [V, H, W] bool, samples, near, far) -> lo, hi [R]
+SegmentSearch = Callable[[Tensor, Tensor, Tensor, Tensor, Tensor, int, float, float], tuple[Tensor, Tensor]]
 
 
 @torch.no_grad()
@@ -44,6 +54,34 @@ def hull_depth_range(
     other view confirms (mask noise) get [near, far]. Points behind a camera or outside its image
     count as outside: the object is assumed in frame in every view.
     """
+    return _hull_depth_range(masks, c2w, Ks, directions, near, far, samples, threshold, _hull_segment)
+
+
+def _hull_depth_range_torch(
+    masks: Tensor,  # [B, V, 1, H, W]
+    c2w: Tensor,  # [B, V, 4, 4]
+    Ks: Tensor,  # [B, V, 3, 3]
+    directions: Tensor,  # [B, V, H, W, 3]
+    near: float,
+    far: float,
+    samples: int = 32,
+    threshold: float = 0.1,
+) -> tuple[Tensor, Tensor]:  # lo, hi: [B, V, H, W]
+    """``hull_depth_range`` with the plain-torch pass 2: the kernel's twin, for tests."""
+    return _hull_depth_range(masks, c2w, Ks, directions, near, far, samples, threshold, _hull_segment_torch)
+
+
+def _hull_depth_range(
+    masks: Tensor,  # [B, V, 1, H, W]
+    c2w: Tensor,  # [B, V, 4, 4]
+    Ks: Tensor,  # [B, V, 3, 3]
+    directions: Tensor,  # [B, V, H, W, 3]
+    near: float,
+    far: float,
+    samples: int,
+    threshold: float,
+    search: SegmentSearch,
+) -> tuple[Tensor, Tensor]:  # lo, hi: [B, V, H, W]
     if samples < 2:
         raise ValueError(f"hull_samples must be at least 2, got {samples}")
     b, v, _, height, width = masks.shape
@@ -60,23 +98,10 @@ def hull_depth_range(
         sel = inside_mask[i]  # [V, H, W]
         origin = c2w[i, :, None, None, :3, 3].to(dtype).expand(v, height, width, 3)[sel]  # [R, 3]
         direction = directions[i][sel]  # [R, 3]
-        boxes = _mask_boxes(sel)
-        parts = [
-            _hull_segment(
-                origin[k : k + RAY_CHUNK],
-                direction[k : k + RAY_CHUNK],
-                proj[i],
-                boxes,
-                sel,
-                samples,
-                near,
-                far,
+        if origin.shape[0]:
+            lo[i][sel], hi[i][sel] = search(
+                origin, direction, proj[i], _mask_boxes(sel), sel, samples, near, far
             )
-            for k in range(0, origin.shape[0], RAY_CHUNK)
-        ]
-        if parts:
-            lo[i][sel] = torch.cat([part[0] for part in parts])
-            hi[i][sel] = torch.cat([part[1] for part in parts])
     return lo, hi
 
 
@@ -90,7 +115,65 @@ def _hull_segment(
     near: float,
     far: float,
 ) -> tuple[Tensor, Tensor]:  # lo, hi: [R]
-    """Pass 2 of the module docstring for a chunk of rays."""
+    """Passes 1 and 2 of the module docstring for one scene's rays, pass 2 in the Warp kernel
+    (float32; the result comes back in ``origin``'s dtype)."""
+    t0, t1 = _clip_to_mask_frusta(origin, direction, proj, boxes, near, far)
+    f32 = torch.float32
+    fraction = torch.linspace(0.0, 1.0, samples, dtype=f32, device=origin.device)  # [K], as the twin's
+    lo = torch.empty(origin.shape[0], dtype=f32, device=origin.device)
+    hi = torch.empty_like(lo)
+    wp.init()  # no-op after the first call
+    device = wp.device_from_torch(origin.device)
+    stream = wp.stream_from_torch(origin.device) if origin.device.type == "cuda" else None
+    ensure_loaded(hull_segment_kernel, device)
+    inputs = [
+        wp.from_torch(origin.to(f32).contiguous(), dtype=wp.vec3),
+        wp.from_torch(direction.to(f32).contiguous(), dtype=wp.vec3),
+        wp.from_torch(t0.to(f32).contiguous()),
+        wp.from_torch(t1.to(f32).contiguous()),
+        wp.from_torch(fraction),
+        wp.from_torch(proj.to(f32).contiguous()),
+        wp.from_torch(masks.to(torch.uint8).contiguous()),
+        near,
+        far,
+        wp.from_torch(lo),
+        wp.from_torch(hi),
+    ]
+    wp.launch(hull_segment_kernel, dim=origin.shape[0], inputs=inputs, device=device, stream=stream)
+    return lo.to(origin.dtype), hi.to(origin.dtype)
+
+
+def _hull_segment_torch(
+    origin: Tensor,  # [R, 3]
+    direction: Tensor,  # [R, 3] unit
+    proj: Tensor,  # [V, 3, 4]
+    boxes: Tensor,  # [V, 4]
+    masks: Tensor,  # [V, H, W] bool
+    samples: int,
+    near: float,
+    far: float,
+) -> tuple[Tensor, Tensor]:  # lo, hi: [R]
+    """The twin of ``_hull_segment`` (plain torch, every sample against every view), in chunks of
+    RAY_CHUNK rays."""
+    parts = [
+        _hull_chunk_torch(
+            origin[k : k + RAY_CHUNK], direction[k : k + RAY_CHUNK], proj, boxes, masks, samples, near, far
+        )
+        for k in range(0, origin.shape[0], RAY_CHUNK)
+    ]
+    return torch.cat([part[0] for part in parts]), torch.cat([part[1] for part in parts])
+
+
+def _hull_chunk_torch(
+    origin: Tensor,  # [R, 3]
+    direction: Tensor,  # [R, 3] unit
+    proj: Tensor,  # [V, 3, 4]
+    boxes: Tensor,  # [V, 4]
+    masks: Tensor,  # [V, H, W] bool
+    samples: int,
+    near: float,
+    far: float,
+) -> tuple[Tensor, Tensor]:  # lo, hi: [R]
     v, height, width = masks.shape
     t0, t1 = _clip_to_mask_frusta(origin, direction, proj, boxes, near, far)
     fraction = torch.linspace(0.0, 1.0, samples, dtype=origin.dtype, device=origin.device)  # [K]
