@@ -14,6 +14,7 @@ SUITES = {
     "sim-substep": "physgm.bench.sim_substep",
     "e2e": "physgm.bench.e2e",
     "model": "physgm.bench.model_speed",
+    "hull": "physgm.bench.hull_speed",
     "dpo-landscape": "physgm.bench.dpo_landscape",
     "material-probe": "physgm.bench.material_probe",
     "clips": "physgm.bench.clips",
