@@ -137,3 +137,15 @@ def test_kernel_matches_its_torch_twin(views):
         assert ((got - ref).abs() <= spacing + 1e-5).all()
     outside = ~inside  # untouched by either
     assert (lo[outside] == near).all() and (hi[outside] == far).all()
+
+
+@pytest.mark.gpu
+def test_kernel_on_cuda_matches_the_cpu_kernel():
+    """The same kernel launched on the tensors' CUDA device gives the CPU's ranges."""
+    cams, dirs, masks = blob_views([0.0, 90.0, 180.0, 270.0], seed=3)
+    args = (masks[None], cams.c2w[None], cams.Ks[None], dirs[None])
+    lo, hi = hull_depth_range(*args, 0.001, 3.0)
+    lo_cuda, hi_cuda = hull_depth_range(*(a.cuda() for a in args), 0.001, 3.0)
+    assert lo_cuda.is_cuda
+    for got, ref in ((lo_cuda.cpu(), lo), (hi_cuda.cpu(), hi)):
+        assert ((got - ref).abs() > 1e-5).float().mean() < 0.005
