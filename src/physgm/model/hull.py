@@ -54,21 +54,12 @@ def hull_depth_range(
     other view confirms (mask noise) get [near, far]. Points behind a camera or outside its image
     count as outside: the object is assumed in frame in every view.
     """
-    return _hull_depth_range(masks, c2w, Ks, directions, near, far, samples, threshold, _hull_segment)
+    return _hull_depth_range(masks, c2w, Ks, directions, near, far, samples, threshold)
 
 
-def _hull_depth_range_torch(
-    masks: Tensor,  # [B, V, 1, H, W]
-    c2w: Tensor,  # [B, V, 4, 4]
-    Ks: Tensor,  # [B, V, 3, 3]
-    directions: Tensor,  # [B, V, H, W, 3]
-    near: float,
-    far: float,
-    samples: int = 32,
-    threshold: float = 0.1,
-) -> tuple[Tensor, Tensor]:  # lo, hi: [B, V, H, W]
-    """``hull_depth_range`` with the plain-torch pass 2: the kernel's twin, for tests."""
-    return _hull_depth_range(masks, c2w, Ks, directions, near, far, samples, threshold, _hull_segment_torch)
+def _hull_depth_range_torch(*args, **kwargs) -> tuple[Tensor, Tensor]:
+    """``hull_depth_range`` with the plain-torch pass 2 (the kernel's twin, for tests)."""
+    return _hull_depth_range(*args, **kwargs, search=_hull_segment_torch)
 
 
 def _hull_depth_range(
@@ -78,10 +69,11 @@ def _hull_depth_range(
     directions: Tensor,  # [B, V, H, W, 3]
     near: float,
     far: float,
-    samples: int,
-    threshold: float,
-    search: SegmentSearch,
+    samples: int = 32,
+    threshold: float = 0.1,
+    search: SegmentSearch | None = None,  # pass 2; None: the Warp kernel's
 ) -> tuple[Tensor, Tensor]:  # lo, hi: [B, V, H, W]
+    search = search or _hull_segment
     if samples < 2:
         raise ValueError(f"hull_samples must be at least 2, got {samples}")
     b, v, _, height, width = masks.shape
@@ -143,22 +135,11 @@ def _hull_segment(
     return lo.to(origin.dtype), hi.to(origin.dtype)
 
 
-def _hull_segment_torch(
-    origin: Tensor,  # [R, 3]
-    direction: Tensor,  # [R, 3] unit
-    proj: Tensor,  # [V, 3, 4]
-    boxes: Tensor,  # [V, 4]
-    masks: Tensor,  # [V, H, W] bool
-    samples: int,
-    near: float,
-    far: float,
-) -> tuple[Tensor, Tensor]:  # lo, hi: [R]
-    """The twin of ``_hull_segment`` (plain torch, every sample against every view), in chunks of
-    RAY_CHUNK rays."""
+def _hull_segment_torch(origin: Tensor, direction: Tensor, *scene) -> tuple[Tensor, Tensor]:
+    """The twin of ``_hull_segment`` (plain torch, every sample against every view): the arguments
+    of ``_hull_chunk_torch``, run RAY_CHUNK rays at a time."""
     parts = [
-        _hull_chunk_torch(
-            origin[k : k + RAY_CHUNK], direction[k : k + RAY_CHUNK], proj, boxes, masks, samples, near, far
-        )
+        _hull_chunk_torch(origin[k : k + RAY_CHUNK], direction[k : k + RAY_CHUNK], *scene)
         for k in range(0, origin.shape[0], RAY_CHUNK)
     ]
     return torch.cat([part[0] for part in parts]), torch.cat([part[1] for part in parts])
