@@ -37,14 +37,18 @@ MATS = [
 ]
 
 
-@pytest.mark.parametrize("flip", [0.0, 0.95])
-@pytest.mark.parametrize("threads", [1, 2])
-def test_substeps_match_numpy_twin(flip, threads):
-    """Three sub-steps: the first scatters with p2g, the later ones use g2p's fused scatter."""
+@pytest.mark.parametrize(
+    "flip, threads, grip",
+    [(0.0, 1, "clamp"), (0.0, 2, "clamp"), (0.95, 1, "clamp"), (0.95, 2, "clamp"), (0.95, 2, "slip")],
+)
+def test_substeps_match_numpy_twin(flip, threads, grip):
+    """Three sub-steps: the first scatters with p2g, the later ones use g2p's fused scatter. A slip
+    grip prescribes only the pulling component and leaves its particles to the grid."""
     rng = np.random.default_rng(3)
     p = random_block(60, seed=1, material=rng.integers(0, 2, 60))
     grid = GridSpec((0.0, 0.0, 0.0), 0.025, (14, 12, 13))  # not cubic on purpose
-    box = VelocityBox((0.09, 0.0, 0.0), (0.13, 0.3, 0.3), (0.0, 0.3, 0.0))
+    slip = dict(axes=(False, True, False), carry=False) if grip == "slip" else {}
+    box = VelocityBox((0.09, 0.0, 0.0), (0.13, 0.3, 0.3), (0.0, 0.3, 0.0), **slip)
     # The grid condition at the plane (random particles start under it, where the particle
     # contact's springs would push from a lowered plane; its twin: test_particle_ground.py).
     scene = Scene(ground=GroundPlane(height=0.11, friction=0.4, contact="nodes"), boxes=(box,))
@@ -75,6 +79,13 @@ def test_substeps_match_numpy_twin(flip, threads):
         gv = solver.grid_v.numpy()[..., :3]
         np.testing.assert_allclose(gv, out["grid_v"], rtol=1e-4 * loose, atol=1e-5 * loose)
         ref.update({k: out[k] for k in ("x", "v", "C", "F", "plastic")})
+    if grip == "slip":  # the box held the nodes' pull and left their sideways motion free
+        g = solver.grid_v.numpy()
+        # Nodes at x = 0.1, 0.125 m (in the box), above the ground, clear of the separating walls.
+        inside = g[4:6, 3:9, 6:10]
+        held = inside[inside[..., 3] > 0]
+        assert len(held) > 0 and np.allclose(held[:, 1], 0.3)
+        assert np.abs(held[:, [0, 2]]).max() > 1e-3
     solver.close()
 
 

@@ -39,9 +39,10 @@ cohesion=0, viscosity=0)``                          (``physgm.sim.constitutive``
     grid the solver lowers by under a cell) makes light bodies touch and rest at the plane, with
     Coulomb friction also on the node layer at the surface (boundary.py, surface_friction.py).
     The implicit step always uses the node condition.
-    ``VelocityBox(lo, hi, velocity, start=0, stop=inf, hold=True)`` prescribes the velocity of
-    grid nodes and particles inside a box that moves with it (grips, clamps with velocity 0,
-    pushers); after ``stop`` a held box fixes its contents.
+    ``VelocityBox(lo, hi, velocity, start=0, stop=inf, hold=True, axes=(True,) * 3, carry=True)``
+    prescribes the velocity of grid nodes (and, with ``carry``, particles) inside a box that moves
+    with it (grips, clamps with velocity 0, pushers); ``axes`` names the components it sets, and
+    after ``stop`` a held box fixes them.
     ``damping`` (1/s) is a mass-proportional drag. ``SideWall(axis, position, solid="below"|
     "above", mode="slip"|"sticky")`` is a wall plane on x or y (or z); ``PeriodicAxis(axis, lo,
     hi)`` makes an axis periodic (lo, hi on grid nodes; plane-strain set-ups). The grid faces

@@ -73,6 +73,8 @@ class BoxStruct:
     start: float  # s
     stop: float  # s
     hold: int  # 1: after stop the box stays and fixes its nodes; 0: it is released
+    fixed: wp.vec3  # 1 for each velocity component the box prescribes, 0 for one it leaves free
+    carry: int  # 1: the particles inside move with the box too; 0: only its nodes are held
 
 
 @dataclass(frozen=True)
@@ -174,7 +176,14 @@ class VelocityBox:
     """Grid nodes inside [lo, hi] (moving with ``velocity`` from ``start`` to ``stop``) take that velocity.
 
     Grips of a stretch test are two boxes moving apart; a clamp is a box with zero velocity.
-    After ``stop`` a held box stays where it ended and fixes its nodes (velocity 0).
+    After ``stop`` a held box stays where it ended and fixes its nodes (velocity 0). ``axes``
+    names the velocity components the box prescribes; the others stay free, so a grip that
+    prescribes only the pulling axis lets the held end narrow as the body stretches (a slip grip:
+    the ends of a tensile test on rollers, which leaves a bar in uniform uniaxial tension).
+    With ``carry`` the particles inside move with the box as well, so none creeps out of a clamp;
+    without it they follow the held nodes, and the body's strain runs smoothly into the grip
+    instead of tearing at its edge (carried particles keep their spacing while the first free
+    layer is pulled away from them).
     """
 
     lo: tuple[float, float, float]
@@ -183,6 +192,8 @@ class VelocityBox:
     start: float = 0.0
     stop: float = math.inf
     hold: bool = True
+    axes: tuple[bool, bool, bool] = (True, True, True)
+    carry: bool = True
 
     def __post_init__(self) -> None:
         lo, hi = np.asarray(self.lo, float), np.asarray(self.hi, float)
@@ -193,6 +204,14 @@ class VelocityBox:
             raise ValueError(f"velocity box velocity must be three finite numbers, got {self.velocity}")
         for name, value in (("lo", lo), ("hi", hi), ("velocity", vel)):
             object.__setattr__(self, name, tuple(float(c) for c in value))
+        axes = tuple(self.axes)
+        if len(axes) != 3 or not all(isinstance(a, (bool, np.bool_)) for a in axes) or not any(axes):
+            raise ValueError(f"velocity box axes must be three booleans, at least one True, got {self.axes}")
+        if any(not a and c != 0.0 for a, c in zip(axes, vel, strict=True)):
+            raise ValueError(
+                f"velocity box moves along an axis it leaves free: velocity {self.velocity}, axes {axes}"
+            )
+        object.__setattr__(self, "axes", tuple(bool(a) for a in axes))
 
     def pack(self) -> BoxStruct:
         s = BoxStruct()
@@ -202,6 +221,8 @@ class VelocityBox:
         s.start = float(self.start)
         s.stop = float(min(self.stop, 1.0e30))
         s.hold = int(self.hold)
+        s.fixed = wp.vec3(*(1.0 if a else 0.0 for a in self.axes))
+        s.carry = int(self.carry)
         return s
 
 
@@ -232,9 +253,10 @@ def box_velocity(box: BoxStruct, pos: wp.vec3, t: float, v: wp.vec3) -> wp.vec3:
         return v
     if pos[0] > hi[0] or pos[1] > hi[1] or pos[2] > hi[2]:
         return v
+    target = wp.vec3(0.0)
     if moving:
-        return box.velocity
-    return wp.vec3(0.0)
+        target = box.velocity
+    return v + wp.cw_mul(box.fixed, target - v)
 
 
 @wp.func

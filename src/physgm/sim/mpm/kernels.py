@@ -440,14 +440,15 @@ def _g2p_kernel(models: tuple[int, ...]) -> wp.Kernel:
         dc = (4.0 * inv_dx) * (moment_matrix(bi, bj, bk, 4) - wp.outer(dvel, fx))
         v_new = vel + flip * (v[p] + dvel - vel)
         c_new = c_grid + flip * (C[p] + dc - c_grid)
-        # Particles inside a velocity box move with it: grid conditions alone let the particles at
-        # the box edge (whose stencil reaches free nodes) creep out of a clamp or a grip.
+        # Particles inside a carrying velocity box move with it: grid conditions alone let the
+        # particles at the box edge (whose stencil reaches free nodes) creep out of a clamp.
         v_move = vel
         if num_boxes > 0:
             v_free = v_new
             for b in range(num_boxes):
-                v_new = box_velocity(boxes[b], xp, t, v_new)
-                v_move = box_velocity(boxes[b], xp, t, v_move)
+                if boxes[b].carry != 0:
+                    v_new = box_velocity(boxes[b], xp, t, v_new)
+                    v_move = box_velocity(boxes[b], xp, t, v_move)
             wp.atomic_add(work, slot, WORK_DRIVER, wp.float64(mass[p] * wp.dot(v_new - v_free, v_new)))
         # The state is H = F - I: stiff materials take steps with strain increments below float32's
         # resolution of numbers near 1, and accumulating F itself would round them away (creep).

@@ -28,7 +28,8 @@ def _box_velocity(box, pos, t, v):
     lo, hi = np.asarray(box.lo) + shift, np.asarray(box.hi) + shift
     if np.any(pos < lo) or np.any(pos > hi):
         return v
-    return np.asarray(box.velocity, float) if moving else np.zeros(3)
+    target = np.asarray(box.velocity, float) if moving else np.zeros(3)
+    return np.where(box.axes, target, v)
 
 
 def _ground_velocity(ground, pos, dx, v):
@@ -192,7 +193,7 @@ def substep(
         v_new = vel + flip * (v[p] + dvel - vel)
         c_new = c_grid + flip * (C[p] + 4 / dx * dB - c_grid)
         v_move = vel  # particles move with the grid velocity; only v carries the FLIP share
-        for box in scene.boxes:
+        for box in (b for b in scene.boxes if b.carry):
             v_new = _box_velocity(box, x[p], t, v_new)
             v_move = _box_velocity(box, x[p], t, v_move)
         F_trial = (np.eye(3) + dt * c_grid) @ F[p]
