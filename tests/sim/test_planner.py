@@ -20,6 +20,7 @@ from physgm.sim.planner import (
     plan_simulation,
     reachable_region,
     stiffness_cap,
+    stretch_splits,
 )
 
 G = 9.81
@@ -241,3 +242,14 @@ def test_stiff_object_thrown_at_a_still_wall_is_rigid_and_a_soft_one_is_not():
     jelly = plan(JELLY, "jelly")
     # The throw is the load: a jelly hitting the wall at 2 m/s squashes visibly, and is not capped.
     assert jelly.mode == "mpm" and jelly.E_used == JELLY.E and jelly.error_terms["impact_px"] > 0.5
+
+
+def test_stretch_splits_keep_stretched_particles_within_the_spacing_bound():
+    cfg = PlannerConfig()  # particles at dx / 2, at most 0.67 cells apart when stretched
+    assert stretch_splits(1.3, 0.5, 1.0, cfg) == 1
+    assert stretch_splits(2.3, 0.5, 1.0, cfg) == 2
+    assert stretch_splits(3.4, 0.5, 1.0, cfg) == 3
+    assert stretch_splits(3.4, 0.5, 1.0, PlannerConfig(max_stretched_spacing=1.0)) == 2
+    assert stretch_splits(50.0, 0.5, 1.0, cfg) == 4  # capped
+    with pytest.raises(ValueError, match="max_stretched_spacing"):
+        PlannerConfig(max_stretched_spacing=0.0)

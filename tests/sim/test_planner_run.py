@@ -12,7 +12,7 @@ from physgm.bench.drop_scene import project
 from physgm.cameras import orbit_cameras
 from physgm.gaussians import Gaussians, quat_to_rotmat
 from physgm.physics.materials import PhysicsSpec
-from physgm.sim.gaussian_trajectory import ballistic_frames, simulate
+from physgm.sim.gaussian_trajectory import ballistic_frames, prepare_simulation, simulate
 from physgm.sim.mpm.boundary import GroundPlane
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm_run import motion_left_px
@@ -306,3 +306,16 @@ def test_a_landing_lump_with_its_bulk_capped_stays_within_the_dent_term():
 
     # The cap makes the lump more compressible: at most 1 % of its volume at any frame.
     assert float(np.abs(volume(capped) - volume(explicit)).max()) < 0.01
+
+
+def test_the_stretch_scene_splits_the_particles_along_its_axis():
+    """A stretch to twice the length gets two particles per lattice site along the pulled axis
+    (planner.stretch_splits), a drop of the same object none; the mass is the same."""
+    gs = _shell_cube(bottom=0.0)
+    jelly = PhysicsSpec("jelly", E=5e4)
+    drop = prepare_simulation(gs, jelly, "drop", CAMERAS, n_frames=3)
+    pulled = prepare_simulation(gs, jelly, "stretch", CAMERAS, n_frames=3, scene_overrides={"axis": 1})
+    assert len(pulled.sample) == 2 * len(drop.sample)
+    assert float(pulled.sample.volume.sum()) == pytest.approx(float(drop.sample.volume.sum()), rel=1e-6)
+    layers = np.unique(pulled.sample.x[:, 1].numpy().round(6))
+    assert np.diff(layers).min() == pytest.approx(0.5 * drop.sample.spacing, rel=1e-3)

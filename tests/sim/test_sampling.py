@@ -10,10 +10,12 @@ import torch
 
 from physgm.gaussians import Gaussians, quat_to_rotmat
 from physgm.sim.sampling import (
+    ParticleSample,
     build_followers,
     fill_interior,
     lattice_frame,
     sample_particles,
+    split_along,
     voxel_downsample,
 )
 
@@ -176,3 +178,21 @@ def test_wide_splats_mark_the_voxels_they_cover():
     g.scales = torch.full((len(xy), 3), 1e-4)
     # The extra Gaussian shares the voxel of (0.18, 0.18).
     assert len(sample_particles(g, spacing, fill=False)) == 100
+
+
+def test_split_along_cuts_each_voxel_into_slabs():
+    sample = ParticleSample(
+        x=torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]]),
+        volume=torch.full((2,), 1e-3),
+        interior=torch.tensor([True, False]),
+        spacing=0.1,
+    )
+    split = split_along(sample, axis=2, n=4)
+    assert len(split) == 8 and split.spacing == 0.1
+    torch.testing.assert_close(split.x[:4, 2], torch.tensor([-0.0375, -0.0125, 0.0125, 0.0375]))
+    torch.testing.assert_close(split.x[:4, :2], torch.zeros(4, 2))
+    assert float(split.volume.sum()) == pytest.approx(2e-3)
+    assert split.interior.tolist() == [True] * 4 + [False] * 4
+    assert split_along(sample, 0, 1) is sample
+    with pytest.raises(ValueError, match="n >= 1"):
+        split_along(sample, 0, 0)

@@ -26,9 +26,9 @@ from physgm.sim.coupling import follow_and_deform, rigid_transform_gaussians
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.stepping import SolverConfig
 from physgm.sim.mpm_run import ballistic_frames, run_mpm
-from physgm.sim.planner import Plan, PlannerConfig, choose_spacing, plan_simulation
+from physgm.sim.planner import Plan, PlannerConfig, choose_spacing, plan_simulation, stretch_splits
 from physgm.sim.rigid import ContactParams, RigidBody, RigidSimulator, RigidTrajectory
-from physgm.sim.sampling import Followers, ParticleSample, build_followers, sample_particles
+from physgm.sim.sampling import Followers, ParticleSample, build_followers, sample_particles, split_along
 from physgm.sim.scenes import SceneSetup, build_scene
 
 
@@ -224,6 +224,10 @@ def prepare_simulation(
     dx, spacing = choose_spacing(float(extent.max()), cfg)
     rest = sample_particles(gaussians, spacing, cfg.min_opacity, cfg.fill_interior)
     setup = apply_scene(scene, rest.x.detach().cpu().double().numpy(), scene_overrides)
+    if setup.stretch is not None and (splits := stretch_splits(setup.stretch[1], spacing, dx, cfg)) > 1:
+        # The scene sees the particles it will pull (its grips are set from their extent).
+        rest = split_along(rest, setup.stretch[0], splits)
+        setup = apply_scene(scene, rest.x.detach().cpu().double().numpy(), scene_overrides)
     gaussians = _place_gaussians(gaussians, rest.x.detach().cpu(), setup.x)
     sample = replace(rest, x=torch.from_numpy(setup.x).float().to(rest.x.device))
     v0 = np.asarray(setup.v, dtype=np.float64)

@@ -47,7 +47,8 @@ class ParticleSample:
         x: [P, 3] rest positions, m (voxel centres of a regular lattice).
         volume: [P] rest volumes, m^3 (one voxel each).
         interior: [P] True for particles in voxels no Gaussian touches (added by filling).
-        spacing: voxel side (particle spacing), m.
+        spacing: voxel side (particle spacing), m; ``split_along`` puts n particles a voxel
+            along one axis.
     """
 
     x: Tensor  # [P, 3]
@@ -235,6 +236,26 @@ def sample_particles(
         volume=torch.full((len(x),), spacing**3, device=device),
         interior=torch.from_numpy(interior).to(device),
         spacing=spacing,
+    )
+
+
+def split_along(sample: ParticleSample, axis: int, n: int) -> ParticleSample:
+    """Each particle's voxel cut into ``n`` slabs along ``axis``, one particle at each slab's centre.
+
+    For a body a scene stretches along ``axis`` (``planner.stretch_splits``): the particles along
+    it start ``spacing / n`` apart and the sample's mass is unchanged.
+    """
+    if n < 1:
+        raise ValueError(f"need n >= 1 slabs per voxel, got {n}")
+    if n == 1:
+        return sample
+    offsets = torch.zeros(n, 3, dtype=sample.x.dtype, device=sample.x.device)  # [n, 3]
+    offsets[:, axis] = ((torch.arange(n, device=sample.x.device) + 0.5) / n - 0.5) * sample.spacing
+    return ParticleSample(
+        x=(sample.x[:, None, :] + offsets).reshape(-1, 3),
+        volume=(sample.volume / n).repeat_interleave(n),
+        interior=sample.interior.repeat_interleave(n),
+        spacing=sample.spacing,
     )
 
 

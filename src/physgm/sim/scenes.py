@@ -40,6 +40,7 @@ class SceneSetup:
     reach_lo: np.ndarray  # [3] m, lower corner of the region the particles can reach
     reach_hi: np.ndarray  # [3] m
     driver_work: bool = False  # the scene moves particles by prescribed velocities (adds energy)
+    stretch: tuple[int, float] | None = None  # (axis, largest local stretch) a scene pulls the body to
 
 
 def _ground(cfg: dict) -> GroundPlane | None:
@@ -94,28 +95,66 @@ def drop(x: np.ndarray, material: np.ndarray, cfg: dict) -> SceneSetup:
     return SceneSetup(scene, x, v, duration, lo, hi)
 
 
+def _peak_stretch(
+    s: np.ndarray,  # [P] particle coordinates along the pulling axis, m
+    faces: np.ndarray,  # [2] the grips' inner faces, m
+    extension: float,  # m the grips add to the length
+) -> float:
+    """Largest local stretch of the part between the grips, read as a bar of varying section.
+
+    One force runs through the bar, so its strain goes as 1 / A(s): eps(s) = extension / (A(s)
+    int ds / A). A(s) is the particles' density along the axis, smoothed over a twelfth of the
+    span (a grid cell at the planner's default) so a lattice's layers do not alias. A prism gets
+    its mean stretch; a round blob held by its ends about 1.3x that next to the grips.
+    """
+    width = (float(s.max() - s.min()) or 1.0) / 12.0
+    at = np.linspace(faces[0], faces[1], 65)  # [65]
+    density = np.zeros_like(at)
+    for chunk in np.array_split(s, max(1, len(s) // 65_536)):  # [65, n] at a time: bounded memory
+        density += np.exp(-0.5 * ((at[:, None] - chunk[None, :]) / width) ** 2).sum(1)
+    strain = extension / (density * np.trapezoid(1.0 / density, at))
+    return 1.0 + float(strain.max())
+
+
 def stretch(x: np.ndarray, material: np.ndarray, cfg: dict) -> SceneSetup:
-    """Two grips holding ``grip_fraction`` of each end move apart at ``speed`` until length x ``ratio``."""
+    """Two grips, each holding ``grip_fraction`` of the particles at one end, move apart at
+    ``speed`` until the body's length is ``ratio`` x its rest length.
+
+    A ``slip`` grip prescribes only the velocity along the axis, so the held ends narrow with the
+    body and a prism is left in uniform uniaxial tension; a ``clamp`` holds the ends at their
+    width. The setup names the stretch, for which the particles are split along the axis
+    (``planner.stretch_splits``).
+    """
     a = int(cfg["axis"])
     speed, ratio, frac = float(cfg["speed"]), float(cfg["ratio"]), float(cfg["grip_fraction"])
     if not (speed > 0 and ratio > 1 and 0 < frac < 0.5):
         raise ValueError(
             f"stretch needs speed > 0, ratio > 1, 0 < grip_fraction < 0.5; got {speed}, {ratio}, {frac}"
         )
+    kind = str(cfg.get("grip", "slip"))
+    if kind not in ("slip", "clamp"):
+        raise ValueError(f"stretch grip must be slip or clamp, got {kind!r}")
+    axes = tuple(kind == "clamp" or i == a for i in range(3))
     lo, hi = x.min(0), x.max(0)
     length = float(hi[a] - lo[a])
     pad = 0.5 * float((hi - lo).max())
     stop = (ratio - 1.0) * length / (2.0 * speed)
+    # Each grip holds that share of the particles, not of the length: the rounded end of a blob
+    # is thin, and a grip on its tip alone pulls the tip off.
+    inner = np.quantile(x[:, a], [frac, 1.0 - frac])
     boxes = []
-    for sign, end in ((-1.0, lo[a]), (1.0, hi[a])):
+    for sign, end, face in ((-1.0, lo[a], inner[0]), (1.0, hi[a], inner[1])):
         b_lo, b_hi = lo - pad, hi + pad
         if sign < 0:
-            b_lo[a], b_hi[a] = end - pad, end + frac * length
+            b_lo[a], b_hi[a] = end - pad, face
         else:
-            b_lo[a], b_hi[a] = end - frac * length, end + pad
+            b_lo[a], b_hi[a] = face, end + pad
         vel = np.zeros(3)
         vel[a] = sign * speed
-        boxes.append(VelocityBox(tuple(b_lo), tuple(b_hi), tuple(vel), start=0.0, stop=stop, hold=True))
+        # The grips hold nodes only: their particles follow the nodes, so the strain runs
+        # smoothly into the grip (VelocityBox: carried particles tear off at the grip's edge).
+        grip = VelocityBox(tuple(b_lo), tuple(b_hi), tuple(vel), 0.0, stop, hold=True, axes=axes, carry=False)
+        boxes.append(grip)
     gravity = _vec(cfg.get("gravity", (0, 0, 0)), "gravity")
     duration = float(cfg["duration"])
     grow = np.zeros(3)
@@ -123,7 +162,10 @@ def stretch(x: np.ndarray, material: np.ndarray, cfg: dict) -> SceneSetup:
     reach_lo = lo - grow - 0.25 * pad - 0.5 * np.abs(gravity) * duration**2
     reach_hi = hi + grow + 0.25 * pad
     scene = Scene(gravity=tuple(gravity), ground=_ground(cfg), boxes=tuple(boxes), **_boundaries(cfg))
-    return SceneSetup(scene, x.copy(), np.zeros_like(x), duration, reach_lo, reach_hi, driver_work=True)
+    peak = _peak_stretch(x[:, a], inner, (ratio - 1.0) * length)
+    return SceneSetup(
+        scene, x.copy(), np.zeros_like(x), duration, reach_lo, reach_hi, driver_work=True, stretch=(a, peak)
+    )
 
 
 def push(x: np.ndarray, material: np.ndarray, cfg: dict) -> SceneSetup:

@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
+from scipy.optimize import brentq
 
 from physgm.physics.materials import get_material
 from physgm.sim.mpm import GridSpec, MPMSolver, Particles, SolverConfig
+from physgm.sim.planner import PlannerConfig, stretch_splits
+from physgm.sim.sampling import ParticleSample, split_along
 from physgm.sim.scenes import SCENES, build_scene
 
 SP = 0.0125  # particle spacing, m (dx = 2 SP)
@@ -16,10 +20,10 @@ def cube(size=0.1, material=0) -> Particles:
     return Particles.lattice((0.0, 0.0, 0.0), (size, size, size), SP, material=material)
 
 
-def make_solver(p: Particles, setup, materials, frame_dt=0.02, pad=0.05):
+def make_solver(p: Particles, setup, materials, frame_dt=0.02, pad=0.05, dx=2 * SP):
     p.x = setup.x
     p.v = setup.v
-    grid = GridSpec.fit(setup.reach_lo - pad, setup.reach_hi + pad, 2 * SP)
+    grid = GridSpec.fit(setup.reach_lo - pad, setup.reach_hi + pad, dx)
     return MPMSolver(p, materials, grid, setup.scene, SolverConfig(frame_dt=frame_dt))
 
 
@@ -50,19 +54,21 @@ def test_drop_lands_on_the_ground():
     assert solver.escaped == 0
 
 
-def test_stretch_doubles_the_length():
-    p = cube()
-    setup = build_scene("stretch", p.x, speed=0.5, ratio=2.0, duration=0.2)
+def test_stretch_grips_move_their_particles_apart_until_the_ratio():
+    """The grips hold nodes only (their particles follow the nodes), so the grid must resolve
+    them: 10 cells across, a grip a cell deep. They stop once the extent grew by (ratio - 1) x."""
+    p = Particles.lattice((0.0, 0.0, 0.0), (0.1, 0.1, 0.1), 0.005)
+    setup = build_scene("stretch", p.x, speed=0.5, ratio=1.5, duration=0.2)
     assert setup.driver_work and len(setup.scene.boxes) == 2
-    solver = make_solver(p, setup, [get_material("jelly").params(E=5e4)], frame_dt=0.01)
-    left, right = p.x[:, 0] < 0.01, p.x[:, 0] > 0.09
+    solver = make_solver(p, setup, [get_material("jelly").params(E=5e4)], frame_dt=0.01, dx=0.01)
+    left, right = p.x[:, 0] < np.quantile(p.x[:, 0], 0.1), p.x[:, 0] > np.quantile(p.x[:, 0], 0.9)
     for _ in range(12):
         solver.step_frame()
     x = solver.state().x
     length0 = p.x[right, 0].mean() - p.x[left, 0].mean()
     grown = x[right, 0].mean() - x[left, 0].mean()
-    # Grips stop once the particle extent doubled (0.0875 m of growth at 1 m/s total).
-    assert grown - length0 == pytest.approx(0.0875, rel=0.05)
+    # The extent 0.095 m grows by half of itself at 1 m/s in all, by 0.0475 s; held after that.
+    assert grown - length0 == pytest.approx(0.0475, rel=0.05)
     assert solver.driver_work > 0 and np.isfinite(x).all()
 
 
@@ -96,3 +102,69 @@ def test_two_objects_of_different_materials():
     assert min(gap) > -2 * SP  # the jelly lands on the wood, not through it ...
     # ... after falling the 0.08 m gap: single-grid MPM contact acts at ~1.5 cells between particle centres
     assert min(gap) < 3 * SP
+
+
+def test_stretch_leaves_a_prism_in_uniform_uniaxial_tension():
+    """Slip grips pull a jelly prism to twice its length, its particles split along the axis as
+    the planner asks: the middle narrows as fixed-corotated uniaxial tension says (lateral stress
+    0), keeps the volume ratio that goes with it, and no layer of particles tears away."""
+    dx, size = 0.01, 0.08
+    base = Particles.lattice((-size / 2,) * 3, (size / 2,) * 3, dx / 2)
+    first = build_scene("stretch", base.x, axis=1, speed=0.5, ratio=2.0, duration=0.25)
+    n = stretch_splits(first.stretch[1], dx / 2, dx, PlannerConfig())
+    assert first.stretch[0] == 1 and n == 2  # a prism's peak stretch is its mean: 2.2x over 0.8 of it
+    rest = torch.from_numpy(base.x).float()
+    volume = torch.full((len(rest),), (dx / 2) ** 3)
+    lattice = ParticleSample(rest, volume, torch.zeros(len(rest), dtype=bool), dx / 2)
+    sample = split_along(lattice, 1, n)
+    p = Particles(x=sample.x.double().numpy(), volume=sample.volume.double().numpy(), material=0)
+    setup = build_scene("stretch", p.x, axis=1, speed=0.5, ratio=2.0, duration=0.25)
+    E, nu = 5e4, 0.45
+    solver = make_solver(p, setup, [get_material("jelly").params(E=E, nu=nu)], frame_dt=0.01, pad=0.02, dx=dx)
+    x0 = setup.x
+    mid = np.abs(x0[:, 1]) < 0.2 * size  # the middle 40 %
+    layer = np.round((x0[:, 1] - x0[:, 1].min()) / (dx / 4)).astype(int)
+    lateral, axial, J, worst = [], [], [], []
+    for frame in range(25):
+        solver.step_frame()
+        if frame >= 15:  # grips held from 0.08 s; the last 0.1 s averages the ringing out
+            s = solver.state()
+            axial.append(s.x[mid, 1].std() / x0[mid, 1].std())
+            lateral.append(s.x[mid][:, [0, 2]].std(0).mean() / x0[mid][:, [0, 2]].std(0).mean())
+            J.append(np.median(np.linalg.det(s.F[mid])))
+            y = np.array([np.median(s.x[layer == i, 1]) for i in range(layer.max() + 1)])
+            gaps = np.diff(y)
+            worst.append(gaps.max() / np.median(gaps))
+    stretch_mid, t, j = np.mean(axial), np.mean(lateral), np.mean(J)
+    mu, lam = E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
+
+    def lateral_stress(t_: float) -> float:  # principal Kirchhoff stress across the axis, J = s t^2
+        J_ = stretch_mid * t_**2
+        return 2 * mu * (t_ - 1) * t_ + lam * (J_ - 1) * J_
+
+    t_exact = brentq(lateral_stress, 0.3, 1.0)  # no stress across: uniaxial tension
+    assert 1.8 < stretch_mid < 2.4
+    assert t == pytest.approx(t_exact, rel=0.03)
+    assert j == pytest.approx(stretch_mid * t_exact**2, rel=0.03)
+    assert max(worst) < 2.0  # a torn layer opens a gap several times the others
+    solver.close()
+
+
+def test_stretch_reads_a_rounder_body_as_stretched_more_next_to_its_grips():
+    """Grips hold a share of the particles; the peak stretch of a prism is its mean (the part
+    between the grips takes the whole extension), a ball's is larger (its thin ends take more)."""
+    sp = 0.005
+    prism = Particles.lattice((-0.05,) * 3, (0.05,) * 3, sp).x
+    ball = prism[np.linalg.norm(prism, axis=1) < 0.05]
+    for x in (prism, ball):
+        setup = build_scene("stretch", x, axis=2, ratio=2.0, grip_fraction=0.1)
+        inner = np.quantile(x[:, 2], [0.1, 0.9])
+        grips = [((setup.x >= b.lo) & (setup.x <= b.hi)).all(1).mean() for b in setup.scene.boxes]
+        assert grips == pytest.approx([0.1, 0.1], abs=0.03)  # a share of the particles each
+        mean = 1.0 + (x[:, 2].max() - x[:, 2].min()) / (inner[1] - inner[0])
+        if x is prism:
+            assert setup.stretch[1] == pytest.approx(mean, rel=0.06)
+        else:
+            assert setup.stretch[1] > 1.2 * mean
+    with pytest.raises(ValueError, match="slip or clamp"):
+        build_scene("stretch", prism, grip="glue")

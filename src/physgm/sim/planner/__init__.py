@@ -23,8 +23,8 @@ chooses, in order of cost:
 
 Modules, in the order a reader needs them:
     config.py       ``PlannerConfig``, the knobs (conf/sim/planner/default.yaml)
-    domain.py       grid cell size and particle spacing (``choose_spacing``) and the region the
-                    grid must hold (``reachable_region``, ``grid_region``)
+    domain.py       grid cell size and particle spacing (``choose_spacing``, ``stretch_splits``)
+                    and the region the grid must hold (``reachable_region``, ``grid_region``)
     deformation.py  the error models: deformation estimates in metres, the stiffness cap, and
                     the metres-to-pixels scale of the output cameras
     plan.py         ``Plan``, the choice with its predicted cost and error, and its JSON summary
@@ -47,6 +47,7 @@ from physgm.sim.planner.domain import (
     grid_region,
     heap_radius,
     reachable_region,
+    stretch_splits,
 )
 from physgm.sim.planner.plan import Plan
 
@@ -66,5 +67,6 @@ __all__ = [
     "pixels_per_metre",
     "plan_simulation",
     "reachable_region",
+    "stretch_splits",
     "stiffness_cap",
 ]

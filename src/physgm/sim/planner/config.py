@@ -16,6 +16,10 @@ class PlannerConfig:
     # body loses its shape. Sets the particle spacing dx / ppc^(1/3); the lattice through the
     # object's bounding box then holds at most (cells_across ppc^(1/3))^3 particles (13,824).
     particles_per_cell: float = 8.0
+    # Particle spacing, in cells, a stretched body may reach: MPM tears a body whose particles
+    # drift about a cell apart (a 20 cm jelly cube at 2 per cell tore at 1.85x its length, at
+    # 0.93 cells), so a scene that stretches splits the particles along its axis to stay below it.
+    max_stretched_spacing: float = 0.67
     min_opacity: float = 0.05  # Gaussians fainter than this carry no mass
     fill_interior: bool = True  # fill the inside of closed Gaussian shells with particles (sampling.py)
     follower_k: int = 8  # nearest particles each Gaussian follows
@@ -50,7 +54,15 @@ class PlannerConfig:
     domain_size: float = 1.0  # m, only with fit_grid = False
 
     def __post_init__(self) -> None:
-        positive = ("bound_px", "cells_across", "max_cells", "particles_per_cell", "cfl", "rigid_dt")
+        positive = (
+            "bound_px",
+            "cells_across",
+            "max_cells",
+            "particles_per_cell",
+            "max_stretched_spacing",
+            "cfl",
+            "rigid_dt",
+        )
         for name in (*positive, "domain_size"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"planner setting {name}={getattr(self, name)!r} must be > 0")

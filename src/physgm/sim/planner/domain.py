@@ -23,6 +23,7 @@ BASE_LAYER = 0.05
 # A body that must lean less than this to bring its centre over the edge of its base may fall over
 # (a landing or a push tips it); the grid then leaves room for it to lie down. A cube needs 45 deg.
 TIP_ANGLE_DEG = 20.0
+MAX_STRETCH_SPLITS = 4  # most particles per lattice site along a stretched axis (4x the cost)
 
 
 def base_points(pts: np.ndarray) -> np.ndarray:  # pts [P, 3] m -> [B, 3]
@@ -47,6 +48,18 @@ def choose_spacing(size: float, config: PlannerConfig) -> tuple[float, float]:
         raise ValueError(f"object size must be positive, got {size} m; are all Gaussians at one point?")
     dx = size / config.cells_across
     return dx, dx / config.particles_per_cell ** (1 / 3)
+
+
+def stretch_splits(ratio: float, spacing: float, dx: float, config: PlannerConfig) -> int:
+    """Particles each lattice site becomes along the axis a scene stretches ``ratio`` x (1: none).
+
+    Pulled apart, particles carry the body only while they stay within about a cell of each
+    other, so the spacing along the axis, times the stretch, is kept below
+    ``max_stretched_spacing`` cells (``sampling.split_along``). At most MAX_STRETCH_SPLITS: a
+    body that thin somewhere is better given a finer grid (``cells_across``).
+    """
+    needed = math.ceil(ratio * spacing / (config.max_stretched_spacing * dx) - 1e-9)
+    return min(max(1, needed), MAX_STRETCH_SPLITS)
 
 
 def reachable_region(
