@@ -26,6 +26,7 @@ friction angle 35 degrees without cohesion. Density 1000 kg/m^3 everywhere.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -100,7 +101,11 @@ def run_cell(
         hi[2] = setup.x[:, 2].max() + size
     else:
         grip_speed = min(0.25, 0.5 * size / (0.8 * duration))  # twice the length after 80 % of the run
-        setup = build_scene("stretch", particles.x, speed=grip_speed, duration=duration)
+        setup = build_scene("stretch", particles.x, speed=grip_speed, duration=duration, grip="clamp")
+        # At 4 cells across a grip that holds only its nodes holds about one of them, so the
+        # cells keep clamps that carry their particles, as the matrix was first measured with.
+        carried = tuple(dataclasses.replace(b, carry=True) for b in setup.scene.boxes)
+        setup = dataclasses.replace(setup, scene=dataclasses.replace(setup.scene, boxes=carried))
         lo, hi = setup.reach_lo - 0.5 * size, setup.reach_hi + 0.5 * size
     particles.x = setup.x.astype(np.float32)
     particles.v = setup.v
