@@ -123,7 +123,8 @@ def stretch(x: np.ndarray, material: np.ndarray, cfg: dict) -> SceneSetup:
     A ``slip`` grip prescribes only the velocity along the axis, so the held ends narrow with the
     body and a prism is left in uniform uniaxial tension; a ``clamp`` holds the ends at their
     width. The setup names the stretch, for which the particles are split along the axis
-    (``planner.stretch_splits``).
+    (``planner.stretch_splits``). The grips hold grid nodes, not particles, so they need to be
+    about a cell deep: at the planner's 12 cells across, 10 % of a prism is 1.2 cells.
     """
     a = int(cfg["axis"])
     speed, ratio, frac = float(cfg["speed"]), float(cfg["ratio"]), float(cfg["grip_fraction"])
