@@ -18,6 +18,7 @@ SUITES = {
     "dpo-landscape": "physgm.bench.dpo_landscape",
     "material-probe": "physgm.bench.material_probe",
     "clips": "physgm.bench.clips",
+    "volume": "physgm.bench.volume",
 }
 
 
