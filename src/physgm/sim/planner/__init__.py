@@ -67,6 +67,6 @@ __all__ = [
     "pixels_per_metre",
     "plan_simulation",
     "reachable_region",
-    "stretch_splits",
     "stiffness_cap",
+    "stretch_splits",
 ]
