@@ -256,7 +256,13 @@ def box_velocity(box: BoxStruct, pos: wp.vec3, t: float, v: wp.vec3) -> wp.vec3:
     target = wp.vec3(0.0)
     if moving:
         target = box.velocity
-    return v + wp.cw_mul(box.fixed, target - v)
+    # A select, not v + fixed (target - v): a held component is then the target to the bit.
+    f = box.fixed
+    return wp.vec3(
+        wp.where(f[0] > 0.0, target[0], v[0]),
+        wp.where(f[1] > 0.0, target[1], v[1]),
+        wp.where(f[2] > 0.0, target[2], v[2]),
+    )
 
 
 @wp.func
