@@ -155,6 +155,12 @@ def test_bad_settings(capsys, tmp_path, tiny_ckpt, examples, blob_ply):
     assert "scene='swirl'" in run_expect_error(capsys, tmp_path, [photo, "scene=swirl"])
     err = run_expect_error(capsys, tmp_path, [photo, f"ckpt={tiny_ckpt}", "+scene_overrides.wobble=1"])
     assert "no setting(s) ['wobble']" in err
+    # A value the scene refuses stops the run before the checkpoint is read (it does not exist).
+    missing = f"ckpt={tmp_path / 'none.ckpt'}"
+    err = run_expect_error(capsys, tmp_path, [photo, missing, "scene=stretch", "+scene_overrides.grip=glue"])
+    assert "scene 'stretch': stretch grip must be slip or clamp, got 'glue'" in err
+    err = run_expect_error(capsys, tmp_path, [photo, missing, "scene=stretch", "+scene_overrides.ratio=0.5"])
+    assert "ratio > 1" in err
     assert "physics.nu=0.7" in run_expect_error(capsys, tmp_path, [photo, "physics.nu=0.7"])
     assert "input is required" in run_expect_error(capsys, tmp_path, [])
 

@@ -223,8 +223,11 @@ class SceneSettings:
 
 
 def scene_settings(cfg: RunConfig) -> SceneSettings:
-    """The run's scene settings; a setting the scene does not have is an error that lists its settings."""
-    from physgm.sim.scenes import load_scene_config
+    """The run's scene settings; a setting the scene does not have is an error that lists its
+    settings, and a value the scene refuses is an error too, both before any model loads."""
+    import numpy as np
+
+    from physgm.sim.scenes import build_scene, load_scene_config
 
     base = load_scene_config(cfg.scene)
     overrides = dict(cfg.scene_overrides)
@@ -233,6 +236,12 @@ def scene_settings(cfg: RunConfig) -> SceneSettings:
     unknown = sorted(set(overrides) - set(base))
     if unknown:
         raise UserError(f"scene {cfg.scene!r} has no setting(s) {unknown}; its settings are {sorted(base)}")
+    # The scene built on a 3 x 3 x 3 lattice (materials 0 and 1, for two_objects) checks the values.
+    probe = np.stack(np.meshgrid(*[np.linspace(-0.5, 0.5, 3)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    try:
+        build_scene(cfg.scene, probe, np.arange(len(probe)) % 2, **overrides)
+    except (ValueError, TypeError) as err:
+        raise UserError(f"scene {cfg.scene!r}: {err}") from None
     return SceneSettings({**base, **overrides}, overrides)
 
 
