@@ -28,7 +28,7 @@ def _sphere(n: int, radius: float, opacity: float) -> Gaussians:
 
 def test_enclosed_volume_of_a_shell_is_the_ball_it_bounds():
     ball = _sphere(20_000, 0.5, 0.9)
-    volume_m3 = volume.enclosed_volume(ball, 1.0 / volume.LATTICE_ACROSS, 0.05)
+    volume_m3 = volume.enclosed_volume(ball, 1.0 / 24, 0.05)  # the planner's spacing for a unit object
     assert volume_m3 == pytest.approx(4 / 3 * math.pi * 0.5**3, rel=0.1)
     assert volume.enclosed_volume(_sphere(100, 0.5, 0.01), 0.05, 0.05) == 0.0  # nothing that opaque
 

@@ -7,11 +7,12 @@
 (``sampling.sample_particles``), so the simulated body has the volume of what those Gaussians
 enclose. Per asset of the split, this compares that volume for the model's Gaussians (the fixed
 evaluation inputs of ``physgm.train.evaluate``, 1 or 4 views) with the volume the asset's own
-Gaussians (its gaussians.ply, all of them) enclose, both on the planner's lattice: 24 particles
-across the asset's true extent. The report gives, per threshold, the median, p10 and p90 of
-predicted / true volume over the opaque assets and over the translucent ones (whose own
-Gaussians' median opacity is under ``TRANSLUCENT``: glass, jelly), and the opaque assets' median
-per material. A ratio of 1 means the simulated body weighs what the object does.
+Gaussians (its gaussians.ply, all of them) enclose, both on the lattice the planner would use for
+the asset's true extent (``planner.choose_spacing``: 24 particles across at its defaults). The
+report gives, per threshold, the median, p10 and p90 of predicted / true volume over the opaque
+assets and over the translucent ones (whose own Gaussians' median opacity is under
+``TRANSLUCENT``: glass, jelly), and the opaque assets' median per material. A ratio of 1 means
+the simulated body weighs what the object does.
 """
 
 from __future__ import annotations
@@ -27,9 +28,9 @@ import torch
 from physgm.errors import UserError
 from physgm.gaussians import Gaussians, read_ply
 from physgm.physics.materials import MATERIAL_NAMES
+from physgm.sim.planner import PlannerConfig, choose_spacing
 from physgm.sim.sampling import sample_particles
 
-LATTICE_ACROSS = 24  # particles across the largest extent: the planner's 12 cells x 2 per cell
 TRANSLUCENT = 0.1  # an asset whose own Gaussians are fainter than this (median) is translucent
 
 
@@ -64,7 +65,8 @@ def volume_report(
                 if len(rows) == assets:
                     break
                 truth = read_ply(Path(root) / asset / "gaussians.ply", keep_sh=False)
-                spacing = float((truth.means.amax(0) - truth.means.amin(0)).max()) / LATTICE_ACROSS
+                extent = float((truth.means.amax(0) - truth.means.amin(0)).max())
+                spacing = choose_spacing(extent, PlannerConfig())[1]  # the planner's lattice
                 true_volume = enclosed_volume(truth, spacing, 0.0)
                 pred = out.gaussians.to_gaussians(i).detach()
                 rows.append(
