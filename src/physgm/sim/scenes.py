@@ -132,7 +132,7 @@ def stretch(x: np.ndarray, material: np.ndarray, cfg: dict) -> SceneSetup:
         raise ValueError(
             f"stretch needs speed > 0, ratio > 1, 0 < grip_fraction < 0.5; got {speed}, {ratio}, {frac}"
         )
-    kind = str(cfg.get("grip", "slip"))
+    kind = str(cfg["grip"])
     if kind not in ("slip", "clamp"):
         raise ValueError(f"stretch grip must be slip or clamp, got {kind!r}")
     axes = tuple(kind == "clamp" or i == a for i in range(3))
