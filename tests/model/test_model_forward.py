@@ -18,14 +18,14 @@ def run(model, batch):
     return model(batch["images"], batch["masks"], batch["c2w"], batch["Ks"])
 
 
-@pytest.mark.parametrize("views", [1, 4])
-def test_shapes_finite_and_mask_count(small_config, make_batch, views):
-    config = small_config()
+@pytest.mark.parametrize(("views", "layers"), [(1, 1), (4, 1), (1, 2)])
+def test_shapes_finite_and_mask_count(small_config, make_batch, views, layers):
+    config = small_config(layers=layers)
     model = PhysGM(config).eval()
     batch = make_batch(2, views, 32, 48)
     with torch.no_grad():
         out = run(model, batch)
-    g, n = out.gaussians, views * 32 * 48
+    g, n = out.gaussians, layers * views * 32 * 48
     shapes = {
         "means": (2, n, 3),
         "quats": (2, n, 4),
@@ -38,12 +38,12 @@ def test_shapes_finite_and_mask_count(small_config, make_batch, views):
         value = getattr(g, name)
         assert tuple(value.shape) == shape, name
         assert torch.isfinite(value).all(), name
-    assert (g.views, g.height, g.width) == (views, 32, 48)
+    assert (g.views, g.height, g.width, g.layers) == (views, 32, 48, layers)
     torch.testing.assert_close(g.quats.norm(dim=-1), torch.ones(2, n))
     assert (g.scales >= 0.0005 - 1e-9).all() and (g.scales <= 0.1 + 1e-9).all()
     assert (g.colors >= 0).all() and (g.colors <= 1).all()
     # Gaussians exist exactly where the mask is above the threshold, and nowhere else is visible.
-    expected_valid = batch["masks"].reshape(2, -1) > config.gaussian_head.mask_threshold
+    expected_valid = (batch["masks"].reshape(2, -1) > config.gaussian_head.mask_threshold).repeat(1, layers)
     assert torch.equal(g.valid, expected_valid)
     assert torch.equal(g.count, expected_valid.sum(dim=1))
     assert 0 < g.count.min() < n
@@ -142,8 +142,9 @@ def test_view_permutation_and_batch_independence(small_config, make_batch):
     assert not torch.allclose(alone.physics.material_logits, out.physics.material_logits, atol=1e-4)
 
 
-def test_every_parameter_gets_gradient_and_split_is_a_partition(small_config, make_batch):
-    model = PhysGM(small_config())
+@pytest.mark.parametrize("layers", [1, 2])
+def test_every_parameter_gets_gradient_and_split_is_a_partition(small_config, make_batch, layers):
+    model = PhysGM(small_config(layers=layers))
     out = run(model, make_batch(1, 2, 16, 16))
     g, p = out.gaussians, out.physics
     loss = sum(t.square().mean() for t in (g.means, g.quats, g.scales, g.opacities, g.colors))
@@ -174,6 +175,8 @@ def test_bad_inputs_say_what_is_wrong(small_config, make_batch):
         PhysGM(PhysGMConfig.from_dict({"backbone": {"depth": 3, "out_layers": [0, 1, 2, 3]}}))
     with pytest.raises(ValueError, match="unknown key"):
         PhysGMConfig.from_dict({"backbone": {"widht": 64}})
+    with pytest.raises(ValueError, match="layers must be at least 1, got 0"):
+        PhysGM(small_config(layers=0))
 
 
 def test_checkpoint_round_trip_without_hydra(small_config, make_batch):

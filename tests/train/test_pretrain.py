@@ -355,3 +355,45 @@ def test_geometry_blocks_fine_tune_moves_the_gaussians_and_leaves_the_physics_bi
     again = f"stage.init_ckpt={out / 'checkpoints' / 'last.ckpt'}"
     with pytest.raises(UserError, match="stage.geometry_blocks=2 to train them further"):
         run(compose_train([*settings, again, "stage.geometry_blocks=3"]))
+
+
+def test_a_gaussian_layer_added_to_a_trained_model_trains_and_leaves_the_physics_bit_identical(
+    tiny_dataset, tmp_path
+):
+    """stage.gaussian_layers=2 on a one-layer checkpoint: the run's model has two Gaussians per
+    pixel, the new layer's conv starts as the first's and trains, the global tokens are the
+    checkpoint's to the bit, and fewer layers than the checkpoint's is refused."""
+    first = tmp_path / "first"
+    run(
+        compose_train(
+            [*tiny_overrides(tiny_dataset, first), "trainer.max_steps=1", "trainer.limit_val_batches=0"]
+        )
+    )
+    init = first / "checkpoints" / "last.ckpt"
+    out = tmp_path / "layers"
+    tuned = [
+        *tiny_overrides(tiny_dataset, out),
+        "trainer.max_steps=3",
+        "trainer.limit_val_batches=0",
+        "stage.trainable=gaussian_head",
+        "stage.gaussian_layers=2",
+        f"stage.init_ckpt={init}",
+        "stage.optim.lr=1e-2",
+        "stage.optim.warmup_steps=0",
+    ]
+    run(compose_train(tuned))
+    before = torch.load(init, weights_only=False)
+    after = torch.load(out / "checkpoints" / "last.ckpt", weights_only=False)
+    assert after["hyper_parameters"]["model"]["gaussian_head"]["layers"] == 2
+    last = max(
+        int(k.split(".")[4]) for k in before["state_dict"] if k.startswith("model.gaussian_head.dpt.output.")
+    )
+    start = before["state_dict"][f"model.gaussian_head.dpt.output.{last}.weight"]
+    grown = after["state_dict"]["model.gaussian_head.dpt.layer_outputs.0.weight"]
+    assert grown.shape == start.shape and not torch.equal(grown, start)
+    assert torch.equal(_tokens(out / "checkpoints" / "last.ckpt"), _tokens(init))
+
+    again = f"stage.init_ckpt={out / 'checkpoints' / 'last.ckpt'}"
+    settings = [o for o in tuned if not o.startswith(("stage.gaussian_layers", "stage.init_ckpt"))]
+    with pytest.raises(UserError, match="already has 2 Gaussian layers"):
+        run(compose_train([*settings, again, "stage.gaussian_layers=1"]))

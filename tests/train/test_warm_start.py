@@ -15,7 +15,9 @@ from tests.train.test_pretrain import compose_train, tiny_overrides
 OUTPUT_CONV = "gaussian_head.dpt.output.0.weight"
 
 
-def tiny_config(depth_prior: str = "range", width: int = 32, geometry_blocks: int = 0) -> PhysGMConfig:
+def tiny_config(
+    depth_prior: str = "range", width: int = 32, geometry_blocks: int = 0, layers: int = 1
+) -> PhysGMConfig:
     return PhysGMConfig.from_dict(
         {
             "backbone": {
@@ -29,6 +31,7 @@ def tiny_config(depth_prior: str = "range", width: int = 32, geometry_blocks: in
                 "layer_channels": (8, 8, 16, 16),
                 "hidden": 8,
                 "depth_prior": depth_prior,
+                "layers": layers,
             },
         }
     )
@@ -60,8 +63,9 @@ def test_the_hull_model_starts_from_a_range_checkpoint_and_its_head_computes_the
     with torch.no_grad():
         want = source.gaussian_head.dpt(tokens, images)
         got = model.gaussian_head.dpt(tokens, images, guide=torch.rand(2, 2, 32, 32))
-    for name in want:
-        torch.testing.assert_close(got[name], want[name], rtol=0, atol=1e-6)
+    assert len(want) == len(got) == 1
+    for name in want[0]:
+        torch.testing.assert_close(got[0][name], want[0][name], rtol=0, atol=1e-6)
 
 
 def test_geometry_blocks_start_as_copies_of_the_blocks_they_duplicate(tmp_path):
@@ -105,6 +109,43 @@ def test_geometry_blocks_start_as_copies_of_the_blocks_they_duplicate(tmp_path):
 
     with pytest.raises(ValueError, match="geometry_blocks must be in"):
         PhysGM(tiny_config(geometry_blocks=5))
+
+
+def test_a_second_gaussian_layer_starts_as_a_faint_copy_of_the_first(tmp_path):
+    """A two-layer model started from a one-layer checkpoint: the first layer's Gaussians are the
+    checkpoint's to the bit, and each second-layer Gaussian sits where its first-layer twin does
+    with its opacity's logit lowered by layer_opacity_shift, so the start renders almost as before."""
+    torch.manual_seed(0)
+    source = PhysGM(tiny_config()).eval()
+    save_checkpoint(source, tmp_path / "one.ckpt")
+    torch.manual_seed(1)
+    model = PhysGM(tiny_config(layers=2)).eval()
+    report = warm_start(model, tmp_path / "one.ckpt")
+
+    layer_weights = ["gaussian_head.dpt.layer_outputs.0.weight", "gaussian_head.dpt.layer_outputs.0.bias"]
+    assert report.new == [] and report.widened == [] and report.branched == layer_weights
+    assert len(report.copied) == len(source.state_dict())
+    g = torch.Generator().manual_seed(0)
+    images, masks = torch.rand(1, 1, 3, 32, 32, generator=g), torch.ones(1, 1, 1, 32, 32)
+    c2w = torch.eye(4).expand(1, 1, 4, 4).clone()
+    c2w[0, :, 2, 3] = -1.5
+    Ks = torch.tensor([[32.0, 0.0, 16.0], [0.0, 32.0, 16.0], [0.0, 0.0, 1.0]]).expand(1, 1, 3, 3)
+    with torch.no_grad():
+        want, got = source(images, masks, c2w, Ks).gaussians, model(images, masks, c2w, Ks).gaussians
+    n = 32 * 32
+    assert got.layers == 2 and got.means.shape[1] == 2 * n
+    for name in ("means", "scales", "colors", "opacities"):
+        torch.testing.assert_close(getattr(got, name)[:, :n], getattr(want, name), rtol=0, atol=0)
+        if name != "opacities":
+            torch.testing.assert_close(getattr(got, name)[:, n:], getattr(want, name), rtol=0, atol=0)
+    shift = model.config.gaussian_head.layer_opacity_shift
+    torch.testing.assert_close(
+        got.opacities[:, n:],
+        torch.sigmoid(torch.logit(want.opacities.double()) + shift).float(),
+        atol=1e-6,
+        rtol=1e-4,
+    )
+    assert (got.opacities[:, n:] < want.opacities).all()
 
 
 def test_another_architecture_is_refused_with_the_weights_named(tmp_path):

@@ -53,7 +53,7 @@ class BackboneConfig:
 
 @dataclass
 class GaussianHeadConfig:
-    """DPT head that turns patch tokens into one Gaussian per input pixel."""
+    """DPT head that turns patch tokens into ``layers`` Gaussians per input pixel (the paper: one)."""
 
     features: int = 32  # channels of the DPT fusion path (paper-size 256)
     layer_channels: tuple[int, ...] = (32, 64, 96, 128)  # channels of the 4 reassembled maps, fine to coarse
@@ -74,6 +74,12 @@ class GaussianHeadConfig:
     mask_threshold: float = (
         0.1  # pixels with mask > threshold get a Gaussian (translucent objects: alpha < 0.5)
     )
+    # Gaussians per input pixel (not in the paper, which has 1). Each layer after the first has its
+    # own last output conv on the shared hidden features, so one view's pixels can also place
+    # Gaussians on the far side of the object; its raw opacity is shifted by layer_opacity_shift, so
+    # a layer copied from the first starts faint (opacity 0.5 -> 0.018, 0.004 -> 0.00007).
+    layers: int = 1
+    layer_opacity_shift: float = -4.0
 
 
 @dataclass

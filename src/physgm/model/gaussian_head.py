@@ -1,12 +1,17 @@
-"""DPT head: patch tokens from 4 backbone layers -> one 3D Gaussian per input pixel.
+"""DPT head: patch tokens from 4 backbone layers -> one 3D Gaussian per input pixel (or ``layers``).
 
 The four token maps are reassembled at 4x, 2x, 1x and 1/2x the patch grid, fused coarse to fine
 (DPT, Ranftl et al. 2021), upsampled to the input resolution and, concatenated with the input
 image (and, with ``depth_prior="hull"``, the ray's visual-hull segment), decoded by a small conv
 into raw per-pixel channels. ``GaussianActivations`` turns those into Gaussians: each one sits on
 its pixel's camera ray at a predicted depth, plus a small free offset. Pixels outside the object
-mask are kept in the batched tensors (so every sample has N = V * H * W rows) but flagged invalid
-and given zero opacity.
+mask are kept in the batched tensors (so every sample has N = L * V * H * W rows) but flagged
+invalid and given zero opacity.
+
+With ``layers`` = L > 1 (not in the paper) every pixel gets L Gaussians on its ray: each layer
+after the first has its own last 1x1 conv on the same hidden features, and its raw opacity is
+shifted by ``layer_opacity_shift``, so a layer added to a trained model starts faint
+and learns where it helps, such as the far side of an object seen from one view.
 """
 
 from __future__ import annotations
@@ -31,7 +36,8 @@ DEPTH_PRIORS = ("range", "centre", "hull")
 
 @dataclass
 class GaussianPrediction:
-    """Batched per-pixel Gaussians, N = V * H * W (view-major, then row-major pixels).
+    """Batched per-pixel Gaussians, N = L * V * H * W (layer-major, then view-major, then row-major
+    pixels).
 
     Attributes:
         means: [B, N, 3] centres = ray origin + depth * ray direction + offset.
@@ -41,7 +47,7 @@ class GaussianPrediction:
         colors: [B, N, 3] RGB in [0, 1].
         depths: [B, N] distance along the unit pixel ray, in [near, far].
         valid: [B, N] bool, the input mask was above the threshold at this pixel.
-        views, height, width: the V, H, W that N unfolds into.
+        views, height, width, layers: the V, H, W and L that N unfolds into.
     """
 
     means: Tensor  # [B, N, 3]
@@ -54,6 +60,7 @@ class GaussianPrediction:
     views: int
     height: int
     width: int
+    layers: int = 1
 
     @property
     def count(self) -> Tensor:  # [B] int64
@@ -109,6 +116,7 @@ class GaussianActivations(nn.Module):
         origins: Tensor,  # [..., 3] ray origins
         directions: Tensor,  # [..., 3] unit ray directions
         depth_range: tuple[Tensor, Tensor] | None = None,  # ([..., 1], [..., 1]) with depth_prior="hull"
+        opacity_shift: float = 0.0,  # added to the raw opacity (layers after the first)
     ) -> dict[str, Tensor]:
         c = self.cfg
         if c.depth_prior == "hull":
@@ -129,7 +137,7 @@ class GaussianActivations(nn.Module):
         scale = torch.exp(log_lo + (log_hi - log_lo) * torch.sigmoid(raw["scale"]))  # log-uniform range
         # Bias towards the identity rotation so a zero output is a valid unit quaternion.
         quat = F.normalize(raw["quat"] + self.quat_bias, dim=-1, eps=1e-6)
-        opacity = torch.sigmoid(raw["opacity"][..., 0])
+        opacity = torch.sigmoid(raw["opacity"][..., 0] + opacity_shift)
         # Residual on the input colour in logit space: a zero output reproduces the pixel colour.
         color = torch.sigmoid(raw["color"] + torch.logit(rgb.clamp(0.0, 1.0), eps=1e-3))
         means = origins + depth * directions + offset
@@ -207,9 +215,16 @@ class DPTHead(nn.Module):
             nn.ReLU(),
             nn.Conv2d(cfg.hidden, out_channels, 1),
         )
-        # Small last layer: at init every Gaussian sits mid-range on its ray with the pixel's colour.
-        nn.init.normal_(self.output[-1].weight, std=1e-3)
-        nn.init.zeros_(self.output[-1].bias)
+        # The last 1x1 conv of each further layer (cfg.layers - 1 of them), on the same hidden features.
+        if cfg.layers < 1:
+            raise ValueError(f"gaussian_head.layers must be at least 1, got {cfg.layers}")
+        self.layer_outputs = nn.ModuleList(
+            nn.Conv2d(cfg.hidden, out_channels, 1) for _ in range(cfg.layers - 1)
+        )
+        # Small last layers: at init every Gaussian sits mid-range on its ray with the pixel's colour.
+        for last in [self.output[-1], *self.layer_outputs]:
+            nn.init.normal_(last.weight, std=1e-3)
+            nn.init.zeros_(last.bias)
 
     def forward(
         self,
@@ -217,7 +232,7 @@ class DPTHead(nn.Module):
         images: Tensor,  # [B', 3, H, W] in [0, 1]
         guide: Tensor | None = None,  # [B', 2, H, W] hull segment start and length (depth_prior="hull")
         skips: list[Tensor] | None = None,  # 4 x [B', C_i, H / s_i, W / s_i] encoder maps, fine to coarse
-    ) -> dict[str, Tensor]:  # name -> [B', H, W, RAW_CHANNELS[name]]
+    ) -> list[dict[str, Tensor]]:  # per layer: name -> [B', H, W, RAW_CHANNELS[name]]
         height, width = images.shape[-2:]
         h, w = height // self.patch_size, width // self.patch_size
         if (skips is not None) != (self.encoder_skips is not None):
@@ -239,8 +254,23 @@ class DPTHead(nn.Module):
         if (guide is not None) != self.takes_hull:
             raise ValueError("the DPT head takes the hull guide exactly when depth_prior='hull'")
         extra = [images * 2.0 - 1.0] + ([guide] if guide is not None else [])
-        raw = self.output(torch.cat([x, *extra], dim=1)).permute(0, 2, 3, 1)  # [B', H, W, C]
-        return dict(zip(RAW_CHANNELS, raw.split(list(RAW_CHANNELS.values()), dim=-1), strict=True))
+        hidden = self.output[:-1](torch.cat([x, *extra], dim=1))  # [B', hidden, H, W]
+        layers = []
+        for last in [self.output[-1], *self.layer_outputs]:
+            raw = last(hidden).permute(0, 2, 3, 1)  # [B', H, W, C]
+            layers.append(
+                dict(zip(RAW_CHANNELS, raw.split(list(RAW_CHANNELS.values()), dim=-1), strict=True))
+            )
+        return layers
+
+    def layer_sources(self) -> dict[str, str]:
+        """Each further layer's weight name -> the first layer's weight it starts as (names within
+        the head): a model with one layer hands its output conv to each added one."""
+        return {
+            f"layer_outputs.{j}.{key}": f"output.{len(self.output) - 1}.{key}"
+            for j in range(len(self.layer_outputs))
+            for key in ("weight", "bias")
+        }
 
 
 class GaussianHead(nn.Module):
@@ -276,13 +306,16 @@ class GaussianHead(nn.Module):
                 0, 1
             )  # [B*V, 2, H, W]
             depth_range = (lo.reshape(b, -1, 1), hi.reshape(b, -1, 1))
-        raw = self.dpt(tokens, images.flatten(0, 1), guide, skips)
-        raw = {k: r.reshape(b, v * height * width, -1) for k, r in raw.items()}  # [B, N, c]
         rgb = images.permute(0, 1, 3, 4, 2).reshape(b, -1, 3)
         dirs = directions.reshape(b, -1, 3)
         origins = c2w[:, :, None, :3, 3].to(dirs).expand(b, v, height * width, 3).reshape(b, -1, 3)
-        out = self.activations(raw, rgb, origins, dirs, depth_range)
-        valid = masks.reshape(b, -1) > self.cfg.mask_threshold  # [B, N]
+        layers = []
+        for i, raw in enumerate(self.dpt(tokens, images.flatten(0, 1), guide, skips)):
+            raw = {k: r.reshape(b, v * height * width, -1) for k, r in raw.items()}  # [B, V * H * W, c]
+            shift = c.layer_opacity_shift if i else 0.0
+            layers.append(self.activations(raw, rgb, origins, dirs, depth_range, shift))
+        out = {k: torch.cat([layer[k] for layer in layers], dim=1) for k in layers[0]}  # [B, N, ...]
+        valid = (masks.reshape(b, -1) > self.cfg.mask_threshold).repeat(1, len(layers))  # [B, N]
         # Zero opacity outside the mask keeps batched rendering exact without ragged tensors.
         out["opacities"] = out["opacities"] * valid
-        return GaussianPrediction(**out, valid=valid, views=v, height=height, width=width)
+        return GaussianPrediction(**out, valid=valid, views=v, height=height, width=width, layers=len(layers))

@@ -24,7 +24,7 @@ from physgm.model.semantic_prior import pool_views, semantic_log_prior
 class PhysGMOutput:
     """What the model predicts for a batch of scenes."""
 
-    gaussians: GaussianPrediction  # N = V * H * W Gaussians per scene, invalid ones flagged
+    gaussians: GaussianPrediction  # N = L * V * H * W Gaussians per scene (L layers), invalid ones flagged
     physics: PhysicsPosterior  # [B] posterior over material, log10 E, nu
     semantic_log_prior: Tensor | None = None  # [B, M] the ImageNet classes' material prior (CNN encoder)
     head_material_logits: Tensor | None = None  # [B, M] the physics head's alone, before the prior

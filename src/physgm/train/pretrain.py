@@ -250,6 +250,8 @@ def fit(cfg) -> dict[str, float]:
         model = read_checkpoint(cfg.stage.init_ckpt).hparams["model"]  # its physics settings whole
         if trainable == "geometry_blocks":
             model = _with_geometry_blocks(model, int(cfg.stage.get("geometry_blocks", 0)))
+        if cfg.stage.get("gaussian_layers") is not None:
+            model = _with_gaussian_layers(model, int(cfg.stage.gaussian_layers))
     L.seed_everything(cfg.seed, workers=True)
     ensure_data(cfg)
     datamodule = instantiate(cfg.data)
@@ -292,6 +294,18 @@ def _with_geometry_blocks(model: dict[str, Any], count: int) -> dict[str, Any]:
             f"stage.geometry_blocks={had} to train them further"
         )
     return {**model, "backbone": {**backbone, "geometry_blocks": count}}
+
+
+def _with_gaussian_layers(model: dict[str, Any], layers: int) -> dict[str, Any]:
+    """A checkpoint's model config whose Gaussian head puts ``layers`` Gaussians on each pixel ray."""
+    head = model["gaussian_head"]
+    had = head.get("layers", 1)
+    if layers < had:
+        raise UserError(
+            f"stage.gaussian_layers={layers}, but stage.init_ckpt already has {had} Gaussian layers; "
+            f"give {had} or more (a layer is added, never dropped)"
+        )
+    return {**model, "gaussian_head": {**head, "layers": layers}}
 
 
 def _overrides() -> list[str]:

@@ -14,7 +14,9 @@ Each weight of the new model is one of:
   concatenated last);
 - **branched**: a weight of the backbone's geometry blocks (``model.backbone.geometry_blocks``)
   that the checkpoint does not have starts as a copy of the shared block it duplicates, so the
-  new model computes what the checkpoint's did;
+  new model computes what the checkpoint's did; so does the last output conv of a Gaussian layer
+  the checkpoint does not have (``model.gaussian_head.layers``), as a copy of the first layer's,
+  which its opacity shift makes faint at the start;
 - **new**: the checkpoint does not have it; it keeps its fresh initialisation.
 
 Anything else (a shape that differs in another way, or checkpoint weights the new model does not
@@ -49,7 +51,10 @@ class WarmStart:
         if self.widened:
             parts.append(f"{len(self.widened)} widened with zero input channels ({', '.join(self.widened)})")
         if self.branched:
-            parts.append(f"{len(self.branched)} geometry-block weights copied from the blocks they duplicate")
+            parts.append(
+                f"{len(self.branched)} weights of geometry blocks or Gaussian layers copied from the ones "
+                "they duplicate"
+            )
         if self.new:
             parts.append(f"{len(self.new)} new ({', '.join(self.new)})")
         return f"stage 1 starts from {self.path}: " + "; ".join(parts)
@@ -89,6 +94,10 @@ def warm_start(model: nn.Module, path: Path | str) -> WarmStart:
             "drop stage.init_ckpt to train from scratch"
         )
     sources = {f"backbone.{k}": f"backbone.{v}" for k, v in model.backbone.geometry_block_sources().items()}
+    sources |= {
+        f"gaussian_head.dpt.{k}": f"gaussian_head.dpt.{v}"
+        for k, v in model.gaussian_head.dpt.layer_sources().items()
+    }
     merged = {}
     for name, value in own.items():
         old = ckpt.state.get(name)
