@@ -334,3 +334,23 @@ def test_a_run_whose_object_reached_the_region_edge_warns(monkeypatch, capsys, t
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("warning: sample1.mp4: the object reached the edge")
     assert "632 grid-node updates" in err[0] and "planner.spread_factor=2" in err[0]
+
+
+def test_a_scene_axis_faces_the_camera_and_a_stretch_pulls_a_tall_body_along_its_height():
+    """Without an axis from the user, a push or stretch runs along the horizontal axis most across
+    the view; a stretch pulls a taller body vertically unless the camera looks down on it."""
+    from physgm.pipeline.config import SceneSettings
+    from physgm.pipeline.staging import direction
+    from physgm.sim.scenes import load_scene_config
+
+    stretch, push = (SceneSettings(load_scene_config(n), {}) for n in ("stretch", "push"))
+    side = direction(0.0, 15.0)  # camera on +x: y is across the view
+    wide, tall = [0.2, 0.2, 0.1], [0.1, 0.1, 0.3]
+    assert stretch.facing(side, wide).settings["axis"] == 1
+    assert stretch.facing(direction(90.0, 15.0), wide).settings["axis"] == 0
+    assert stretch.facing(side, tall).settings["axis"] == 2
+    assert stretch.facing(side, tall).overrides["axis"] == 2  # handed to the simulator
+    assert stretch.facing(direction(0.0, 45.0), tall).settings["axis"] == 1  # looking down on it
+    assert push.facing(side, tall).settings["axis"] == 1  # a push stays on the ground
+    chosen = SceneSettings({**load_scene_config("stretch"), "axis": 0}, {"axis": 0})
+    assert chosen.facing(side, tall) is chosen

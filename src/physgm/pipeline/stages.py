@@ -203,7 +203,14 @@ def _execute(cfg: RunConfig) -> RunResult:
 
     from physgm.pipeline.physics_choice import choose_physics, physics_json
     from physgm.pipeline.prepared_input import input_kind, prepare_input
-    from physgm.pipeline.staging import direction, floor_image, framing_camera, motion_region, place_object
+    from physgm.pipeline.staging import (
+        direction,
+        floor_image,
+        framing_camera,
+        motion_region,
+        opaque_bounds,
+        place_object,
+    )
     from physgm.render.frames import Shot, render_trajectory
     from physgm.view.sequence import sequence_file, sequence_from_trajectory
 
@@ -228,7 +235,8 @@ def _execute(cfg: RunConfig) -> RunResult:
         placement = place_object(g, cfg.size_m, ground or 0.0, min_opacity)
         az = inp.azimuth_deg if cfg.camera.azimuth_deg is None else cfg.camera.azimuth_deg
         el = inp.elevation_deg if cfg.camera.elevation_deg is None else cfg.camera.elevation_deg
-        scene = scene.facing(direction(az, el))
+        rest_lo, rest_hi = opaque_bounds(placement.gaussians, min_opacity)
+        scene = scene.facing(direction(az, el), rest_hi - rest_lo)
         lo, hi = motion_region(placement.gaussians, cfg.scene, scene.settings, min_opacity)
         res = cfg.output.resolution
         camera = framing_camera(lo, hi, az, el, cfg.camera.fov_deg, res, res, cfg.camera.margin)

@@ -81,10 +81,15 @@ REGIONS: dict[str, Callable[[np.ndarray, np.ndarray, dict], Region]] = {
 }
 
 
+def opaque_bounds(g: Gaussians, min_opacity: float) -> Region:
+    """Box (lo [3], hi [3], m) of the centres of the Gaussians that carry mass."""
+    pts = g.means[g.opacities >= min_opacity].double().numpy()
+    return pts.min(0), pts.max(0)
+
+
 def motion_region(g: Gaussians, scene: str, scene_cfg: dict, min_opacity: float) -> Region:
     """Box (lo [3], hi [3], m) the object can move through in ``scene``, from its rest placement."""
-    pts = g.means[g.opacities >= min_opacity].double().numpy()
-    lo, hi = pts.min(0), pts.max(0)
+    lo, hi = opaque_bounds(g, min_opacity)
     fn = REGIONS.get(scene)
     return fn(lo, hi, scene_cfg) if fn is not None else (lo, hi)
 
