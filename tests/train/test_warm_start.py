@@ -37,6 +37,17 @@ def tiny_config(
     )
 
 
+def _started(tmp_path, **new) -> tuple[PhysGM, PhysGM, object]:
+    """A default tiny model saved, and a model of config ``new`` warm-started from it:
+    (source, model, warm_start report)."""
+    torch.manual_seed(0)
+    source = PhysGM(tiny_config()).eval()
+    save_checkpoint(source, tmp_path / "source.ckpt")
+    torch.manual_seed(1)
+    model = PhysGM(tiny_config(**new)).eval()
+    return source, model, warm_start(model, tmp_path / "source.ckpt")
+
+
 def test_the_hull_model_starts_from_a_range_checkpoint_and_its_head_computes_the_same(tmp_path):
     torch.manual_seed(0)
     source = PhysGM(tiny_config("range")).eval()
@@ -71,12 +82,7 @@ def test_the_hull_model_starts_from_a_range_checkpoint_and_its_head_computes_the
 def test_geometry_blocks_start_as_copies_of_the_blocks_they_duplicate(tmp_path):
     """A model whose Gaussian head has its own last 3 blocks, started from one without: the copies
     hold the shared blocks' weights, so both heads compute exactly what the checkpoint's did."""
-    torch.manual_seed(0)
-    source = PhysGM(tiny_config()).eval()
-    save_checkpoint(source, tmp_path / "shared.ckpt")
-    torch.manual_seed(1)
-    model = PhysGM(tiny_config(geometry_blocks=3)).eval()
-    report = warm_start(model, tmp_path / "shared.ckpt")
+    source, model, report = _started(tmp_path, geometry_blocks=3)
 
     assert report.new == [] and report.widened == []
     assert len(report.copied) == len(source.state_dict())
@@ -115,12 +121,7 @@ def test_a_second_gaussian_layer_starts_as_a_faint_copy_of_the_first(tmp_path):
     """A two-layer model started from a one-layer checkpoint: the first layer's Gaussians are the
     checkpoint's to the bit, and each second-layer Gaussian sits where its first-layer twin does
     with its opacity's logit lowered by layer_opacity_shift, so the start renders almost as before."""
-    torch.manual_seed(0)
-    source = PhysGM(tiny_config()).eval()
-    save_checkpoint(source, tmp_path / "one.ckpt")
-    torch.manual_seed(1)
-    model = PhysGM(tiny_config(layers=2)).eval()
-    report = warm_start(model, tmp_path / "one.ckpt")
+    source, model, report = _started(tmp_path, layers=2)
 
     layer_weights = ["gaussian_head.dpt.layer_outputs.0.weight", "gaussian_head.dpt.layer_outputs.0.bias"]
     assert report.new == [] and report.widened == [] and report.branched == layer_weights
