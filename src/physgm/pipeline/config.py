@@ -215,18 +215,15 @@ class SceneSettings:
     def facing(self, view: Any, extent: Any = None) -> SceneSettings:
         """These settings seen along ``view`` [3] (unit, object -> output camera): a stretch or push
         along the line of sight would be invisible, so unless the user set ``axis`` the horizontal
-        world axis most across the view is used. A stretch pulls a body that is taller than that
-        (``extent`` [3], m, its size along x, y, z) along its height instead, as long as the camera
-        is not looking down on it (the vertical at least 60 degrees from the line of sight)."""
+        world axis most across the view is used. A scene without a ground (the stretch) has nothing
+        below the body, so it takes the vertical instead for a body taller than that (``extent``
+        [3], m, its size along x, y, z), as long as the camera is not looking down on it (the
+        vertical at least 60 degrees from the line of sight)."""
         if "axis" not in self.settings or "axis" in self.overrides:
             return self
         axis = min((0, 1), key=lambda a: abs(float(view[a])))
-        if (
-            self.settings.get("name") == "stretch"
-            and extent is not None
-            and float(extent[2]) > float(extent[axis])
-            and abs(float(view[2])) < 0.5
-        ):
+        upright = extent is not None and float(extent[2]) > float(extent[axis])
+        if self.ground_height is None and upright and abs(float(view[2])) < 0.5:
             axis = 2
         return SceneSettings({**self.settings, "axis": axis}, {**self.overrides, "axis": axis})
 

@@ -237,7 +237,7 @@ def _execute(cfg: RunConfig) -> RunResult:
         el = inp.elevation_deg if cfg.camera.elevation_deg is None else cfg.camera.elevation_deg
         rest_lo, rest_hi = opaque_bounds(placement.gaussians, min_opacity)
         scene = scene.facing(direction(az, el), rest_hi - rest_lo)
-        lo, hi = motion_region(placement.gaussians, cfg.scene, scene.settings, min_opacity)
+        lo, hi = motion_region(rest_lo, rest_hi, cfg.scene, scene.settings)
         res = cfg.output.resolution
         camera = framing_camera(lo, hi, az, el, cfg.camera.fov_deg, res, res, cfg.camera.margin)
         bg = np.broadcast_to(np.asarray(cfg.output.background, np.float32), (res, res, 3)).copy()

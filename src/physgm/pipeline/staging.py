@@ -87,9 +87,9 @@ def opaque_bounds(g: Gaussians, min_opacity: float) -> Region:
     return pts.min(0), pts.max(0)
 
 
-def motion_region(g: Gaussians, scene: str, scene_cfg: dict, min_opacity: float) -> Region:
-    """Box (lo [3], hi [3], m) the object can move through in ``scene``, from its rest placement."""
-    lo, hi = opaque_bounds(g, min_opacity)
+def motion_region(lo: np.ndarray, hi: np.ndarray, scene: str, scene_cfg: dict) -> Region:
+    """Box (lo [3], hi [3], m) the object can move through in ``scene``, from its rest bounds
+    (``opaque_bounds`` of its placement)."""
     fn = REGIONS.get(scene)
     return fn(lo, hi, scene_cfg) if fn is not None else (lo, hi)
 
