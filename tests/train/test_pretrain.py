@@ -308,6 +308,19 @@ def test_geometry_fine_tune_trains_the_backbone_and_the_anchor_holds_the_physics
         run(compose_train([*tiny_overrides(tiny_dataset, tmp_path / "no"), "stage.loss.anchor=1"]))
 
 
+def _fine_tune(tiny_dataset, out, init, *settings: str) -> list[str]:
+    """Overrides of a 3-step fine-tune from ``init`` into ``out`` at a large learning rate."""
+    return [
+        *tiny_overrides(tiny_dataset, out),
+        "trainer.max_steps=3",
+        "trainer.limit_val_batches=0",
+        *settings,
+        f"stage.init_ckpt={init}",
+        "stage.optim.lr=1e-2",
+        "stage.optim.warmup_steps=0",
+    ]
+
+
 def test_geometry_blocks_fine_tune_moves_the_gaussians_and_leaves_the_physics_bit_identical(
     tiny_dataset, tmp_path
 ):
@@ -319,16 +332,7 @@ def test_geometry_blocks_fine_tune_moves_the_gaussians_and_leaves_the_physics_bi
     run(compose_train(base))
     init = first / "checkpoints" / "last.ckpt"
     out = tmp_path / "blocks"
-    tuned = [
-        *tiny_overrides(tiny_dataset, out),
-        "trainer.max_steps=3",
-        "trainer.limit_val_batches=0",
-        "stage.trainable=geometry_blocks",
-        "stage.geometry_blocks=2",
-        f"stage.init_ckpt={init}",
-        "stage.optim.lr=1e-2",
-        "stage.optim.warmup_steps=0",
-    ]
+    tuned = _fine_tune(tiny_dataset, out, init, "stage.trainable=geometry_blocks", "stage.geometry_blocks=2")
     run(compose_train(tuned))
     before = torch.load(init, weights_only=False)
     after = torch.load(out / "checkpoints" / "last.ckpt", weights_only=False)
@@ -371,16 +375,7 @@ def test_a_gaussian_layer_added_to_a_trained_model_trains_and_leaves_the_physics
     )
     init = first / "checkpoints" / "last.ckpt"
     out = tmp_path / "layers"
-    tuned = [
-        *tiny_overrides(tiny_dataset, out),
-        "trainer.max_steps=3",
-        "trainer.limit_val_batches=0",
-        "stage.trainable=gaussian_head",
-        "stage.gaussian_layers=2",
-        f"stage.init_ckpt={init}",
-        "stage.optim.lr=1e-2",
-        "stage.optim.warmup_steps=0",
-    ]
+    tuned = _fine_tune(tiny_dataset, out, init, "stage.trainable=gaussian_head", "stage.gaussian_layers=2")
     run(compose_train(tuned))
     before = torch.load(init, weights_only=False)
     after = torch.load(out / "checkpoints" / "last.ckpt", weights_only=False)
