@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import threading
 from dataclasses import asdict
 
 import pytest
@@ -48,6 +49,45 @@ def test_cache_is_reused_and_rebuilt_when_its_key_changes(tiny_copy):
         assert cache_dir(tiny_copy, other) != folder
         build_feature_cache(tiny_copy, other, encoder=enc, log=lambda *_: None)
     assert CountingEncoder.calls == 4 * n
+
+
+def test_a_second_builder_waits_and_computes_nothing_the_first_wrote(tiny_copy):
+    key = mobilenet_key(64, 1.0)
+    holding, waiting = threading.Event(), threading.Event()
+
+    class HeldEncoder(MobileNetEncoder):
+        """The first builder's encoder: stalls on its first view until the second builder waits."""
+
+        calls = 0
+
+        def encode(self, images, classifier_images=None):
+            if HeldEncoder.calls == 0:
+                holding.set()  # called under the lock
+                assert waiting.wait(timeout=60), "the second builder never waited for the lock"
+            HeldEncoder.calls += 1
+            return super().encode(images, classifier_images)
+
+    first = threading.Thread(
+        target=build_feature_cache,
+        args=(tiny_copy, key, ("train", "val", "test", "dpo"), HeldEncoder()),
+        kwargs={"log": lambda *_: None},
+    )
+    first.start()
+    assert holding.wait(timeout=60)
+    second_log = []
+
+    def log(msg):
+        second_log.append(msg)
+        if "waiting" in msg:
+            waiting.set()
+
+    before = CountingEncoder.calls
+    folder = build_feature_cache(tiny_copy, key, encoder=CountingEncoder(), log=log)
+    first.join(timeout=120)
+    n = len({a for s in ("train", "val", "test", "dpo") for a in read_split(tiny_copy, s)})
+    assert any("another process is building" in m for m in second_log)
+    assert HeldEncoder.calls == n and CountingEncoder.calls == before
+    assert len(list(folder.glob("*.npz"))) == n
 
 
 def test_cached_features_are_the_encoder_outputs(tiny_copy):

@@ -13,7 +13,8 @@ views larger than the input, the resolution the ImageNet classifier reads them a
 of an object's identity there; ``physgm.model.cnn_encoder``). Change any of them and a new
 folder is built; the old one is left for the user to delete. Pixel augmentations would make a
 cache wrong: physgm's training has none (its only randomness is which views and targets are
-drawn), so none is dropped.
+drawn), so none is dropped. Two processes that build one folder take turns (``build_lock``), and
+the second finds the first's assets done.
 
     python -m physgm.data.feature_cache ROOT [--resolution 128] [--splits train,val,test,dpo]
 """
@@ -26,6 +27,8 @@ import json
 import os
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from functools import cache
 from pathlib import Path
@@ -118,6 +121,32 @@ def _save_atomic(path: Path, arrays: dict[str, np.ndarray]) -> None:
     os.replace(tmp, path)
 
 
+@contextmanager
+def build_lock(folder: Path, log) -> Iterator[None]:
+    """Hold ``<folder>/.lock`` while building, so two processes never compute the same assets.
+
+    A second builder (an evaluation started while ``python -m physgm.data.feature_cache`` runs,
+    say) waits, then finds the assets done. The lock is ``flock``'s, so it goes with its process
+    if that dies; where ``fcntl`` is missing (Windows) builders do not wait, which wastes time but
+    corrupts nothing, since every file is written atomically.
+    """
+    try:
+        import fcntl
+    except ImportError:
+        yield
+        return
+    with open(folder / ".lock", "a") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            log(f"feature cache: another process is building {folder}; waiting for it")
+            fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
 def build_feature_cache(
     root: str | Path,
     key: CacheKey,
@@ -136,9 +165,18 @@ def build_feature_cache(
         tmp.write_text(json.dumps(asdict(key), indent=1))
         os.replace(tmp, meta)
     ids = sorted({a for s in splits if (root / "splits" / f"{s}.txt").exists() for a in read_split(root, s)})
-    todo = [a for a in ids if not (out / f"{a}.npz").exists()]
-    if not todo:
+    if all((out / f"{a}.npz").exists() for a in ids):
         return out
+    with build_lock(out, log):
+        # Listed under the lock: the assets a builder that held it before us wrote are done.
+        todo = [a for a in ids if not (out / f"{a}.npz").exists()]
+        if todo:
+            _compute(root, out, key, todo, encoder, log)
+    return out
+
+
+def _compute(root: Path, out: Path, key: CacheKey, todo: list[str], encoder, log) -> None:
+    """Encode the ring views of each asset in ``todo`` and write its ``.npz``."""
     if encoder is None:
         weights = None  # the packaged file; a CacheKey from another file needs that encoder passed in
         encoder = MobileNetEncoder(weights)
@@ -162,7 +200,6 @@ def build_feature_cache(
         _save_atomic(out / f"{aid}.npz", {"views": np.asarray(views, dtype=np.int64), **arrays})
         if n % 100 == 0 or n == len(todo):
             log(f"feature cache: {n}/{len(todo)} assets, {time.perf_counter() - start:.0f} s ({out})")
-    return out
 
 
 class FeatureStore:
