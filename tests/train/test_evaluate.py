@@ -72,7 +72,7 @@ def test_evaluate_reports_both_view_counts_and_matches_a_hand_computation(tiny_d
         target_resolution=32,
         test_split="train",
     )
-    psnrs, psnrs_inputs, opacities, perceptual = [], [], [], []
+    psnrs, psnrs_inputs, opacities, perceptual, novel_mse = [], [], [], [], []
     feature_distance = load_lpips("mobilenet")
     outside_error, all_error, outside_alpha = [], [], []
     with torch.no_grad():
@@ -88,6 +88,7 @@ def test_evaluate_reports_both_view_counts_and_matches_a_hand_computation(tiny_d
             all_error.append(error.flatten())
             outside_alpha.append(alpha[:, 4:, ..., 0][outside])
             psnrs.append(-10 * torch.log10(mse[:, 4:]).flatten())
+            novel_mse.append(mse[:, 4:].flatten())
             psnrs_inputs.append(-10 * torch.log10(mse[:, :4]).flatten())
             opacities.append(out_.gaussians.opacities[out_.gaussians.valid])
             perceptual.append(
@@ -103,6 +104,11 @@ def test_evaluate_reports_both_view_counts_and_matches_a_hand_computation(tiny_d
     share = float(torch.cat(outside_error).sum() / torch.cat(all_error).sum())
     assert 0 < share < 1 and abs(share - report["views4"]["error_outside_mask"]) < 1e-3
     assert abs(float(torch.cat(outside_alpha).mean()) - report["views4"]["alpha_outside_mask"]) < 1e-3
+    # the angle bins hold every novel view once, and pooled back together give the views' mean MSE
+    bins = report["views4"]["psnr_by_angle"].values()
+    assert sum(b["views"] for b in bins) == n
+    pooled = sum(b["views"] * 10 ** (-b["psnr"] / 10) for b in bins) / n
+    assert abs(pooled / float(torch.cat(novel_mse).mean()) - 1) < 1e-3
 
 
 def test_evaluate_single_view_batches_have_one_input(tiny_dataset, tmp_path):

@@ -1,4 +1,5 @@
-"""Novel-view image metrics (torchmetrics PSNR and SSIM) and the image panels logged in validation."""
+"""Novel-view image metrics (torchmetrics PSNR and SSIM, PSNR by angle from the inputs) and the
+image panels logged in validation."""
 
 from __future__ import annotations
 
@@ -41,6 +42,47 @@ class ImageMetrics(nn.Module):
         self.psnr.reset()
         self.ssim.reset()
         self.update_count = 0
+
+
+class ErrorByAngle:
+    """Novel views' squared error pooled by their angle from the nearest input camera.
+
+    One view cannot show an object's far side, so its error grows with the angle a target view
+    turns away from the input; this says by how much. The angle is between optical axes; a bin's
+    PSNR is that of its views' mean squared error (pooled, not a mean of per-view PSNRs).
+    """
+
+    def __init__(self, bin_deg: float = 30.0) -> None:
+        if not 0 < bin_deg <= 180:
+            raise ValueError(f"bin_deg must be in (0, 180], got {bin_deg}")
+        self.bin_deg = bin_deg
+        self._sums: dict[int, list[float]] = {}  # bin index -> [summed MSE, views]
+
+    def update(
+        self,
+        input_c2w: Tensor,  # [B, V, 4, 4] the input cameras
+        target_c2w: Tensor,  # [B, T, 4, 4] the novel target cameras
+        mse: Tensor,  # [B, T] each target view's mean squared error
+    ) -> None:
+        axis_in = nn.functional.normalize(input_c2w[..., :3, 2].float(), dim=-1)  # [B, V, 3]
+        axis_t = nn.functional.normalize(target_c2w[..., :3, 2].float(), dim=-1)  # [B, T, 3]
+        cosine = torch.einsum("btc,bvc->btv", axis_t, axis_in).amax(-1).clamp(-1.0, 1.0)  # nearest input
+        degrees = torch.rad2deg(torch.acos(cosine))  # [B, T]
+        bins = torch.clamp((degrees / self.bin_deg).floor().long(), max=int(180 / self.bin_deg - 1e-9))
+        for b, e in zip(bins.flatten().tolist(), mse.detach().float().flatten().tolist(), strict=True):
+            total = self._sums.setdefault(b, [0.0, 0])
+            total[0] += e
+            total[1] += 1
+
+    def compute(self) -> dict[str, dict[str, float]]:
+        """``{"0-30": {"views": n, "psnr": dB}, ...}`` for each bin that has views, in angle order."""
+        report = {}
+        for b in sorted(self._sums):
+            total, n = self._sums[b]
+            lo, hi = b * self.bin_deg, min((b + 1) * self.bin_deg, 180.0)
+            psnr = float("inf") if total == 0 else -10.0 * float(np.log10(total / n))
+            report[f"{lo:g}-{hi:g}"] = {"views": n, "psnr": psnr}
+        return report
 
 
 def panel_image(inputs: Tensor, pred: Tensor, target: Tensor) -> np.ndarray:

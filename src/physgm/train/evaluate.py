@@ -7,7 +7,8 @@ canonical camera; with 4 views the other three follow around the object, as in t
 and renders the target views it did not see. Reported per input-view count: PSNR, SSIM
 (and LPIPS when its backbone file is given) on those novel views; where their squared error lies
 (``error_outside_mask``: its share outside the object's mask, the haze around the object;
-``alpha_outside_mask``, the rendered opacity there); ``psnr_inputs``, the PSNR of
+``alpha_outside_mask``, the rendered opacity there) and how it grows with the angle from the
+nearest input camera (``psnr_by_angle``, 30 degree bins); ``psnr_inputs``, the PSNR of
 the input views rendered back (low when the Gaussians' depths are wrong, since the other
 views' Gaussians then cover them), and the median opacity of the predicted Gaussians;
 material and behaviour-class accuracy and the confusion matrix, |log10 E - true|, |nu - true|,
@@ -36,7 +37,7 @@ from pathlib import Path
 import torch
 
 from physgm.data.datamodule import PhysAssetsDataModule
-from physgm.metrics.image import ImageMetrics
+from physgm.metrics.image import ErrorByAngle, ImageMetrics
 from physgm.metrics.physics_metrics import LabelMetrics, PhysicsMetrics
 from physgm.model.checkpoint import load_model
 from physgm.model.physics_head import fuse_material_logits
@@ -110,6 +111,7 @@ def evaluate_views(
     seen = ImageMetrics().to(
         device
     )  # the input views rendered back: tells geometry errors from colour errors
+    by_angle = ErrorByAngle()
     physics = PhysicsMetrics(len(MATERIAL_NAMES)).to(device)
     labels = LabelMetrics(len(MATERIAL_NAMES)).to(device)
     zero_shot = LabelMetrics(len(MATERIAL_NAMES)).to(
@@ -136,6 +138,11 @@ def evaluate_views(
         pred = rendered[:, views:].flatten(0, 1)  # novel views only
         target = batch.target_images[:, views:].flatten(0, 1)
         images.update(pred, target)
+        by_angle.update(
+            batch.c2w,
+            batch.target_c2w[:, views:],
+            ((rendered[:, views:] - batch.target_images[:, views:]) ** 2).mean((2, 3, 4)),
+        )
         inside = batch.target_masks[:, views:].flatten(0, 1) > 0.5  # [N, 1, H, W]
         error = ((pred - target) ** 2).mean(1, keepdim=True)  # [N, 1, H, W] over RGB
         squared_error["inside"] += float(error[inside].sum())
@@ -177,6 +184,7 @@ def evaluate_views(
         )
     result = {"assets": assets, "gaussians_mean": gaussians / assets, "prior_weight": weight}
     result.update({k: float(v) for k, v in images.compute().items()})
+    result["psnr_by_angle"] = by_angle.compute()
     result["psnr_inputs"] = float(seen.compute()["psnr"])
     result["opacity_median"] = float(torch.cat(opacities).median())
     result["error_outside_mask"] = squared_error["outside"] / max(sum(squared_error.values()), 1e-12)
