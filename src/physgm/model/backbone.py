@@ -125,11 +125,14 @@ class Backbone(nn.Module):
         split = self.split
         taken: dict[int, Tensor] = {}
         g = self.cfg.num_global_tokens
+        last = len(self.blocks) - 1
         for i, block in enumerate(self.blocks):
             if i == split:
                 geometry = x
-            x = self._run(block, x)
-            if i in self.cfg.out_layers and i < split:
+            read = i in self.cfg.out_layers and i < split  # the Gaussian head reads its patch tokens
+            # Nothing reads the last block's patch tokens unless the head does: update the global ones only.
+            x = self._run(block, x, None if read or i < last else g)
+            if read:
                 taken[i] = x[:, g:].reshape(b * v, patches, -1)
         for i, block in enumerate(self.geometry_blocks, start=split):
             geometry = self._run(block, geometry)
@@ -137,10 +140,10 @@ class Backbone(nn.Module):
                 taken[i] = geometry[:, g:].reshape(b * v, patches, -1)
         return BackboneOutput(x[:, :g], [taken[i] for i in self.cfg.out_layers], features)
 
-    def _run(self, block: Block, x: Tensor) -> Tensor:
+    def _run(self, block: Block, x: Tensor, queries: int | None = None) -> Tensor:
         if self.cfg.grad_checkpointing and self.training and torch.is_grad_enabled():
-            return checkpoint(block, x, use_reentrant=False)
-        return block(x)
+            return checkpoint(block, x, queries, use_reentrant=False)
+        return block(x, queries)
 
     @property
     def split(self) -> int:
