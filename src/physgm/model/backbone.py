@@ -11,7 +11,8 @@ tell apart every pixel of every view.
 With ``geometry_blocks`` = N > 0 (not in the paper) the last N blocks exist twice: the global tokens
 come out of the shared stack, the DPT head's patch tokens out of the Gaussian head's own copies, which
 read the same input at the split. Training the copies changes the Gaussians and nothing the physics
-head sees.
+head sees. The shared stack's last block then updates only the global tokens, since nothing reads
+its patch tokens.
 """
 
 from __future__ import annotations
