@@ -3,6 +3,7 @@ image panels logged in validation."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -68,7 +69,8 @@ class ErrorByAngle:
         axis_t = nn.functional.normalize(target_c2w[..., :3, 2].float(), dim=-1)  # [B, T, 3]
         cosine = torch.einsum("btc,bvc->btv", axis_t, axis_in).amax(-1).clamp(-1.0, 1.0)  # nearest input
         degrees = torch.rad2deg(torch.acos(cosine))  # [B, T]
-        bins = torch.clamp((degrees / self.bin_deg).floor().long(), max=int(180 / self.bin_deg - 1e-9))
+        last = math.ceil(180.0 / self.bin_deg) - 1  # 180 degrees belongs to the last bin
+        bins = torch.clamp((degrees / self.bin_deg).floor().long(), max=last)
         for b, e in zip(bins.flatten().tolist(), mse.detach().float().flatten().tolist(), strict=True):
             total = self._sums.setdefault(b, [0.0, 0])
             total[0] += e
