@@ -1,4 +1,4 @@
-"""Validation panels: inputs, predictions and targets in one picture."""
+"""Image metrics (PSNR, its split by angle from the inputs) and the validation panels."""
 
 import math
 
