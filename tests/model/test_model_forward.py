@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -162,31 +161,6 @@ def test_every_parameter_gets_gradient_and_split_is_a_partition(small_config, ma
     assert physics and rest and not physics & rest
     assert physics | rest == {id(q) for q in model.parameters()}
     assert physics == {id(q) for q in model.physics_head.parameters()}
-
-
-def test_the_last_physics_block_updates_only_the_global_tokens(small_config, make_batch):
-    """With the Gaussian head's own copies of the last blocks, nothing reads the physics path's last
-    patch tokens; skipping them leaves the physics and the Gaussians as a full last block gives."""
-    config = small_config()
-    config.backbone = replace(config.backbone, geometry_blocks=2)
-    model = PhysGM(config).eval()
-    batch = make_batch(2, 2, 16, 16)
-    last = model.backbone.blocks[-1]
-    asked = []
-    whole = last.forward
-
-    def whole_then_cut(x, queries=None):
-        asked.append(queries)
-        return whole(x)[:, :queries]
-
-    with torch.no_grad():
-        out = run(model, batch)
-        last.forward = whole_then_cut
-        reference = run(model, batch)
-    assert asked == [config.backbone.num_global_tokens]  # the short path was taken
-    torch.testing.assert_close(out.global_tokens, reference.global_tokens, rtol=1e-5, atol=1e-5)
-    torch.testing.assert_close(out.physics.z_E_mean, reference.physics.z_E_mean, rtol=1e-5, atol=1e-5)
-    torch.testing.assert_close(out.gaussians.means, reference.gaussians.means)
 
 
 def test_bad_inputs_say_what_is_wrong(small_config, make_batch):

@@ -11,8 +11,7 @@ tell apart every pixel of every view.
 With ``geometry_blocks`` = N > 0 (not in the paper) the last N blocks exist twice: the global tokens
 come out of the shared stack, the DPT head's patch tokens out of the Gaussian head's own copies, which
 read the same input at the split. Training the copies changes the Gaussians and nothing the physics
-head sees. The shared stack's last block then updates only the global tokens, since nothing reads
-its patch tokens.
+head sees.
 """
 
 from __future__ import annotations
@@ -126,14 +125,11 @@ class Backbone(nn.Module):
         split = self.split
         taken: dict[int, Tensor] = {}
         g = self.cfg.num_global_tokens
-        last = len(self.blocks) - 1
         for i, block in enumerate(self.blocks):
             if i == split:
                 geometry = x
-            read = i in self.cfg.out_layers and i < split  # the Gaussian head reads its patch tokens
-            # Nothing reads the last block's patch tokens unless the head does: update the global ones only.
-            x = self._run(block, x, None if read or i < last else g)
-            if read:
+            x = self._run(block, x)
+            if i in self.cfg.out_layers and i < split:
                 taken[i] = x[:, g:].reshape(b * v, patches, -1)
         for i, block in enumerate(self.geometry_blocks, start=split):
             geometry = self._run(block, geometry)
@@ -141,10 +137,10 @@ class Backbone(nn.Module):
                 taken[i] = geometry[:, g:].reshape(b * v, patches, -1)
         return BackboneOutput(x[:, :g], [taken[i] for i in self.cfg.out_layers], features)
 
-    def _run(self, block: Block, x: Tensor, queries: int | None = None) -> Tensor:
+    def _run(self, block: Block, x: Tensor) -> Tensor:
         if self.cfg.grad_checkpointing and self.training and torch.is_grad_enabled():
-            return checkpoint(block, x, queries, use_reentrant=False)
-        return block(x, queries)
+            return checkpoint(block, x, use_reentrant=False)
+        return block(x)
 
     @property
     def split(self) -> int:

@@ -27,20 +27,11 @@ class SelfAttention(nn.Module):
         self.qkv = nn.Linear(dim, 3 * dim)
         self.proj = nn.Linear(dim, dim)
 
-    def forward(self, x: Tensor, queries: int | None = None) -> Tensor:  # [B, N, D] -> [B, Q, D]
-        """``queries``: only the first Q tokens attend (to all N) and are returned; None: all of them."""
-        d = x.shape[2]
-        if queries is None:
-            q, k, v = self._heads(self.qkv(x), 3)
-        else:  # the queries' q, and everyone's k and v
-            (q,) = self._heads(F.linear(x[:, :queries], self.qkv.weight[:d], self.qkv.bias[:d]), 1)
-            k, v = self._heads(F.linear(x, self.qkv.weight[d:], self.qkv.bias[d:]), 2)
-        out = F.scaled_dot_product_attention(q, k, v)  # [B, heads, Q, D / heads]
-        return self.proj(out.transpose(1, 2).flatten(2))
-
-    def _heads(self, t: Tensor, parts: int) -> Tensor:  # [B, N, parts * D] -> [parts, B, heads, N, D / heads]
-        b, n, _ = t.shape
-        return t.reshape(b, n, parts, self.num_heads, -1).permute(2, 0, 3, 1, 4)
+    def forward(self, x: Tensor) -> Tensor:  # [B, N, D] -> [B, N, D]
+        b, n, d = x.shape
+        q, k, v = self.qkv(x).reshape(b, n, 3, self.num_heads, d // self.num_heads).permute(2, 0, 3, 1, 4)
+        out = F.scaled_dot_product_attention(q, k, v)  # [B, heads, N, D / heads]
+        return self.proj(out.transpose(1, 2).reshape(b, n, d))
 
 
 class Mlp(nn.Module):
@@ -66,8 +57,6 @@ class Block(nn.Module):
         self.norm2 = nn.LayerNorm(dim, eps=LAYER_NORM_EPS)
         self.mlp = Mlp(dim, int(dim * mlp_ratio))
 
-    def forward(self, x: Tensor, queries: int | None = None) -> Tensor:  # [B, N, D] -> [B, Q, D]
-        """``queries``: update and return only the first Q tokens (they still attend to all N), as
-        the last block does when nothing reads the others; None: all of them."""
-        x = x[:, :queries] + self.attn(self.norm1(x), queries)
+    def forward(self, x: Tensor) -> Tensor:  # [B, N, D]
+        x = x + self.attn(self.norm1(x))
         return x + self.mlp(self.norm2(x))
