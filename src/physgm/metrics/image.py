@@ -82,7 +82,7 @@ class ErrorByAngle:
         for b in sorted(self._sums):
             total, n = self._sums[b]
             lo, hi = b * self.bin_deg, min((b + 1) * self.bin_deg, 180.0)
-            psnr = float("inf") if total == 0 else -10.0 * float(np.log10(total / n))
+            psnr = float("inf") if total == 0 else -10.0 * math.log10(total / n)
             report[f"{lo:g}-{hi:g}"] = {"views": n, "psnr": psnr}
         return report
 

@@ -138,13 +138,11 @@ def evaluate_views(
         pred = rendered[:, views:].flatten(0, 1)  # novel views only
         target = batch.target_images[:, views:].flatten(0, 1)
         images.update(pred, target)
-        by_angle.update(
-            batch.c2w,
-            batch.target_c2w[:, views:],
-            ((rendered[:, views:] - batch.target_images[:, views:]) ** 2).mean((2, 3, 4)),
-        )
         inside = batch.target_masks[:, views:].flatten(0, 1) > 0.5  # [N, 1, H, W]
         error = ((pred - target) ** 2).mean(1, keepdim=True)  # [N, 1, H, W] over RGB
+        by_angle.update(
+            batch.c2w, batch.target_c2w[:, views:], error.mean((1, 2, 3)).view(rendered.shape[0], -1)
+        )
         squared_error["inside"] += float(error[inside].sum())
         squared_error["outside"] += float(error[~inside].sum())
         alpha_outside += float(alpha[:, views:].flatten(0, 1).permute(0, 3, 1, 2)[~inside].sum())
