@@ -12,10 +12,10 @@ import torch
 from physgm.bench import dpo_landscape as landscape
 from physgm.data.synth import SynthConfig, asset_id, generate
 from physgm.gaussians import read_ply
-from physgm.model import BackboneConfig, EncoderConfig, GaussianHeadConfig, PhysGMConfig
 from physgm.physics.materials import PhysicsSpec
 from physgm.train import rollout_env as rollout
 from physgm.train.pretrain import LitPretrain
+from tests.model_configs import tiny_config
 
 
 @pytest.fixture(scope="module")
@@ -34,19 +34,8 @@ def tiny_ckpt(tmp_path_factory) -> str:
     """A randomly initialised tiny PhysGM (32 px inputs) in the stage-1 checkpoint layout."""
     import lightning as L
 
-    encoder = EncoderConfig(img_size=32, patch_size=8, embed_dim=32, depth=1, num_heads=2)
-    backbone = BackboneConfig(
-        encoder=encoder,
-        width=32,
-        depth=4,
-        head_dim=16,
-        camera_dim=8,
-        camera_hidden=16,
-        out_layers=(0, 1, 2, 3),
-    )
-    head = GaussianHeadConfig(features=8, layer_channels=(8, 8, 16, 16), hidden=8)
     torch.manual_seed(0)
-    lit = LitPretrain(model=PhysGMConfig(backbone=backbone, gaussian_head=head).to_dict())
+    lit = LitPretrain(model=tiny_config().to_dict())
     path = tmp_path_factory.mktemp("ckpt") / "tiny.ckpt"
     torch.save(
         {

@@ -1,35 +1,13 @@
-"""Shared fixtures for the model tests: a very small config and a batch of posed views.
-
-Exposed as fixtures (not imports) so they work under any pytest import mode.
-"""
+"""Shared fixtures for the model tests: the small model config (``tests.model_configs``) and a batch of
+posed views."""
 
 from __future__ import annotations
-
-from dataclasses import replace
 
 import pytest
 import torch
 
 from physgm.cameras import orbit_cameras
-from physgm.model import BackboneConfig, EncoderConfig, GaussianHeadConfig, PhysGMConfig
-
-
-def small_config(**head) -> PhysGMConfig:
-    """Smaller than the tiny default so that tests stay fast; same code paths."""
-    encoder = EncoderConfig(img_size=32, patch_size=8, embed_dim=64, depth=1, num_heads=2)
-    backbone = BackboneConfig(
-        encoder=encoder,
-        width=64,
-        depth=4,
-        head_dim=32,
-        camera_dim=16,
-        camera_hidden=32,
-        out_layers=(0, 1, 2, 3),
-    )
-    gaussian_head = replace(
-        GaussianHeadConfig(features=16, layer_channels=(16, 16, 32, 32), hidden=16), **head
-    )
-    return PhysGMConfig(backbone=backbone, gaussian_head=gaussian_head)
+from tests.model_configs import small_config
 
 
 def make_batch(b: int, v: int, height: int, width: int, seed: int = 0) -> dict[str, torch.Tensor]:

@@ -11,32 +11,10 @@ import numpy as np
 import pytest
 import torch
 
+from tests.model_configs import small_config
+
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "examples"
-
-
-def tiny_model_config():
-    from physgm.model import BackboneConfig, EncoderConfig, GaussianHeadConfig, PhysGMConfig
-
-    encoder = EncoderConfig(img_size=32, patch_size=8, embed_dim=64, depth=1, num_heads=2)
-    backbone = BackboneConfig(
-        encoder=encoder,
-        width=64,
-        depth=4,
-        head_dim=32,
-        camera_dim=16,
-        camera_hidden=32,
-        out_layers=(0, 1, 2, 3),
-    )
-    return PhysGMConfig(
-        backbone=backbone,
-        gaussian_head=GaussianHeadConfig(features=16, layer_channels=(16, 16, 32, 32), hidden=16),
-    )
-
-
-@pytest.fixture(name="tiny_config")
-def _tiny_config():
-    return tiny_model_config()
 
 
 @pytest.fixture(scope="session")
@@ -47,7 +25,7 @@ def tiny_ckpt(tmp_path_factory) -> Path:
 
     torch.manual_seed(0)
     path = tmp_path_factory.mktemp("ckpt") / "tiny.ckpt"
-    save_checkpoint(PhysGM(tiny_model_config(), load_pretrained=False), path)
+    save_checkpoint(PhysGM(small_config(), load_pretrained=False), path)
     return path
 
 

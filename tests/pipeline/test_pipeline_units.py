@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 import torch
 
+from tests.model_configs import small_config
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -224,14 +226,14 @@ def test_physics_choice_rules():
         assert abs(math.log10(r.E) - 6.0) < 5 * std if r.material == "rubber" else lo <= r.E <= hi
 
 
-def test_checkpoint_layout_is_lightnings(tmp_path, tiny_config):
+def test_checkpoint_layout_is_lightnings(tmp_path):
     """save_checkpoint writes what LitPretrain.load_from_checkpoint and load_model read, the same net."""
     from physgm.model import PhysGM
     from physgm.model.checkpoint import input_size, load_model, save_checkpoint
     from physgm.train.pretrain import LitPretrain
 
     torch.manual_seed(1)
-    model = PhysGM(tiny_config, load_pretrained=False).eval()
+    model = PhysGM(small_config(), load_pretrained=False).eval()
     path = tmp_path / "m.ckpt"
     save_checkpoint(model, path)
     lit = LitPretrain.load_from_checkpoint(path, map_location="cpu")

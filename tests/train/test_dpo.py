@@ -11,33 +11,18 @@ import torch
 from torch.utils.data import DataLoader
 
 from physgm.cameras import orbit_cameras
-from physgm.model import BackboneConfig, EncoderConfig, GaussianHeadConfig, PhysGMConfig
 from physgm.model.checkpoint import load_model
 from physgm.model.posterior import PhysicsPosterior, material_E_ranges
 from physgm.physics.materials import MATERIAL_NAMES
 from physgm.train.dpo import DPOLossConfig, LitDPO, dpo_loss, log10_E_shift, posterior_kl
 from physgm.train.pairs import Candidate, PairDataset, SceneInputs, SceneRecord, collate_pairs
 from physgm.train.pretrain import LitPretrain
-
-
-def tiny_model_config() -> dict:
-    encoder = EncoderConfig(img_size=32, patch_size=8, embed_dim=32, depth=1, num_heads=2)
-    backbone = BackboneConfig(
-        encoder=encoder,
-        width=32,
-        depth=4,
-        head_dim=16,
-        camera_dim=8,
-        camera_hidden=16,
-        out_layers=(0, 1, 2, 3),
-    )
-    head = GaussianHeadConfig(features=8, layer_channels=(8, 8, 16, 16), hidden=8)
-    return PhysGMConfig(backbone=backbone, gaussian_head=head).to_dict()
+from tests.model_configs import tiny_config
 
 
 def features_head_config() -> dict:
     """The tiny model on the frozen MobileNetV2, its material read from the pooled pyramid."""
-    cfg = tiny_model_config()
+    cfg = tiny_config().to_dict()
     cfg["backbone"]["encoder"] = {
         "kind": "mobilenet_v2",
         "patch_size": 16,
@@ -53,7 +38,7 @@ def features_head_config() -> dict:
 def stage1_checkpoint(path, seed: int = 0, model: dict | None = None) -> str:
     """A stage-1 checkpoint as Lightning writes it (state_dict + plain-dict hyper_parameters)."""
     torch.manual_seed(seed)
-    lit = LitPretrain(model=model or tiny_model_config())
+    lit = LitPretrain(model=model or tiny_config().to_dict())
     torch.save({"state_dict": lit.state_dict(), "hyper_parameters": dict(lit.hparams)}, path)
     return str(path)
 

@@ -25,12 +25,12 @@ from physgm.data.synth import SynthConfig, asset_id, generate
 from physgm.data.video import VideoConfig, place_object, render_frames, video_camera, write_mp4
 from physgm.data.writer import camera_entry, write_json
 from physgm.gaussians import Gaussians, read_ply
-from physgm.model import BackboneConfig, EncoderConfig, GaussianHeadConfig, PhysGMConfig
 from physgm.model.physgm import PhysGM
 from physgm.physics.materials import PhysicsSpec
 from physgm.train.pairs import PairCache
 from physgm.train.pretrain import LitPretrain
 from physgm.train.rollout_budget import BoundedRun
+from tests.model_configs import tiny_config
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 COUNT = 4
@@ -50,21 +50,6 @@ class StillTrajectory:
 
     def gaussians_at(self, t: int) -> Gaussians:
         return self.gaussians
-
-
-def tiny_model_config() -> dict:
-    encoder = EncoderConfig(img_size=32, patch_size=8, embed_dim=32, depth=1, num_heads=2)
-    backbone = BackboneConfig(
-        encoder=encoder,
-        width=32,
-        depth=4,
-        head_dim=16,
-        camera_dim=8,
-        camera_hidden=16,
-        out_layers=(0, 1, 2, 3),
-    )
-    head = GaussianHeadConfig(features=8, layer_channels=(8, 8, 16, 16), hidden=8)
-    return PhysGMConfig(backbone=backbone, gaussian_head=head).to_dict()
 
 
 def falling_square(frames: int = 10, size: int = 32) -> np.ndarray:
@@ -112,7 +97,7 @@ def dpo_root(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def stage1_ckpt(tmp_path_factory) -> str:
     torch.manual_seed(0)
-    lit = LitPretrain(model=tiny_model_config())
+    lit = LitPretrain(model=tiny_config().to_dict())
     path = tmp_path_factory.mktemp("ckpt") / "stage1.ckpt"
     import lightning as L
 
@@ -180,7 +165,7 @@ def fake_trainer(tmp_path: Path, rank: int = 0, world: int = 1, epoch: int = 0) 
 @pytest.fixture(scope="module")
 def policy() -> SimpleNamespace:
     torch.manual_seed(0)
-    return SimpleNamespace(model=PhysGM(PhysGMConfig.from_dict(tiny_model_config())))
+    return SimpleNamespace(model=PhysGM(tiny_config()))
 
 
 def test_cache_resumes_after_a_kill_and_never_reads_half_files(dpo_root, policy, tmp_path, monkeypatch):
@@ -515,7 +500,7 @@ def test_real_rollout_on_a_generated_drop_scene(tmp_path):
     assert summary["done"] == 1, summary["failures"]
     (root / "splits" / "dpo.txt").write_text(f"{asset_id(0)}\n")
     torch.manual_seed(0)
-    model = PhysGM(PhysGMConfig.from_dict(tiny_model_config()))
+    model = PhysGM(tiny_config())
     cb = make_callback(
         root, num_candidates=2, sim={"resolution": 32, "n_frames": 12, "planner": {"cells_across": 10}}
     )

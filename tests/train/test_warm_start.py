@@ -6,35 +6,14 @@ import pytest
 import torch
 
 from physgm.errors import UserError
-from physgm.model import PhysGM, PhysGMConfig
+from physgm.model import PhysGM
 from physgm.model.checkpoint import save_checkpoint
 from physgm.train.run import run
 from physgm.train.warm_start import warm_start
+from tests.model_configs import tiny_config
 from tests.train.test_pretrain import compose_train, tiny_overrides
 
 OUTPUT_CONV = "gaussian_head.dpt.output.0.weight"
-
-
-def tiny_config(
-    depth_prior: str = "range", width: int = 32, geometry_blocks: int = 0, layers: int = 1
-) -> PhysGMConfig:
-    return PhysGMConfig.from_dict(
-        {
-            "backbone": {
-                "encoder": {"img_size": 32, "patch_size": 8, "embed_dim": 32, "depth": 1, "num_heads": 2},
-                **{"width": width, "depth": 4, "head_dim": 16, "camera_dim": 8, "camera_hidden": 16},
-                "out_layers": (0, 1, 2, 3),
-                "geometry_blocks": geometry_blocks,
-            },
-            "gaussian_head": {
-                "features": 8,
-                "layer_channels": (8, 8, 16, 16),
-                "hidden": 8,
-                "depth_prior": depth_prior,
-                "layers": layers,
-            },
-        }
-    )
 
 
 def _started(tmp_path, **new) -> tuple[PhysGM, PhysGM, object]:
@@ -50,10 +29,10 @@ def _started(tmp_path, **new) -> tuple[PhysGM, PhysGM, object]:
 
 def test_the_hull_model_starts_from_a_range_checkpoint_and_its_head_computes_the_same(tmp_path):
     torch.manual_seed(0)
-    source = PhysGM(tiny_config("range")).eval()
+    source = PhysGM(tiny_config(depth_prior="range")).eval()
     save_checkpoint(source, tmp_path / "range.ckpt")
     torch.manual_seed(1)
-    model = PhysGM(tiny_config("hull")).eval()
+    model = PhysGM(tiny_config(depth_prior="hull")).eval()
     report = warm_start(model, tmp_path / "range.ckpt")
 
     assert report.widened == [OUTPUT_CONV]
