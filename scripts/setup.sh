@@ -3,6 +3,17 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-$(command -v python3.11 || command -v python3)}
+# A first install writes about 7.6 GB (torch's CUDA build is 5.6 GB of it) and pip needs room to work;
+# with 7.9 GB free pip has failed part-way with "No space left on device". Say so before starting.
+NEED_GB=10
+if ! { [ -x .venv/bin/python ] && .venv/bin/python -c "import torch" 2>/dev/null; }; then
+  FREE_GB=$(df -Pk . | awk 'NR == 2 {print int($4 / 1048576)}')
+  if [ "$FREE_GB" -lt "$NEED_GB" ]; then
+    echo "setup: installing torch into .venv needs about $NEED_GB GB free here; $(pwd) has $FREE_GB GB." >&2
+    echo "setup: free some space (generated data sets under data/ are the largest files) and run again." >&2
+    exit 1
+  fi
+fi
 if [ ! -x .venv/bin/python ]; then
   echo "setup: creating .venv with $($PY --version)"
   "$PY" -m venv .venv

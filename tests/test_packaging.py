@@ -1,4 +1,5 @@
-"""Packaging: declared dependencies cover every import, package data is found, the wheel runs."""
+"""Packaging: declared dependencies cover every import, package data is found, the wheel runs, set-up
+checks the disk."""
 
 from __future__ import annotations
 
@@ -86,3 +87,34 @@ def test_wheel_in_a_fresh_venv_simulates_the_example_from_another_folder(capsys)
     check = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(check)
     assert check.main([]) == 0, capsys.readouterr().out
+
+
+@pytest.mark.parametrize("free_gb, refused", [(3, True), (50, False)])
+def test_setup_refuses_a_first_install_on_a_full_disk_before_writing(tmp_path, free_gb, refused):
+    """scripts/setup.sh checks the free space before it creates .venv; with enough it goes on (here it
+    then fails at once, on a python that only reports its version, having passed the check)."""
+    import os
+    import shutil
+    import subprocess
+
+    (tmp_path / "scripts").mkdir()
+    shutil.copy(REPO / "scripts" / "setup.sh", tmp_path / "scripts" / "setup.sh")
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    df = bin_dir / "df"
+    df.write_text(
+        "#!/bin/sh\necho 'Filesystem 1024-blocks Used Available Capacity Mounted on'\n"
+        f"echo '/dev/x 100000000 0 {free_gb * 1048576} 1% /'\n"
+    )
+    fake_python = bin_dir / "fake-python"
+    fake_python.write_text("#!/bin/sh\necho 'fake-python: called' >&2\nexit 3\n")
+    for f in (df, fake_python):
+        f.chmod(0o755)
+    env = {**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}", "PYTHON": str(fake_python)}
+    run = subprocess.run(
+        ["bash", "scripts/setup.sh"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60
+    )
+    assert run.returncode != 0
+    assert ("needs about 10 GB free here" in run.stderr) == refused, run.stderr
+    assert ("fake-python: called" in run.stderr) == (not refused), run.stderr
+    assert not (tmp_path / ".venv").exists()
