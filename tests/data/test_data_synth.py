@@ -68,6 +68,28 @@ def test_resume_with_other_settings_is_refused(tiny_copy, make_config):
         generate(make_config(24, seed=3, resolution=48), tiny_copy, progress=False)
 
 
+def test_without_the_gaussians_file_the_rest_is_the_same_bytes(tmp_path, make_config):
+    generate(make_config(2, seed=11), tmp_path / "with", progress=False)
+    generate(make_config(2, seed=11, gaussians_file=False), tmp_path / "without", progress=False)
+    a, b = _digest(tmp_path / "with"), _digest(tmp_path / "without")
+    plys = {k for k in a if k.endswith("gaussians.ply")}
+    assert len(plys) == 2 and not any(k.endswith("gaussians.ply") for k in b)
+    assert {k: v for k, v in a.items() if k not in plys | {"synth.json"}} == {
+        k: v for k, v in b.items() if k != "synth.json"
+    }
+    assert load_asset(tmp_path / "without" / "syn_000000").gaussians_path is None
+
+
+def test_a_set_made_before_the_gaussians_file_setting_resumes(tiny_copy, make_config):
+    path = tiny_copy / "synth.json"
+    stored = json.loads(path.read_text())
+    assert stored.pop("gaussians_file") is True
+    path.write_text(json.dumps(stored))
+    assert generate(make_config(24, seed=3), tiny_copy, progress=False)["skipped"] == 24
+    with pytest.raises(SystemExit, match="gaussians_file"):
+        generate(make_config(24, seed=3, gaussians_file=False), tiny_copy, progress=False)
+
+
 def test_assets_load_and_labels_are_consistent(tiny_root):
     ids = [i for s in SPLITS for i in read_split(tiny_root, s)]
     assert sorted(ids) == [asset_id(i) for i in range(24)]  # every asset in exactly one split
@@ -109,6 +131,7 @@ def test_cli_prints_throughput_and_json(tmp_path, capsys):
             "--no-progress",
             "--label-noise",
             "0.3",
+            "--no-gaussians-file",
         ]
     )
     out = capsys.readouterr().out.strip().splitlines()
@@ -117,6 +140,7 @@ def test_cli_prints_throughput_and_json(tmp_path, capsys):
     assert summary["done"] == 2 and summary["assets_per_min"] > 0
     stored = json.loads((tmp_path / "cli" / "synth.json").read_text())
     assert stored["annotator"]["p_neighbour_E"] == 0.3
+    assert stored["gaussians_file"] is False and not list((tmp_path / "cli").glob("*/gaussians.ply"))
 
 
 def test_plan_split_fractions_follow_config(make_config):

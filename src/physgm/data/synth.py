@@ -37,6 +37,8 @@ from physgm.gaussians import Gaussians, write_ply
 GENERATOR_VERSION = 2  # 2: photo textures and varied light (off by default: version-1 bytes otherwise)
 _RENDER_THREADS = 2  # CPU threads per rasterize call; 1 inside worker processes (see _worker_init)
 CONFIG_FILE = "synth.json"  # at the data set root: the settings every asset was made with
+# Settings added after data sets were made: a synth.json without one was made at this value.
+_ADDED_SINCE = {"gaussians_file": True}
 
 
 @dataclass
@@ -55,6 +57,7 @@ class SynthConfig:
         0.0  # chance an asset wears a photographed material texture (physgm.data.photo_textures)
     )
     varied_light: bool = False  # a random light per asset instead of the fixed one
+    gaussians_file: bool = True  # write gaussians.ply (at 24,000 Gaussians two thirds of an asset's bytes)
     annotator: AnnotatorConfig = field(default_factory=AnnotatorConfig)
     # Split shares: assets without video -> train / val / test; with video -> dpo / test.
     val_fraction: float = 0.05
@@ -176,7 +179,8 @@ def generate_asset(cfg: SynthConfig, index: int, out: Path) -> str:
     }
     with atomic_asset_dir(out, aid) as tmp:
         write_views_cameras_physics(tmp, rgba, cameras, az, el, physical)
-        write_ply(obj.gaussians, tmp / "gaussians.ply")
+        if cfg.gaussians_file:
+            write_ply(obj.gaussians, tmp / "gaussians.ply")
         if plan.video:
             from physgm.data.video import write_reference_video
 
@@ -203,7 +207,7 @@ def _check_config(cfg: SynthConfig, out: Path) -> None:
     path = out / CONFIG_FILE
     mine = cfg.to_json()
     if path.is_file():
-        theirs = json.loads(path.read_text())
+        theirs = {**_ADDED_SINCE, **json.loads(path.read_text())}
         diff = sorted(k for k in set(mine) | set(theirs) if k != "count" and mine.get(k) != theirs.get(k))
         if diff:
             raise SystemExit(
@@ -316,6 +320,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--varied-light", action="store_true", help="a random light per asset instead of the fixed one"
     )
+    p.add_argument(
+        "--no-gaussians-file",
+        action="store_true",
+        help="skip each asset's gaussians.ply, two thirds of its bytes: training reads only the views; "
+        "the volume bench, surface loss and DPO on the asset's own Gaussians need it",
+    )
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
 
@@ -343,6 +353,7 @@ def main(argv: list[str] | None = None) -> int:
         families=split(a.families),
         photo_textures=a.photo_textures,
         varied_light=a.varied_light,
+        gaussians_file=not a.no_gaussians_file,
         annotator=AnnotatorConfig.from_dict(ann),
     )
     summary = generate(cfg, a.out, workers=a.workers, progress=not a.no_progress)
