@@ -150,3 +150,14 @@ def test_datamodule_batches_carry_cached_features(tiny_copy):
     assert batch.features.imagenet_logits.shape == (len(batch), v, 1000)
     with pytest.raises(ValueError, match="input_resolution"):
         PhysAssetsDataModule(str(tiny_copy), feature_cache="mobilenet_v2")
+
+
+def test_a_datamodule_computes_the_features_of_the_splits_it_serves_only(tiny_copy):
+    splits = dict(val_split="test", test_split="train")
+    dm = PhysAssetsDataModule(str(tiny_copy), input_resolution=64, feature_cache="mobilenet_v2", **splits)
+    dm.setup("validate")
+    folder = dm.feature_store(()).folder
+    cached = {p.stem for p in folder.glob("*.npz")}
+    assert cached == set(read_split(tiny_copy, "test"))  # not the training split's
+    dm.setup("test")
+    assert {p.stem for p in folder.glob("*.npz")} == cached | set(read_split(tiny_copy, "train"))

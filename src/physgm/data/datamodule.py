@@ -20,7 +20,12 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
-from physgm.data.feature_cache import FeatureStore, build_feature_cache, mobilenet_key, stored_view_size
+from physgm.data.feature_cache import (
+    FeatureStore,
+    build_feature_cache,
+    mobilenet_key,
+    stored_view_size,
+)
 from physgm.data.format import SPLITS, Asset, AssetError, load_asset, read_split
 from physgm.data.views import LOAD_ERRORS, Example, ViewConfig, build_example, example_rng
 from physgm.model.cnn_encoder import ImageFeatures
@@ -293,6 +298,7 @@ class PhysAssetsDataModule(L.LightningDataModule):
         self.hp = self.hparams
         self.datasets: dict[str, Dataset] = {}
         self._features: FeatureStore | None = None  # built on first use (feature_store)
+        self._feature_key = None  # its CacheKey, read from the data on first use
 
     def view_config(self, train: bool) -> ViewConfig:
         return ViewConfig(
@@ -316,7 +322,7 @@ class PhysAssetsDataModule(L.LightningDataModule):
                     not train,
                     self.hp.on_corrupt,
                     self.hp.seed,
-                    self.feature_store(),
+                    self.feature_store((split,)),
                 )
             else:
                 from physgm.data.shards import ShardDataset
@@ -331,14 +337,19 @@ class PhysAssetsDataModule(L.LightningDataModule):
                 )
         return self.datasets[key]
 
-    def feature_store(self) -> FeatureStore | None:
-        """The frozen encoder's cache of this data set, built (once) if it is incomplete."""
+    def feature_store(self, splits: tuple[str, ...] = SPLITS) -> FeatureStore | None:
+        """The frozen encoder's cache of this data set, with the features of ``splits`` built where
+        missing (a training run does not compute its test split's)."""
         if not self.hp.feature_cache:
             return None
-        if self._features is None:
+        if self._feature_key is None:
             stored = stored_view_size(self.hp.root)
-            key = mobilenet_key(self.hp.input_resolution, self.hp.background, stored_resolution=stored)
-            self._features = FeatureStore(build_feature_cache(self.hp.root, key))
+            self._feature_key = mobilenet_key(
+                self.hp.input_resolution, self.hp.background, stored_resolution=stored
+            )
+        folder = build_feature_cache(self.hp.root, self._feature_key, splits)
+        if self._features is None:
+            self._features = FeatureStore(folder)
         return self._features
 
     def setup(self, stage: str | None = None) -> None:

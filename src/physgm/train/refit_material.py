@@ -81,7 +81,7 @@ def pooled_splits(roots: list[Path], split: str, resolution: int) -> PooledSplit
         if read_split(root, split):
             store = PhysAssetsDataModule(
                 str(root), input_resolution=resolution, feature_cache="mobilenet_v2"
-            ).feature_store()
+            ).feature_store((split,))
             parts.append(pooled_split(root, split, store))
     if not parts:
         raise UserError(f"no {split!r} assets to refit on in {', '.join(map(str, roots))}")
