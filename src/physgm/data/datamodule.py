@@ -21,6 +21,7 @@ from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
 from physgm.data.feature_cache import (
+    CacheKey,
     FeatureStore,
     build_feature_cache,
     mobilenet_key,
@@ -298,7 +299,7 @@ class PhysAssetsDataModule(L.LightningDataModule):
         self.hp = self.hparams
         self.datasets: dict[str, Dataset] = {}
         self._features: FeatureStore | None = None  # built on first use (feature_store)
-        self._feature_key = None  # its CacheKey, read from the data on first use
+        self._feature_key: CacheKey | None = None  # the cache's key, read from the data on first use
 
     def view_config(self, train: bool) -> ViewConfig:
         return ViewConfig(
