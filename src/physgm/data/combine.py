@@ -24,7 +24,7 @@ import sys
 from pathlib import Path
 
 from physgm.data.feature_cache import FEATURES_DIR
-from physgm.data.format import SPLITS, SPLITS_DIR
+from physgm.data.format import SPLITS, SPLITS_DIR, read_split
 from physgm.errors import UserError
 
 SEPARATOR = "--"
@@ -63,34 +63,32 @@ def _check(out: Path, srcs: list[Path]) -> None:
 
 def _write(tmp: Path, out: Path, srcs: list[Path]) -> dict:
     base = out.parent.resolve() / out.name  # where the links will live; relative targets start there
-    ids = {}  # source -> its asset ids over every split
+    prefixes = {s: s.resolve().name + SEPARATOR for s in srcs}
+    ids = {s: set() for s in srcs}  # each source's asset ids over every split
     splits = {}
     (tmp / SPLITS_DIR).mkdir()
     for split in SPLITS:
-        lines, listed = [], False
-        for s in srcs:
-            path = s / SPLITS_DIR / f"{split}.txt"
-            if not path.is_file():
-                continue
-            listed = True
-            for aid in (ln.split("#")[0].strip() for ln in path.read_text().splitlines()):
-                if aid:
-                    lines.append(f"{s.resolve().name}{SEPARATOR}{aid}")
-                    ids.setdefault(s, set()).add(aid)
-        if listed:  # written even when empty, as the sources list it
-            (tmp / SPLITS_DIR / f"{split}.txt").write_text("".join(f"{line}\n" for line in lines))
-            splits[split] = len(lines)
+        listing = [s for s in srcs if (s / SPLITS_DIR / f"{split}.txt").is_file()]
+        if not listing:
+            continue
+        lines = []
+        for s in listing:
+            own = read_split(s, split)
+            lines += [prefixes[s] + aid for aid in own]
+            ids[s].update(own)
+        # written even when empty, as the sources list it
+        (tmp / SPLITS_DIR / f"{split}.txt").write_text("".join(f"{line}\n" for line in lines))
+        splits[split] = len(lines)
     for s in srcs:
-        prefix = s.resolve().name + SEPARATOR
-        for aid in sorted(ids.get(s, ())):
+        for aid in sorted(ids[s]):
             if not (s / aid).is_dir():
                 raise UserError(f"{s / SPLITS_DIR} lists {aid}, which has no folder in {s}")
-            (tmp / f"{prefix}{aid}").symlink_to(os.path.relpath((s / aid).resolve(), base))
-    caches = _link_caches(tmp, base, srcs, ids)
+            (tmp / f"{prefixes[s]}{aid}").symlink_to(os.path.relpath((s / aid).resolve(), base))
+    caches = _link_caches(tmp, base, srcs, prefixes, ids)
     return {"root": str(out), "assets": sum(len(v) for v in ids.values()), "splits": splits, "caches": caches}
 
 
-def _link_caches(tmp: Path, base: Path, srcs: list[Path], ids: dict) -> list[str]:
+def _link_caches(tmp: Path, base: Path, srcs: list[Path], prefixes: dict, ids: dict) -> list[str]:
     """Feature caches every source holds with the same meta.json: linked asset by asset."""
     folders = [{f.name: f for f in (s / FEATURES_DIR).glob("*") if (f / "meta.json").is_file()} for s in srcs]
     linked = []
@@ -102,11 +100,10 @@ def _link_caches(tmp: Path, base: Path, srcs: list[Path], ids: dict) -> list[str
         dest.mkdir(parents=True)
         shutil.copyfile(folders[0][name] / "meta.json", dest / "meta.json")
         for s, f in zip(srcs, folders, strict=True):
-            prefix = s.resolve().name + SEPARATOR
-            for aid in sorted(ids.get(s, ())):
+            for aid in sorted(ids[s]):
                 npz = f[name] / f"{aid}.npz"
                 if npz.is_file():
-                    (dest / f"{prefix}{aid}.npz").symlink_to(
+                    (dest / f"{prefixes[s]}{aid}.npz").symlink_to(
                         os.path.relpath(npz.resolve(), base / FEATURES_DIR / name)
                     )
         linked.append(name)
