@@ -326,7 +326,8 @@ def test_geometry_blocks_fine_tune_moves_the_gaussians_and_leaves_the_physics_bi
 ):
     """stage.trainable=geometry_blocks: the Gaussian head and its own copies of the backbone's last
     blocks train; every weight the checkpoint had but the Gaussian head's is unchanged, the global
-    tokens (all the physics head reads) are bit-identical, and the frozen parts stay in eval mode."""
+    tokens (all the physics head reads) are bit-identical, and the frozen parts stay in eval mode.
+    A later run may give the head copies of more blocks, never fewer."""
     first = tmp_path / "first"
     base = [*tiny_overrides(tiny_dataset, first), "trainer.max_steps=2", "trainer.limit_val_batches=0"]
     run(compose_train(base))
@@ -358,7 +359,14 @@ def test_geometry_blocks_fine_tune_moves_the_gaussians_and_leaves_the_physics_bi
         run(compose_train([*settings, f"stage.init_ckpt={init}", "stage.geometry_blocks=0"]))
     again = f"stage.init_ckpt={out / 'checkpoints' / 'last.ckpt'}"
     with pytest.raises(UserError, match="stage.geometry_blocks=2 to train them further"):
-        run(compose_train([*settings, again, "stage.geometry_blocks=3"]))
+        run(compose_train([*settings, again, "stage.geometry_blocks=1"]))
+    # More copies than the checkpoint's: the physics is still the first run's to the bit.
+    grown, tuned_file = tmp_path / "grown", out / "checkpoints" / "last.ckpt"
+    blocks3 = ("stage.trainable=geometry_blocks", "stage.geometry_blocks=3")
+    run(compose_train(_fine_tune(tiny_dataset, grown, tuned_file, *blocks3)))
+    grown_file = torch.load(grown / "checkpoints" / "last.ckpt", weights_only=False)
+    assert grown_file["hyper_parameters"]["model"]["backbone"]["geometry_blocks"] == 3
+    assert torch.equal(_tokens(grown / "checkpoints" / "last.ckpt"), _tokens(init))
 
 
 def test_a_gaussian_layer_added_to_a_trained_model_trains_and_leaves_the_physics_bit_identical(

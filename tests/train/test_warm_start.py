@@ -96,6 +96,42 @@ def test_geometry_blocks_start_as_copies_of_the_blocks_they_duplicate(tmp_path):
         PhysGM(tiny_config(geometry_blocks=5))
 
 
+def test_more_geometry_blocks_keep_the_trained_copies_last_and_copy_the_blocks_before(tmp_path):
+    """A checkpoint whose Gaussian head has trained copies of the last 2 blocks, started as a model
+    with copies of the last 3: the trained copies become its last two, the first new one copies the
+    shared block it duplicates, and both heads compute exactly what the checkpoint's did."""
+    torch.manual_seed(0)
+    source = PhysGM(tiny_config(geometry_blocks=2)).eval()
+    g = torch.Generator().manual_seed(0)
+    with torch.no_grad():  # trained copies: no longer equal to the shared blocks
+        for p in source.backbone.geometry_blocks.parameters():
+            p.add_(0.05 * torch.randn(p.shape, generator=g))
+    save_checkpoint(source, tmp_path / "two.ckpt")
+    torch.manual_seed(1)
+    model = PhysGM(tiny_config(geometry_blocks=3)).eval()
+    report = warm_start(model, tmp_path / "two.ckpt")
+
+    per_block = len(source.backbone.blocks[0].state_dict())
+    assert report.new == [] and report.widened == [] and len(report.branched) == per_block
+    assert all(name.startswith("backbone.geometry_blocks.0.") for name in report.branched)
+    for j, copy in enumerate(model.backbone.geometry_blocks):
+        want = source.backbone.blocks[1] if j == 0 else source.backbone.geometry_blocks[j - 1]
+        for (name, value), expected in zip(
+            copy.state_dict().items(), want.state_dict().values(), strict=True
+        ):
+            torch.testing.assert_close(value, expected, rtol=0, atol=0, msg=f"copy {j}: {name}")
+    images, masks = torch.rand(1, 2, 3, 32, 32, generator=g), torch.ones(1, 2, 1, 32, 32)
+    c2w = torch.eye(4).expand(1, 2, 4, 4).clone()
+    c2w[0, :, 2, 3] = torch.tensor([-1.5, -1.6])
+    Ks = torch.tensor([[32.0, 0.0, 16.0], [0.0, 32.0, 16.0], [0.0, 0.0, 1.0]]).expand(1, 2, 3, 3)
+    with torch.no_grad():
+        want, got = source(images, masks, c2w, Ks), model(images, masks, c2w, Ks)
+    torch.testing.assert_close(got.global_tokens, want.global_tokens, rtol=0, atol=0)
+    torch.testing.assert_close(got.physics.z_E_mean, want.physics.z_E_mean, rtol=0, atol=0)
+    torch.testing.assert_close(got.gaussians.means, want.gaussians.means, rtol=0, atol=0)
+    torch.testing.assert_close(got.gaussians.colors, want.gaussians.colors, rtol=0, atol=0)
+
+
 def test_a_second_gaussian_layer_starts_as_a_faint_copy_of_the_first(tmp_path):
     """A two-layer model started from a one-layer checkpoint: the first layer's Gaussians are the
     checkpoint's to the bit, and each second-layer Gaussian sits where its first-layer twin does

@@ -288,10 +288,11 @@ def _with_geometry_blocks(model: dict[str, Any], count: int) -> dict[str, Any]:
             f"stage.trainable=geometry_blocks trains copies of the backbone's last stage.geometry_blocks "
             f"blocks; give 1 to {depth} (the backbone's depth), got {count}"
         )
-    if had and had != count:
+    if count < had:
         raise UserError(
-            f"stage.init_ckpt already gives the Gaussian head its own last {had} blocks; set "
-            f"stage.geometry_blocks={had} to train them further"
+            f"stage.init_ckpt already gives the Gaussian head its own last {had} blocks, and trained "
+            f"copies cannot be dropped; set stage.geometry_blocks={had} to train them further, or more "
+            "to give it copies of earlier blocks too"
         )
     return {**model, "backbone": {**backbone, "geometry_blocks": count}}
 

@@ -14,7 +14,8 @@ Each weight of the new model is one of:
   concatenated last);
 - **branched**: a weight of the backbone's geometry blocks (``model.backbone.geometry_blocks``)
   that the checkpoint does not have starts as a copy of the shared block it duplicates, so the
-  new model computes what the checkpoint's did; so does the last output conv of a Gaussian layer
+  new model computes what the checkpoint's did (a checkpoint with fewer copies keeps them as the
+  last ones, and the blocks before them are copied); so does the last output conv of a Gaussian layer
   the checkpoint does not have (``model.gaussian_head.layers``), as a copy of the first layer's,
   which its opacity shift makes faint at the start;
 - **new**: the checkpoint does not have it; it keeps its fresh initialisation.
@@ -65,6 +66,24 @@ def _widens(old: torch.Size, new: torch.Size) -> bool:
     return len(old) == len(new) >= 2 and old[0] == new[0] and old[2:] == new[2:] and old[1] < new[1]
 
 
+def _copies_renumbered(state: dict, hparams: dict, count: int) -> dict:
+    """``state`` with a checkpoint's geometry-block copies renumbered for a model with ``count``:
+    the checkpoint's ``had`` copies are of the last ``had`` blocks, so its copy j is the new model's
+    copy j + count - had. Unchanged when the counts agree or the checkpoint has no copies."""
+    had = int(hparams.get("model", {}).get("backbone", {}).get("geometry_blocks", 0) or 0)
+    if not had or count <= had:
+        return state
+    prefix = "backbone.geometry_blocks."
+
+    def renamed(name: str) -> str:
+        if not name.startswith(prefix):
+            return name
+        index, rest = name[len(prefix) :].split(".", 1)
+        return f"{prefix}{int(index) + count - had}.{rest}"
+
+    return {renamed(name): value for name, value in state.items()}
+
+
 def warm_start(model: nn.Module, path: Path | str) -> WarmStart:
     """Load the weights of the checkpoint at ``path`` into ``model`` (a ``PhysGM``), as above.
 
@@ -73,13 +92,14 @@ def warm_start(model: nn.Module, path: Path | str) -> WarmStart:
             do not fit this model other than by the widening above.
     """
     ckpt = read_checkpoint(path)
+    state = _copies_renumbered(ckpt.state, ckpt.hparams, model.config.backbone.geometry_blocks)
     report = WarmStart(ckpt.path)
     own = model.state_dict()
-    unknown = sorted(set(ckpt.state) - set(own))
+    unknown = sorted(set(state) - set(own))
     mismatched = [
-        f"{k} {tuple(ckpt.state[k].shape)} -> {tuple(v.shape)}"
+        f"{k} {tuple(state[k].shape)} -> {tuple(v.shape)}"
         for k, v in own.items()
-        if k in ckpt.state and ckpt.state[k].shape != v.shape and not _widens(ckpt.state[k].shape, v.shape)
+        if k in state and state[k].shape != v.shape and not _widens(state[k].shape, v.shape)
     ]
     if unknown or mismatched:
         problems = []
@@ -100,11 +120,11 @@ def warm_start(model: nn.Module, path: Path | str) -> WarmStart:
     }
     merged = {}
     for name, value in own.items():
-        old = ckpt.state.get(name)
+        old = state.get(name)
         source = sources.get(name)
-        if old is None and source in ckpt.state:
+        if old is None and source in state:
             report.branched.append(name)
-            merged[name] = ckpt.state[source].to(value.dtype)
+            merged[name] = state[source].to(value.dtype)
         elif old is None:
             report.new.append(name)
             merged[name] = value
