@@ -27,6 +27,16 @@ def _started(tmp_path, **new) -> tuple[PhysGM, PhysGM, object]:
     return source, model, warm_start(model, tmp_path / "source.ckpt")
 
 
+def _views(count: int, g: torch.Generator) -> tuple[torch.Tensor, ...]:
+    """``count`` random 32 px views of one scene on the camera axis, 1.5 m back and 0.1 m apart:
+    (images, masks, c2w, Ks), each [1, count, ...]."""
+    images, masks = torch.rand(1, count, 3, 32, 32, generator=g), torch.ones(1, count, 1, 32, 32)
+    c2w = torch.eye(4).expand(1, count, 4, 4).clone()
+    c2w[0, :, 2, 3] = -1.5 - 0.1 * torch.arange(count)
+    Ks = torch.tensor([[32.0, 0.0, 16.0], [0.0, 32.0, 16.0], [0.0, 0.0, 1.0]]).expand(1, count, 3, 3)
+    return images, masks, c2w, Ks
+
+
 def test_the_hull_model_starts_from_a_range_checkpoint_and_its_head_computes_the_same(tmp_path):
     torch.manual_seed(0)
     source = PhysGM(tiny_config(depth_prior="range")).eval()
@@ -73,10 +83,7 @@ def test_geometry_blocks_start_as_copies_of_the_blocks_they_duplicate(tmp_path):
         atol=0,
     )
     g = torch.Generator().manual_seed(0)
-    images, masks = torch.rand(1, 2, 3, 32, 32, generator=g), torch.ones(1, 2, 1, 32, 32)
-    c2w = torch.eye(4).expand(1, 2, 4, 4).clone()
-    c2w[0, :, 2, 3] = torch.tensor([-1.5, -1.6])
-    Ks = torch.tensor([[32.0, 0.0, 16.0], [0.0, 32.0, 16.0], [0.0, 0.0, 1.0]]).expand(1, 2, 3, 3)
+    images, masks, c2w, Ks = _views(2, g)
     with torch.no_grad():
         want, got = source(images, masks, c2w, Ks), model(images, masks, c2w, Ks)
     torch.testing.assert_close(got.global_tokens, want.global_tokens, rtol=0, atol=0)
@@ -120,10 +127,7 @@ def test_more_geometry_blocks_keep_the_trained_copies_last_and_copy_the_blocks_b
             copy.state_dict().items(), want.state_dict().values(), strict=True
         ):
             torch.testing.assert_close(value, expected, rtol=0, atol=0, msg=f"copy {j}: {name}")
-    images, masks = torch.rand(1, 2, 3, 32, 32, generator=g), torch.ones(1, 2, 1, 32, 32)
-    c2w = torch.eye(4).expand(1, 2, 4, 4).clone()
-    c2w[0, :, 2, 3] = torch.tensor([-1.5, -1.6])
-    Ks = torch.tensor([[32.0, 0.0, 16.0], [0.0, 32.0, 16.0], [0.0, 0.0, 1.0]]).expand(1, 2, 3, 3)
+    images, masks, c2w, Ks = _views(2, g)
     with torch.no_grad():
         want, got = source(images, masks, c2w, Ks), model(images, masks, c2w, Ks)
     torch.testing.assert_close(got.global_tokens, want.global_tokens, rtol=0, atol=0)
@@ -142,10 +146,7 @@ def test_a_second_gaussian_layer_starts_as_a_faint_copy_of_the_first(tmp_path):
     assert report.new == [] and report.widened == [] and report.branched == layer_weights
     assert len(report.copied) == len(source.state_dict())
     g = torch.Generator().manual_seed(0)
-    images, masks = torch.rand(1, 1, 3, 32, 32, generator=g), torch.ones(1, 1, 1, 32, 32)
-    c2w = torch.eye(4).expand(1, 1, 4, 4).clone()
-    c2w[0, :, 2, 3] = -1.5
-    Ks = torch.tensor([[32.0, 0.0, 16.0], [0.0, 32.0, 16.0], [0.0, 0.0, 1.0]]).expand(1, 1, 3, 3)
+    images, masks, c2w, Ks = _views(1, g)
     with torch.no_grad():
         want, got = source(images, masks, c2w, Ks).gaussians, model(images, masks, c2w, Ks).gaussians
     n = 32 * 32
