@@ -161,3 +161,28 @@ def test_a_datamodule_computes_the_features_of_the_splits_it_serves_only(tiny_co
     assert cached == set(read_split(tiny_copy, "test"))  # not the training split's
     dm.setup("test")
     assert {p.stem for p in folder.glob("*.npz")} == cached | set(read_split(tiny_copy, "train"))
+
+
+def test_an_evaluation_subset_reads_and_caches_evenly_spaced_assets_only(tiny_copy):
+    """max_eval_assets: the val and test loaders read that many assets spread over their split lists
+    and the cache holds exactly their features; training batches still come from the whole split."""
+    train = read_split(tiny_copy, "train")
+    assert len(train) >= 6
+    dm = PhysAssetsDataModule(
+        str(tiny_copy),
+        input_resolution=64,
+        feature_cache="mobilenet_v2",
+        val_split="train",
+        test_split="train",
+        max_eval_assets=3,
+    )
+    dm.setup("validate")
+    chosen = [a.id for a in dm.dataset("train", False).assets]
+    step = len(train) / 3
+    assert chosen == [train[int(i * step)] for i in range(3)]
+    assert {p.stem for p in dm.feature_store(()).folder.glob("*.npz")} == set(chosen)
+    assert len(dm.dataset("train", True)) == len(train)
+    with pytest.raises(ValueError, match="max_eval_assets"):
+        PhysAssetsDataModule(str(tiny_copy), max_eval_assets=0)
+    with pytest.raises(ValueError, match="max_eval_assets"):
+        PhysAssetsDataModule(str(tiny_copy), backend="shards", shards_dir="x", max_eval_assets=2)

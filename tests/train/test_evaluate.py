@@ -3,6 +3,7 @@
 import json
 from pathlib import Path
 
+import pytest
 import torch
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
@@ -197,3 +198,10 @@ def test_evaluate_scores_labelled_real_assets_and_sweeps_the_prior(tiny_dataset,
         assert abs(got["p50"] - float(tops.quantile(0.5))) < 2e-3
         assert 1 / len(MATERIAL_NAMES) - 1e-6 <= got["p10"] <= got["p50"] <= got["p90"]
         assert got["p90"] <= float(tops.max()) + 2e-3
+
+    # --max-assets: the same split scored on its first and middle assets only.
+    assert main([str(ckpt), *args, "--max-assets", "2"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["max_assets"] == 2 and report["views1"]["labelled_assets"] == 2
+    with pytest.raises(SystemExit, match="--max-assets must be at least 1"):
+        main([str(ckpt), *args, "--max-assets", "0"])

@@ -27,7 +27,7 @@ from physgm.data.feature_cache import (
     mobilenet_key,
     stored_view_size,
 )
-from physgm.data.format import SPLITS, Asset, AssetError, load_asset, read_split
+from physgm.data.format import SPLITS, Asset, AssetError, evenly_spaced, load_asset, read_split
 from physgm.data.views import LOAD_ERRORS, Example, ViewConfig, build_example, example_rng
 from physgm.model.cnn_encoder import ImageFeatures
 
@@ -177,7 +177,8 @@ class FolderRecord:
 
 
 class FolderDataset(Dataset):
-    """Assets of one split read from a PhysAssets folder."""
+    """Assets of one split read from a PhysAssets folder (``max_assets``: at most that many, evenly
+    spaced over the split list)."""
 
     def __init__(
         self,
@@ -188,6 +189,7 @@ class FolderDataset(Dataset):
         on_corrupt: str = "raise",
         seed: int = 0,
         features: FeatureStore | None = None,
+        max_assets: int | None = None,
     ):
         if on_corrupt not in CORRUPT_MODES:
             raise ValueError(f"on_corrupt must be one of {CORRUPT_MODES}, got {on_corrupt!r}")
@@ -196,7 +198,7 @@ class FolderDataset(Dataset):
         self.features = features
         self.assets: list[Asset] = []
         self.skipped: dict[str, str] = {}  # found malformed while scanning (on_corrupt="skip")
-        for aid in read_split(self.root, split):
+        for aid in evenly_spaced(read_split(self.root, split), max_assets):
             try:
                 self.assets.append(load_asset(self.root / aid))
             except AssetError as err:
@@ -252,6 +254,9 @@ class PhysAssetsDataModule(L.LightningDataModule):
         feature_cache: ``"mobilenet_v2"`` reads the frozen encoder's features of the input views
             from ``<root>/features/`` (``physgm.data.feature_cache``, built on first use) so that
             training skips the encoder; None computes them in every step.
+        max_eval_assets: the val, test and dpo loaders read at most this many assets of their
+            split, evenly spaced over its list (a quicker score, or a score on a subset of the
+            training split); None reads them all. Training batches always come from the whole split.
     """
 
     def __init__(
@@ -276,6 +281,7 @@ class PhysAssetsDataModule(L.LightningDataModule):
         test_split: str = "test",
         seed: int = 0,
         feature_cache: str | None = None,
+        max_eval_assets: int | None = None,
     ):
         super().__init__()
         if feature_cache not in (None, "mobilenet_v2"):
@@ -286,6 +292,11 @@ class PhysAssetsDataModule(L.LightningDataModule):
             )
         if feature_cache and not input_resolution:
             raise ValueError("feature_cache needs input_resolution: the cache is keyed by it")
+        if max_eval_assets is not None and (max_eval_assets < 1 or backend != "folder"):
+            raise ValueError(
+                f"max_eval_assets must be null or at least 1 with backend='folder', got {max_eval_assets} "
+                f"with backend={backend!r}"
+            )
         if backend not in ("folder", "shards"):
             raise ValueError(f"backend must be 'folder' or 'shards', got {backend!r}")
         if backend == "shards" and not shards_dir:
@@ -323,7 +334,8 @@ class PhysAssetsDataModule(L.LightningDataModule):
                     not train,
                     self.hp.on_corrupt,
                     self.hp.seed,
-                    self.feature_store((split,)),
+                    self.feature_store((split,), None if train else self.hp.max_eval_assets),
+                    None if train else self.hp.max_eval_assets,
                 )
             else:
                 from physgm.data.shards import ShardDataset
@@ -338,9 +350,12 @@ class PhysAssetsDataModule(L.LightningDataModule):
                 )
         return self.datasets[key]
 
-    def feature_store(self, splits: tuple[str, ...] = SPLITS) -> FeatureStore | None:
-        """The frozen encoder's cache of this data set, with the features of ``splits`` built where
-        missing (a training run does not compute its test split's)."""
+    def feature_store(
+        self, splits: tuple[str, ...] = SPLITS, max_assets: int | None = None
+    ) -> FeatureStore | None:
+        """The frozen encoder's cache of this data set, with the features of ``splits`` (or of the
+        evenly spaced ``max_assets`` of each) built where missing (a training run does not compute
+        its test split's)."""
         if not self.hp.feature_cache:
             return None
         if self._feature_key is None:
@@ -348,7 +363,7 @@ class PhysAssetsDataModule(L.LightningDataModule):
             self._feature_key = mobilenet_key(
                 self.hp.input_resolution, self.hp.background, stored_resolution=stored
             )
-        folder = build_feature_cache(self.hp.root, self._feature_key, splits)
+        folder = build_feature_cache(self.hp.root, self._feature_key, splits, max_assets=max_assets)
         if self._features is None:
             self._features = FeatureStore(folder)
         return self._features

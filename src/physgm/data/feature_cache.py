@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from physgm.data.format import SPLITS, AssetError, load_asset, read_split
+from physgm.data.format import SPLITS, AssetError, evenly_spaced, load_asset, read_split
 from physgm.data.views import composite_views, ring_views
 from physgm.model.cnn_encoder import ImageFeatures, MobileNetEncoder
 from physgm.model.pretrained import mobilenet_v2_weights_path
@@ -153,8 +153,12 @@ def build_feature_cache(
     splits: tuple[str, ...] = SPLITS,
     encoder: MobileNetEncoder | None = None,
     log=None,
+    max_assets: int | None = None,
 ) -> Path:
-    """Compute and store the features of every asset in ``splits`` that has none yet; returns the folder."""
+    """Compute and store the features of every asset in ``splits`` that has none yet; returns the folder.
+
+    ``max_assets``: only the evenly spaced subset of each split that a dataset with that many
+    assets reads (``format.evenly_spaced``)."""
     log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))  # stdout is for JSON reports
     root = Path(root)
     out = cache_dir(root, key)
@@ -164,7 +168,8 @@ def build_feature_cache(
         tmp = meta.with_name(".meta.json.tmp")
         tmp.write_text(json.dumps(asdict(key), indent=1))
         os.replace(tmp, meta)
-    ids = sorted({a for s in splits if (root / "splits" / f"{s}.txt").exists() for a in read_split(root, s)})
+    listed = [s for s in splits if (root / "splits" / f"{s}.txt").exists()]
+    ids = sorted({a for s in listed for a in evenly_spaced(read_split(root, s), max_assets)})
     if all((out / f"{a}.npz").exists() for a in ids):
         return out
     with build_lock(out, log):

@@ -340,6 +340,15 @@ def load_asset(path: str | os.PathLike) -> Asset:
     return asset
 
 
+def evenly_spaced(ids: list[str], count: int | None) -> list[str]:
+    """At most ``count`` of ``ids``, spread evenly over the list (all of them for None)."""
+    if count is None or count >= len(ids):
+        return list(ids)
+    if count < 1:
+        raise ValueError(f"a subset needs at least 1 asset, got {count}")
+    return [ids[i * len(ids) // count] for i in range(count)]
+
+
 def read_split(root: str | os.PathLike, split: str) -> list[str]:
     """Asset ids of one split (``splits/<split>.txt``, one id per line, '#' comments allowed)."""
     if split not in SPLITS:

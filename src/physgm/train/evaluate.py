@@ -73,9 +73,11 @@ def view_datamodule(
     target_resolution: int | None = None,
     seed: int = 0,
     batch_size: int = 4,
+    max_assets: int | None = None,
 ) -> PhysAssetsDataModule:
     """The split's fixed evaluation inputs at one input-view count (1 or 4), read from the feature
-    cache when ``model`` has the frozen CNN encoder; its ``test_dataloader`` iterates them."""
+    cache when ``model`` has the frozen CNN encoder; its ``test_dataloader`` iterates them
+    (``max_assets``: at most that many assets, evenly spaced over the split list)."""
     return PhysAssetsDataModule(
         root,
         batch_size=batch_size,
@@ -87,6 +89,7 @@ def view_datamodule(
         val_split=split,
         seed=seed,
         feature_cache="mobilenet_v2" if model.config.backbone.encoder.kind == "mobilenet_v2" else None,
+        max_eval_assets=max_assets,
     )
 
 
@@ -244,6 +247,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--batch-size", type=int, default=4)
     p.add_argument(
+        "--max-assets",
+        type=int,
+        default=None,
+        help="score at most this many assets, evenly spaced over the split list (for example --split "
+        "train --max-assets 250: how well the model fits what it was trained on)",
+    )
+    p.add_argument(
         "--lpips-backbone", default=None, help="local LPIPS backbone file; adds LPIPS (see README)"
     )
     p.add_argument(
@@ -271,6 +281,8 @@ def main(argv: list[str] | None = None) -> int:
     views = sorted({int(v) for v in a.views.split(",")})
     if not set(views) <= {1, 4}:
         raise SystemExit(f"--views takes 1 and/or 4, got {a.views!r}")
+    if a.max_assets is not None and a.max_assets < 1:
+        raise SystemExit(f"--max-assets must be at least 1, got {a.max_assets}")
     if not Path(a.ckpt).is_file():
         raise SystemExit(f"checkpoint {a.ckpt} not found")
     if a.device.startswith("cuda") and not torch.cuda.is_available():
@@ -292,6 +304,7 @@ def main(argv: list[str] | None = None) -> int:
         "ckpt": a.ckpt,
         "data": a.data,
         "split": a.split,
+        "max_assets": a.max_assets,
         "input_resolution": res,
         "target_resolution": a.resolution or res,
         "num_targets": a.num_targets,
@@ -301,7 +314,7 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     for v in views:
         dm = view_datamodule(
-            model, a.data, a.split, v, res, a.num_targets, a.resolution, a.seed, a.batch_size
+            model, a.data, a.split, v, res, a.num_targets, a.resolution, a.seed, a.batch_size, a.max_assets
         )
         report[f"views{v}"] = evaluate_views(
             model, dm, renderer, lpips_model, a.prior_weight, sweep, a.device
