@@ -22,7 +22,9 @@ With the frozen MobileNetV2 encoder the material distribution is p_head * p_prio
 the real validation objects; ``prior_only_*`` scores the semantic table alone (zero-shot). A model
 with a domain gate (``physgm.model.domain_gate``) mixes that with p_head by the gate's P(real
 object) g, at every w, and ``domain_gate`` gives that probability's 10th, 50th and 90th
-percentiles. One JSON object goes to stdout.
+percentiles. ``--max-assets N`` scores N assets spread evenly over the split list; on the training
+split (``--split train --max-assets 250``) it tells how far the model is from fitting what it was
+trained on. One JSON object goes to stdout.
 """
 
 from __future__ import annotations
