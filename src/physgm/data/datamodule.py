@@ -327,6 +327,7 @@ class PhysAssetsDataModule(L.LightningDataModule):
         key = f"{split}:{train}"
         if key not in self.datasets:
             if self.hp.backend == "folder":
+                subset = None if train else self.hp.max_eval_assets
                 self.datasets[key] = FolderDataset(
                     self.hp.root,
                     split,
@@ -334,8 +335,8 @@ class PhysAssetsDataModule(L.LightningDataModule):
                     not train,
                     self.hp.on_corrupt,
                     self.hp.seed,
-                    self.feature_store((split,), None if train else self.hp.max_eval_assets),
-                    None if train else self.hp.max_eval_assets,
+                    self.feature_store((split,), subset),
+                    subset,
                 )
             else:
                 from physgm.data.shards import ShardDataset

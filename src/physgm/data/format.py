@@ -342,10 +342,10 @@ def load_asset(path: str | os.PathLike) -> Asset:
 
 def evenly_spaced(ids: list[str], count: int | None) -> list[str]:
     """At most ``count`` of ``ids``, spread evenly over the list (all of them for None)."""
+    if count is not None and count < 1:
+        raise ValueError(f"a subset needs at least 1 asset, got {count}")
     if count is None or count >= len(ids):
         return list(ids)
-    if count < 1:
-        raise ValueError(f"a subset needs at least 1 asset, got {count}")
     return [ids[i * len(ids) // count] for i in range(count)]
 
 
