@@ -11,6 +11,7 @@ import warp as wp
 from physgm.sim.constitutive import MODELS, MaterialParams, MaterialStruct
 from physgm.sim.constitutive import reference as ref
 from physgm.sim.constitutive.common import expm1, log1p
+from physgm.sim.linalg import is_finite
 from physgm.sim.mpm import particle_ops as K
 from physgm.warp_runtime import FAST_CPU_FLAGS
 
@@ -411,3 +412,19 @@ def test_log1p_and_expm1_keep_float32_precision_under_the_solver_flags():
     x64 = x.astype(np.float64)
     np.testing.assert_allclose(out.numpy()[:, 0], np.log1p(x64), rtol=3e-7)
     np.testing.assert_allclose(out.numpy()[:, 1], np.expm1(x64), rtol=3e-7)
+
+
+@wp.kernel
+def _is_finite(x: wp.array(dtype=float), out: wp.array(dtype=int)):
+    i = wp.tid()
+    out[i] = wp.where(is_finite(x[i]), 1, 0)
+
+
+def test_is_finite_flags_nan_and_infinity_under_the_solver_flags():
+    # g2p's divergence guard rests on it; a compiler allowed to assume no NaN or infinity
+    # (-ffast-math) would fold it to true.
+    big = np.finfo(np.float32).max
+    x = np.array([0.0, -1.5, 1e-38, big, -big, np.inf, -np.inf, np.nan], np.float32)
+    out = wp.zeros(len(x), dtype=int, device="cpu")
+    wp.launch(_is_finite, len(x), [wp.array(x, dtype=float, device="cpu"), out], device="cpu")
+    np.testing.assert_array_equal(out.numpy(), np.isfinite(x).astype(int))

@@ -25,7 +25,7 @@ from __future__ import annotations
 import warp as wp
 
 from physgm.sim.constitutive.common import EYE, MaterialStruct, det_minus_one, green_minus_identity
-from physgm.sim.linalg import left_stretch_minus_identity, rv_svd
+from physgm.sim.linalg import is_finite, left_stretch_minus_identity, rv_svd
 
 J_B = wp.constant(0.5)  # below this volume ratio the barrier continues the volume term
 J_FLOOR = wp.constant(1.0e-6)  # volume ratio the pressure is clamped to for J <= 0
@@ -61,7 +61,7 @@ def fixed_corotated_update(H: wp.mat33, mat: MaterialStruct, plastic: float, dt:
         # b - V = (b - I) - (V - I): both small, so the stress keeps full float32 precision.
         D = green_minus_identity(H)
         Vm = left_stretch_minus_identity(D, jm1)
-        if wp.isfinite(Vm[0, 0]):
+        if is_finite(Vm[0, 0]):
             return H, 2.0 * mat.mu * (D - Vm) + vol, plastic
     U, sigma, Vr = rv_svd(EYE + H)
     tau = U * wp.diag(2.0 * mat.mu * wp.cw_mul(sigma, sigma - wp.vec3(1.0))) * wp.transpose(U)

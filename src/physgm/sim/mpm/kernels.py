@@ -43,6 +43,7 @@ import warp as wp
 
 from physgm.sim.constitutive.common import EYE, MaterialStruct, det_minus_one
 from physgm.sim.constitutive.dispatch import update_for
+from physgm.sim.linalg import is_finite
 from physgm.sim.mpm.boundary import BoxStruct, GroundStruct, box_velocity, ground_grip, ground_velocity
 from physgm.sim.mpm.particle_ground import fold_ground_force, particle_ground_force, touches_ground
 from physgm.sim.mpm.stencil_sums import gather_moments, scatter_affine, vec8
@@ -478,7 +479,7 @@ def _g2p_kernel(models: tuple[int, ...]) -> wp.Kernel:
         J = 1.0 + det_minus_one(H_new)
         # One finiteness test: a NaN or inf anywhere in the new state propagates into this sum.
         check = wp.dot(x_new + v_new, wp.vec3(1.0)) + J + wp.ddot(tau, wp.mat33(1.0))
-        if not wp.isfinite(check):
+        if not is_finite(check):
             # Keep the state usable for indexing; the solver rejects the frame (and re-scatters).
             wp.atomic_add(stats, slot, STAT_BAD, 1.0)
             x_new = xp
