@@ -38,14 +38,15 @@ def test_report_compares_each_threshold_on_the_same_assets(tiny_dataset, tmp_pat
     args = ["--data", str(tiny_dataset), "--split", "train", "--assets", "3", "--min-opacity", "0.05", "0.0"]
     report = volume.main([str(ckpt), *args])
     assert json.loads(capsys.readouterr().out) == report
-    assert report["assets"] == 3 and set(report["thresholds"]) == {"0.05", "0.0"}
+    assert report["assets"] == 3 and set(report["thresholds"]) == {"0.05", "0.0", "planner"}
     counts = {t: r["opaque"]["assets"] + r["translucent"]["assets"] for t, r in report["thresholds"].items()}
-    assert counts == {"0.05": 3, "0.0": 3}
-    everything = report["thresholds"]["0.0"]
-    # With every Gaussian kept the body can only grow.
+    assert counts == {"0.05": 3, "0.0": 3, "planner": 3}
+    everything, planner = report["thresholds"]["0.0"], report["thresholds"]["planner"]
+    # With every Gaussian kept the body can only grow; the planner's threshold lies in between.
     for part in ("opaque", "translucent"):
         if everything[part]["assets"]:
-            assert everything[part]["median"] >= report["thresholds"]["0.05"][part]["median"]
+            assert everything[part]["median"] >= planner[part]["median"]
+            assert planner[part]["median"] >= report["thresholds"]["0.05"][part]["median"]
 
 
 def test_bad_input_is_a_clear_error(tmp_path):

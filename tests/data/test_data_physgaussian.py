@@ -188,6 +188,7 @@ def test_simulate_config_takes_the_physgaussian_file(tmp_path):
     }
     assert (cfg.output.fps, cfg.output.frames) == (pytest.approx(25.0), 26)
     assert cfg.planner["min_opacity"] == 0.02 and cfg.planner["fill_interior"] is False
+    assert cfg.planner["relative_opacity"] == 0.0  # the threshold as PhysGaussian applies it
     with pytest.raises(UserError, match=r"physics.E=300000.0 disagrees with .*jelly.json \(E = 2000000.0\)"):
         from_hydra(_compose([*base, "physics.E=3e5"]))
     with pytest.raises(UserError, match="cuboid"):

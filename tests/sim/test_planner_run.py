@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -319,3 +320,18 @@ def test_the_stretch_scene_splits_the_particles_along_its_axis():
     assert float(pulled.sample.volume.sum()) == pytest.approx(float(drop.sample.volume.sum()), rel=1e-6)
     layers = np.unique(pulled.sample.x[:, 1].numpy().round(6))
     assert np.diff(layers).min() == pytest.approx(0.5 * drop.sample.spacing, rel=1e-3)
+
+
+def test_a_translucent_object_is_simulated_with_its_whole_body():
+    """Gaussians drawn faint throughout (opacity 0.01-0.04, a jelly as the model draws it) carry mass
+    at the planner's ``mass_opacity``: the particles fill the cube as they do when it is opaque;
+    with the fixed threshold alone (relative_opacity 0) nothing is left to simulate."""
+    opaque = _shell_cube(bottom=0.0)
+    g = torch.Generator().manual_seed(3)
+    faint = replace(opaque, opacities=0.01 + 0.03 * torch.rand(len(opaque.opacities), generator=g))
+    jelly = PhysicsSpec("jelly", E=5e4)
+    full = prepare_simulation(opaque, jelly, "drop", CAMERAS, n_frames=3)
+    seen = prepare_simulation(faint, jelly, "drop", CAMERAS, n_frames=3)
+    assert len(seen.sample) == len(full.sample)
+    with pytest.raises(ValueError, match="opacity"):
+        prepare_simulation(faint, jelly, "drop", CAMERAS, n_frames=3, planner={"relative_opacity": 0.0})

@@ -14,6 +14,7 @@ from physgm.sim.sampling import (
     build_followers,
     fill_interior,
     lattice_frame,
+    mass_opacity,
     sample_particles,
     split_along,
     voxel_downsample,
@@ -145,6 +146,30 @@ def test_hollow_cube_becomes_a_full_lattice_at_the_requested_density():
     # Regular lattice: every particle's nearest neighbour is one spacing away.
     nearest = torch.cdist(sample.x, sample.x).fill_diagonal_(1.0).min(1).values
     torch.testing.assert_close(nearest, torch.full_like(nearest, spacing), atol=1e-6, rtol=0)
+
+
+def test_mass_opacity_keeps_an_opaque_object_and_scales_to_a_translucent_one():
+    g = torch.Generator().manual_seed(0)
+    opaque = torch.cat([torch.rand(9000, generator=g) * 0.01, 0.3 + 0.6 * torch.rand(1000, generator=g)])
+    assert mass_opacity(opaque, 0.05, 0.25) == 0.05  # its strong Gaussians reach 0.3-0.9
+    faint = 0.04 * torch.rand(10000, generator=g)  # a jelly drawn at opacities up to 0.04
+    q99 = float(torch.quantile(faint, 0.99))
+    assert mass_opacity(faint, 0.05, 0.25) == pytest.approx(0.25 * q99)
+    assert mass_opacity(faint, 0.05, 0.0) == 0.05  # relative 0: the fixed threshold
+    assert mass_opacity(torch.zeros(100), 0.05, 0.25) == 0.005  # never below the floor
+    assert mass_opacity(faint, 0.003, 0.25) == 0.003  # nor above min_opacity
+
+
+def test_a_translucent_cube_gets_its_whole_body_at_the_mass_opacity():
+    # A 20 cm cube drawn with faint Gaussians (opacity 0.01-0.04, as the model draws jelly): at the
+    # fixed 0.05 nothing carries mass; at mass_opacity the shell fills to the cube's volume.
+    side, spacing = 0.2, 0.2 / 12
+    g = torch.Generator().manual_seed(1)
+    cube = _gaussians(_cube_shell(20000, side), 0.01 + 0.03 * torch.rand(20000, generator=g))
+    with pytest.raises(ValueError, match="opacity"):
+        sample_particles(cube, spacing, min_opacity=0.05)
+    sample = sample_particles(cube, spacing, min_opacity=mass_opacity(cube.opacities, 0.05, 0.25))
+    assert float(sample.volume.sum()) == pytest.approx(side**3, rel=0.02)
 
 
 def test_lattice_frame_spans_the_box_centred():

@@ -11,8 +11,10 @@ Gaussians (its gaussians.ply, all of them) enclose, both on the lattice the plan
 the asset's true extent (``planner.choose_spacing``: 24 particles across at its defaults). The
 report gives, per threshold, the median, p10 and p90 of predicted / true volume over the opaque
 assets and over the translucent ones (whose own Gaussians' median opacity is under
-``TRANSLUCENT``: glass, jelly), and the opaque assets' median per material. A ratio of 1 means
-the simulated body weighs what the object does.
+``TRANSLUCENT``: glass, jelly), and the opaque assets' median per material. The row ``planner``
+uses, per asset, the threshold ``simulate`` picks (``sampling.mass_opacity`` at the planner's
+defaults: 0.05, lower for an object whose Gaussians are all faint). A ratio of 1 means the
+simulated body weighs what the object does.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from physgm.errors import UserError
 from physgm.gaussians import Gaussians, read_ply
 from physgm.physics.materials import MATERIAL_NAMES
 from physgm.sim.planner import PlannerConfig, choose_spacing
-from physgm.sim.sampling import sample_particles
+from physgm.sim.sampling import mass_opacity, sample_particles
 
 TRANSLUCENT = 0.1  # an asset whose own Gaussians are fainter than this (median) is translucent
 
@@ -57,6 +59,7 @@ def volume_report(
 
     data = view_datamodule(model, root, split, views, resolution)
     data.setup("test")
+    planner = PlannerConfig()
     rows = []
     with torch.no_grad():
         for batch in data.test_dataloader():
@@ -66,26 +69,29 @@ def volume_report(
                     break
                 truth = read_ply(Path(root) / asset / "gaussians.ply", keep_sh=False)
                 extent = float((truth.means.amax(0) - truth.means.amin(0)).max())
-                spacing = choose_spacing(extent, PlannerConfig())[1]  # the planner's lattice
+                spacing = choose_spacing(extent, planner)[1]  # the planner's lattice
                 true_volume = enclosed_volume(truth, spacing, 0.0)
                 pred = out.gaussians.to_gaussians(i).detach()
+                chosen = mass_opacity(pred.opacities, planner.min_opacity, planner.relative_opacity)
+                ratio = {str(t): enclosed_volume(pred, spacing, t) / true_volume for t in thresholds}
+                ratio["planner"] = enclosed_volume(pred, spacing, chosen) / true_volume
                 rows.append(
                     {
                         "asset": asset,
                         "material": MATERIAL_NAMES[int(batch.true_material[i])],
                         "translucent": float(truth.opacities.median()) < TRANSLUCENT,
-                        "ratio": {t: enclosed_volume(pred, spacing, t) / true_volume for t in thresholds},
+                        "ratio": ratio,
                     }
                 )
             if len(rows) == assets:
                 break
     report: dict = {"data": root, "split": split, "views": views, "assets": len(rows), "thresholds": {}}
-    for t in thresholds:
+    for t in [*map(str, thresholds), "planner"]:
         by_material = defaultdict(list)
         for r in rows:
             if not r["translucent"]:
                 by_material[r["material"]].append(r["ratio"][t])
-        report["thresholds"][str(t)] = {
+        report["thresholds"][t] = {
             "opaque": _summary([r["ratio"][t] for r in rows if not r["translucent"]]),
             "translucent": _summary([r["ratio"][t] for r in rows if r["translucent"]]),
             "opaque_median_by_material": {m: float(np.median(v)) for m, v in sorted(by_material.items())},

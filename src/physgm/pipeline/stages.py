@@ -130,16 +130,25 @@ def _predict(model, inp):
     return pred
 
 
-def _simulate(g, choice, cfg: RunConfig, camera, overrides: dict):
-    from physgm.sim.gaussian_trajectory import simulate
-    from physgm.sim.mpm.stepping import SolverConfig
+def _planner(cfg: RunConfig):
+    """The run's ``PlannerConfig``; a mistyped setting stops the run with what was wrong."""
     from physgm.sim.planner import PlannerConfig
 
     try:
-        planner = PlannerConfig(**cfg.planner)
+        return PlannerConfig(**cfg.planner)
+    except (TypeError, ValueError) as err:
+        raise UserError(f"bad planner settings: {err}") from None
+
+
+def _simulate(g, choice, cfg: RunConfig, camera, overrides: dict):
+    from physgm.sim.gaussian_trajectory import simulate
+    from physgm.sim.mpm.stepping import SolverConfig
+
+    planner = _planner(cfg)
+    try:
         solver = replace(SolverConfig.from_dict(cfg.solver), frame_dt=1.0 / cfg.output.fps)
     except (TypeError, ValueError) as err:
-        raise UserError(f"bad planner/solver settings: {err}") from None
+        raise UserError(f"bad solver settings: {err}") from None
     try:
         traj = simulate(
             g,
@@ -212,6 +221,7 @@ def _execute(cfg: RunConfig) -> RunResult:
         place_object,
     )
     from physgm.render.frames import Shot, render_trajectory
+    from physgm.sim.sampling import mass_opacity
     from physgm.view.sequence import sequence_file, sequence_from_trajectory
 
     start = time.perf_counter()
@@ -222,6 +232,7 @@ def _execute(cfg: RunConfig) -> RunResult:
         t0 = time.perf_counter()
         kind = input_kind(cfg.input)
         scene = scene_settings(cfg)  # a mistyped scene setting stops the run before the model loads
+        planner = _planner(cfg)  # and so does a planner setting
         model, ckpt_info = (None, None) if kind == "ply" else _load_model(cfg)
         inp = prepare_input(cfg.input, None if model is None else ckpt_info["input_size"], cfg.mask, cfg.up)
         sec["load"] = time.perf_counter() - t0
@@ -230,7 +241,7 @@ def _execute(cfg: RunConfig) -> RunResult:
         pred = _predict(model, inp) if model is not None else None
         g, post = (pred.gaussians, pred.posterior) if pred is not None else (inp.gaussians, None)
         runs = choose_physics(post, cfg.physics, cfg.seed)
-        min_opacity = float(cfg.planner.get("min_opacity", 0.05))
+        min_opacity = mass_opacity(g.opacities, planner.min_opacity, planner.relative_opacity)
         ground = scene.ground_height
         placement = place_object(g, cfg.size_m, ground or 0.0, min_opacity)
         az = inp.azimuth_deg if cfg.camera.azimuth_deg is None else cfg.camera.azimuth_deg

@@ -28,7 +28,14 @@ from physgm.sim.mpm.stepping import SolverConfig
 from physgm.sim.mpm_run import ballistic_frames, run_mpm
 from physgm.sim.planner import Plan, PlannerConfig, choose_spacing, plan_simulation, stretch_splits
 from physgm.sim.rigid import ContactParams, RigidBody, RigidSimulator, RigidTrajectory
-from physgm.sim.sampling import Followers, ParticleSample, build_followers, sample_particles, split_along
+from physgm.sim.sampling import (
+    Followers,
+    ParticleSample,
+    build_followers,
+    mass_opacity,
+    sample_particles,
+    split_along,
+)
 from physgm.sim.scenes import SceneSetup, build_scene
 
 
@@ -217,12 +224,13 @@ def prepare_simulation(
     name, material, restitution = physics_params(physics)
     if restitution is not None:  # the material table has none; a physics description may
         cfg = replace(cfg, restitution=float(restitution))
-    opaque = gaussians.opacities >= cfg.min_opacity
+    threshold = mass_opacity(gaussians.opacities, cfg.min_opacity, cfg.relative_opacity)
+    opaque = gaussians.opacities >= threshold
     if not opaque.any():
-        raise ValueError(f"no Gaussian has opacity >= {cfg.min_opacity}; nothing to simulate")
+        raise ValueError(f"no Gaussian has opacity >= {threshold:.3g}; nothing to simulate")
     extent = gaussians.means[opaque].detach().amax(0) - gaussians.means[opaque].detach().amin(0)
     dx, spacing = choose_spacing(float(extent.max()), cfg)
-    rest = sample_particles(gaussians, spacing, cfg.min_opacity, cfg.fill_interior)
+    rest = sample_particles(gaussians, spacing, threshold, cfg.fill_interior)
     setup = apply_scene(scene, rest.x.detach().cpu().double().numpy(), scene_overrides)
     if setup.stretch is not None and (splits := stretch_splits(setup.stretch[1], spacing, dx, cfg)) > 1:
         # The scene sees the particles it will pull (its grips are set from their extent).
@@ -349,7 +357,8 @@ def _run_rigid(
         walls=tuple(plan.walls),  # the scene's still walls, found by the planner
         gravity=tuple(scene.gravity),
     )
-    surface = gaussians.means[gaussians.opacities >= cfg.min_opacity].detach().double().cpu().numpy()
+    threshold = mass_opacity(gaussians.opacities, cfg.min_opacity, cfg.relative_opacity)
+    surface = gaussians.means[gaussians.opacities >= threshold].detach().double().cpu().numpy()
     body = RigidBody.from_particles(x0, mass, contact_points=surface)
     sim = RigidSimulator(body, contact, RigidSimulator.initial_state(body, x0, mass, v0))
     rest_speed = plan.rest_px / plan.px_per_m / plan.frame_dt

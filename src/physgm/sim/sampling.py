@@ -37,6 +37,8 @@ MAX_FILL_VOXELS = 2**26
 # {-1, 0, 1}^3, so splats wider than a voxel also mark the voxels next to their centre. [27, 3]
 _BOX_POINTS = torch.cartesian_prod(*[torch.tensor([-1.0, 0.0, 1.0], dtype=torch.float64)] * 3)
 _CHUNK = 65_536  # Gaussians voxelised at once (27 points each: ~40 MB of float64)
+MASS_QUANTILE = 0.99  # an object's strong opacity, for ``mass_opacity``: its Gaussians' 99th percentile
+MASS_OPACITY_FLOOR = 0.005  # ``mass_opacity`` never goes below this: fainter Gaussians carry no mass
 
 
 @dataclass
@@ -204,6 +206,26 @@ def _inner_side(
     grads = np.stack(np.gradient(smooth), -1)[tuple((shell + 1).T)]  # [Q, 3] points inwards
     centre = origin + (shell + 0.5) * spacing
     return ~outside_near | (np.einsum("qi,qi->q", centre - surface, grads) >= 0.0)
+
+
+def mass_opacity(
+    opacities: Tensor,  # [N] the object's Gaussians' opacities
+    min_opacity: float,  # the threshold for an opaque object
+    relative: float,  # share of the object's strong opacity (99th percentile); 0: min_opacity alone
+) -> float:
+    """Opacity from which a Gaussian carries mass: ``min_opacity``, or ``relative`` times the 99th
+    percentile of ``opacities`` when that is lower, but never below ``MASS_OPACITY_FLOOR``.
+
+    Opacity says how much light a Gaussian blocks, not whether there is matter behind it. A
+    translucent object (jelly, glass) is drawn with faint Gaussians throughout, and a fixed 0.05
+    kept a third of its body (docs/model.md, "How much body a translucent object gets"); scaled to
+    the object's own strongest Gaussians, the threshold keeps an opaque object's and finds a
+    translucent one's.
+    """
+    if relative <= 0.0 or opacities.numel() == 0:
+        return min_opacity
+    strong = float(torch.quantile(opacities.detach().float().cpu(), MASS_QUANTILE))
+    return min(min_opacity, max(relative * strong, MASS_OPACITY_FLOOR))
 
 
 def sample_particles(

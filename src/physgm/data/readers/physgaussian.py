@@ -14,7 +14,8 @@ metres. Its keys map onto simulate.yaml as follows (docs/interop.md has the full
 * a ``surface_collider`` facing up, or the floor of ``bounding_box``, -> the drop scene's ground
   (mode and friction) at the gap below the object that PhysGaussian has -> ``object.drop_height``;
 * ``frame_dt`` -> ``output.fps``, ``frame_num`` -> ``output.frames`` (+1: the rest frame),
-  ``opacity_threshold`` -> ``planner.min_opacity``, ``particle_filling`` -> ``planner.fill_interior``.
+  ``opacity_threshold`` -> ``planner.min_opacity`` (exactly: ``planner.relative_opacity`` 0),
+  ``particle_filling`` -> ``planner.fill_interior``.
 
 Numerical settings the planner and the CFL stepping choose (``substep_dt``, ``n_grid``, ...) and
 the viewer's camera keys have no effect and are listed in ``PhysGaussianRun.ignored``. Anything
@@ -140,6 +141,7 @@ class PhysGaussianRun:
         out["planner"] = {
             **(raw.get("planner") or {}),
             "min_opacity": self.min_opacity,
+            "relative_opacity": 0.0,  # the config's threshold exactly, as PhysGaussian applies it
             "fill_interior": self.fill_interior,
         }
         return out

@@ -21,6 +21,9 @@ class PlannerConfig:
     # 0.93 cells), so a scene that stretches splits the particles along its axis to stay below it.
     max_stretched_spacing: float = 0.67
     min_opacity: float = 0.05  # Gaussians fainter than this carry no mass
+    # ... unless the object's Gaussians are all faint (translucent): then this share of their 99th
+    # percentile opacity, when lower (sampling.mass_opacity); 0 keeps min_opacity alone.
+    relative_opacity: float = 0.25
     fill_interior: bool = True  # fill the inside of closed Gaussian shells with particles (sampling.py)
     follower_k: int = 8  # nearest particles each Gaussian follows
     allow_rigid: bool = True  # rigid-body path for objects that would not deform visibly
