@@ -4,10 +4,10 @@ A reconstruction holds Gaussians packed on the surface and nothing inside a holl
 needs its particles spread through the volume at a steady density: about 8 per grid cell (2 per
 axis) is the usual practice, and at 0.3-1 per cell a soft body loses its shape (issue 24: a 20 cm
 jelly cube sampled at the surface sank to 55 % of its height). So, like PhysGaussian's particle
-filling, we (1) drop near-transparent Gaussians, (2) voxelise what is left on a lattice of side
-``spacing`` (the particle spacing, dx / 2 at the planner's default) that exactly spans the
-Gaussians' bounding box: a voxel is occupied when a Gaussian's centre or a corner of its sigma box
-(at most a voxel away) lies in it, (3) fill the voxels the occupied shell encloses (a flood fill
+filling, we (1) drop near-transparent Gaussians (``mass_opacity`` picks the threshold), (2)
+voxelise what is left on a lattice of side ``spacing`` (the particle spacing, dx / 2 at the
+planner's default) that exactly spans the Gaussians' bounding box: a voxel is occupied when a
+Gaussian's centre or a corner of its sigma box (at most a voxel away) lies in it, (3) fill the voxels the occupied shell encloses (a flood fill
 from outside after a morphological closing seals pinholes, or PhysGaussian's test that rays along
 all 6 axis directions meet the shell, which also fills leaky shells; O(voxels), with the voxel
 count capped), and (4) put one particle at the centre of every enclosed voxel and of every shell
@@ -224,7 +224,8 @@ def mass_opacity(
     """
     if relative <= 0.0 or opacities.numel() == 0:
         return min_opacity
-    strong = float(torch.quantile(opacities.detach().float().cpu(), MASS_QUANTILE))
+    # numpy: torch.quantile refuses more than 16M values, and a 3DGS scene can hold them
+    strong = float(np.quantile(opacities.detach().float().cpu().numpy(), MASS_QUANTILE))
     return min(min_opacity, max(relative * strong, MASS_OPACITY_FLOOR))
 
 
