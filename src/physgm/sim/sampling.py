@@ -7,16 +7,17 @@ jelly cube sampled at the surface sank to 55 % of its height). So, like PhysGaus
 filling, we (1) drop near-transparent Gaussians (``mass_opacity`` picks the threshold), (2)
 voxelise what is left on a lattice of side ``spacing`` (the particle spacing, dx / 2 at the
 planner's default) that exactly spans the Gaussians' bounding box: a voxel is occupied when a
-Gaussian's centre or a corner of its sigma box (at most a voxel away) lies in it, (3) fill the voxels the occupied shell encloses (a flood fill
-from outside after a morphological closing seals pinholes, or PhysGaussian's test that rays along
-all 6 axis directions meet the shell, which also fills leaky shells; O(voxels), with the voxel
-count capped), and (4) put one particle at the centre of every enclosed voxel and of every shell
-voxel whose centre lies on the inner side of the surface through it, each carrying the volume
-spacing^3. The interior of a closed surface is thus filled at the same density as its skin; an open
-sheet stays a sheet. Every Gaussian then follows its K nearest particles: its centre is the
-weighted first-order extrapolation of the particles' motion, x_g = sum_j w_j (x_j + F_j (X_g -
-X_j)), and its deformation gradient the weighted mean of theirs. Both are exact for any affine
-motion of the particles, so a rigid or uniformly stretched body carries its Gaussians exactly.
+Gaussian's centre or a corner of its sigma box (at most a voxel away) lies in it, (3) fill the
+voxels the occupied shell encloses (a flood fill from outside after a morphological closing seals
+pinholes, or PhysGaussian's test that rays along all 6 axis directions meet the shell, which also
+fills leaky shells; O(voxels), with the voxel count capped), and (4) put one particle at the centre
+of every enclosed voxel and of every shell voxel whose centre lies on the inner side of the surface
+through it, each carrying the volume spacing^3. The interior of a closed surface is thus filled at
+the same density as its skin; an open sheet stays a sheet. Every Gaussian then follows its K
+nearest particles: its centre is the weighted first-order extrapolation of the particles' motion,
+x_g = sum_j w_j (x_j + F_j (X_g - X_j)), and its deformation gradient the weighted mean of theirs.
+Both are exact for any affine motion of the particles, so a rigid or uniformly stretched body
+carries its Gaussians exactly.
 """
 
 from __future__ import annotations
