@@ -56,6 +56,9 @@ def check_run_folder(run, report, n_videos: int = 1) -> None:
 
     g = read_ply(run / "gaussians.ply")
     assert len(g) == report["object"]["gaussians"]
+    threshold = report["object"]["mass_opacity"]
+    assert 0.005 <= threshold <= 0.05  # sampling.mass_opacity's range
+    assert report["object"]["gaussians_with_mass"] == int((g.opacities >= threshold).sum())
     opaque = g.means[g.opacities >= 0.05]
     lo, hi = (opaque.double().quantile(q, dim=0) for q in (OUTLIER_QUANTILE, 1 - OUTLIER_QUANTILE))
     assert float((hi - lo).max()) == pytest.approx(report["object"]["size_m"], rel=0.15)

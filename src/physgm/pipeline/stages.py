@@ -309,7 +309,9 @@ def _execute(cfg: RunConfig) -> RunResult:
         sec["write"] += time.perf_counter() - t0
         sec["total"] = time.perf_counter() - start
         report = plain_json(
-            _report(cfg, inp, ckpt_info, scene.settings, placement, camera, az, el, sec, results, len(g))
+            _report(
+                cfg, inp, ckpt_info, scene.settings, placement, camera, az, el, sec, results, g, min_opacity
+            )
         )
         write_json(tmp / "report.json", report)
         folder.commit()
@@ -344,7 +346,7 @@ def _plain_config(cfg: RunConfig) -> dict:
     return {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items()}
 
 
-def _report(cfg, inp, ckpt_info, scene_cfg, placement, camera, az, el, sec, results, n_gaussians) -> dict:
+def _report(cfg, inp, ckpt_info, scene_cfg, placement, camera, az, el, sec, results, g, min_opacity) -> dict:
     mean = results[0]
     eye = camera.c2w[0, :3, 3].double().numpy()
     return {
@@ -363,7 +365,10 @@ def _report(cfg, inp, ckpt_info, scene_cfg, placement, camera, az, el, sec, resu
         "object": {
             "size_m": cfg.size_m,
             "m_per_model_unit": placement.scale,
-            "gaussians": n_gaussians,
+            "gaussians": len(g),
+            # the opacity from which a Gaussian carries mass (sampling.mass_opacity), and how many do
+            "mass_opacity": min_opacity,
+            "gaussians_with_mass": int((g.opacities >= min_opacity).sum()),
             "object_to_world": placement.object_to_world,
         },
         "camera": {"azimuth_deg": az, "elevation_deg": el, "fov_deg": cfg.camera.fov_deg, "eye_m": eye},

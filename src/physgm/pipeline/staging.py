@@ -27,7 +27,7 @@ def place_object(g: Gaussians, size_m: float, ground: float, min_opacity: float)
     keep = g.opacities >= min_opacity
     if not bool(keep.any()):
         raise UserError(
-            f"no Gaussian is opaque enough (opacity >= {min_opacity}) to form an object; check the input"
+            f"no Gaussian is opaque enough (opacity >= {min_opacity:.3g}) to form an object; check the input"
         )
     pts = g.means[keep].double()
     if len(pts) > 1:
