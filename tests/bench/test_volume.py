@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import math
 
 import pytest
@@ -56,3 +57,14 @@ def test_bad_input_is_a_clear_error(tmp_path):
     ckpt.write_bytes(b"")
     with pytest.raises(UserError, match="physgm.data.synth"):
         volume.main([str(ckpt), "--data", str(tmp_path)])
+
+
+def test_an_asset_without_its_own_gaussians_is_a_clear_error(tiny_dataset, tmp_path):
+    # A real-object set has renders and labels but no gaussians.ply to compare with.
+    root = tmp_path / "copy"
+    shutil.copytree(tiny_dataset, root)
+    first = (root / "splits" / "train.txt").read_text().split()[0]
+    (root / first / "gaussians.ply").unlink()
+    ckpt = random_checkpoint(tmp_path)
+    with pytest.raises(UserError, match=r"gaussians.ply not found.*real-object sets have none"):
+        volume.main([str(ckpt), "--data", str(root), "--split", "train", "--assets", "3"])

@@ -67,7 +67,14 @@ def volume_report(
             for i, asset in enumerate(batch.asset_ids):
                 if len(rows) == assets:
                     break
-                truth = read_ply(Path(root) / asset / "gaussians.ply", keep_sh=False)
+                own = Path(root) / asset / "gaussians.ply"
+                if not own.is_file():
+                    raise UserError(
+                        f"{own} not found: bench volume compares the model's Gaussians with the asset's "
+                        "own, which a synthetic set has (python -m physgm.data.synth); real-object sets "
+                        "have none"
+                    )
+                truth = read_ply(own, keep_sh=False)
                 extent = float((truth.means.amax(0) - truth.means.amin(0)).max())
                 spacing = choose_spacing(extent, planner)[1]  # the planner's lattice
                 true_volume = enclosed_volume(truth, spacing, 0.0)
