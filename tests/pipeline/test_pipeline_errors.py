@@ -161,6 +161,9 @@ def test_bad_settings(capsys, tmp_path, tiny_ckpt, examples, blob_ply):
     assert "scene 'stretch': stretch grip must be slip or clamp, got 'glue'" in err
     err = run_expect_error(capsys, tmp_path, [photo, missing, "scene=stretch", "+scene_overrides.ratio=0.5"])
     assert "ratio > 1" in err
+    # So does a mistyped planner setting.
+    err = run_expect_error(capsys, tmp_path, [photo, missing, "+planner.min_opacty=0.1"])
+    assert "bad planner settings" in err and "min_opacty" in err
     assert "physics.nu=0.7" in run_expect_error(capsys, tmp_path, [photo, "physics.nu=0.7"])
     assert "input is required" in run_expect_error(capsys, tmp_path, [])
 
