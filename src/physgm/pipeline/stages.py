@@ -140,11 +140,10 @@ def _planner(cfg: RunConfig):
         raise UserError(f"bad planner settings: {err}") from None
 
 
-def _simulate(g, choice, cfg: RunConfig, camera, overrides: dict):
+def _simulate(g, choice, cfg: RunConfig, planner, camera, overrides: dict):
     from physgm.sim.gaussian_trajectory import simulate
     from physgm.sim.mpm.stepping import SolverConfig
 
-    planner = _planner(cfg)
     try:
         solver = replace(SolverConfig.from_dict(cfg.solver), frame_dt=1.0 / cfg.output.fps)
     except (TypeError, ValueError) as err:
@@ -261,7 +260,9 @@ def _execute(cfg: RunConfig) -> RunResult:
         # -- per future: plan, simulate, render, write the video ---------------------------------
         results, videos, sheet_rows, rest_state = [], {}, [], None
         for choice in runs:
-            traj, plan_s, sim_s = _simulate(placement.gaussians, choice, cfg, camera, scene.overrides)
+            traj, plan_s, sim_s = _simulate(
+                placement.gaussians, choice, cfg, planner, camera, scene.overrides
+            )
             t0 = time.perf_counter()
             desc = f"{choice.name} ({traj.plan.mode})"
             frames, finite = render_trajectory(traj, shot, cfg.output.progress, desc)

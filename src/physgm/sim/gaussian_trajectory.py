@@ -181,6 +181,7 @@ class PreparedSimulation:
     planner: PlannerConfig
     solver: SolverConfig
     seconds: float  # sampling + planning, s
+    mass_opacity: float  # Gaussians at least this opaque carry mass (sampling.mass_opacity)
 
     @property
     def ballistic_frames(self) -> int:
@@ -254,7 +255,16 @@ def prepare_simulation(
         cfg,
     )
     return PreparedSimulation(
-        plan, gaussians, sample, setup.scene, v0, material, cfg, solver_cfg, time.perf_counter() - start
+        plan,
+        gaussians,
+        sample,
+        setup.scene,
+        v0,
+        material,
+        cfg,
+        solver_cfg,
+        time.perf_counter() - start,
+        threshold,
     )
 
 
@@ -267,7 +277,17 @@ def run_prepared(
     plan, sample, gaussians, cfg = prepared.plan, prepared.sample, prepared.gaussians, prepared.planner
     x0, v0, n_frames = sample.x.detach().cpu().double().numpy(), prepared.v0, plan.n_frames
     if plan.mode == "rigid":
-        traj = _run_rigid(plan, prepared.scene, x0, v0, sample, prepared.material.density, gaussians, cfg)
+        traj = _run_rigid(
+            plan,
+            prepared.scene,
+            x0,
+            v0,
+            sample,
+            prepared.material.density,
+            gaussians,
+            prepared.mass_opacity,
+            cfg,
+        )
         xs = np.stack([traj.transform(x0, t) for t in range(n_frames)]).astype(np.float32)
         Fs = np.broadcast_to(traj.rotations[:, None].astype(np.float32), (n_frames, len(x0), 3, 3))
         seconds = time.perf_counter() - start
@@ -345,6 +365,7 @@ def _run_rigid(
     sample: ParticleSample,
     density: float,
     gaussians: Gaussians,
+    min_opacity: float,  # the Gaussians at least this opaque are the contact hull's points
     cfg: PlannerConfig,
 ) -> RigidTrajectory:
     """Rigid path: mass and inertia from the particles, contacts on the visible Gaussians' hull."""
@@ -357,8 +378,7 @@ def _run_rigid(
         walls=tuple(plan.walls),  # the scene's still walls, found by the planner
         gravity=tuple(scene.gravity),
     )
-    threshold = mass_opacity(gaussians.opacities, cfg.min_opacity, cfg.relative_opacity)
-    surface = gaussians.means[gaussians.opacities >= threshold].detach().double().cpu().numpy()
+    surface = gaussians.means[gaussians.opacities >= min_opacity].detach().double().cpu().numpy()
     body = RigidBody.from_particles(x0, mass, contact_points=surface)
     sim = RigidSimulator(body, contact, RigidSimulator.initial_state(body, x0, mass, v0))
     rest_speed = plan.rest_px / plan.px_per_m / plan.frame_dt
