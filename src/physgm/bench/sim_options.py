@@ -10,6 +10,9 @@ in the bench camera (256 px):
     stiffness_cap  E lowered within cap_budget of the bound, also after elastic impacts;
     coast          the reference's plan with flights after a bounce in closed form (sim/coast.py);
     planner        what the default planner chooses (rigid, caps or none) under its bound;
+    pressure       the explicit run's plan with lam's volume term implicit on the grid
+                   (sim/mpm/pressure.py): the explicit step follows the shear part's wave. Elastic
+                   models only; others are listed as skipped.
     implicit_<dt>ms_theta<theta>
                    the explicit run's plan with the implicit elastic integrator (sim/mpm/implicit.py):
                    sub-step dt while slow, the advective limit dx / |v| when fast (cfl 1); theta 1
@@ -33,6 +36,7 @@ import sys
 from physgm.bench.drop_scene import DropBench, project
 from physgm.sim.gaussian_trajectory import GaussianTrajectory, prepare_simulation, run_prepared
 from physgm.sim.mpm.implicit import IMPLICIT_MODELS
+from physgm.sim.mpm.pressure import PRESSURE_MODELS
 from physgm.sim.mpm.stepping import SimulationDiverged, SolverConfig
 from physgm.sim.planner import PlannerConfig
 
@@ -54,6 +58,10 @@ def options(bulk_ratios: tuple[float, ...] = (2.0,)) -> dict[str, dict]:
 def cfl_options(cfls: tuple[float, ...]) -> dict[str, SolverConfig]:
     """Option name -> solver settings of the CFL rows: the explicit step at CFL number c."""
     return {f"cfl_{c:g}": SolverConfig(cfl=c) for c in cfls}
+
+
+# Solver integrators other than explicit -> the constitutive models each can run.
+INTEGRATOR_MODELS = {"implicit": IMPLICIT_MODELS, "pressure": PRESSURE_MODELS}
 
 
 def implicit_options(steps: tuple[tuple[float, float], ...]) -> dict[str, SolverConfig]:
@@ -83,6 +91,7 @@ def option_table(
     bulk_ratios: tuple[float, ...] = (2.0,),
     implicit_steps: tuple[tuple[float, float], ...] = (),
     cfls: tuple[float, ...] = (),
+    pressure: bool = True,
 ) -> list[dict]:
     """One row per (material, option) of the bench drop; see the module docstring.
 
@@ -92,6 +101,7 @@ def option_table(
         bulk_ratios: c_p / c_s of the bulk-cap rows (one row each).
         implicit_steps: (dt s, theta) of the implicit rows (one row each).
         cfls: CFL numbers of the explicit rows at another step (one row each).
+        pressure: add the pressure integrator's row.
     """
     grid = {} if cells_across is None else {"cells_across": cells_across}
     gaussians, cameras, scene_overrides = bench.gaussians(), bench.camera(), bench.scene_overrides()
@@ -133,13 +143,15 @@ def option_table(
             )
         if ref is not None:
             solvers = {**cfl_options(tuple(cfls)), **implicit_options(tuple(implicit_steps))}
+            if pressure:
+                solvers["pressure"] = SolverConfig(integrator="pressure")
             out += _solver_rows(bench, name, gaussians, cameras, scene_overrides, grid, ref, solvers)
     return out
 
 
 def _solver_rows(bench, name, gaussians, cameras, scene_overrides, grid, ref, solvers) -> list[dict]:
     """The explicit reference's plan with other solver settings (``cfl_options``,
-    ``implicit_options``), one row per option."""
+    ``implicit_options``, the pressure integrator), one row per option."""
     physics, rows = bench.physics(name), []
     for option, solver in solvers.items():
         row = {"material": name, "option": option, **physics.to_dict(), **grid, "cfl": solver.cfl}
@@ -155,9 +167,10 @@ def _solver_rows(bench, name, gaussians, cameras, scene_overrides, grid, ref, so
             solver=solver,
             scene_overrides=scene_overrides,
         )
-        implicit = solver.integrator == "implicit"
-        if implicit and (prepared.plan.mode != "mpm" or prepared.material.model not in IMPLICIT_MODELS):
-            rows.append({**row, "skipped": f"{prepared.material.model} is not an implicit (elastic) model"})
+        models = INTEGRATOR_MODELS.get(solver.integrator)
+        if models is not None and (prepared.plan.mode != "mpm" or prepared.material.model not in models):
+            model = prepared.material.model
+            rows.append({**row, "skipped": f"the {solver.integrator} integrator does not run {model}"})
             continue
         try:
             traj = run_prepared(prepared)

@@ -11,8 +11,9 @@ Prints one JSON object:
                     the grid resolution, the particle density (particles per cell), the CFL
                     number and the planner on / off; every row names its particles_per_cell;
     options:        per material, seconds and pixel error (mean, worst frame, largest) of each
-                    planner option, of the implicit elastic integrator (``--implicit``) and of the
-                    explicit step at other CFL numbers (``--cfls``), against
+                    planner option, of the pressure integrator (unless ``--no-pressure``), of the
+                    implicit elastic integrator (``--implicit``) and of the explicit step at other
+                    CFL numbers (``--cfls``), against
                     the explicit full-stiffness reference for the same drop as ``scenes``
                     (bench/sim_options.py).
 Wall-clock numbers are noisy when other jobs share the CPU; nothing here asserts on them.
@@ -262,6 +263,9 @@ def main(argv: list[str] | None = None) -> dict:
         help="options: explicit rows at these CFL numbers (the solver's is 0.4); 0.2 gives the reference's "
         "own time-step error, at twice the reference's cost",
     )
+    parser.add_argument(
+        "--no-pressure", action="store_true", help="options: leave out the pressure integrator's rows"
+    )
     args = parser.parse_args(argv)
     parts = set(args.only or PARTS)
     torch.set_num_threads(2)
@@ -282,7 +286,7 @@ def main(argv: list[str] | None = None) -> dict:
             (float(dt) * 1e-3, float(theta)) for dt, theta in (s.split(":") for s in args.implicit)
         )
         result["options"] = option_table(
-            drop, 3e9, args.cells, tuple(args.bulk_ratios), implicit, tuple(args.cfls)
+            drop, 3e9, args.cells, tuple(args.bulk_ratios), implicit, tuple(args.cfls), not args.no_pressure
         )
     if "speed_vs_error" in parts:
         frames = 10 if args.quick else 25

@@ -9,6 +9,7 @@ import warp as wp
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.mpm.grid import GridSpec
 from physgm.sim.mpm.implicit import ImplicitMPMSolver
+from physgm.sim.mpm.pressure import PressureSplitMPMSolver
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.solver import MPMSolver
 from physgm.sim.mpm.state import Particles
@@ -17,6 +18,7 @@ from physgm.sim.mpm.stepping import SolverConfig
 INTEGRATORS: dict[str, type[MPMSolver]] = {
     "explicit": MPMSolver,  # CFL-limited MLS-MPM, every material
     "implicit": ImplicitMPMSolver,  # Newton on the incremental potential, elastic models only
+    "pressure": PressureSplitMPMSolver,  # lam's volume term implicit on the grid, elastic models only
 }
 
 

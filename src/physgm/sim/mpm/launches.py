@@ -87,6 +87,10 @@ class SubstepLaunches:
         self._graphs: dict[int, list[wp.Graph]] = {}  # per thread, captured runs of n sub-steps
         self.replayed = 0  # sub-steps run from a graph so far
         self.scattered = False  # the accumulators hold the current particles' scatter
+        # An integrator's own recorded launches (``set_grid_stage``): per thread before the grid
+        # update, and on the first thread after it.
+        self.pre_grid: list = []
+        self.post_grid: list = []
 
     def _record(
         self, ps: ParticleStore, g: GridSpec, scene: Scene, cfg: SolverConfig, threads: int, dev
@@ -250,6 +254,17 @@ class SubstepLaunches:
                 args = [self._meeting, t, LIMIT_CYCLES, YIELD_AFTER_CYCLES]
                 self._barrier.append(wp.launch(barrier, 1, args, device=dev, record_cmd=True))
 
+    def set_grid_stage(self, pre: list, post: list) -> None:
+        """Recorded launches each sub-step runs, in Python and in its graphs: ``pre`` one per thread
+        (its particle slice) beside the grid update, ``post`` on the first thread after the whole
+        grid update and before g2p (the pressure integrator's gather and solve, ``pressure.py``).
+        Set before the first sub-step: graphs captured earlier would not contain them."""
+        if len(pre) not in (0, len(self.g2p)):
+            raise ValueError(f"one pre-grid launch per thread ({len(self.g2p)}), got {len(pre)}")
+        if self._graphs:
+            raise RuntimeError("set_grid_stage after a graph was captured; set it before stepping")
+        self.pre_grid, self.post_grid = list(pre), list(post)
+
     def invalidate(self) -> None:
         """The particle state was replaced: clear the accumulators, scatter afresh next sub-step."""
         for acc in self.arrays.acc:
@@ -324,9 +339,13 @@ class SubstepLaunches:
             _launch_halves(self.p2g, worker)
         if before is not None:
             before()
+        if self.pre_grid:
+            _launch_halves(self.pre_grid, worker)
         _launch_halves(self.grid_update, worker)
         if self.friction is not None:
             self.friction.launch()
+        for launch in self.post_grid:
+            launch.launch()
         between()
         _launch_halves(self.g2p, worker)
         self._tick.launch()
@@ -366,20 +385,29 @@ class SubstepLaunches:
         self._box_stamp = self._stamp
 
     def _capture(self, count: int, slot: int):
-        """The launches of ``count`` sub-steps for thread ``slot``. One thread: grid_update,
-        friction, g2p, clock. Two: each thread updates its part of the grid (the first all of
-        it when there is surface friction), and both meet after it and after their halves of
-        g2p; each moves its own row of the clock on."""
+        """The launches of ``count`` sub-steps for thread ``slot``. One thread: [pre-grid,]
+        grid_update, friction, [post-grid,] g2p, clock. Two: each thread runs its pre-grid launch
+        and updates its part of the grid (the first all of it when there is surface friction),
+        and both meet after it, after the first thread's post-grid launches and after their halves
+        of g2p; each moves its own row of the clock on."""
         pair = len(self.g2p) == 2
         wp.capture_begin(device=self.device)
         try:
             for _ in range(count):
+                if self.pre_grid:
+                    self.pre_grid[slot].launch()
                 if slot < len(self.grid_update):
                     self.grid_update[slot].launch()
                 if slot == 0 and self.friction is not None:
                     self.friction.launch()
                 if pair:
                     self._barrier[slot].launch()
+                if self.post_grid:
+                    if slot == 0:
+                        for launch in self.post_grid:
+                            launch.launch()
+                    if pair:
+                        self._barrier[slot].launch()
                 self.g2p[slot].launch()
                 if pair:
                     self._barrier[slot].launch()

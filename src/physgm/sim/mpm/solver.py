@@ -135,6 +135,9 @@ class MPMSolver:
         self.threads = min(self.config.threads or auto, 2) if self.device.is_cpu else 1
         self._c_max = step_wave_speed(self.materials, ground, particles, self.grid.dx)
         self.particles = ParticleStore(particles, self.materials, self.device)
+        # The materials whose energy ``energy()`` reports (an integrator that splits the stress
+        # between the particles and the grid runs another table in g2p).
+        self.energy_table = self.particles.mat_table
         self._launches = SubstepLaunches(
             self.particles, self.grid, self.scene, self.config, self.threads, self.device
         )
@@ -497,7 +500,7 @@ class MPMSolver:
                 ps.v,
                 ps.C,
                 ps.H,
-                ps.mat_table,
+                self.energy_table,
                 ps.material,
                 ps.mass,
                 ps.vol0,

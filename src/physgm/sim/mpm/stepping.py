@@ -51,7 +51,8 @@ class SolverConfig:
     sort_every: int = 1  # frames between particle sorts by cell (0: only at start)
     max_substeps: int = 2_000_000  # per frame; beyond this the frame stops with an error
     max_grid_nodes: int = 64_000_000  # ~6 GB of grid arrays (96 B per node); larger grids are refused
-    # "explicit" (the CFL-limited step) or "implicit" (elastic models only; physgm.sim.mpm.implicit).
+    # "explicit" (the CFL-limited step), "implicit" (elastic models only; physgm.sim.mpm.implicit) or
+    # "pressure" (elastic models, lam's volume term implicit on the grid; physgm.sim.mpm.pressure).
     integrator: str = "explicit"
     implicit_dt: float = 0.01  # s, the implicit sub-step while the body is slow (ignored by explicit)
     implicit_theta: float = 1.0  # theta method: 1 backward Euler, 0.5 implicit midpoint

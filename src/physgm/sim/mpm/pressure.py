@@ -1,0 +1,201 @@
+"""Implicit pressure for nearly incompressible elastic solids: the explicit step keeps the shear.
+
+A rubber (nu = 0.48) carries a pressure wave five times faster than its shear wave, and the
+explicit step follows the fastest wave, so four of every five sub-steps resolve a volume change
+of a fraction of a percent that no viewer sees. This integrator splits the elastic energy of
+the elastic models (``fixed_corotated``, ``neo_hookean``) into the part without the first Lame
+parameter lam, which the explicit sub-step (``launches``) integrates as before, and lam's part,
+a function phi(J) of the volume ratio alone (``pressure_kernels.volume_terms``), which the grid
+integrates implicitly. The explicit step then follows the shear part's P-wave,
+sqrt(2 mu / rho): rubber at nu = 0.48 takes sqrt((lam + 2 mu) / (2 mu)) = 3.6x fewer sub-steps.
+
+The implicit part (Stomakhin et al. 2014's augmented MPM, on the MPM grid itself): each cell
+that holds a particle gets the sums s_c = sum V0 J phi'(J) (the particles' Kirchhoff pressure
+times their rest volume) and K_c = sum V0 J^2 phi''(J) over its particles. After the grid update
+has given the node velocities v* (shear stress, gravity, ground contact), the velocities of the
+step are the minimiser of
+
+    sum_n m_n |v_n - v*_n|^2 / 2 + h sum_c (s_c (D v)_c + h K_c (D v)_c^2 / 2),
+
+the volume energy linearised about the sub-step's start with each particle's J growing by h
+times its cell's Q1 divergence D v (``pressure_kernels``). That is the linear system
+
+    (M + h^2 D^T K D) v = M v* - h D^T s,
+
+symmetric positive definite, solved for the correction v - v* by Jacobi-preconditioned
+conjugate gradients over the cells' corner nodes (every product is a pass over the cells, not
+the particles). Particles then move and deform with v in the unchanged g2p, and their new J
+gives next sub-step's s and K. Backward Euler on the pressure alone: it damps the volume waves
+the step cannot resolve and leaves the shear's symplectic explicit step as it was.
+
+Scope: elastic models only; a ground with contact on the particles (the default) or none; no
+velocity boxes, side walls or periodic axes (their node conditions would fight the solve).
+Anything else raises a ValueError that says to run explicit.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from physgm.sim.constitutive import MaterialParams, MaterialStruct
+from physgm.sim.mpm import particle_ops as ops
+from physgm.sim.mpm import pressure_kernels as PK
+from physgm.sim.mpm.grid import GridSpec
+from physgm.sim.mpm.scene import Scene
+from physgm.sim.mpm.solver import MPMSolver
+from physgm.sim.mpm.state import Particles
+from physgm.sim.mpm.stepping import SolverConfig, step_wave_speed
+from physgm.warp_runtime import ensure_loaded
+
+PRESSURE_MODELS = ("fixed_corotated", "neo_hookean")  # phi(J) carries lam alone in these
+
+
+def shear_part(material: MaterialParams) -> MaterialParams:
+    """The material without lam: the same shear modulus at nu = 0 (E = 2 mu), which the explicit
+    sub-step runs. Its P-wave speed sqrt(2 mu / rho) sets the step."""
+    return material.with_elasticity(E=2.0 * material.mu, nu=0.0)
+
+
+def check_pressure(materials: Sequence[MaterialParams], scene: Scene) -> None:
+    """Raise ValueError for what the pressure split does not handle, saying what to do instead."""
+    unsupported = sorted({m.model for m in materials} - set(PRESSURE_MODELS))
+    if unsupported:
+        raise ValueError(
+            f"the pressure integrator handles the elastic models {', '.join(PRESSURE_MODELS)} only, "
+            f"not {', '.join(unsupported)}; run them with integrator='explicit'"
+        )
+    ground = scene.ground
+    extras = {
+        "velocity boxes": bool(scene.boxes),
+        "side walls": bool(scene.walls),
+        "periodic axes": bool(scene.periodic),
+        "a ground held on the grid nodes": ground is not None and not ground.on_particles,
+    }
+    named = [name for name, present in extras.items() if present]
+    if named:
+        raise ValueError(
+            f"the pressure integrator supports gravity and a ground with contact on the particles only, "
+            f"not {', '.join(named)}; run this scene with integrator='explicit'"
+        )
+
+
+@dataclass(frozen=True)
+class PressureSettings:
+    """The conjugate-gradient solve stops at an rms velocity residual of ``tolerance`` m/s or
+    after ``max_iterations``. 2e-4 m/s: on the bench's rubber drop a tenth of that moved no
+    Gaussian by more than 0.01 px (docs/measurements_sim.md section 29)."""
+
+    tolerance: float = 2.0e-4
+    max_iterations: int = 100
+
+
+@dataclass(frozen=True)
+class PressureCounters:
+    """The solves so far: how many, their conjugate-gradient iterations, how many stopped at
+    ``max_iterations`` above the tolerance, and the last one's iterations and residuals (m/s)."""
+
+    solves: int
+    iterations: int
+    unconverged: int
+    last_iterations: int
+    last_residual: float
+    last_first_residual: float
+
+
+class PressureStep:
+    """The grid stage of the pressure split (module docstring): each thread's particles add their
+    volume terms to the cells (``pressure_kernels.gather_cells``, before the grid update), then
+    one launch solves for the node velocities (``pressure_kernels.solve``, after it). Both are
+    recorded launches that ``SubstepLaunches`` runs inside every sub-step and its graphs."""
+
+    def __init__(self, solver: MPMSolver, grid_table: wp.array, settings: PressureSettings) -> None:
+        dev, res, g, ps = solver.device, solver.grid.res, solver.grid, solver.particles
+        threads = solver.threads
+        self.settings = settings
+        self.cell_s = [wp.zeros(res, dtype=float, device=dev) for _ in range(threads)]
+        self.cell_k = [wp.zeros(res, dtype=float, device=dev) for _ in range(threads)]
+        none = wp.zeros((1, 1, 1), dtype=float, device=dev)  # one thread: no second sums
+        empty = [PK.BOX_EMPTY] * 3 + [-PK.BOX_EMPTY] * 3
+        self.box = wp.array(np.tile(empty, (threads, 1)), dtype=wp.int32, device=dev)
+        self.t, self.mass, self.diag = (wp.zeros(res, dtype=float, device=dev) for _ in range(3))
+        self.d, self.r, self.z, self.p, self.q = (wp.zeros(res, dtype=wp.vec3, device=dev) for _ in range(5))
+        self.d_stamp = wp.zeros(res, dtype=wp.int32, device=dev)
+        self.stats = wp.zeros(6, dtype=float, device=dev)
+        ensure_loaded(PK.gather_cells, dev)
+        n = solver.num_particles
+        split = [0, n] if threads == 1 else [0, n // 2, n]
+        self.gathers = [
+            wp.launch(
+                PK.gather_cells,
+                split[t + 1] - split[t],
+                [ps.x, ps.H, ps.vol0, grid_table, ps.material, wp.vec3(*g.origin), g.dx, split[t], t]
+                + [self.cell_s[t], self.cell_k[t], self.box],
+                device=dev,
+                record_cmd=True,
+            )
+            for t in range(threads)
+        ]
+        s1, k1 = (self.cell_s[1], self.cell_k[1]) if threads == 2 else (none, none)
+        self.solve = wp.launch(
+            PK.solve,
+            1,
+            [solver.grid_v, self.cell_s[0], self.cell_k[0], s1, k1, self.box, solver.launches.params]
+            + [settings.tolerance, settings.max_iterations]
+            + [self.t, self.mass, self.diag, self.d, self.r, self.z, self.p, self.q]
+            + [self.d_stamp, self.stats, g.dx],
+            device=dev,
+            record_cmd=True,
+        )
+
+    def counters(self) -> PressureCounters:
+        s = self.stats.numpy()
+        return PressureCounters(int(s[0]), int(s[5]), int(s[4]), int(s[1]), float(s[2]), float(s[3]))
+
+
+class PressureSplitMPMSolver(MPMSolver):
+    """``MPMSolver`` with lam's volume term taken implicitly on the grid (module docstring); same
+    arguments, plus the solve's ``settings``. ``pressure.log`` holds one ``PressureSolveStats`` per
+    sub-step. ``materials`` stays the full materials; the explicit step runs their ``shear_part``."""
+
+    def __init__(
+        self,
+        particles: Particles,
+        materials: Sequence[MaterialParams],
+        grid: GridSpec,
+        scene: Scene | None = None,
+        config: SolverConfig | None = None,
+        device: str | wp.Device | None = "cpu",
+        settings: PressureSettings | None = None,
+    ) -> None:
+        scene = scene or Scene()
+        check_pressure(materials, scene)
+        super().__init__(particles, materials, grid, scene, config, device)
+        ps = self.particles
+        full = wp.array([m.pack() for m in self.materials], dtype=MaterialStruct, device=self.device)
+        shear = [shear_part(m) for m in self.materials]
+        wp.copy(ps.mat_table, wp.array([m.pack() for m in shear], dtype=MaterialStruct, device=self.device))
+        wp.launch(
+            ops.init_stress,
+            self.num_particles,
+            [ps.H, ps.mat_table, ps.material, ps.vol0, ps.plastic, ps.stress],
+            device=self.device,
+        )
+        self.energy_table = full
+        grid_part = [_grid_part(m) for m in self.materials]
+        table = wp.array(grid_part, dtype=MaterialStruct, device=self.device)
+        self.pressure = PressureStep(self, table, settings or PressureSettings())
+        self.launches.set_grid_stage(self.pressure.gathers, [self.pressure.solve])
+        self._c_max = step_wave_speed(shear, self.scene.ground, particles, self.grid.dx)
+        self._fit_active(self.stable_dt())
+
+
+def _grid_part(material: MaterialParams) -> MaterialStruct:
+    """The material as the grid's volume term sees it: its model and the lam the explicit step
+    leaves out (``shear_part``)."""
+    s = material.pack()
+    s.lam = material.lam - shear_part(material).lam
+    return s

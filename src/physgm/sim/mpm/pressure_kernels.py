@@ -1,0 +1,303 @@
+"""Warp kernels of the implicit pressure step (``pressure.py``): the cells' volume terms and the
+conjugate-gradient solve on the grid.
+
+Cells are indexed by their lowest corner node (i, j, k), so cell arrays share the node arrays'
+[nx, ny, nz] shape (the last layer along each axis is never a cell). The divergence of a node
+velocity field u at the centre of cell c is the trilinear (Q1) element's,
+
+    (D u)_c = sum over the 8 corners n of g_n . u_n,   g_n = (2a - 1, 2b - 1, 2c - 1) / (4 dx)
+
+for the corner at offset (a, b, c) in {0, 1}^3; its transpose takes a cell scalar t_c to the
+node vectors sum_c t_c g_n. The solve runs over the box of cells the particles reached this
+sub-step (``gather_cells`` widens it); the cell sums are zero outside it between sub-steps.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from physgm.sim.constitutive.common import FIXED_COROTATED, NEO_HOOKEAN, MaterialStruct, det_minus_one, log1p
+from physgm.sim.constitutive.fixed_corotated import J_B
+from physgm.sim.constitutive.fixed_corotated import J_FLOOR as FC_J_FLOOR
+from physgm.sim.constitutive.neo_hookean import J_E, J_FLOOR, log_ext, log_ext_derivative
+from physgm.sim.mpm.stencil_sums import vec8
+from physgm.sim.mpm.substep_params import SubstepParams
+
+wp.set_module_options({"enable_backward": False})
+
+BOX_EMPTY = wp.constant(1 << 30)  # an empty box: lo at +BOX_EMPTY, hi at -BOX_EMPTY
+
+
+@wp.func
+def volume_terms(model: int, jm1: float, lam: float) -> wp.vec2:
+    """The lam part of a model's volume energy phi(J): (J phi'(J), J^2 phi''(J)) in Pa.
+
+    J phi' is the Kirchhoff pressure the model's lam terms give (its volume barrier's lam share
+    included, so that with the explicit step's lam = 0 copy the two parts add up to the model);
+    J^2 phi'' its stiffness against a relative volume change, clamped at 0 (neo-Hookean's turns
+    negative above J = e, where the model softens)."""
+    J = 1.0 + jm1
+    tau = float(0.0)  # noqa: UP018 (Warp: set in a branch)
+    k = float(0.0)  # noqa: UP018
+    if model == NEO_HOOKEAN:
+        if J >= J_E:
+            g = log1p(jm1)
+            tau = lam * g
+            k = lam * (1.0 - g)
+        else:  # the log extension and the lam share of the barrier (neo_hookean.py)
+            g = log_ext(J)
+            gp = log_ext_derivative(J)
+            L = wp.log(wp.max(J, J_FLOOR) / J_E)
+            tau = lam * g * gp * J - 0.5 * lam * L * L
+            k = lam * (gp * gp * J * J - L + 0.5 * L * L)
+    elif model == FIXED_COROTATED:
+        if J >= J_B:
+            tau = lam * jm1 * J
+            k = lam * J * J
+        else:  # the barrier with the lam share of its modulus (fixed_corotated.py)
+            L = wp.log(wp.max(J, FC_J_FLOOR) / J_B)
+            tau = -0.25 * lam - 0.5 * lam * L * L
+            k = -lam * L - tau
+    return wp.vec2(tau, wp.max(k, 0.0))
+
+
+@wp.kernel
+def gather_cells(
+    x: wp.array(dtype=wp.vec3),  # [P] m
+    H: wp.array(dtype=wp.mat33),  # [P] F - I
+    vol0: wp.array(dtype=float),  # [P] m^3
+    materials: wp.array(dtype=MaterialStruct),  # [M] lam = the share the grid takes
+    material: wp.array(dtype=int),  # [P]
+    origin: wp.vec3,
+    dx: float,
+    offset: int,  # first particle of this thread's slice
+    slot: int,  # this thread's row of ``box``
+    cell_s: wp.array3d(dtype=float),  # out (accumulated), this thread's: sum w V0 J phi', N m
+    cell_k: wp.array3d(dtype=float),  # out (accumulated), this thread's: sum w V0 J^2 phi'', N m
+    box: wp.array2d(dtype=wp.int32),  # [threads, 6] out (min / max): the cells reached, lo xyz, hi xyz
+):
+    """Each particle's volume terms to the 8 cells whose centres surround it, with trilinear
+    weights w, so the sums change smoothly as particles move between cells (with each particle in
+    its own cell alone, a particle crossing a face moved its whole pressure to the next cell, and
+    a 16-cell rubber drop blew up: docs/measurements_sim.md section 29). Each CPU thread sums its
+    particles into arrays of its own; the solve adds them."""
+    p = wp.tid() + offset
+    rel = (x[p] - origin) / dx - wp.vec3(0.5)
+    i0 = int(wp.floor(rel[0]))
+    j0 = int(wp.floor(rel[1]))
+    k0 = int(wp.floor(rel[2]))
+    f = rel - wp.vec3(float(i0), float(j0), float(k0))
+    mat = materials[material[p]]
+    terms = vol0[p] * volume_terms(mat.model, det_minus_one(H[p]), mat.lam)
+    for a in range(2):
+        wa = wp.where(a == 0, 1.0 - f[0], f[0])
+        for b in range(2):
+            wb = wa * wp.where(b == 0, 1.0 - f[1], f[1])
+            for e in range(2):
+                w = wb * wp.where(e == 0, 1.0 - f[2], f[2])
+                wp.atomic_add(cell_s, i0 + a, j0 + b, k0 + e, w * terms[0])
+                wp.atomic_add(cell_k, i0 + a, j0 + b, k0 + e, w * terms[1])
+    wp.atomic_min(box, slot, 0, i0)
+    wp.atomic_min(box, slot, 1, j0)
+    wp.atomic_min(box, slot, 2, k0)
+    wp.atomic_max(box, slot, 3, i0 + 1)
+    wp.atomic_max(box, slot, 4, j0 + 1)
+    wp.atomic_max(box, slot, 5, k0 + 1)
+
+
+@wp.func
+def corner_gradient(a: int, b: int, e: int, inv4dx: float) -> wp.vec3:
+    return wp.vec3(float(2 * a - 1), float(2 * b - 1), float(2 * e - 1)) * inv4dx
+
+
+@wp.func
+def cell_divergence(u: wp.array3d(dtype=wp.vec3), c: wp.vec3i, inv4dx: float) -> float:
+    div = float(0.0)  # noqa: UP018 (Warp: a variable, summed in the loop)
+    for a in range(2):
+        for b in range(2):
+            for e in range(2):
+                div += wp.dot(corner_gradient(a, b, e, inv4dx), u[c[0] + a, c[1] + b, c[2] + e])
+    return div
+
+
+@wp.func
+def node_transpose(t: wp.array3d(dtype=float), n: wp.vec3i, inv4dx: float) -> wp.vec3:
+    """sum over the (up to) 8 cells around node n of t_c g_n(c)."""
+    out = wp.vec3(0.0)
+    for a in range(2):
+        for b in range(2):
+            for e in range(2):
+                i = n[0] - a
+                j = n[1] - b
+                k = n[2] - e
+                if i >= 0 and j >= 0 and k >= 0:
+                    out += t[i, j, k] * corner_gradient(a, b, e, inv4dx)
+    return out
+
+
+@wp.func
+def node_sum(a: wp.array3d(dtype=float), i: int, j: int, k: int) -> float:
+    """Sum of a cell array over the (up to) 8 cells around node (i, j, k)."""
+    s = float(0.0)  # noqa: UP018 (Warp: a variable, summed in the loop)
+    for da in range(2):
+        for db in range(2):
+            for de in range(2):
+                if i - da >= 0 and j - db >= 0 and k - de >= 0:
+                    s += a[i - da, j - db, k - de]
+    return s
+
+
+@wp.kernel
+def solve(
+    grid_v: wp.array3d(dtype=vec8),  # in/out: the grid update's velocities, corrected
+    cell_s: wp.array3d(dtype=float),  # in/out: the first thread's sums, the total in the solve, then 0
+    cell_k: wp.array3d(dtype=float),
+    cell_s1: wp.array3d(dtype=float),  # in/out: the second thread's sums (all 0 with one), then 0
+    cell_k1: wp.array3d(dtype=float),
+    box: wp.array2d(dtype=wp.int32),  # [threads, 6] in/out: the cells reached, reset for the next sub-step
+    params: wp.array(dtype=SubstepParams),  # [threads] row 0: this sub-step's dt
+    tolerance: float,  # m/s, rms velocity residual at which the solve stops
+    max_iterations: int,
+    t: wp.array3d(dtype=float),  # scratch, cell scalars
+    mass: wp.array3d(dtype=float),  # scratch, node masses (0: not in the solve)
+    diag: wp.array3d(dtype=float),  # scratch, h^2 (D^T K D)_nn
+    d: wp.array3d(dtype=wp.vec3),  # in/out: the velocity correction, kept for the next warm start
+    r: wp.array3d(dtype=wp.vec3),  # scratch, residual
+    z: wp.array3d(dtype=wp.vec3),  # scratch, preconditioned residual
+    p: wp.array3d(dtype=wp.vec3),  # scratch, search direction
+    q: wp.array3d(dtype=wp.vec3),  # scratch, the operator times p
+    d_stamp: wp.array3d(dtype=wp.int32),  # in/out: the solve that last wrote a node's d
+    stats: wp.array(dtype=float),  # [6] in/out (``STAT_*``): solves, iterations, residuals, unconverged
+    dx: float,
+):
+    """One sub-step's solve (``pressure.py``) in one thread, over the box of cells the particles
+    reached: on the CPU, where Warp runs a launch's threads one after the other anyway, this is
+    the work of a launch per pass without the launches, and it is a single recorded launch that
+    the sub-step's graph can replay. (On a GPU it is correct but serial.)"""
+    h = float(params[0].dt)
+    inv4dx = 0.25 / dx
+    h2 = h * h
+    scale = h2 * inv4dx * inv4dx
+    ci0 = wp.min(box[0, 0], box[box.shape[0] - 1, 0])
+    cj0 = wp.min(box[0, 1], box[box.shape[0] - 1, 1])
+    ck0 = wp.min(box[0, 2], box[box.shape[0] - 1, 2])
+    ci1 = wp.max(box[0, 3], box[box.shape[0] - 1, 3])
+    cj1 = wp.max(box[0, 4], box[box.shape[0] - 1, 4])
+    ck1 = wp.max(box[0, 5], box[box.shape[0] - 1, 5])
+    solves = int(stats[0]) + 1
+    if ci0 <= ci1:
+        # The threads' sums into the first thread's arrays.
+        if cell_s1.shape[0] == cell_s.shape[0]:
+            for i in range(ci0, ci1 + 1):
+                for j in range(cj0, cj1 + 1):
+                    for k in range(ck0, ck1 + 1):
+                        cell_s[i, j, k] = cell_s[i, j, k] + cell_s1[i, j, k]
+                        cell_k[i, j, k] = cell_k[i, j, k] + cell_k1[i, j, k]
+                        cell_s1[i, j, k] = 0.0
+                        cell_k1[i, j, k] = 0.0
+        # Nodes: mass, Jacobi diagonal, warm start, and v = v* + d0 in p for the start's divergence.
+        total = wp.float64(0.0)
+        for i in range(ci0, ci1 + 2):
+            for j in range(cj0, cj1 + 2):
+                for k in range(ck0, ck1 + 2):
+                    g = grid_v[i, j, k]
+                    m = g[3]
+                    mass[i, j, k] = m
+                    if m > 0.0:
+                        total += wp.float64(m)
+                        diag[i, j, k] = scale * node_sum(cell_k, i, j, k)
+                        d0 = wp.vec3(0.0)
+                        if d_stamp[i, j, k] == solves - 1:
+                            d0 = d[i, j, k]
+                        d[i, j, k] = d0
+                        p[i, j, k] = wp.vec3(g[0], g[1], g[2]) + d0
+                    else:
+                        p[i, j, k] = wp.vec3(0.0)
+        for i in range(ci0, ci1 + 1):
+            for j in range(cj0, cj1 + 1):
+                for k in range(ck0, ck1 + 1):
+                    c = wp.vec3i(i, j, k)
+                    t[i, j, k] = cell_s[i, j, k] + h * cell_k[i, j, k] * cell_divergence(p, c, inv4dx)
+        rz = wp.float64(0.0)
+        rr = wp.float64(0.0)
+        for i in range(ci0, ci1 + 2):
+            for j in range(cj0, cj1 + 2):
+                for k in range(ck0, ck1 + 2):
+                    m = mass[i, j, k]
+                    if m > 0.0:
+                        rv = -h * node_transpose(t, wp.vec3i(i, j, k), inv4dx) - m * d[i, j, k]
+                        zv = rv / (m + diag[i, j, k])
+                        r[i, j, k] = rv
+                        z[i, j, k] = zv
+                        p[i, j, k] = zv
+                        rz += wp.float64(wp.dot(rv, zv))
+                        rr += wp.float64(wp.dot(rv, rv) / m)
+        first = wp.sqrt(float(rr / total))
+        res = first
+        its = int(0)  # noqa: UP018 (Warp: a variable, counted in the loop)
+        while res > tolerance and its < max_iterations and rz > wp.float64(0.0):
+            for i in range(ci0, ci1 + 1):
+                for j in range(cj0, cj1 + 1):
+                    for k in range(ck0, ck1 + 1):
+                        t[i, j, k] = cell_k[i, j, k] * cell_divergence(p, wp.vec3i(i, j, k), inv4dx)
+            pq = wp.float64(0.0)
+            for i in range(ci0, ci1 + 2):
+                for j in range(cj0, cj1 + 2):
+                    for k in range(ck0, ck1 + 2):
+                        m = mass[i, j, k]
+                        if m > 0.0:
+                            pp = p[i, j, k]
+                            qq = m * pp + h2 * node_transpose(t, wp.vec3i(i, j, k), inv4dx)
+                            q[i, j, k] = qq
+                            pq += wp.float64(wp.dot(pp, qq))
+            alpha = float(rz / pq)
+            rz_new = wp.float64(0.0)
+            rr = wp.float64(0.0)
+            for i in range(ci0, ci1 + 2):
+                for j in range(cj0, cj1 + 2):
+                    for k in range(ck0, ck1 + 2):
+                        m = mass[i, j, k]
+                        if m > 0.0:
+                            d[i, j, k] = d[i, j, k] + alpha * p[i, j, k]
+                            rv = r[i, j, k] - alpha * q[i, j, k]
+                            zv = rv / (m + diag[i, j, k])
+                            r[i, j, k] = rv
+                            z[i, j, k] = zv
+                            rz_new += wp.float64(wp.dot(rv, zv))
+                            rr += wp.float64(wp.dot(rv, rv) / m)
+            beta = float(rz_new / rz)
+            for i in range(ci0, ci1 + 2):
+                for j in range(cj0, cj1 + 2):
+                    for k in range(ck0, ck1 + 2):
+                        if mass[i, j, k] > 0.0:
+                            p[i, j, k] = z[i, j, k] + beta * p[i, j, k]
+            rz = rz_new
+            res = wp.sqrt(float(rr / total))
+            its += 1
+        # The corrected velocities; the cell sums back to 0 for the next sub-step's gather.
+        for i in range(ci0, ci1 + 2):
+            for j in range(cj0, cj1 + 2):
+                for k in range(ck0, ck1 + 2):
+                    if mass[i, j, k] > 0.0:
+                        d_stamp[i, j, k] = solves
+                        g = grid_v[i, j, k]
+                        dd = d[i, j, k]
+                        for e in range(3):
+                            g[e] = g[e] + dd[e]
+                            g[4 + e] = g[4 + e] + dd[e]
+                        grid_v[i, j, k] = g
+                    if i <= ci1 and j <= cj1 and k <= ck1:
+                        cell_s[i, j, k] = 0.0
+                        cell_k[i, j, k] = 0.0
+                        t[i, j, k] = 0.0
+        stats[1] = float(its)
+        stats[2] = res
+        stats[3] = first
+        if res > tolerance:
+            stats[4] = stats[4] + 1.0
+        stats[5] = stats[5] + float(its)
+    stats[0] = float(solves)
+    for row in range(box.shape[0]):
+        for a in range(3):
+            box[row, a] = BOX_EMPTY
+            box[row, 3 + a] = -BOX_EMPTY
