@@ -59,3 +59,6 @@ def test_the_pressure_row_takes_fewer_steps_and_skips_plastic_models():
     assert 0.0 < split["error_px"] < 1.0
     (skipped,) = _rows(rows, material="plasticine", option="pressure")
     assert skipped["skipped"] == "the pressure integrator does not run von_mises"
+    # the default planner's choice with the integrator: what simulate.py solver.integrator=pressure runs
+    (planned,) = _rows(rows, material="jelly", option="planner_pressure")
+    assert planned["substeps"] <= split["substeps"] and planned["error_px"] < 1.0

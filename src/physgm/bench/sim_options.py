@@ -13,6 +13,9 @@ in the bench camera (256 px):
     pressure       the explicit run's plan with lam's volume term implicit on the grid
                    (sim/mpm/pressure.py): the explicit step follows the shear part's wave. Elastic
                    models only; others are listed as skipped.
+    planner_pressure
+                   the default planner's choice run with the pressure integrator: what
+                   ``simulate.py solver.integrator=pressure`` does.
     implicit_<dt>ms_theta<theta>
                    the explicit run's plan with the implicit elastic integrator (sim/mpm/implicit.py):
                    sub-step dt while slow, the advective limit dx / |v| when fast (cfl 1); theta 1
@@ -146,12 +149,18 @@ def option_table(
             if pressure:
                 solvers["pressure"] = SolverConfig(integrator="pressure")
             out += _solver_rows(bench, name, gaussians, cameras, scene_overrides, grid, ref, solvers)
+            if pressure:
+                split = {"planner_pressure": SolverConfig(integrator="pressure")}
+                out += _solver_rows(bench, name, gaussians, cameras, scene_overrides, grid, ref, split, {})
     return out
 
 
-def _solver_rows(bench, name, gaussians, cameras, scene_overrides, grid, ref, solvers) -> list[dict]:
-    """The explicit reference's plan with other solver settings (``cfl_options``,
-    ``implicit_options``, the pressure integrator), one row per option."""
+def _solver_rows(
+    bench, name, gaussians, cameras, scene_overrides, grid, ref, solvers, planner=OFF
+) -> list[dict]:
+    """The explicit reference's plan (or the planner with ``planner``'s overrides) with other
+    solver settings (``cfl_options``, ``implicit_options``, the pressure integrator), one row per
+    option."""
     physics, rows = bench.physics(name), []
     for option, solver in solvers.items():
         row = {"material": name, "option": option, **physics.to_dict(), **grid, "cfl": solver.cfl}
@@ -163,13 +172,16 @@ def _solver_rows(bench, name, gaussians, cameras, scene_overrides, grid, ref, so
             "drop",
             cameras,
             bench.n_frames,
-            PlannerConfig(**OFF, **grid),
+            PlannerConfig(**planner, **grid),
             solver=solver,
             scene_overrides=scene_overrides,
         )
         models = INTEGRATOR_MODELS.get(solver.integrator)
-        if models is not None and (prepared.plan.mode != "mpm" or prepared.material.model not in models):
-            model = prepared.material.model
+        model = prepared.material.model
+        if models is not None and prepared.plan.mode != "mpm":
+            rows.append({**row, "skipped": f"the planner chose {prepared.plan.mode}"})
+            continue
+        if models is not None and model not in models:
             rows.append({**row, "skipped": f"the {solver.integrator} integrator does not run {model}"})
             continue
         try:
@@ -179,6 +191,7 @@ def _solver_rows(bench, name, gaussians, cameras, scene_overrides, grid, ref, so
             print(f"[bench sim options] {name} {option}: diverged", file=sys.stderr)
             continue
         row.update(seconds=traj.seconds, substeps=traj.substeps, rest_frame=traj.rest_frame)
+        row.update(coasted_frames=traj.coasted_frames)
         row.update(errors_px(cameras, traj, ref))
         rows.append(row)
         print(

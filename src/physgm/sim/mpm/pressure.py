@@ -7,26 +7,32 @@ the elastic models (``fixed_corotated``, ``neo_hookean``) into the part without 
 parameter lam, which the explicit sub-step (``launches``) integrates as before, and lam's part,
 a function phi(J) of the volume ratio alone (``pressure_kernels.volume_terms``), which the grid
 integrates implicitly. The explicit step then follows the shear part's P-wave,
-sqrt(2 mu / rho): rubber at nu = 0.48 takes sqrt((lam + 2 mu) / (2 mu)) = 3.6x fewer sub-steps.
+sqrt(2 mu / rho): rubber at nu = 0.48 takes up to sqrt((lam + 2 mu) / (2 mu)) = 3.6x fewer sub-steps
+(fewer while the body's own speed sets the step).
 
-The implicit part (Stomakhin et al. 2014's augmented MPM, on the MPM grid itself): each cell
-that holds a particle gets the sums s_c = sum V0 J phi'(J) (the particles' Kirchhoff pressure
-times their rest volume) and K_c = sum V0 J^2 phi''(J) over its particles. After the grid update
-has given the node velocities v* (shear stress, gravity, ground contact), the velocities of the
-step are the minimiser of
+The implicit part (after Stomakhin et al. 2014's augmented MPM, on the MPM grid itself): each
+particle adds its Kirchhoff pressure times its rest volume, V0 J phi'(J), and its volume
+stiffness V0 J^2 phi''(J) to the 8 cells whose centres surround it, with trilinear weights w,
+giving each cell the sums s_c and K_c. After the grid update has given the node velocities v*
+(shear stress, gravity, ground contact), the velocities of the step are the minimiser of
 
     sum_n m_n |v_n - v*_n|^2 / 2 + h sum_c (s_c (D v)_c + h K_c (D v)_c^2 / 2),
 
-the volume energy linearised about the sub-step's start with each particle's J growing by h
-times its cell's Q1 divergence D v (``pressure_kernels``). That is the linear system
+the volume energy linearised about the sub-step's start, each particle's J growing by h times
+the w-weighted Q1 divergence D v of its cells (``pressure_kernels``; the weights are lumped into
+the cells' K, which only stiffens it). That is the linear system
 
     (M + h^2 D^T K D) v = M v* - h D^T s,
 
 symmetric positive definite, solved for the correction v - v* by Jacobi-preconditioned
-conjugate gradients over the cells' corner nodes (every product is a pass over the cells, not
-the particles). Particles then move and deform with v in the unchanged g2p, and their new J
-gives next sub-step's s and K. Backward Euler on the pressure alone: it damps the volume waves
-the step cannot resolve and leaves the shear's symplectic explicit step as it was.
+conjugate gradients over the nodes of the box of cells the particles reach (every product is a
+pass over cells and nodes, not particles), started from the last sub-step's correction and
+stopped at an rms velocity residual of ``PressureSettings.tolerance``. Particles then move and
+deform with v in the unchanged g2p, and their new J gives the next sub-step's s and K: backward
+Euler on the pressure alone, which damps the volume waves the step does not resolve and leaves
+the shear's explicit step as it was. Both stages are recorded launches inside the sub-step, so
+the sub-steps still replay from graphs; the solve is one serial launch (the CPU's way of running
+any launch; on a GPU it is correct but does not use the device's threads).
 
 Scope: elastic models only; a ground with contact on the particles (the default) or none; no
 velocity boxes, side walls or periodic axes (their node conditions would fight the solve).
@@ -158,8 +164,9 @@ class PressureStep:
 
 class PressureSplitMPMSolver(MPMSolver):
     """``MPMSolver`` with lam's volume term taken implicitly on the grid (module docstring); same
-    arguments, plus the solve's ``settings``. ``pressure.log`` holds one ``PressureSolveStats`` per
-    sub-step. ``materials`` stays the full materials; the explicit step runs their ``shear_part``."""
+    arguments, plus the solve's ``settings``. ``pressure.counters()`` sums up the solves so far.
+    ``materials`` stays the full materials (and ``energy()`` reports their energy); the explicit
+    step runs their ``shear_part``."""
 
     def __init__(
         self,
