@@ -87,8 +87,8 @@ class SubstepLaunches:
         self._graphs: dict[int, list[wp.Graph]] = {}  # per thread, captured runs of n sub-steps
         self.replayed = 0  # sub-steps run from a graph so far
         self.scattered = False  # the accumulators hold the current particles' scatter
-        # An integrator's own recorded launches (``set_grid_stage``): per thread before the grid
-        # update, and on the first thread after it.
+        # An integrator's own recorded launches (``set_grid_stage``), one per thread before the grid
+        # update and one per thread after it.
         self.pre_grid: list = []
         self.post_grid: list = []
 
@@ -255,12 +255,14 @@ class SubstepLaunches:
                 self._barrier.append(wp.launch(barrier, 1, args, device=dev, record_cmd=True))
 
     def set_grid_stage(self, pre: list, post: list) -> None:
-        """Recorded launches each sub-step runs, in Python and in its graphs: ``pre`` one per thread
-        (its particle slice) beside the grid update, ``post`` on the first thread after the whole
-        grid update and before g2p (the pressure integrator's gather and solve, ``pressure.py``).
-        Set before the first sub-step: graphs captured earlier would not contain them."""
-        if len(pre) not in (0, len(self.g2p)):
-            raise ValueError(f"one pre-grid launch per thread ({len(self.g2p)}), got {len(pre)}")
+        """Recorded launches each sub-step runs, in Python and in its graphs, one per thread in
+        each list: ``pre`` beside the grid update (on the thread's particle slice), ``post`` after
+        the whole grid update and before g2p, the threads' side by side (they may meet at barriers
+        of their own). The pressure integrator's gather and solve (``pressure.py``). Set before
+        the first sub-step: graphs captured earlier would not contain them."""
+        for name, launches in (("pre", pre), ("post", post)):
+            if len(launches) not in (0, len(self.g2p)):
+                raise ValueError(f"one {name}-grid launch per thread ({len(self.g2p)}), got {len(launches)}")
         if self._graphs:
             raise RuntimeError("set_grid_stage after a graph was captured; set it before stepping")
         self.pre_grid, self.post_grid = list(pre), list(post)
@@ -344,8 +346,9 @@ class SubstepLaunches:
         _launch_halves(self.grid_update, worker)
         if self.friction is not None:
             self.friction.launch()
-        for launch in self.post_grid:
-            launch.launch()
+        if self.post_grid:
+            _launch_halves(self.post_grid, worker)
+            self._check_meeting()
         between()
         _launch_halves(self.g2p, worker)
         self._tick.launch()
@@ -373,23 +376,30 @@ class SubstepLaunches:
                 wp.capture_launch(graphs[0])
                 continue
             worker.run(lambda g=graphs: wp.capture_launch(g[1]), lambda g=graphs: wp.capture_launch(g[0]))
-            if abandoned(self._meeting):
-                raise RuntimeError(
-                    "the two MPM threads lost each other in a graph replay (one waited at a barrier "
-                    "past its time limit); the particle state is half-stepped. Run with "
-                    "solver.threads=1 and report this"
-                )
+            self._check_meeting()
         self.replayed += count
         self._advance_host(count)
         self.scattered = True
         self._box_stamp = self._stamp
 
+    @property
+    def meeting(self) -> wp.array | None:
+        """The two threads' barrier state (``spin_barrier``); None with one thread."""
+        return self._meeting
+
+    def _check_meeting(self) -> None:
+        if self._meeting is not None and abandoned(self._meeting):
+            raise RuntimeError(
+                "the two MPM threads lost each other (one waited at a barrier past its time limit); "
+                "the particle state is half-stepped. Run with solver.threads=1 and report this"
+            )
+
     def _capture(self, count: int, slot: int):
         """The launches of ``count`` sub-steps for thread ``slot``. One thread: [pre-grid,]
         grid_update, friction, [post-grid,] g2p, clock. Two: each thread runs its pre-grid launch
         and updates its part of the grid (the first all of it when there is surface friction),
-        and both meet after it, after the first thread's post-grid launches and after their halves
-        of g2p; each moves its own row of the clock on."""
+        and both meet after it, after their post-grid launches and after their halves of g2p;
+        each moves its own row of the clock on."""
         pair = len(self.g2p) == 2
         wp.capture_begin(device=self.device)
         try:
@@ -403,9 +413,7 @@ class SubstepLaunches:
                 if pair:
                     self._barrier[slot].launch()
                 if self.post_grid:
-                    if slot == 0:
-                        for launch in self.post_grid:
-                            launch.launch()
+                    self.post_grid[slot].launch()
                     if pair:
                         self._barrier[slot].launch()
                 self.g2p[slot].launch()

@@ -27,7 +27,7 @@ the cells' K, which only stiffens it). That is the linear system
 symmetric positive definite, solved for the correction v - v* by Jacobi-preconditioned
 conjugate gradients over the nodes of the box of cells the particles reach (every product is a
 pass over cells and nodes, not particles), started from the last sub-step's correction and
-stopped at an rms velocity residual of ``PressureSettings.tolerance``. Particles then move and
+stopped at an rms velocity residual of ``SolverConfig.pressure_tolerance``. Particles then move and
 deform with v in the unchanged g2p, and their new J gives the next sub-step's s and K: backward
 Euler on the pressure alone, which damps the volume waves the step does not resolve and leaves
 the shear's explicit step as it was. Both stages are recorded launches inside the sub-step, so
@@ -53,6 +53,7 @@ from physgm.sim.mpm import pressure_kernels as PK
 from physgm.sim.mpm.grid import GridSpec
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.solver import MPMSolver
+from physgm.sim.mpm.spin_barrier import LIMIT_CYCLES, YIELD_AFTER_CYCLES, new_counter
 from physgm.sim.mpm.state import Particles
 from physgm.sim.mpm.stepping import SolverConfig, step_wave_speed
 from physgm.warp_runtime import ensure_loaded
@@ -90,19 +91,9 @@ def check_pressure(materials: Sequence[MaterialParams], scene: Scene) -> None:
 
 
 @dataclass(frozen=True)
-class PressureSettings:
-    """The conjugate-gradient solve stops at an rms velocity residual of ``tolerance`` m/s or
-    after ``max_iterations``. 2e-4 m/s: on the bench's rubber drop a tenth of that moved no
-    Gaussian by more than 0.01 px (docs/measurements_sim.md section 29)."""
-
-    tolerance: float = 2.0e-4
-    max_iterations: int = 100
-
-
-@dataclass(frozen=True)
 class PressureCounters:
     """The solves so far: how many, their conjugate-gradient iterations, how many stopped at
-    ``max_iterations`` above the tolerance, and the last one's iterations and residuals (m/s)."""
+    ``pressure_max_iterations`` above the tolerance, and the last one's iterations and residuals (m/s)."""
 
     solves: int
     iterations: int
@@ -115,13 +106,13 @@ class PressureCounters:
 class PressureStep:
     """The grid stage of the pressure split (module docstring): each thread's particles add their
     volume terms to the cells (``pressure_kernels.gather_cells``, before the grid update), then
-    one launch solves for the node velocities (``pressure_kernels.solve``, after it). Both are
-    recorded launches that ``SubstepLaunches`` runs inside every sub-step and its graphs."""
+    each thread solves its half of the grid's layers for the node velocities, the two meeting at
+    a barrier between passes (``pressure_kernels.solve``, after the grid update). All are recorded
+    launches that ``SubstepLaunches`` runs inside every sub-step and its graphs."""
 
-    def __init__(self, solver: MPMSolver, grid_table: wp.array, settings: PressureSettings) -> None:
+    def __init__(self, solver: MPMSolver, grid_table: wp.array) -> None:
         dev, res, g, ps = solver.device, solver.grid.res, solver.grid, solver.particles
-        threads = solver.threads
-        self.settings = settings
+        threads, cfg = solver.threads, solver.config
         self.cell_s = [wp.zeros(res, dtype=float, device=dev) for _ in range(threads)]
         self.cell_k = [wp.zeros(res, dtype=float, device=dev) for _ in range(threads)]
         none = wp.zeros((1, 1, 1), dtype=float, device=dev)  # one thread: no second sums
@@ -146,16 +137,24 @@ class PressureStep:
             for t in range(threads)
         ]
         s1, k1 = (self.cell_s[1], self.cell_k[1]) if threads == 2 else (none, none)
-        self.solve = wp.launch(
-            PK.solve,
-            1,
-            [solver.grid_v, self.cell_s[0], self.cell_k[0], s1, k1, self.box, solver.launches.params]
-            + [settings.tolerance, settings.max_iterations]
-            + [self.t, self.mass, self.diag, self.d, self.r, self.z, self.p, self.q]
-            + [self.d_stamp, self.stats, g.dx],
-            device=dev,
-            record_cmd=True,
-        )
+        # The solve's halves meet at the sub-step's own barrier, whose abandonment the launches check
+        # (``spin_barrier``); one thread never waits.
+        meeting = solver.launches.meeting if threads == 2 else new_counter(dev)
+        self.partial = wp.zeros((2, 4), dtype=wp.float64, device=dev)
+        self.solves = [
+            wp.launch(
+                PK.solve,
+                1,
+                [slot, threads, meeting, wp.vec2l(LIMIT_CYCLES, YIELD_AFTER_CYCLES), solver.grid_v]
+                + [self.cell_s[0], self.cell_k[0], s1, k1, self.box, solver.launches.params]
+                + [cfg.pressure_tolerance, cfg.pressure_max_iterations, self.partial]
+                + [self.t, self.mass, self.diag, self.d, self.r, self.z, self.p, self.q]
+                + [self.d_stamp, self.stats, g.dx],
+                device=dev,
+                record_cmd=True,
+            )
+            for slot in range(threads)
+        ]
 
     def counters(self) -> PressureCounters:
         s = self.stats.numpy()
@@ -164,7 +163,8 @@ class PressureStep:
 
 class PressureSplitMPMSolver(MPMSolver):
     """``MPMSolver`` with lam's volume term taken implicitly on the grid (module docstring); same
-    arguments, plus the solve's ``settings``. ``pressure.counters()`` sums up the solves so far.
+    arguments (the solve's tolerance is ``config.pressure_tolerance``). ``pressure.counters()``
+    sums up the solves so far.
     ``materials`` stays the full materials (and ``energy()`` reports their energy); the explicit
     step runs their ``shear_part``."""
 
@@ -176,7 +176,6 @@ class PressureSplitMPMSolver(MPMSolver):
         scene: Scene | None = None,
         config: SolverConfig | None = None,
         device: str | wp.Device | None = "cpu",
-        settings: PressureSettings | None = None,
     ) -> None:
         scene = scene or Scene()
         check_pressure(materials, scene)
@@ -194,8 +193,8 @@ class PressureSplitMPMSolver(MPMSolver):
         self.energy_table = full
         grid_part = [_grid_part(m) for m in self.materials]
         table = wp.array(grid_part, dtype=MaterialStruct, device=self.device)
-        self.pressure = PressureStep(self, table, settings or PressureSettings())
-        self.launches.set_grid_stage(self.pressure.gathers, [self.pressure.solve])
+        self.pressure = PressureStep(self, table)
+        self.launches.set_grid_stage(self.pressure.gathers, self.pressure.solves)
         self._c_max = step_wave_speed(shear, self.scene.ground, particles, self.grid.dx)
         self._fit_active(self.stable_dt())
 

@@ -20,6 +20,7 @@ from physgm.sim.constitutive.common import FIXED_COROTATED, NEO_HOOKEAN, Materia
 from physgm.sim.constitutive.fixed_corotated import J_B
 from physgm.sim.constitutive.fixed_corotated import J_FLOOR as FC_J_FLOOR
 from physgm.sim.constitutive.neo_hookean import J_E, J_FLOOR, log_ext, log_ext_derivative
+from physgm.sim.mpm.spin_barrier import wait_for_partner
 from physgm.sim.mpm.stencil_sums import vec8
 from physgm.sim.mpm.substep_params import SubstepParams
 
@@ -147,17 +148,40 @@ def node_sum(a: wp.array3d(dtype=float), i: int, j: int, k: int) -> float:
     return s
 
 
+@wp.func
+def meet(counter: wp.array(dtype=wp.int64), slot: int, threads: int, limits: wp.vec2l):
+    """Both CPU threads' halves of the solve wait here for each other (one thread: no wait);
+    ``limits``: the barrier's limit and yield cycles (``spin_barrier``)."""
+    if threads == 2:
+        wait_for_partner(counter, slot, limits[0], limits[1])
+
+
+@wp.func
+def total(partial: wp.array2d(dtype=wp.float64), col: int, threads: int) -> wp.float64:
+    """The threads' partial sums of column ``col``, added in one fixed order on every thread, so both
+    take the same decisions from them."""
+    out = partial[0, col]
+    if threads == 2:
+        out = out + partial[1, col]
+    return out
+
+
 @wp.kernel
 def solve(
+    slot: int,  # this thread's half of the box (0 with one thread)
+    threads: int,  # 1 or 2 CPU threads sharing the solve, meeting at ``counter``
+    counter: wp.array(dtype=wp.int64),  # the two halves' barrier state (``spin_barrier``)
+    limits: wp.vec2l,  # the barrier's limit and yield cycles
     grid_v: wp.array3d(dtype=vec8),  # in/out: the grid update's velocities, corrected
     cell_s: wp.array3d(dtype=float),  # in/out: the first thread's sums, the total in the solve, then 0
     cell_k: wp.array3d(dtype=float),
-    cell_s1: wp.array3d(dtype=float),  # in/out: the second thread's sums (all 0 with one), then 0
+    cell_s1: wp.array3d(dtype=float),  # in/out: the second thread's sums (unread with one), then 0
     cell_k1: wp.array3d(dtype=float),
     box: wp.array2d(dtype=wp.int32),  # [threads, 6] in/out: the cells reached, reset for the next sub-step
     params: wp.array(dtype=SubstepParams),  # [threads] row 0: this sub-step's dt
     tolerance: float,  # m/s, rms velocity residual at which the solve stops
     max_iterations: int,
+    partial: wp.array2d(dtype=wp.float64),  # [2, 4] scratch: each thread's partial sums
     t: wp.array3d(dtype=float),  # scratch, cell scalars
     mass: wp.array3d(dtype=float),  # scratch, node masses (0: not in the solve)
     diag: wp.array3d(dtype=float),  # scratch, h^2 (D^T K D)_nn
@@ -167,44 +191,61 @@ def solve(
     p: wp.array3d(dtype=wp.vec3),  # scratch, search direction
     q: wp.array3d(dtype=wp.vec3),  # scratch, the operator times p
     d_stamp: wp.array3d(dtype=wp.int32),  # in/out: the solve that last wrote a node's d
-    stats: wp.array(dtype=float),  # [6] in/out (``STAT_*``): solves, iterations, residuals, unconverged
+    stats: wp.array(
+        dtype=float
+    ),  # [6] in/out: solves, iterations, residuals, unconverged (``PressureCounters``)
     dx: float,
 ):
-    """One sub-step's solve (``pressure.py``) in one thread, over the box of cells the particles
-    reached: on the CPU, where Warp runs a launch's threads one after the other anyway, this is
-    the work of a launch per pass without the launches, and it is a single recorded launch that
-    the sub-step's graph can replay. (On a GPU it is correct but serial.)"""
+    """One sub-step's solve (``pressure.py``), launched with dim 1 once per CPU thread: each takes
+    the cell and node layers of its half of the box along x and the two meet between passes (a
+    pass reads its neighbours' layer). On the CPU, where Warp runs a launch's threads one after
+    the other anyway, this is the work of a launch per pass without the launches, and the launch
+    is recorded, so the sub-step's graphs replay it. (On a GPU it is correct but serial.)"""
     h = float(params[0].dt)
     inv4dx = 0.25 / dx
     h2 = h * h
     scale = h2 * inv4dx * inv4dx
-    ci0 = wp.min(box[0, 0], box[box.shape[0] - 1, 0])
-    cj0 = wp.min(box[0, 1], box[box.shape[0] - 1, 1])
-    ck0 = wp.min(box[0, 2], box[box.shape[0] - 1, 2])
-    ci1 = wp.max(box[0, 3], box[box.shape[0] - 1, 3])
-    cj1 = wp.max(box[0, 4], box[box.shape[0] - 1, 4])
-    ck1 = wp.max(box[0, 5], box[box.shape[0] - 1, 5])
+    last = box.shape[0] - 1
+    ci0 = wp.min(box[0, 0], box[last, 0])
+    cj0 = wp.min(box[0, 1], box[last, 1])
+    ck0 = wp.min(box[0, 2], box[last, 2])
+    ci1 = wp.max(box[0, 3], box[last, 3])
+    cj1 = wp.max(box[0, 4], box[last, 4])
+    ck1 = wp.max(box[0, 5], box[last, 5])
     solves = int(stats[0]) + 1
+    # This thread's layers: cells [c_lo, c_hi) and nodes [n_lo, n_hi) along x.
+    mid = (ci0 + ci1 + 1) // 2
+    c_lo = ci0
+    c_hi = ci1 + 1
+    n_lo = ci0
+    n_hi = ci1 + 2
+    if threads == 2:
+        if slot == 0:
+            c_hi = mid
+            n_hi = mid
+        else:
+            c_lo = mid
+            n_lo = mid
     if ci0 <= ci1:
-        # The threads' sums into the first thread's arrays.
-        if cell_s1.shape[0] == cell_s.shape[0]:
-            for i in range(ci0, ci1 + 1):
+        if threads == 2:  # the second thread's sums into the first's arrays
+            for i in range(c_lo, c_hi):
                 for j in range(cj0, cj1 + 1):
                     for k in range(ck0, ck1 + 1):
                         cell_s[i, j, k] = cell_s[i, j, k] + cell_s1[i, j, k]
                         cell_k[i, j, k] = cell_k[i, j, k] + cell_k1[i, j, k]
                         cell_s1[i, j, k] = 0.0
                         cell_k1[i, j, k] = 0.0
+            meet(counter, slot, threads, limits)
         # Nodes: mass, Jacobi diagonal, warm start, and v = v* + d0 in p for the start's divergence.
-        total = wp.float64(0.0)
-        for i in range(ci0, ci1 + 2):
+        mass_sum = wp.float64(0.0)
+        for i in range(n_lo, n_hi):
             for j in range(cj0, cj1 + 2):
                 for k in range(ck0, ck1 + 2):
                     g = grid_v[i, j, k]
                     m = g[3]
                     mass[i, j, k] = m
                     if m > 0.0:
-                        total += wp.float64(m)
+                        mass_sum += wp.float64(m)
                         diag[i, j, k] = scale * node_sum(cell_k, i, j, k)
                         d0 = wp.vec3(0.0)
                         if d_stamp[i, j, k] == solves - 1:
@@ -213,14 +254,17 @@ def solve(
                         p[i, j, k] = wp.vec3(g[0], g[1], g[2]) + d0
                     else:
                         p[i, j, k] = wp.vec3(0.0)
-        for i in range(ci0, ci1 + 1):
+        partial[slot, 0] = mass_sum
+        meet(counter, slot, threads, limits)
+        for i in range(c_lo, c_hi):
             for j in range(cj0, cj1 + 1):
                 for k in range(ck0, ck1 + 1):
                     c = wp.vec3i(i, j, k)
                     t[i, j, k] = cell_s[i, j, k] + h * cell_k[i, j, k] * cell_divergence(p, c, inv4dx)
+        meet(counter, slot, threads, limits)
         rz = wp.float64(0.0)
         rr = wp.float64(0.0)
-        for i in range(ci0, ci1 + 2):
+        for i in range(n_lo, n_hi):
             for j in range(cj0, cj1 + 2):
                 for k in range(ck0, ck1 + 2):
                     m = mass[i, j, k]
@@ -229,19 +273,30 @@ def solve(
                         zv = rv / (m + diag[i, j, k])
                         r[i, j, k] = rv
                         z[i, j, k] = zv
-                        p[i, j, k] = zv
                         rz += wp.float64(wp.dot(rv, zv))
                         rr += wp.float64(wp.dot(rv, rv) / m)
-        first = wp.sqrt(float(rr / total))
+        partial[slot, 1] = rz
+        partial[slot, 2] = rr
+        meet(counter, slot, threads, limits)  # every node has read p(v) and t: p may change
+        for i in range(n_lo, n_hi):
+            for j in range(cj0, cj1 + 2):
+                for k in range(ck0, ck1 + 2):
+                    if mass[i, j, k] > 0.0:
+                        p[i, j, k] = z[i, j, k]
+        mass_total = total(partial, 0, threads)
+        rz = total(partial, 1, threads)
+        first = wp.sqrt(float(total(partial, 2, threads) / mass_total))
         res = first
         its = int(0)  # noqa: UP018 (Warp: a variable, counted in the loop)
+        meet(counter, slot, threads, limits)  # both have read the sums; p is whole
         while res > tolerance and its < max_iterations and rz > wp.float64(0.0):
-            for i in range(ci0, ci1 + 1):
+            for i in range(c_lo, c_hi):
                 for j in range(cj0, cj1 + 1):
                     for k in range(ck0, ck1 + 1):
                         t[i, j, k] = cell_k[i, j, k] * cell_divergence(p, wp.vec3i(i, j, k), inv4dx)
+            meet(counter, slot, threads, limits)
             pq = wp.float64(0.0)
-            for i in range(ci0, ci1 + 2):
+            for i in range(n_lo, n_hi):
                 for j in range(cj0, cj1 + 2):
                     for k in range(ck0, ck1 + 2):
                         m = mass[i, j, k]
@@ -250,10 +305,12 @@ def solve(
                             qq = m * pp + h2 * node_transpose(t, wp.vec3i(i, j, k), inv4dx)
                             q[i, j, k] = qq
                             pq += wp.float64(wp.dot(pp, qq))
-            alpha = float(rz / pq)
+            partial[slot, 3] = pq
+            meet(counter, slot, threads, limits)
+            alpha = float(rz / total(partial, 3, threads))
             rz_new = wp.float64(0.0)
             rr = wp.float64(0.0)
-            for i in range(ci0, ci1 + 2):
+            for i in range(n_lo, n_hi):
                 for j in range(cj0, cj1 + 2):
                     for k in range(ck0, ck1 + 2):
                         m = mass[i, j, k]
@@ -265,17 +322,22 @@ def solve(
                             z[i, j, k] = zv
                             rz_new += wp.float64(wp.dot(rv, zv))
                             rr += wp.float64(wp.dot(rv, rv) / m)
+            partial[slot, 1] = rz_new
+            partial[slot, 2] = rr
+            meet(counter, slot, threads, limits)
+            rz_new = total(partial, 1, threads)
+            res = wp.sqrt(float(total(partial, 2, threads) / mass_total))
             beta = float(rz_new / rz)
-            for i in range(ci0, ci1 + 2):
+            for i in range(n_lo, n_hi):
                 for j in range(cj0, cj1 + 2):
                     for k in range(ck0, ck1 + 2):
                         if mass[i, j, k] > 0.0:
                             p[i, j, k] = z[i, j, k] + beta * p[i, j, k]
             rz = rz_new
-            res = wp.sqrt(float(rr / total))
             its += 1
+            meet(counter, slot, threads, limits)  # p is whole; the sums were read before anyone rewrites them
         # The corrected velocities; the cell sums back to 0 for the next sub-step's gather.
-        for i in range(ci0, ci1 + 2):
+        for i in range(n_lo, n_hi):
             for j in range(cj0, cj1 + 2):
                 for k in range(ck0, ck1 + 2):
                     if mass[i, j, k] > 0.0:
@@ -286,18 +348,23 @@ def solve(
                             g[e] = g[e] + dd[e]
                             g[4 + e] = g[4 + e] + dd[e]
                         grid_v[i, j, k] = g
-                    if i <= ci1 and j <= cj1 and k <= ck1:
-                        cell_s[i, j, k] = 0.0
-                        cell_k[i, j, k] = 0.0
-                        t[i, j, k] = 0.0
-        stats[1] = float(its)
-        stats[2] = res
-        stats[3] = first
-        if res > tolerance:
-            stats[4] = stats[4] + 1.0
-        stats[5] = stats[5] + float(its)
-    stats[0] = float(solves)
-    for row in range(box.shape[0]):
-        for a in range(3):
-            box[row, a] = BOX_EMPTY
-            box[row, 3 + a] = -BOX_EMPTY
+        for i in range(c_lo, c_hi):
+            for j in range(cj0, cj1 + 1):
+                for k in range(ck0, ck1 + 1):
+                    cell_s[i, j, k] = 0.0
+                    cell_k[i, j, k] = 0.0
+                    t[i, j, k] = 0.0
+        if slot == 0:
+            stats[1] = float(its)
+            stats[2] = res
+            stats[3] = first
+            if res > tolerance:
+                stats[4] = stats[4] + 1.0
+            stats[5] = stats[5] + float(its)
+    meet(counter, slot, threads, limits)  # both have read the box and stats[0]
+    if slot == 0:
+        stats[0] = float(solves)
+        for row in range(box.shape[0]):
+            for a in range(3):
+                box[row, a] = BOX_EMPTY
+                box[row, 3 + a] = -BOX_EMPTY

@@ -56,6 +56,10 @@ class SolverConfig:
     integrator: str = "explicit"
     implicit_dt: float = 0.01  # s, the implicit sub-step while the body is slow (ignored by explicit)
     implicit_theta: float = 1.0  # theta method: 1 backward Euler, 0.5 implicit midpoint
+    # The pressure integrator's solve stops at this rms velocity residual (m/s) or after
+    # pressure_max_iterations conjugate-gradient iterations (physgm.sim.mpm.pressure).
+    pressure_tolerance: float = 2.0e-4
+    pressure_max_iterations: int = 100
 
     def __post_init__(self) -> None:
         checks = {
@@ -73,6 +77,8 @@ class SolverConfig:
             "max_grid_nodes": self.max_grid_nodes >= 512,
             "implicit_dt": self.implicit_dt > 0,
             "implicit_theta": 0.5 <= self.implicit_theta <= 1,
+            "pressure_tolerance": self.pressure_tolerance > 0,
+            "pressure_max_iterations": self.pressure_max_iterations >= 1,
         }
         for name, ok in checks.items():
             if not ok:
