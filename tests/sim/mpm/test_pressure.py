@@ -185,3 +185,18 @@ def test_the_pressure_integrator_refuses_what_it_cannot_integrate():
     held = Scene(ground=GroundPlane(0.0, contact="nodes"))
     with pytest.raises(ValueError, match="ground held on the grid nodes"):
         make_solver(p, [rubber], grid, held, config)
+
+
+def test_a_grid_stage_must_be_whole_and_set_before_the_graphs():
+    rubber = MaterialParams("neo_hookean", E=2e5, nu=0.48, density=1100.0)
+    p, grid = _block(1.0)
+    solver = make_solver(p, [rubber], grid, None, SolverConfig(threads=2))
+    try:
+        with pytest.raises(ValueError, match="one pre-grid launch per thread"):
+            solver.launches.set_grid_stage(solver.launches.g2p[:1], [])
+        solver.step_frame(0.002)
+        assert solver.launches.replayed > 0
+        with pytest.raises(RuntimeError, match="before stepping"):
+            solver.launches.set_grid_stage([], [])
+    finally:
+        solver.close()
