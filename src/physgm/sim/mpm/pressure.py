@@ -36,7 +36,8 @@ any launch; on a GPU it is correct but does not use the device's threads).
 
 Scope: elastic models only; a ground with contact on the particles (the default) or none; no
 velocity boxes, side walls or periodic axes (their node conditions would fight the solve).
-Anything else raises a ValueError that says to run explicit.
+Anything else raises a ValueError that says to run explicit. Its grid arrays add about 92 bytes
+a node to the explicit solver's 96.
 """
 
 from __future__ import annotations
@@ -121,7 +122,7 @@ class PressureStep:
         self.t, self.mass, self.diag = (wp.zeros(res, dtype=float, device=dev) for _ in range(3))
         self.d, self.r, self.z, self.p, self.q = (wp.zeros(res, dtype=wp.vec3, device=dev) for _ in range(5))
         self.d_stamp = wp.zeros(res, dtype=wp.int32, device=dev)
-        self.stats = wp.zeros(6, dtype=float, device=dev)
+        self.stats = wp.zeros(6, dtype=wp.float64, device=dev)  # float64: counts stay exact
         ensure_loaded(PK.gather_cells, dev)
         n = solver.num_particles
         split = [0, n] if threads == 1 else [0, n // 2, n]

@@ -191,9 +191,7 @@ def solve(
     p: wp.array3d(dtype=wp.vec3),  # scratch, search direction
     q: wp.array3d(dtype=wp.vec3),  # scratch, the operator times p
     d_stamp: wp.array3d(dtype=wp.int32),  # in/out: the solve that last wrote a node's d
-    stats: wp.array(
-        dtype=float
-    ),  # [6] in/out: solves, iterations, residuals, unconverged (``PressureCounters``)
+    stats: wp.array(dtype=wp.float64),  # [6] in/out: solves, iterations, residuals, unconverged
     dx: float,
 ):
     """One sub-step's solve (``pressure.py``), launched with dim 1 once per CPU thread: each takes
@@ -355,15 +353,15 @@ def solve(
                     cell_k[i, j, k] = 0.0
                     t[i, j, k] = 0.0
         if slot == 0:
-            stats[1] = float(its)
-            stats[2] = res
-            stats[3] = first
+            stats[1] = wp.float64(its)
+            stats[2] = wp.float64(res)
+            stats[3] = wp.float64(first)
             if res > tolerance:
-                stats[4] = stats[4] + 1.0
-            stats[5] = stats[5] + float(its)
+                stats[4] = stats[4] + wp.float64(1.0)
+            stats[5] = stats[5] + wp.float64(its)
     meet(counter, slot, threads, limits)  # both have read the box and stats[0]
     if slot == 0:
-        stats[0] = float(solves)
+        stats[0] = wp.float64(solves)
         for row in range(box.shape[0]):
             for a in range(3):
                 box[row, a] = BOX_EMPTY
