@@ -61,6 +61,7 @@ KERNEL_MODULES = (
     "physgm.sim.mpm.surface_friction",
     "physgm.sim.mpm.implicit_kernels",
     "physgm.sim.mpm.implicit_algebra",
+    "physgm.sim.mpm.pressure_kernels",
     "physgm.sim.mpm.substep_params",
     "physgm.render.warp_tile_kernels",
     "physgm.sim.mpm.spin_barrier",
