@@ -54,3 +54,14 @@ def test_the_default_cfl_is_where_the_stiff_fluid_drop_stops_gaining_energy(caps
     (larger,) = sim_stability.main(args + ["--cfl", "0.6"])["cells"]
     assert default["finite"] and default["energy_ratio"] <= 1.05 and default["retries"] == 0
     assert larger["energy_ratio"] > 1.5 or larger["retries"] > 0
+
+
+def test_the_pressure_integrator_runs_the_elastic_cells_and_refuses_the_others(capsys):
+    # docs/measurements_sim.md section 29: all 96 drop and impact cells of the two elastic models
+    # stay finite, uncrushed and without an energy gain under the pressure split.
+    args = ["--models", "neo_hookean", "--E", "1e7", "--nu", "0.49", "--scenes", "impact"]
+    (cell,) = sim_stability.main(args + ["--integrator", "pressure"])["cells"]
+    assert cell["finite"] and cell["crushed_fraction"] == 0.0 and cell["energy_ratio"] <= 1.05
+    with pytest.raises(SystemExit):
+        sim_stability.main(["--models", "von_mises", "--integrator", "pressure"])
+    assert "drop von_mises from --models" in capsys.readouterr().err

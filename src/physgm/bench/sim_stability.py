@@ -78,7 +78,8 @@ def run_cell(
     **solver_settings,
 ) -> dict:
     """Simulate one cell and return its report row."""
-    from physgm.sim.mpm import GridSpec, MPMSolver, Particles, SimulationDiverged, SolverConfig
+    from physgm.sim.mpm import GridSpec, Particles, SimulationDiverged, SolverConfig
+    from physgm.sim.mpm.integrators import make_solver
     from physgm.sim.mpm.stepping import cfl_dt
     from physgm.sim.scenes import build_scene
 
@@ -132,7 +133,7 @@ def run_cell(
         "seconds": 0.0,
         "simulated_s": duration,
     }
-    solver = MPMSolver(particles, [mat], GridSpec.fit(lo, hi, dx), setup.scene, cfg)
+    solver = make_solver(particles, [mat], GridSpec.fit(lo, hi, dx), setup.scene, cfg)
     try:
         ground = setup.scene.ground.height if setup.scene.ground is not None else 0.0
         gravity = float(np.linalg.norm(setup.scene.gravity))
@@ -224,8 +225,21 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--budget", type=int, default=4000, help="largest number of CFL sub-steps per cell")
     parser.add_argument("--impact-factor", type=float, default=2.0, help="impact scene: speed / P-wave speed")
     parser.add_argument("--cfl", type=float, default=None, help="the solver's CFL number (default 0.4)")
+    parser.add_argument(
+        "--integrator",
+        choices=("explicit", "pressure"),
+        default="explicit",
+        help="the solver's integrator; pressure runs the elastic models only (sim/mpm/pressure.py)",
+    )
     args = parser.parse_args(argv)
-    solver = {} if args.cfl is None else {"cfl": args.cfl}
+    solver = {"integrator": args.integrator} | ({} if args.cfl is None else {"cfl": args.cfl})
+    if args.integrator == "pressure":
+        from physgm.sim.mpm.pressure import PRESSURE_MODELS
+
+        others = sorted(set(args.models) - set(PRESSURE_MODELS))
+        if others:
+            runs = ", ".join(PRESSURE_MODELS)
+            parser.error(f"--integrator pressure runs {runs} only; drop {', '.join(others)} from --models")
     import warp as wp
 
     wp.config.quiet = True
