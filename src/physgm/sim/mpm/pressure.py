@@ -93,15 +93,12 @@ def check_pressure(materials: Sequence[MaterialParams], scene: Scene) -> None:
 
 @dataclass(frozen=True)
 class PressureCounters:
-    """The solves so far: how many, their conjugate-gradient iterations, how many stopped at
-    ``pressure_max_iterations`` above the tolerance, and the last one's iterations and residuals (m/s)."""
+    """The solves so far: how many, their conjugate-gradient iterations, and how many stopped at
+    ``pressure_max_iterations`` above the tolerance."""
 
     solves: int
     iterations: int
     unconverged: int
-    last_iterations: int
-    last_residual: float
-    last_first_residual: float
 
 
 class PressureStep:
@@ -111,7 +108,7 @@ class PressureStep:
     a barrier between passes (``pressure_kernels.solve``, after the grid update). All are recorded
     launches that ``SubstepLaunches`` runs inside every sub-step and its graphs."""
 
-    def __init__(self, solver: MPMSolver, grid_table: wp.array) -> None:
+    def __init__(self, solver: MPMSolver, materials: wp.array) -> None:
         dev, res, g, ps = solver.device, solver.grid.res, solver.grid, solver.particles
         threads, cfg = solver.threads, solver.config
         self.cell_s = [wp.zeros(res, dtype=float, device=dev) for _ in range(threads)]
@@ -122,7 +119,7 @@ class PressureStep:
         self.t, self.mass, self.diag = (wp.zeros(res, dtype=float, device=dev) for _ in range(3))
         self.d, self.r, self.z, self.p, self.q = (wp.zeros(res, dtype=wp.vec3, device=dev) for _ in range(5))
         self.d_stamp = wp.zeros(res, dtype=wp.int32, device=dev)
-        self.stats = wp.zeros(6, dtype=wp.float64, device=dev)  # float64: counts stay exact
+        self.stats = wp.zeros(3, dtype=wp.float64, device=dev)  # float64: counts stay exact
         ensure_loaded(PK.gather_cells, dev)
         n = solver.num_particles
         split = [0, n] if threads == 1 else [0, n // 2, n]
@@ -130,7 +127,7 @@ class PressureStep:
             wp.launch(
                 PK.gather_cells,
                 split[t + 1] - split[t],
-                [ps.x, ps.H, ps.vol0, grid_table, ps.material, wp.vec3(*g.origin), g.dx, split[t], t]
+                [ps.x, ps.H, ps.vol0, materials, ps.material, wp.vec3(*g.origin), g.dx, split[t], t]
                 + [self.cell_s[t], self.cell_k[t], self.box],
                 device=dev,
                 record_cmd=True,
@@ -158,8 +155,7 @@ class PressureStep:
         ]
 
     def counters(self) -> PressureCounters:
-        s = self.stats.numpy()
-        return PressureCounters(int(s[0]), int(s[5]), int(s[4]), int(s[1]), float(s[2]), float(s[3]))
+        return PressureCounters(*(int(x) for x in self.stats.numpy()))
 
 
 class PressureSplitMPMSolver(MPMSolver):
@@ -182,7 +178,9 @@ class PressureSplitMPMSolver(MPMSolver):
         check_pressure(materials, scene)
         super().__init__(particles, materials, grid, scene, config, device)
         ps = self.particles
-        full = wp.array([m.pack() for m in self.materials], dtype=MaterialStruct, device=self.device)
+        # The full materials: the grid's volume term takes their lam whole (the shear part has none),
+        # and energy() reports their energy.
+        self.energy_table = wp.clone(ps.mat_table)
         shear = [shear_part(m) for m in self.materials]
         wp.copy(ps.mat_table, wp.array([m.pack() for m in shear], dtype=MaterialStruct, device=self.device))
         wp.launch(
@@ -191,18 +189,7 @@ class PressureSplitMPMSolver(MPMSolver):
             [ps.H, ps.mat_table, ps.material, ps.vol0, ps.plastic, ps.stress],
             device=self.device,
         )
-        self.energy_table = full
-        grid_part = [_grid_part(m) for m in self.materials]
-        table = wp.array(grid_part, dtype=MaterialStruct, device=self.device)
-        self.pressure = PressureStep(self, table)
+        self.pressure = PressureStep(self, self.energy_table)
         self.launches.set_grid_stage(self.pressure.gathers, self.pressure.solves)
         self._c_max = step_wave_speed(shear, self.scene.ground, particles, self.grid.dx)
         self._fit_active(self.stable_dt())
-
-
-def _grid_part(material: MaterialParams) -> MaterialStruct:
-    """The material as the grid's volume term sees it: its model and the lam the explicit step
-    leaves out (``shear_part``)."""
-    s = material.pack()
-    s.lam = material.lam - shear_part(material).lam
-    return s

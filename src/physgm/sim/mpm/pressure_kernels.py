@@ -67,7 +67,7 @@ def gather_cells(
     x: wp.array(dtype=wp.vec3),  # [P] m
     H: wp.array(dtype=wp.mat33),  # [P] F - I
     vol0: wp.array(dtype=float),  # [P] m^3
-    materials: wp.array(dtype=MaterialStruct),  # [M] lam = the share the grid takes
+    materials: wp.array(dtype=MaterialStruct),  # [M] the full materials: the grid takes their lam
     material: wp.array(dtype=int),  # [P]
     origin: wp.vec3,
     dx: float,
@@ -191,7 +191,7 @@ def solve(
     p: wp.array3d(dtype=wp.vec3),  # scratch, search direction
     q: wp.array3d(dtype=wp.vec3),  # scratch, the operator times p
     d_stamp: wp.array3d(dtype=wp.int32),  # in/out: the solve that last wrote a node's d
-    stats: wp.array(dtype=wp.float64),  # [6] in/out: solves, iterations, residuals, unconverged
+    stats: wp.array(dtype=wp.float64),  # [3] in/out: solves, iterations, unconverged (``PressureCounters``)
     dx: float,
 ):
     """One sub-step's solve (``pressure.py``), launched with dim 1 once per CPU thread: each takes
@@ -283,8 +283,7 @@ def solve(
                         p[i, j, k] = z[i, j, k]
         mass_total = total(partial, 0, threads)
         rz = total(partial, 1, threads)
-        first = wp.sqrt(float(total(partial, 2, threads) / mass_total))
-        res = first
+        res = wp.sqrt(float(total(partial, 2, threads) / mass_total))
         its = int(0)  # noqa: UP018 (Warp: a variable, counted in the loop)
         meet(counter, slot, threads, limits)  # both have read the sums; p is whole
         while res > tolerance and its < max_iterations and rz > wp.float64(0.0):
@@ -353,12 +352,9 @@ def solve(
                     cell_k[i, j, k] = 0.0
                     t[i, j, k] = 0.0
         if slot == 0:
-            stats[1] = wp.float64(its)
-            stats[2] = wp.float64(res)
-            stats[3] = wp.float64(first)
+            stats[1] = stats[1] + wp.float64(its)
             if res > tolerance:
-                stats[4] = stats[4] + wp.float64(1.0)
-            stats[5] = stats[5] + wp.float64(its)
+                stats[2] = stats[2] + wp.float64(1.0)
     meet(counter, slot, threads, limits)  # both have read the box and stats[0]
     if slot == 0:
         stats[0] = wp.float64(solves)
