@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import warp as wp
 
-from physgm.sim.constitutive import MODELS, MaterialParams, MaterialStruct
+from physgm.sim.constitutive import MODELS, MaterialParams
 from physgm.sim.constitutive import reference as ref
 from physgm.sim.constitutive.common import expm1, log1p
 from physgm.sim.linalg import is_finite
-from physgm.sim.mpm import particle_ops as K
 from physgm.warp_runtime import FAST_CPU_FLAGS
+from tests.sim.constitutive_runs import DT, run_warp
 
 # The kernels below compile as the solver's do (reassociation on the CPU).
 wp.set_module_options({"enable_backward": False, "cpu_compiler_flags": FAST_CPU_FLAGS})
@@ -29,7 +29,6 @@ PARAMS = {
     "foam": MaterialParams("foam", 1.0e6, 0.2, 100.0, yield_stress=2.0e4, hardening=1.0e4, viscosity=10.0),
     "fluid": MaterialParams("fluid", 1.0e6, 0.3, 1000.0),
 }
-DT = 1.0e-3
 
 
 def random_F(n: int, seed: int) -> np.ndarray:
@@ -45,34 +44,6 @@ def random_F(n: int, seed: int) -> np.ndarray:
     inverted[:, :, 0] *= -1  # mirror: det < 0
     F = np.concatenate([small, large, rotated, inverted])
     return F[np.abs(np.linalg.det(F)) > 0.05]  # keep away from exactly singular matrices
-
-
-def run_warp(params: MaterialParams, F: np.ndarray, plastic: np.ndarray, dt: float = DT):
-    n = len(F)
-    mats = wp.array([params.pack()], dtype=MaterialStruct, device="cpu")
-    outs = dict(
-        F=wp.zeros(n, dtype=wp.mat33, device="cpu"),
-        tau=wp.zeros(n, dtype=wp.mat33, device="cpu"),
-        plastic=wp.zeros(n, dtype=float, device="cpu"),
-        energy=wp.zeros(n, dtype=float, device="cpu"),
-    )
-    wp.launch(
-        K.evaluate_constitutive,
-        n,
-        [
-            wp.array(F.astype(np.float32), dtype=wp.mat33, device="cpu"),
-            wp.array(plastic.astype(np.float32), dtype=float, device="cpu"),
-            mats,
-            wp.zeros(n, dtype=int, device="cpu"),
-            dt,
-            outs["F"],
-            outs["tau"],
-            outs["plastic"],
-            outs["energy"],
-        ],
-        device="cpu",
-    )
-    return {k: v.numpy().astype(np.float64) for k, v in outs.items()}
 
 
 def test_registry_covers_every_model_with_a_twin():

@@ -15,7 +15,7 @@ from physgm.sim.mpm.pressure import PressureSplitMPMSolver, shear_part
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.state import Particles
 from physgm.sim.mpm.stepping import SolverConfig
-from tests.sim.test_constitutive import run_warp
+from tests.sim.constitutive_runs import run_warp
 
 SIDE = 0.08  # m, 6 cells across
 
