@@ -26,17 +26,18 @@ the cells' K, which only stiffens it). That is the linear system
 
 symmetric positive definite, solved for the correction v - v* by Jacobi-preconditioned
 conjugate gradients over the nodes of the box of cells the particles reach (every product is a
-pass over cells and nodes, not particles), started from the last sub-step's correction and
-stopped at an rms velocity residual of ``SolverConfig.pressure_tolerance``. Particles then move and
-deform with v in the unchanged g2p, and their new J gives the next sub-step's s and K: backward
-Euler on the pressure alone, which damps the volume waves the step does not resolve and leaves
-the shear's explicit step as it was. Both stages are recorded launches inside the sub-step, so
-the sub-steps still replay from graphs; the solve is one serial launch (the CPU's way of running
-any launch; on a GPU it is correct but does not use the device's threads).
+pass over cells and nodes, not particles), started from the last two sub-steps' corrections
+extrapolated linearly, and stopped at an rms velocity residual of
+``SolverConfig.pressure_tolerance``. Particles then move and deform with v in the unchanged g2p,
+and their new J gives the next sub-step's s and K: backward Euler on the pressure alone, which
+damps the volume waves the step does not resolve and leaves the shear's explicit step as it was.
+Both stages are recorded launches inside the sub-step, so the sub-steps still replay from graphs;
+the solve is one serial launch (the CPU's way of running any launch; on a GPU it is correct but
+does not use the device's threads).
 
 Scope: elastic models only; a ground with contact on the particles (the default) or none; no
 velocity boxes, side walls or periodic axes (their node conditions would fight the solve).
-Anything else raises a ValueError that says to run explicit. Its grid arrays add about 92 bytes
+Anything else raises a ValueError that says to run explicit. Its grid arrays add about 120 bytes
 a node to the explicit solver's 96.
 """
 
@@ -117,8 +118,11 @@ class PressureStep:
         empty = [PK.BOX_EMPTY] * 3 + [-PK.BOX_EMPTY] * 3
         self.box = wp.array(np.tile(empty, (threads, 1)), dtype=wp.int32, device=dev)
         self.t, self.mass, self.diag = (wp.zeros(res, dtype=float, device=dev) for _ in range(3))
-        self.d, self.r, self.z, self.p, self.q = (wp.zeros(res, dtype=wp.vec3, device=dev) for _ in range(5))
+        vectors = (wp.zeros(res, dtype=wp.vec3, device=dev) for _ in range(6))
+        self.d, self.r, self.z, self.p, self.q, self.w = vectors
         self.d_stamp = wp.zeros(res, dtype=wp.int32, device=dev)
+        self.d_old = wp.zeros(res, dtype=wp.vec3, device=dev)
+        self.old_stamp = wp.full(res, -1, dtype=wp.int32, device=dev)
         self.stats = wp.zeros(3, dtype=wp.float64, device=dev)  # float64: counts stay exact
         ensure_loaded(PK.gather_cells, dev)
         n = solver.num_particles
@@ -146,8 +150,8 @@ class PressureStep:
                 [slot, threads, meeting, wp.vec2l(LIMIT_CYCLES, YIELD_AFTER_CYCLES), solver.grid_v]
                 + [self.cell_s[0], self.cell_k[0], s1, k1, self.box, solver.launches.params]
                 + [cfg.pressure_tolerance, cfg.pressure_max_iterations, self.partial]
-                + [self.t, self.mass, self.diag, self.d, self.r, self.z, self.p, self.q]
-                + [self.d_stamp, self.stats, g.dx],
+                + [self.t, self.mass, self.diag, self.d, self.r, self.z, self.p, self.q, self.w]
+                + [self.d_stamp, self.d_old, self.old_stamp, self.stats, g.dx],
                 device=dev,
                 record_cmd=True,
             )
