@@ -253,6 +253,7 @@ def prepare_simulation(
         dx,
         spacing,
         cfg,
+        solver_cfg.integrator,
     )
     return PreparedSimulation(
         plan,

@@ -21,6 +21,11 @@ chooses, in order of cost:
    nothing, the bulk cap alone may use the whole bound.
 3. **MPM at full stiffness** (the reference).
 
+Under the pressure integrator (``solver.integrator=pressure``, ``physgm.sim.mpm.pressure``) the
+explicit step follows the material's shear part, so the sub-steps are predicted from it and the
+bulk cap is not offered: the grid takes the volume term implicitly, and a cap would add its error
+for no step.
+
 Modules, in the order a reader needs them:
     config.py       ``PlannerConfig``, the knobs (conf/sim/planner/default.yaml)
     domain.py       grid cell size and particle spacing (``choose_spacing``, ``stretch_splits``)

@@ -15,6 +15,7 @@ from torch import Tensor
 from physgm.cameras import Cameras
 from physgm.sim.bulk_cap import choose_bulk_cap, rebound_px, wave_shift_px
 from physgm.sim.constitutive import MODELS, MaterialParams
+from physgm.sim.mpm.pressure import shear_part
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.stepping import substeps_per_frame
 from physgm.sim.planner.config import PlannerConfig
@@ -62,6 +63,7 @@ def plan_simulation(
     dx: float,
     particle_spacing: float,
     config: PlannerConfig | None = None,
+    integrator: str = "explicit",
 ) -> Plan:
     """Choose rigid / MPM with capped E / MPM, fit the grid and set early stop; see module doc.
 
@@ -69,8 +71,18 @@ def plan_simulation(
         name: material name (granular names never go rigid).
         n_frames: output frames including the rest frame 0.
         dx, particle_spacing: from ``choose_spacing`` (dx may grow to respect ``max_cells``).
+        integrator: the MPM solver's (``SolverConfig.integrator``). With ``"pressure"`` the
+            explicit step follows the material's shear part (``mpm.pressure.shear_part``): the
+            sub-steps are predicted from it, and the bulk cap, which would only soften the volume
+            term the grid takes implicitly, is not offered.
     """
     cfg = config or PlannerConfig()
+    pressure = integrator == "pressure"
+
+    def stepped(m: MaterialParams) -> MaterialParams:
+        """The material whose P-wave sets the explicit step under ``integrator``."""
+        return shear_part(m) if pressure else m
+
     if n_frames < 1 or frame_dt <= 0:
         raise ValueError(f"need n_frames >= 1 and frame_dt > 0, got {n_frames} and {frame_dt}")
     pts = x.detach().double().cpu()
@@ -108,7 +120,7 @@ def plan_simulation(
 
     g_lo, g_hi, grid_dx = grid_region(cfg, material, x, v0, volume, scene, duration, dx, ground)
     n_nodes = int(np.prod(np.ceil((g_hi - g_lo) / grid_dx) + 9))  # + boundary margins of GridSpec.fit
-    steps = {"mpm": substeps_per_frame(grid_dx, [material], v_max, cfg.cfl, frame_dt)}
+    steps = {"mpm": substeps_per_frame(grid_dx, [stepped(material)], v_max, cfg.cfl, frame_dt)}
     steps["rigid"] = max(1, math.ceil(frame_dt / cfg.rigid_dt - 1e-9))
     P = len(pts)
     cost = {"mpm": float((n_frames - 1) * steps["mpm"] * P), "rigid": float((n_frames - 1) * steps["rigid"])}
@@ -187,7 +199,7 @@ def plan_simulation(
     def with_bulk_cap(share: float) -> _Choice:
         """Full stiffness, or the bulk cap within ``share`` px if it saves min_cap_gain."""
         full = _Choice(material, steps["mpm"])
-        if not cfg.allow_bulk_cap or flows or driven:
+        if not cfg.allow_bulk_cap or flows or driven or pressure:
             return full
 
         def deformation_px(modulus: float) -> float:
@@ -223,7 +235,7 @@ def plan_simulation(
         if dent:  # the dent moves with the wave speed, which the deformation estimate does not see
             cap = max(cap, stiffness_dent_floor(base.material.E, share_px, size_px))
         softer = base.material.with_elasticity(E=cap)
-        cap_steps = substeps_per_frame(grid_dx, [softer], v_max, cfg.cfl, frame_dt)
+        cap_steps = substeps_per_frame(grid_dx, [stepped(softer)], v_max, cfg.cfl, frame_dt)
         if base.steps < cfg.min_cap_gain * cap_steps:
             return base
         soft = deformation_estimate(cap, material.density, size, v_load, g)
@@ -247,6 +259,8 @@ def plan_simulation(
         choice = alone if alone.steps < shared.steps else shared
     else:
         choice = with_bulk_cap(cfg.bound_px)
+    if pressure:
+        choice.notes.append("the pressure integrator: the volume term implicit on the grid, no bulk cap")
     if driven and (cfg.allow_stiffness_cap or cfg.allow_bulk_cap):
         choice.notes.append("E and nu not capped (moving boxes drive the body: no error model holds)")
     elif cfg.allow_stiffness_cap and not caps_E:
