@@ -317,7 +317,7 @@ def test_a_run_whose_object_reached_the_region_edge_warns(monkeypatch, capsys, t
             name=name, video=f"{name}.mp4", material="rubber", E=3e7, nu=0.45, mode="mpm",
             predicted_error_px=0.0, error_terms={}, px_per_m=500.0, E_used=3e7, nu_used=nu_used,
             particles=100, grid_cells=[8, 8, 8],
-            dx_m=0.01, substeps=10, rest_frame=None, face_contacts=faces, ballistic_frames=1,
+            dx_m=0.01, substeps=10, rest_frame=None, face_contacts=faces, grid_moves=0, ballistic_frames=1,
             reason="", finite=True, seconds={},
         )  # fmt: skip
 

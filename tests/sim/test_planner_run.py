@@ -13,7 +13,7 @@ from physgm.bench.drop_scene import project
 from physgm.cameras import orbit_cameras
 from physgm.gaussians import Gaussians, quat_to_rotmat
 from physgm.physics.materials import PhysicsSpec
-from physgm.sim.gaussian_trajectory import ballistic_frames, prepare_simulation, simulate
+from physgm.sim.gaussian_trajectory import ballistic_frames, prepare_simulation, run_prepared, simulate
 from physgm.sim.mpm.boundary import GroundPlane
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.stepping import SolverConfig
@@ -100,7 +100,7 @@ def test_jelly_drop_runs_mpm_and_gaussians_follow_particles():
     assert torch.isfinite(last.means).all() and torch.isfinite(last.quats).all()
     assert (last.means[:, 2] - traj.x[-1][:, 2].min()).min() > -plan.dx
     assert float(last.means[:, 2].mean()) < float(gs.means[:, 2].mean()) - 0.02
-    assert traj.face_contacts == 0  # the planned grid held the motion
+    assert traj.face_contacts == traj.grid_moves == 0  # the planned grid held the motion
 
 
 def test_planned_grid_holds_a_sand_collapse():
@@ -111,7 +111,7 @@ def test_planned_grid_holds_a_sand_collapse():
     assert traj.plan.mode == "mpm"
     spread = np.abs(traj.x[-1, :, :2] - traj.x[0, :, :2].mean(0)).max()
     assert spread > 0.1  # it did collapse and run out (the cube's half size is 0.05 m)
-    assert traj.face_contacts == 0
+    assert traj.face_contacts == traj.grid_moves == 0
 
 
 def _leaning_slab(n: int = 4000, dims=(0.04, 0.05, 0.3), lean_deg: float = 20.0) -> Gaussians:
@@ -137,7 +137,7 @@ def test_planned_grid_holds_a_slab_that_falls_over():
     grid's face walls held it up at 0.23 m."""
     traj = simulate(
         _leaning_slab(), PhysicsSpec("jelly", E=1e5), GROUND, CAMERAS, n_frames=25,
-        planner=PlannerConfig(cells_across=8),
+        planner=PlannerConfig(cells_across=8, follow=False),  # the planned grid alone
     )  # fmt: skip
     assert traj.plan.mode == "mpm"
     assert traj.x[-1, :, 2].max() < 0.08  # it lies flat (it stood 0.3 m tall)
@@ -164,7 +164,7 @@ def test_early_stop_holds_frames_once_still():
         np.testing.assert_array_equal(traj.x[k], traj.x[traj.rest_frame - 1])
     # The held frames cost nothing: fewer sub-steps than planned for the whole clip.
     assert traj.substeps < traj.plan.substeps_per_frame * 29 * 0.8
-    assert traj.face_contacts == 0  # the slide stayed inside the planned grid
+    assert traj.face_contacts == traj.grid_moves == 0  # the slide stayed inside the planned grid
 
 
 def test_held_frames_stay_within_the_rest_budget_of_the_unstopped_run():
@@ -360,3 +360,24 @@ def test_the_plan_follows_the_pressure_integrator():
     assert plan.substeps_per_frame < uncapped.substeps_per_frame / 3.3
     # ... and as taken (the cube rests, so |v| adds little to the step's wave speed).
     assert traj.substeps == pytest.approx(4 * plan.substeps_per_frame, rel=0.1)
+
+
+def test_the_grid_follows_a_body_that_leaves_the_planned_region():
+    """A jelly cube slides across a frictionless floor at 1.5 m/s on a grid planned for a third of
+    the way. The grid moves under it by whole cells, on the planned grid's own lattice, so the cube
+    slides as it does on the whole planned grid; with ``planner.follow=False`` the faces stop it."""
+    gs = _shell_cube(1000, side=0.1, bottom=0.0)
+    scene = (Scene(ground=GroundPlane(0.0, mode="slip")), np.array([1.5, 0.0, 0.0]))
+    physics = PhysicsSpec("jelly", E=2e4)
+    planner = PlannerConfig(allow_rigid=False, cells_across=6)
+    whole = prepare_simulation(gs, physics, scene, CAMERAS, 12, replace(planner, follow=False))
+    plan = whole.plan
+    cut = np.array([math.floor(0.35 / plan.dx) * plan.dx, 0.0, 0.0])  # whole cells: the same lattice
+    held = replace(whole, plan=replace(plan, grid_hi=plan.grid_hi - cut))
+    short = replace(held, planner=planner)
+    ref, moved, stopped = (run_prepared(p) for p in (whole, short, held))
+    assert ref.face_contacts == 0  # the planned grid holds the slide
+    assert moved.face_contacts == 0 and moved.grid_moves >= 1
+    assert float(np.abs(moved.x - ref.x).max()) < 1e-4  # m
+    assert stopped.face_contacts > 0 and stopped.grid_moves == 0
+    assert float(ref.x[-1, :, 0].max() - stopped.x[-1, :, 0].max()) > 0.1  # m short of where it slid

@@ -56,6 +56,7 @@ class FutureResult:
     substeps: int
     rest_frame: int | None
     face_contacts: int  # grid-face safety walls touched (0: the grid held)
+    grid_moves: int  # times the grid moved under a body that left the planned region
     ballistic_frames: int
     reason: str  # why the planner chose the mode
     finite: bool
@@ -98,7 +99,8 @@ def wall_warning(face_contacts: int) -> str:
         f"the object reached the edge of the simulated region ({face_contacts} grid-node updates stopped "
         "there): it rolled, bounced or slid further than the planner allowed for, and from there on the "
         "clip shows it held by an invisible wall. A wider region: planner.spread_factor=2 (default 0.5, "
-        "in object sizes), at a small cost per sub-step."
+        "in object sizes), at a small cost per sub-step. (The grid follows the body by itself with "
+        "planner.follow=true, in scenes without velocity boxes, side walls or periodic axes.)"
     )
 
 
@@ -186,6 +188,7 @@ def _future_result(choice, traj, seconds: dict, finite: bool, video: str) -> Fut
         substeps=int(traj.substeps),
         rest_frame=traj.rest_frame,
         face_contacts=int(traj.face_contacts),
+        grid_moves=int(traj.grid_moves),
         ballistic_frames=traj.ballistic_frames,
         seconds={k: round(v, 3) for k, v in seconds.items()},
         video=video,

@@ -61,6 +61,8 @@ class GaussianTrajectory:
         coasted_frames: frames of flights after a bounce computed in closed form (``sim.coast``).
         coast_predicted_px: the largest predicted error of those flights, pixels (within the bound
             left over by ``plan.predicted_error_px``).
+        grid_moves: times the grid moved under a body that left the planned region
+            (``mpm_run.followed_grid``).
     """
 
     plan: Plan
@@ -78,6 +80,7 @@ class GaussianTrajectory:
     face_contacts: int = 0
     coasted_frames: int = 0
     coast_predicted_px: float = 0.0
+    grid_moves: int = 0
 
     def __len__(self) -> int:
         return self.x.shape[0]
@@ -319,6 +322,7 @@ def run_prepared(
         cfg.ballistic,
         deadline,
         max(cfg.bound_px - plan.predicted_error_px, 0.0) if cfg.coast else 0.0,
+        cfg.follow,
     )
     seconds = time.perf_counter() - start
     return GaussianTrajectory(
@@ -337,6 +341,7 @@ def run_prepared(
         run.face_contacts,
         run.coasted_frames,
         run.coast_predicted_px,
+        run.grid_moves,
     )
 
 

@@ -3,14 +3,16 @@ Warp solver in between, and early stop once everything is still.
 
 Frames before the first contact are the exact ballistic prefix (``ballistic_frames``: uniform
 gravity does not deform a body moving as a whole); flights after a bounce are computed in closed
-form while the vibration they leave out fits the pixel bound (``physgm.sim.coast``).
+form while the vibration they leave out fits the pixel bound (``physgm.sim.coast``). A body that
+bounces or rolls further than the planner's region is followed: the grid moves under it by whole
+cells (``followed_grid``) instead of stopping it at its faces.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -63,6 +65,7 @@ class MPMRun:
     coasted_frames: int  # later frames in closed form (flights after a bounce, sim/coast.py)
     face_contacts: int
     coast_predicted_px: float = 0.0  # the largest predicted error of a coasted flight, pixels
+    grid_moves: int = 0  # times the grid moved under the body (``followed_grid``)
 
 
 def motion_left_px(window: list[float], frames_left: int) -> float:
@@ -83,6 +86,57 @@ def motion_left_px(window: list[float], frames_left: int) -> float:
     if ratio >= 1.0:
         return last * frames_left
     return last * ratio * (1.0 - ratio**frames_left) / (1.0 - ratio)
+
+
+def followed_grid(
+    grid: GridSpec,
+    x: np.ndarray,  # [P, 3] particles, m
+    v: np.ndarray,  # [P, 3] their velocities, m/s
+    frame_dt: float,  # s
+    margin_cells: int,  # the solver's ``boundary_cells``
+) -> GridSpec | None:
+    """``grid`` moved under the body by whole cells along x and y, and widened where the body no
+    longer fits, once the next frame could carry a particle into the faces' walls; None while the
+    body stays clear of them.
+
+    "Could" is twice the fastest horizontal speed over a frame plus a cell (the stencil). The
+    moved grid centres the body with that reach on each side; its nodes keep their lattice, so the
+    body is discretised as before. z is left as planned: the ground below, the highest rise above.
+    """
+    dx, origin, res = grid.dx, np.asarray(grid.origin, dtype=np.float64), np.asarray(grid.res)
+    free_lo, free_hi = grid.interior(margin_cells + 1)
+    lo, hi = x[:, :2].min(0), x[:, :2].max(0)
+    reach = 2.0 * np.abs(v[:, :2]).max(0) * frame_dt + dx
+    if np.all(lo - reach >= free_lo[:2]) and np.all(hi + reach <= free_hi[:2]):
+        return None
+    # Cells to add so the body and its reach fit the free interior, an even number (both sides).
+    missing = (hi - lo + 2.0 * reach) - (free_hi[:2] - free_lo[:2])
+    add = 2 * np.ceil(np.maximum(missing, 0.0) / (2.0 * dx) - 1e-9).astype(int)
+    nodes = res[:2] + add
+    centre = origin[:2] + 0.5 * (nodes - 1) * dx  # of the widened grid before it moves
+    shift = np.round((0.5 * (lo + hi) - centre) / dx)
+    new_origin = origin.copy()
+    new_origin[:2] += shift * dx
+    return GridSpec(tuple(new_origin), dx, (int(nodes[0]), int(nodes[1]), int(res[2])))
+
+
+def _can_follow(scene: Scene) -> bool:
+    """The grid may move under the body: nothing in the scene is tied to its place or its time
+    (velocity boxes keep a schedule a rebuilt solver would restart; walls and periods are the grid's)."""
+    return not (scene.boxes or scene.walls or scene.periodic)
+
+
+def _resumed(solver, state, volume: np.ndarray, scene: Scene) -> tuple[Particles, Scene]:
+    """The particles and scene of a solver that continues ``solver``'s run from ``state``: the
+    contact plane stays where the first solver put it (a body resting on the contact springs
+    would otherwise lower it, ``GroundPlane.contact_height``)."""
+    resume = Particles(
+        x=state.x, volume=volume, material=0, v=state.v, F=state.F, C=state.C, plastic=state.plastic
+    )
+    ground = scene.ground
+    if ground is not None and ground.on_particles:
+        scene = replace(scene, ground=replace(ground, contact_height=solver.launches.contact_height))
+    return resume, scene
 
 
 def _can_coast(scene: Scene, budget_px: float) -> bool:
@@ -108,10 +162,13 @@ def run_mpm(
     ballistic: bool = True,
     deadline: float | None = None,
     coast_budget_px: float = 0.0,
+    follow: bool = True,
 ) -> MPMRun:
     """MPM with a ballistic prefix, flights after a bounce in closed form, and early stop.
 
     ``coast_budget_px``: pixels a coasted flight's vibration may move a point by (0: never coast).
+    ``follow``: move the grid under a body that leaves the planned region (``followed_grid``;
+    scenes without velocity boxes, side walls or periodic axes); False stops it at the grid's faces.
     """
     T, frame_dt, n = plan.n_frames, plan.frame_dt, len(x0)
     xs = np.empty((T, n, 3), np.float32)
@@ -131,7 +188,8 @@ def run_mpm(
     particles = Particles(x=xs[k0 - 1], volume=volume, material=0, v=v0 + g * t0)
     solver = make_solver(particles, [material], grid, scene, solver_cfg, device)
     coast_ok = _can_coast(scene, coast_budget_px)
-    substeps, moved, rest_frame, coasted, faces, coast_px = 0, [], None, 0, 0, 0.0
+    follow_ok = follow and _can_follow(scene)
+    substeps, moved, rest_frame, coasted, faces, coast_px, moves = 0, [], None, 0, 0, 0.0, 0
     try:
         k = k0
         while k < T:
@@ -177,13 +235,24 @@ def run_mpm(
                     C=flight.C,
                     plastic=state.plastic,
                 )
+                moving = followed_grid(grid, resume.x, resume.v, frame_dt, solver_cfg.boundary_cells)
+                if follow_ok and moving is not None:
+                    grid, moves = moving, moves + 1
                 solver = make_solver(resume, [material], grid, scene, solver_cfg, device)
                 coasted += flight.frames
                 coast_px = max(coast_px, flight.predicted_px)
                 k += flight.frames
                 moved = []
+            elif follow_ok and k + 1 < T:
+                moving = followed_grid(solver.grid, state.x, state.v, frame_dt, solver_cfg.boundary_cells)
+                if moving is not None:
+                    faces += solver.face_contacts
+                    resume, continued = _resumed(solver, state, volume, scene)
+                    solver.close()
+                    grid, moves = moving, moves + 1
+                    solver = make_solver(resume, [material], grid, continued, solver_cfg, device)
             k += 1
         faces += solver.face_contacts
     finally:
         solver.close()
-    return MPMRun(xs, Fs, substeps, rest_frame, k0, coasted, faces, coast_px)
+    return MPMRun(xs, Fs, substeps, rest_frame, k0, coasted, faces, coast_px, moves)

@@ -97,6 +97,10 @@ class GroundPlane:
     held_depth: nodes contact only: 0 holds the nodes at or below the plane (contact starts ~1.25
     cells up, bodies rest a cell high); ``SURFACE_DEPTH`` puts contact and the rest of light bodies
     at the plane but lets soft or heavy bodies sink (module docstring).
+    contact_height: the plane the particle contact pushes from, m; None (default): the ground's
+    height, lowered under a body that starts in it (``particle_ground.contact_plane``). A solver
+    rebuilt in the middle of a run is given its predecessor's, so a body resting on its springs
+    is not lowered again.
     """
 
     height: float = 0.0
@@ -107,6 +111,7 @@ class GroundPlane:
     stiffness: float = 1.0  # kappa of the particle contact (particle_ground)
     damping: float = 0.2  # zeta of the particle contact's normal dashpot (particle_ground)
     rest_damping: float = 0.5  # zeta of its resting dashpot on the grid (particle_ground)
+    contact_height: float | None = None  # m, the particle contact's plane; None: from the start
 
     def __post_init__(self) -> None:
         if self.contact is None:
@@ -129,6 +134,13 @@ class GroundPlane:
             )
         if not (math.isfinite(self.rest_damping) and self.rest_damping >= 0.0):
             raise ValueError(f"ground rest_damping={self.rest_damping!r} must be finite and >= 0; try 0.5")
+        if self.contact_height is not None and not (
+            math.isfinite(self.contact_height) and self.contact_height <= self.height
+        ):
+            raise ValueError(
+                f"ground contact_height={self.contact_height!r} must be finite and at most the ground's "
+                f"height {self.height} (the contact plane is only ever lowered); leave it None"
+            )
         if self.contact not in _CONTACTS:
             raise ValueError(f"ground contact {self.contact!r} unknown; use one of {', '.join(_CONTACTS)}")
         if self.contact == "particles" and (self.mode == "sticky" or self.held_depth > 0):

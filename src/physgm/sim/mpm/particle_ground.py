@@ -184,7 +184,10 @@ def contact_plane(ground: GroundPlane, x: np.ndarray, volume: np.ndarray) -> flo
     floor (``physgm.sim.scenes``: push, two_objects) would otherwise start with the springs
     compressed by half a spacing, which throws the body off the ground (a 10 cm wood block
     jumped 8 cm). Such a body rests with its lowest particles on the plane instead.
+    A ground whose ``contact_height`` is set keeps that plane.
     """
+    if ground.contact_height is not None:
+        return ground.contact_height
     half = 0.5 * np.cbrt(np.asarray(volume, dtype=np.float64))
     overlap = np.minimum(ground.height + half - np.asarray(x, dtype=np.float64)[:, 2], half)
     return ground.height - max(float(overlap.max()), 0.0)

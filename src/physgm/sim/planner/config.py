@@ -53,6 +53,9 @@ class PlannerConfig:
     # Flights after a bounce in closed form too (sim/coast.py), while the vibration they leave out
     # fits the bound left over by the plan's own predicted error.
     coast: bool = True
+    # The grid moves under a body that bounces or rolls out of the planned region (sim/mpm_run.py,
+    # followed_grid); False stops it at the grid's faces, with a warning.
+    follow: bool = True
     fit_grid: bool = True  # False: a fixed cube of domain_size on the ground (naive baseline)
     domain_size: float = 1.0  # m, only with fit_grid = False
 

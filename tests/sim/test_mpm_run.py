@@ -1,0 +1,97 @@
+"""``mpm_run``'s pieces on their own: the grid that follows a body (``followed_grid``) and the
+solver resumed under it (``_resumed``). ``simulate`` end to end: ``test_planner_run.py``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from physgm.sim.constitutive import MaterialParams
+from physgm.sim.mpm.boundary import GroundPlane
+from physgm.sim.mpm.grid import GridSpec
+from physgm.sim.mpm.scene import Scene
+from physgm.sim.mpm.solver import MPMSolver
+from physgm.sim.mpm.state import Particles
+from physgm.sim.mpm.stepping import SolverConfig
+from physgm.sim.mpm_run import _resumed, followed_grid
+
+DX = 0.02
+MARGIN = 3  # SolverConfig.boundary_cells
+FRAME = 0.04  # s
+
+
+def _block(centre_x: float, half: float = 0.05) -> np.ndarray:  # [P, 3] a block's particles, m
+    g = np.linspace(-half, half, 6)
+    pts = np.stack(np.meshgrid(g, g, g + half, indexing="ij"), -1).reshape(-1, 3)
+    return pts + np.array([centre_x, 0.0, 0.0])
+
+
+def test_the_grid_stays_while_the_body_is_clear_of_its_faces():
+    grid = GridSpec.fit((-0.3, -0.3, 0.0), (0.3, 0.3, 0.2), DX, MARGIN)
+    x = _block(0.0)
+    assert followed_grid(grid, x, np.zeros_like(x), FRAME, MARGIN) is None
+    # 1 m/s along x still leaves more than two frames' travel and a cell to the faces.
+    assert followed_grid(grid, x, np.tile([1.0, 0.0, 0.0], (len(x), 1)), FRAME, MARGIN) is None
+
+
+def test_the_grid_moves_by_whole_cells_to_centre_a_body_near_a_face():
+    grid = GridSpec.fit((-0.3, -0.3, 0.0), (0.3, 0.3, 0.2), DX, MARGIN)
+    x = _block(0.22)  # 3 cm of the free interior left on its +x side
+    v = np.tile([1.0, 0.0, 0.0], (len(x), 1))
+    moved = followed_grid(grid, x, v, FRAME, MARGIN)
+    assert moved is not None and moved.res == grid.res and moved.dx == grid.dx
+    shift = (np.asarray(moved.origin) - np.asarray(grid.origin)) / DX
+    assert np.allclose(shift, np.round(shift), atol=1e-6) and shift[0] > 0 and shift[1] == 0 == shift[2]
+    lo, hi = moved.interior(MARGIN + 1)
+    assert abs(0.5 * (lo[0] + hi[0]) - 0.22) <= 0.5 * DX + 1e-9  # centred to within half a cell
+    assert followed_grid(moved, x, v, FRAME, MARGIN) is None
+
+
+def test_the_grid_widens_where_the_body_and_its_reach_no_longer_fit():
+    grid = GridSpec.fit((-0.15, -0.1, 0.0), (0.15, 0.1, 0.2), DX, MARGIN)
+    x = _block(0.0, half=0.09)
+    v = np.tile([0.0, 2.0, 0.0], (len(x), 1))  # a frame's reach 2 x 2 x 0.04 + dx = 0.18 m along y
+    moved = followed_grid(grid, x, v, FRAME, MARGIN)
+    assert moved is not None and moved.res[0] == grid.res[0] and moved.res[2] == grid.res[2]
+    added = moved.res[1] - grid.res[1]
+    assert added > 0 and added % 2 == 0
+    lo, hi = moved.interior(MARGIN + 1)
+    assert lo[1] <= -0.09 - 0.18 and hi[1] >= 0.09 + 0.18
+    assert followed_grid(moved, x, v, FRAME, MARGIN) is None
+
+
+def test_a_resumed_solver_keeps_the_contact_plane_of_the_first():
+    """A soft block (E = 1e4 Pa) resting on the contact springs, its surface on the plane. A solver
+    started afresh from its state would lower the plane by the springs' compression (0.20 of a
+    spacing here, measured) and the block would sink by it at every rebuild; the solver that
+    continues a run (``_resumed``, as when the grid moves) keeps the first plane."""
+    sp = DX / 2
+    p = Particles.lattice((-0.04, -0.04, 0.0), (0.04, 0.04, 0.08), sp)
+    soft = MaterialParams("fixed_corotated", 1e4, 0.3, 1000.0)
+    grid = GridSpec.fit((-0.08, -0.08, 0.0), (0.08, 0.08, 0.1), DX)
+    scene = Scene(ground=GroundPlane(0.0, friction=0.3, contact="particles"))
+    cfg = SolverConfig(threads=1)
+    first = MPMSolver(p, [soft], grid, scene, cfg)
+    for _ in range(10):  # it settles on the springs
+        first.step_frame()
+    state = first.state()
+    resume, continued = _resumed(first, state, p.volume, scene)
+    plane = first.launches.contact_height
+    assert continued.ground.contact_height == plane == pytest.approx(0.0, abs=1e-6)
+    first.close()
+    afresh = MPMSolver(resume, [soft], grid, scene, cfg)
+    assert afresh.launches.contact_height < -0.15 * sp  # what it avoids
+    afresh.close()
+    solver = MPMSolver(resume, [soft], grid, continued, cfg)
+    assert solver.launches.contact_height == plane
+    low0 = float(state.x[:, 2].min())
+    for _ in range(5):
+        solver.step_frame()
+    low = float(solver.state().x[:, 2].min())
+    solver.close()
+    assert abs(low - low0) < 0.01 * sp  # measured 0.0008 of a spacing (afresh: 0.23)
+
+
+def test_a_contact_height_above_the_ground_is_refused():
+    with pytest.raises(ValueError, match="contact_height"):
+        GroundPlane(0.0, contact_height=0.01)
