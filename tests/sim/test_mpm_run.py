@@ -13,7 +13,7 @@ from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.solver import MPMSolver
 from physgm.sim.mpm.state import Particles
 from physgm.sim.mpm.stepping import SolverConfig
-from physgm.sim.mpm_run import _resumed, followed_grid
+from physgm.sim.mpm_run import _moved_grid, _resumed, followed_grid
 
 DX = 0.02
 MARGIN = 3  # SolverConfig.boundary_cells
@@ -58,6 +58,18 @@ def test_the_grid_widens_where_the_body_and_its_reach_no_longer_fit():
     lo, hi = moved.interior(MARGIN + 1)
     assert lo[1] <= -0.09 - 0.18 and hi[1] >= 0.09 + 0.18
     assert followed_grid(moved, x, v, FRAME, MARGIN) is None
+
+
+def test_a_grid_past_the_solvers_node_cap_is_not_moved_to():
+    grid = GridSpec.fit((-0.1, -0.1, 0.0), (0.1, 0.1, 0.2), DX, MARGIN)
+    x = _block(0.0, half=0.09)
+    v = np.tile([0.0, 2.0, 0.0], (len(x), 1))
+    wider = followed_grid(grid, x, v, FRAME, MARGIN)
+    assert wider is not None and wider.num_nodes > grid.num_nodes
+    roomy = SolverConfig(max_grid_nodes=wider.num_nodes)
+    assert _moved_grid(grid, x, v, FRAME, roomy) == wider
+    tight = SolverConfig(max_grid_nodes=wider.num_nodes - 1)
+    assert _moved_grid(grid, x, v, FRAME, tight) is None  # the walls stay, as without following
 
 
 def test_a_resumed_solver_keeps_the_contact_plane_of_the_first():

@@ -120,6 +120,14 @@ def followed_grid(
     return GridSpec(tuple(new_origin), dx, (int(nodes[0]), int(nodes[1]), int(res[2])))
 
 
+def _moved_grid(
+    grid: GridSpec, x: np.ndarray, v: np.ndarray, frame_dt: float, cfg: SolverConfig
+) -> GridSpec | None:
+    """``followed_grid`` within the solver's node cap (past it the faces' walls stay, as before)."""
+    moved = followed_grid(grid, x, v, frame_dt, cfg.boundary_cells)
+    return moved if moved is not None and moved.num_nodes <= cfg.max_grid_nodes else None
+
+
 def _can_follow(scene: Scene) -> bool:
     """The grid may move under the body: nothing in the scene is tied to its place or its time
     (velocity boxes keep a schedule a rebuilt solver would restart; walls and periods are the grid's)."""
@@ -235,8 +243,8 @@ def run_mpm(
                     C=flight.C,
                     plastic=state.plastic,
                 )
-                moving = followed_grid(grid, resume.x, resume.v, frame_dt, solver_cfg.boundary_cells)
-                if follow_ok and moving is not None:
+                moving = _moved_grid(grid, resume.x, resume.v, frame_dt, solver_cfg) if follow_ok else None
+                if moving is not None:
                     grid, moves = moving, moves + 1
                 solver = make_solver(resume, [material], grid, scene, solver_cfg, device)
                 coasted += flight.frames
@@ -244,7 +252,7 @@ def run_mpm(
                 k += flight.frames
                 moved = []
             elif follow_ok and k + 1 < T:
-                moving = followed_grid(solver.grid, state.x, state.v, frame_dt, solver_cfg.boundary_cells)
+                moving = _moved_grid(solver.grid, state.x, state.v, frame_dt, solver_cfg)
                 if moving is not None:
                     faces += solver.face_contacts
                     resume, continued = _resumed(solver, state, volume, scene)
