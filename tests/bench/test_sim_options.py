@@ -26,6 +26,8 @@ def test_cfl_rows_give_the_reference_step_and_a_halved_one():
     assert 1.8 <= half["substeps"] / ref["substeps"] <= 2.2
     assert 0.0 < half["error_px"] < 1.0
     assert half["error_px_worst_frame"] >= half["error_px"]
+    # every row says whether the planned grid held the drop (no face contact, no move)
+    assert all(r["face_contacts"] == r["grid_moves"] == 0 for r in (ref, same, half))
 
 
 def test_a_diverging_row_is_reported_not_raised(monkeypatch):

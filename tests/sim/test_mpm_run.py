@@ -30,7 +30,7 @@ def test_the_grid_stays_while_the_body_is_clear_of_its_faces():
     grid = GridSpec.fit((-0.3, -0.3, 0.0), (0.3, 0.3, 0.2), DX, MARGIN)
     x = _block(0.0)
     assert followed_grid(grid, x, np.zeros_like(x), FRAME, MARGIN) is None
-    # 1 m/s along x still leaves more than two frames' travel and a cell to the faces.
+    # 1 m/s along x: a frame's travel still ends inside the free interior.
     assert followed_grid(grid, x, np.tile([1.0, 0.0, 0.0], (len(x), 1)), FRAME, MARGIN) is None
 
 
@@ -50,13 +50,13 @@ def test_the_grid_moves_by_whole_cells_to_centre_a_body_near_a_face():
 def test_the_grid_widens_where_the_body_and_its_reach_no_longer_fit():
     grid = GridSpec.fit((-0.15, -0.1, 0.0), (0.15, 0.1, 0.2), DX, MARGIN)
     x = _block(0.0, half=0.09)
-    v = np.tile([0.0, 2.0, 0.0], (len(x), 1))  # a frame's reach 2 x 2 x 0.04 + dx = 0.18 m along y
+    v = np.tile([0.0, 2.0, 0.0], (len(x), 1))  # a frame's reach 2 x 0.04 = 0.08 m along y
     moved = followed_grid(grid, x, v, FRAME, MARGIN)
     assert moved is not None and moved.res[0] == grid.res[0] and moved.res[2] == grid.res[2]
     added = moved.res[1] - grid.res[1]
     assert added > 0 and added % 2 == 0
     lo, hi = moved.interior(MARGIN + 1)
-    assert lo[1] <= -0.09 - 0.18 and hi[1] >= 0.09 + 0.18
+    assert lo[1] <= -0.09 - 0.08 and hi[1] >= 0.09 + 0.08
     assert followed_grid(moved, x, v, FRAME, MARGIN) is None
 
 

@@ -136,6 +136,7 @@ def option_table(
             traj = run_prepared(prepared)
             row.update(seconds=traj.seconds, substeps=traj.substeps, rest_frame=traj.rest_frame)
             row.update(coasted_frames=traj.coasted_frames, coast_predicted_px=traj.coast_predicted_px)
+            row.update(face_contacts=traj.face_contacts, grid_moves=traj.grid_moves)
             if option == "explicit":
                 ref = traj
             row.update(errors_px(cameras, traj, ref))
@@ -192,6 +193,7 @@ def _solver_rows(
             continue
         row.update(seconds=traj.seconds, substeps=traj.substeps, rest_frame=traj.rest_frame)
         row.update(coasted_frames=traj.coasted_frames)
+        row.update(face_contacts=traj.face_contacts, grid_moves=traj.grid_moves)
         row.update(errors_px(cameras, traj, ref))
         rows.append(row)
         print(

@@ -128,6 +128,9 @@ def drop_scenes(bench: DropBench) -> list[dict]:
                 "ballistic_frames": traj.ballistic_frames,
                 "coasted_frames": traj.coasted_frames,
                 "rest_frame": traj.rest_frame,
+                # 0 and 0 when the planned grid held the drop; moves: the grid followed the body
+                "face_contacts": traj.face_contacts,
+                "grid_moves": traj.grid_moves,
                 "predicted_error_px": plan.predicted_error_px,
                 "seconds": traj.seconds,
             }

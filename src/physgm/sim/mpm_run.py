@@ -99,14 +99,15 @@ def followed_grid(
     longer fits, once the next frame could carry a particle into the faces' walls; None while the
     body stays clear of them.
 
-    "Could" is twice the fastest horizontal speed over a frame plus a cell (the stencil). The
-    moved grid centres the body with that reach on each side; its nodes keep their lattice, so the
-    body is discretised as before. z is left as planned: the ground below, the highest rise above.
+    "Could" is the fastest particle's horizontal speed kept for a frame (the free interior already
+    keeps a particle's stencil off the walls), so a body the planned grid holds does not move it.
+    The moved grid centres the body with that reach on each side; its nodes keep their lattice, so
+    the body is discretised as before. z is left as planned: the ground below, the highest rise above.
     """
     dx, origin, res = grid.dx, np.asarray(grid.origin, dtype=np.float64), np.asarray(grid.res)
     free_lo, free_hi = grid.interior(margin_cells + 1)
     lo, hi = x[:, :2].min(0), x[:, :2].max(0)
-    reach = 2.0 * np.abs(v[:, :2]).max(0) * frame_dt + dx
+    reach = np.abs(v[:, :2]).max(0) * frame_dt
     if np.all(lo - reach >= free_lo[:2]) and np.all(hi + reach <= free_hi[:2]):
         return None
     # Cells to add so the body and its reach fit the free interior, an even number (both sides).
