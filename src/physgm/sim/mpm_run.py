@@ -96,8 +96,8 @@ def followed_grid(
     margin_cells: int,  # the solver's ``boundary_cells``
 ) -> GridSpec | None:
     """``grid`` moved under the body by whole cells along x and y, and widened where the body no
-    longer fits, once the next frame could carry a particle into the faces' walls; None while the
-    body stays clear of them.
+    longer fits, once the next frame could carry a particle out of the grid's free interior,
+    towards the faces' walls; None while the body stays inside it.
 
     "Could" is the fastest particle's horizontal speed kept for a frame (the free interior already
     keeps a particle's stencil off the walls), so a body the planned grid holds does not move it.
