@@ -136,9 +136,9 @@ def _can_follow(scene: Scene) -> bool:
 
 
 def _resumed(solver, state, volume: np.ndarray, scene: Scene) -> tuple[Particles, Scene]:
-    """The particles and scene of a solver that continues ``solver``'s run from ``state``: the
-    contact plane stays where the first solver put it (a body resting on the contact springs
-    would otherwise lower it, ``GroundPlane.contact_height``)."""
+    """The particles and scene of a solver that continues ``solver``'s run from ``state`` (after a
+    coasted flight, or on a moved grid): the contact plane stays where the first solver put it (a
+    body resting on the contact springs would otherwise lower it, ``GroundPlane.contact_height``)."""
     resume = Particles(
         x=state.x, volume=volume, material=0, v=state.v, F=state.F, C=state.C, plastic=state.plastic
     )
@@ -233,33 +233,21 @@ def run_mpm(
             )  # fmt: skip
             if flight is not None:
                 xs[k + 1 : k + 1 + flight.frames], Fs[k + 1 : k + 1 + flight.frames] = flight.x, flight.F
-                faces += solver.face_contacts
-                solver.close()
-                resume = Particles(
-                    x=flight.x[-1],
-                    volume=volume,
-                    material=0,
-                    v=flight.v,
-                    F=flight.F[-1],
-                    C=flight.C,
-                    plastic=state.plastic,
-                )
-                moving = _moved_grid(grid, resume.x, resume.v, frame_dt, solver_cfg) if follow_ok else None
-                if moving is not None:
-                    grid, moves = moving, moves + 1
-                solver = make_solver(resume, [material], grid, scene, solver_cfg, device)
+                state = replace(state, x=flight.x[-1], v=flight.v, F=flight.F[-1], C=flight.C)
                 coasted += flight.frames
                 coast_px = max(coast_px, flight.predicted_px)
                 k += flight.frames
                 moved = []
-            elif follow_ok and k + 1 < T:
-                moving = _moved_grid(solver.grid, state.x, state.v, frame_dt, solver_cfg)
+            follows = follow_ok and k + 1 < T
+            moving = _moved_grid(solver.grid, state.x, state.v, frame_dt, solver_cfg) if follows else None
+            if flight is not None or moving is not None:  # a new solver continues from ``state``
+                faces += solver.face_contacts
+                grid = solver.grid
                 if moving is not None:
-                    faces += solver.face_contacts
-                    resume, continued = _resumed(solver, state, volume, scene)
-                    solver.close()
                     grid, moves = moving, moves + 1
-                    solver = make_solver(resume, [material], grid, continued, solver_cfg, device)
+                resume, continued = _resumed(solver, state, volume, scene)
+                solver.close()
+                solver = make_solver(resume, [material], grid, continued, solver_cfg, device)
             k += 1
         faces += solver.face_contacts
     finally:
