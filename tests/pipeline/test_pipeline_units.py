@@ -113,6 +113,31 @@ def test_framing_camera_fits_the_box(az, el, margin):
     np.testing.assert_allclose(centre / np.linalg.norm(centre), ref, atol=1e-5)
 
 
+def test_the_clip_region_grows_to_hold_a_body_that_left_the_planned_one():
+    """The output camera's region: unchanged while a run stays inside the planned region, grown to
+    the middle 98 % of the particles of a body that leaves it, and not pulled out by 1 % of strays."""
+    from physgm.pipeline.staging import clip_region
+
+    rng = np.random.default_rng(0)
+    lo, hi = np.array([-0.2, -0.2, 0.0]), np.array([0.2, 0.2, 0.6])
+    body = rng.uniform(-0.05, 0.05, (1000, 3)) + np.array([0.0, 0.0, 0.1])  # [P, 3] m, a 10 cm cube
+    inside = np.stack([body + np.array([0.0, 0.0, 0.02 * t]) for t in range(10)])  # rises 18 cm
+    same_lo, same_hi = clip_region(lo, hi, [inside])
+    assert np.array_equal(same_lo, lo) and np.array_equal(same_hi, hi)
+    # Rolls 1 m along +x: the region reaches the body's last frame, at most its whole extent.
+    rolled = np.stack([body + np.array([0.1 * t, 0.0, 0.0]) for t in range(11)])
+    grown_lo, grown_hi = clip_region(lo, hi, [inside, rolled])
+    assert np.array_equal(grown_lo, lo)
+    assert 1.0 + 0.04 < grown_hi[0] <= 1.0 + 0.05
+    assert np.array_equal(grown_hi[1:], hi[1:])
+    # 1 % of the particles splashed 5 m away leave it as it was.
+    splashed = np.repeat(body[None], 5, axis=0)
+    splashed[:, :10, 0] += np.linspace(0.0, 5.0, 5)[:, None]
+    assert np.array_equal(clip_region(lo, hi, [splashed])[1], hi)
+    with pytest.raises(ValueError, match="share"):
+        clip_region(lo, hi, [inside], share=0.0)
+
+
 def test_place_object_scales_centres_and_ignores_strays():
     from physgm.gaussians import Gaussians
     from physgm.pipeline.staging import place_object

@@ -215,6 +215,7 @@ def _execute(cfg: RunConfig) -> RunResult:
     from physgm.pipeline.physics_choice import choose_physics, physics_json
     from physgm.pipeline.prepared_input import input_kind, prepare_input
     from physgm.pipeline.staging import (
+        clip_region,
         direction,
         floor_image,
         framing_camera,
@@ -252,25 +253,37 @@ def _execute(cfg: RunConfig) -> RunResult:
         scene = scene.facing(direction(az, el), rest_hi - rest_lo)
         lo, hi = motion_region(rest_lo, rest_hi, cfg.scene, scene.settings)
         res = cfg.output.resolution
+        # The planner measures its pixel errors in this camera, framed on the planned motion.
         camera = framing_camera(lo, hi, az, el, cfg.camera.fov_deg, res, res, cfg.camera.margin)
+        sec["model"] = time.perf_counter() - t0
+        # -- per future: plan and simulate ---------------------------------------------------
+        sims = []
+        for choice in runs:
+            traj, plan_s, sim_s = _simulate(
+                placement.gaussians, choice, cfg, planner, camera, scene.overrides
+            )
+            sims.append((choice, traj, plan_s, sim_s))
+        # -- the output camera: the planned region, grown to what the runs did -----------------
+        t0 = time.perf_counter()
+        view_lo, view_hi = clip_region(lo, hi, [traj.x for _, traj, _, _ in sims])
+        reframed = bool((view_lo < lo).any() or (view_hi > hi).any())
+        if reframed:  # wider only, so every error the planner bounded is as small or smaller here
+            camera = framing_camera(view_lo, view_hi, az, el, cfg.camera.fov_deg, res, res, cfg.camera.margin)
         bg = np.broadcast_to(np.asarray(cfg.output.background, np.float32), (res, res, 3)).copy()
         if cfg.output.floor and ground is not None:
             bg = floor_image(camera, ground, cfg.size_m / 4, np.asarray(cfg.output.background))
         shot = Shot(
             camera, instantiate({"_target_": "physgm.render.Renderer", **cfg.renderer}), bg, cfg.device
         )
-        sec["model"] = time.perf_counter() - t0
-        # -- per future: plan, simulate, render, write the video ---------------------------------
+        frame_s = time.perf_counter() - t0
+        # -- per future: render, write the video ---------------------------------------------
         results, videos, sheet_rows, rest_state = [], {}, [], None
-        for choice in runs:
-            traj, plan_s, sim_s = _simulate(
-                placement.gaussians, choice, cfg, planner, camera, scene.overrides
-            )
+        for choice, traj, plan_s, sim_s in sims:
             t0 = time.perf_counter()
             desc = f"{choice.name} ({traj.plan.mode})"
             frames, finite = render_trajectory(traj, shot, cfg.output.progress, desc)
             finite = finite and bool(np.isfinite(traj.x).all() and np.isfinite(traj.F).all())
-            render_s = time.perf_counter() - t0
+            render_s = time.perf_counter() - t0 + frame_s / len(sims)
             if not finite:
                 raise RuntimeError(
                     f"run {choice.label()} produced non-finite positions or pixels; nothing was written"
@@ -314,7 +327,19 @@ def _execute(cfg: RunConfig) -> RunResult:
         sec["total"] = time.perf_counter() - start
         report = plain_json(
             _report(
-                cfg, inp, ckpt_info, scene.settings, placement, camera, az, el, sec, results, g, min_opacity
+                cfg,
+                inp,
+                ckpt_info,
+                scene.settings,
+                placement,
+                camera,
+                reframed,
+                az,
+                el,
+                sec,
+                results,
+                g,
+                min_opacity,
             )
         )
         write_json(tmp / "report.json", report)
@@ -350,7 +375,9 @@ def _plain_config(cfg: RunConfig) -> dict:
     return {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items()}
 
 
-def _report(cfg, inp, ckpt_info, scene_cfg, placement, camera, az, el, sec, results, g, min_opacity) -> dict:
+def _report(
+    cfg, inp, ckpt_info, scene_cfg, placement, camera, reframed, az, el, sec, results, g, min_opacity
+) -> dict:
     mean = results[0]
     eye = camera.c2w[0, :3, 3].double().numpy()
     return {
@@ -375,7 +402,15 @@ def _report(cfg, inp, ckpt_info, scene_cfg, placement, camera, az, el, sec, resu
             "gaussians_with_mass": int((g.opacities >= min_opacity).sum()),
             "object_to_world": placement.object_to_world,
         },
-        "camera": {"azimuth_deg": az, "elevation_deg": el, "fov_deg": cfg.camera.fov_deg, "eye_m": eye},
+        "camera": {
+            "azimuth_deg": az,
+            "elevation_deg": el,
+            "fov_deg": cfg.camera.fov_deg,
+            "eye_m": eye,
+            # True: a run left the planned motion region and the camera was moved back to show it
+            # (``staging.clip_region``); the runs' px_per_m and pixel errors are the planning camera's
+            "reframed": reframed,
+        },
         "seconds": {k: round(v, 3) for k, v in sec.items()},
         "mode": mean.mode,
         "predicted_error_px": mean.predicted_error_px,

@@ -20,6 +20,7 @@ from physgm.gaussians import Gaussians
 from physgm.placement import Placement, place
 
 OUTLIER_QUANTILE = 0.001  # the extent ignores this share of stray Gaussians on each side
+CLIP_SHARE = 0.98  # the output camera keeps this share of a run's particles in view (``clip_region``)
 
 
 def place_object(g: Gaussians, size_m: float, ground: float, min_opacity: float) -> Placement:
@@ -79,6 +80,27 @@ REGIONS: dict[str, Callable[[np.ndarray, np.ndarray, dict], Region]] = {
     "stretch": _stretch_region,
     "push": _push_region,
 }
+
+
+def clip_region(
+    lo: np.ndarray, hi: np.ndarray, positions: list[np.ndarray], share: float = CLIP_SHARE
+) -> Region:
+    """``lo``..``hi`` grown to hold what the simulations did: in every frame of every run, the middle
+    ``share`` of its particles along each axis (``positions``: one [T, P, 3] array per run, m).
+
+    The camera is framed on the region a scene's motion was planned in before anything ran; a body
+    that bounces or rolls out of it (a ball, on the grid that follows it) would leave the frame.
+    Framed on this region instead, it stays in view, while a few splashed particles cannot pull the
+    camera far out. A region the runs stayed inside comes back unchanged (so does the camera)."""
+    if not 0.0 < share <= 1.0:
+        raise ValueError(f"share={share!r} must be in (0, 1]")
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    q = (1.0 - share) / 2.0
+    for x in positions:
+        low, high = np.quantile(np.asarray(x, np.float64), [q, 1.0 - q], axis=1)  # [T, 3] each
+        lo = np.minimum(lo, low.min(0))
+        hi = np.maximum(hi, high.max(0))
+    return lo, hi
 
 
 def opaque_bounds(g: Gaussians, min_opacity: float) -> Region:
