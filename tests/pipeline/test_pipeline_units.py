@@ -138,6 +138,18 @@ def test_the_clip_region_grows_to_hold_a_body_that_left_the_planned_one():
         clip_region(lo, hi, [inside], share=0.0)
 
 
+def test_box_in_view_tells_a_box_the_frame_holds():
+    from physgm.pipeline.staging import box_in_view, framing_camera
+
+    lo, hi = np.array([-0.1, -0.1, 0.0]), np.array([0.1, 0.1, 0.3])
+    cam = framing_camera(lo, hi, 0.0, 10.0, 34.0, 64, 64, 1.15)  # on +x, looking back at the box
+    assert box_in_view(cam, lo, hi)
+    assert box_in_view(cam, lo, hi + np.array([0.0, 0.01, 0.0]))  # inside the 15 % margin
+    assert not box_in_view(cam, lo, hi + np.array([0.0, 0.2, 0.0]))  # out across the view
+    eye = cam.c2w[0, :3, 3].double().numpy()
+    assert not box_in_view(cam, lo, np.maximum(hi, eye + 0.1))  # reaches behind the camera
+
+
 def test_place_object_scales_centres_and_ignores_strays():
     from physgm.gaussians import Gaussians
     from physgm.pipeline.staging import place_object

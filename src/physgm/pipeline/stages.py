@@ -215,6 +215,7 @@ def _execute(cfg: RunConfig) -> RunResult:
     from physgm.pipeline.physics_choice import choose_physics, physics_json
     from physgm.pipeline.prepared_input import input_kind, prepare_input
     from physgm.pipeline.staging import (
+        box_in_view,
         clip_region,
         direction,
         floor_image,
@@ -266,8 +267,10 @@ def _execute(cfg: RunConfig) -> RunResult:
         # -- the output camera: the planned region, grown to what the runs did -----------------
         t0 = time.perf_counter()
         view_lo, view_hi = clip_region(lo, hi, [traj.x for _, traj, _, _ in sims])
-        reframed = bool((view_lo < lo).any() or (view_hi > hi).any())
-        if reframed:  # wider only, so every error the planner bounded is as small or smaller here
+        # A body that left the planned region, and the frame with it: widen the camera (never narrow
+        # it, so every error the planner bounded is as small or smaller in the clip).
+        reframed = not box_in_view(camera, view_lo, view_hi)
+        if reframed:
             camera = framing_camera(view_lo, view_hi, az, el, cfg.camera.fov_deg, res, res, cfg.camera.margin)
         bg = np.broadcast_to(np.asarray(cfg.output.background, np.float32), (res, res, 3)).copy()
         if cfg.output.floor and ground is not None:

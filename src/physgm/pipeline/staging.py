@@ -91,7 +91,8 @@ def clip_region(
     The camera is framed on the region a scene's motion was planned in before anything ran; a body
     that bounces or rolls out of it (a ball, on the grid that follows it) would leave the frame.
     Framed on this region instead, it stays in view, while a few splashed particles cannot pull the
-    camera far out. A region the runs stayed inside comes back unchanged (so does the camera)."""
+    camera far out. A region the runs stayed inside comes back unchanged; the pipeline reframes only
+    when the grown one leaves the planned camera's image (``box_in_view``)."""
     if not 0.0 < share <= 1.0:
         raise ValueError(f"share={share!r} must be in (0, 1]")
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
@@ -101,6 +102,18 @@ def clip_region(
         lo = np.minimum(lo, low.min(0))
         hi = np.maximum(hi, high.max(0))
     return lo, hi
+
+
+def box_in_view(camera: Cameras, lo: np.ndarray, hi: np.ndarray) -> bool:
+    """Every corner of the box ``lo``..``hi`` (m) in front of ``camera`` and inside its image."""
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    vm = camera.viewmats[0].double().numpy()
+    p = corners @ vm[:3, :3].T + vm[:3, 3]
+    if not bool((p[:, 2] > 0.0).all()):
+        return False
+    uvw = p @ camera.Ks[0].double().numpy().T
+    u, v = uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2]
+    return bool(((u >= 0.0) & (u <= camera.width) & (v >= 0.0) & (v <= camera.height)).all())
 
 
 def opaque_bounds(g: Gaussians, min_opacity: float) -> Region:
