@@ -46,6 +46,7 @@ from physgm.sim.constitutive.dispatch import update_for
 from physgm.sim.linalg import is_finite
 from physgm.sim.mpm.boundary import BoxStruct, GroundStruct, box_velocity, ground_grip, ground_velocity
 from physgm.sim.mpm.particle_ground import fold_ground_force, particle_ground_force, touches_ground
+from physgm.sim.mpm.pressure_kernels import add_cell_terms
 from physgm.sim.mpm.stencil_sums import gather_moments, scatter_affine, vec8
 from physgm.sim.mpm.substep_params import SubstepParams
 from physgm.warp_runtime import FAST_CPU_FLAGS
@@ -361,20 +362,43 @@ def moment_matrix(bi: vec8, bj: vec8, bk: vec8, c: int) -> wp.mat33:
     return wp.mat33(bi[c], bj[c], bk[c], bi[c + 1], bj[c + 1], bk[c + 1], bi[c + 2], bj[c + 2], bk[c + 2])
 
 
-def g2p_kernel(models: Iterable[int]) -> wp.Kernel:
+@wp.func
+def no_cell_terms(
+    xp: wp.vec3,
+    jm1: float,
+    vol0: float,
+    model: int,
+    lam: float,
+    origin: wp.vec3,
+    dx: float,
+    slot: int,
+    cell_s: wp.array3d(dtype=float),
+    cell_k: wp.array3d(dtype=float),
+    box: wp.array2d(dtype=wp.int32),
+):
+    """``pressure_kernels.add_cell_terms`` for a solver without the pressure split: nothing."""
+    pass
+
+
+def g2p_kernel(models: Iterable[int], pressure: bool = False) -> wp.Kernel:
     """g2p for particles of the given constitutive model ids, compiled on first use.
 
     With one model the return mapping is that model's alone (``dispatch.UPDATES``), which the
     compiler can inline: a sub-step up to 13 % cheaper than through ``constitutive_update``'s switch
     over every model (docs/measurements_sim.md section 22). Several models take the switch. Each
     variant is a Warp module of its own, so a run compiles only the ones it uses.
+
+    ``pressure``: each particle also adds its volume terms to the cells for the next sub-step's
+    pressure solve (``pressure_kernels.add_cell_terms``), from the position and F it has just
+    computed, instead of a pass of its own over the particles reading them back.
     """
-    return _g2p_kernel(tuple(sorted(set(models))))
+    return _g2p_kernel(tuple(sorted(set(models))), bool(pressure))
 
 
 @functools.cache
-def _g2p_kernel(models: tuple[int, ...]) -> wp.Kernel:
+def _g2p_kernel(models: tuple[int, ...], pressure: bool) -> wp.Kernel:
     update = update_for(models)
+    cell_terms = add_cell_terms if pressure else no_cell_terms
 
     @wp.kernel(module="unique", module_options=MODULE_OPTIONS)
     def g2p(
@@ -410,6 +434,10 @@ def _g2p_kernel(models: tuple[int, ...]) -> wp.Kernel:
         pending: wp.array2d(dtype=wp.float64),  # [2, 4] out: ground force on the particles, N
         touched: wp.array3d(dtype=wp.int32),  # [bx, by, bz] out: blocks reached by the next scatter
         acc: wp.array(dtype=vec8),  # [G] flat, out: this thread's scatter for the next sub-step
+        cell_lam: wp.array(dtype=float),  # [M] the full materials' lam, Pa (``pressure`` only)
+        cell_s: wp.array3d(dtype=float),  # out (added to), this thread's volume sums (``pressure`` only)
+        cell_k: wp.array3d(dtype=float),
+        cell_box: wp.array2d(dtype=wp.int32),  # [threads, 6] out (min / max): the cells reached
     ):
         p = wp.tid() + offset
         sp = params[slot]
@@ -476,7 +504,8 @@ def _g2p_kernel(models: tuple[int, ...]) -> wp.Kernel:
             if x_new[a] < active_lo[a] or x_new[a] > active_hi[a]:
                 wp.atomic_add(stats, slot, STAT_OVERRUN, 1.0)
                 break
-        J = 1.0 + det_minus_one(H_new)
+        jm1 = det_minus_one(H_new)
+        J = 1.0 + jm1
         # One finiteness test: a NaN or inf anywhere in the new state propagates into this sum.
         check = wp.dot(x_new + v_new, wp.vec3(1.0)) + J + wp.ddot(tau, wp.mat33(1.0))
         if not is_finite(check):
@@ -497,6 +526,19 @@ def _g2p_kernel(models: tuple[int, ...]) -> wp.Kernel:
             tau_v = vol0[p] * tau
             scatter_particle(
                 acc, x_new, v_new, c_new, tau_v, mass[p], origin, dx, shape, touched, stamp, fg, cg
+            )
+            cell_terms(
+                x_new,
+                jm1,
+                vol0[p],
+                mat.model,
+                cell_lam[material[p]],
+                origin,
+                dx,
+                slot,
+                cell_s,
+                cell_k,
+                cell_box,
             )
         x[p] = x_new
         v[p] = v_new

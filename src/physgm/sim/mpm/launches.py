@@ -87,10 +87,12 @@ class SubstepLaunches:
         self._graphs: dict[int, list[wp.Graph]] = {}  # per thread, captured runs of n sub-steps
         self.replayed = 0  # sub-steps run from a graph so far
         self.scattered = False  # the accumulators hold the current particles' scatter
-        # An integrator's own recorded launches (``set_grid_stage``), one per thread before the grid
-        # update and one per thread after it.
-        self.pre_grid: list = []
+        # An integrator's own recorded launches (``set_grid_stage``), one per thread with a fresh
+        # scatter and one per thread after each grid update; ``on_invalidate``: what it clears
+        # when the particle state is replaced.
+        self.fresh: list = []
         self.post_grid: list = []
+        self.on_invalidate: list = []
 
     def _record(
         self, ps: ParticleStore, g: GridSpec, scene: Scene, cfg: SolverConfig, threads: int, dev
@@ -118,8 +120,8 @@ class SubstepLaunches:
         self._box_launches = []
         self._box_stamp = None  # the stamp the sub-steps had after the replay that wrote ``box``
         ensure_loaded(K.p2g, dev)  # p2g and grid_update live in one module
-        g2p = K.g2p_kernel(MODELS[m.model].id for m in ps.materials)
-        ensure_loaded(g2p, dev)
+        self._models = [MODELS[m.model].id for m in ps.materials]
+        self._g2p_args: list[tuple[int, list]] = []  # per thread: particles, arguments before the cells'
         for t in range(threads):
             p0, count = split[t], split[t + 1] - split[t]
             self._box_launches.append(
@@ -156,9 +158,8 @@ class SubstepLaunches:
                     record_cmd=True,
                 )
             )
-            self.g2p.append(
-                wp.launch(
-                    g2p,
+            self._g2p_args.append(
+                (
                     count,
                     [
                         a.grid_v.flatten(),
@@ -192,10 +193,11 @@ class SubstepLaunches:
                         a.touched,
                         a.acc[t].flatten(),
                     ],
-                    device=dev,
-                    record_cmd=True,
                 )
             )
+        # Without the pressure split g2p adds no volume terms; its cell arguments are placeholders.
+        cells = wp.zeros((1, 1, 1), dtype=float, device=dev)
+        self._record_g2p(False, wp.zeros(1, dtype=float, device=dev), [cells] * threads, [cells] * threads)
 
         # Coulomb friction on the node layer at the surface (surface_friction), after the whole
         # grid update.
@@ -254,24 +256,51 @@ class SubstepLaunches:
                 args = [self._meeting, t, LIMIT_CYCLES, YIELD_AFTER_CYCLES]
                 self._barrier.append(wp.launch(barrier, 1, args, device=dev, record_cmd=True))
 
-    def set_grid_stage(self, pre: list, post: list) -> None:
-        """Recorded launches each sub-step runs, in Python and in its graphs, one per thread in
-        each list: ``pre`` beside the grid update (on the thread's particle slice), ``post`` after
-        the whole grid update and before g2p, the threads' side by side (they may meet at barriers
-        of their own). The pressure integrator's gather and solve (``pressure.py``). Set before
-        the first sub-step: graphs captured earlier would not contain them."""
-        for name, launches in (("pre", pre), ("post", post)):
+    def _record_g2p(
+        self, pressure: bool, cell_lam: wp.array, cell_s: list, cell_k: list, cell_box=None
+    ) -> None:
+        """(Re-)record the g2p launches: with ``pressure``, the variant that also adds the particles'
+        volume terms to the cells (``kernels.g2p_kernel``), each thread to its own arrays."""
+        g2p = K.g2p_kernel(self._models, pressure)
+        ensure_loaded(g2p, self.device)
+        if cell_box is None:
+            cell_box = wp.zeros((len(self._g2p_args), 6), dtype=wp.int32, device=self.device)
+        self.g2p = [
+            wp.launch(
+                g2p,
+                count,
+                args + [cell_lam, cell_s[t], cell_k[t], cell_box],
+                device=self.device,
+                record_cmd=True,
+            )
+            for t, (count, args) in enumerate(self._g2p_args)
+        ]
+
+    def set_grid_stage(self, fresh: list, post: list, cells: tuple | None = None) -> None:
+        """An integrator's recorded launches, one per thread in each list: ``fresh`` after p2g, on
+        the thread's particle slice, whenever the particles are scattered afresh (g2p does its work
+        otherwise), and ``post`` in every sub-step, in Python and in its graphs, after the whole grid
+        update and before g2p, the threads' side by side (they may meet at barriers of their own).
+        ``cells`` = (lam per material, per-thread cell sums s, per-thread k, the box rows): g2p adds
+        the particles' volume terms to them. The pressure integrator's gather, solve and cells
+        (``pressure.py``). Set before the first sub-step: graphs captured earlier would not
+        contain them."""
+        for name, launches in (("fresh", fresh), ("post-grid", post)):
             if len(launches) not in (0, len(self.g2p)):
-                raise ValueError(f"one {name}-grid launch per thread ({len(self.g2p)}), got {len(launches)}")
+                raise ValueError(f"one {name} launch per thread ({len(self.g2p)}), got {len(launches)}")
         if self._graphs:
             raise RuntimeError("set_grid_stage after a graph was captured; set it before stepping")
-        self.pre_grid, self.post_grid = list(pre), list(post)
+        self.fresh, self.post_grid = list(fresh), list(post)
+        if cells is not None:
+            self._record_g2p(True, *cells)
 
     def invalidate(self) -> None:
         """The particle state was replaced: clear the accumulators, scatter afresh next sub-step."""
         for acc in self.arrays.acc:
             acc.zero_()
         self.arrays.pending.zero_()
+        for clear in self.on_invalidate:
+            clear()
         self.scattered = False
         self._box_stamp = None
 
@@ -334,15 +363,12 @@ class SubstepLaunches:
         self._stamp += count
 
     def run(self, worker, between, before=None) -> None:
-        """One sub-step: [p2g,] ``before()`` (periodic folds), grid_update, ``between()`` (grid
-        hooks), g2p (which scatters)."""
+        """One sub-step: [p2g, fresh,] ``before()`` (periodic folds), grid_update, [post-grid,]
+        ``between()`` (grid hooks), g2p (which scatters)."""
         self._sync()
-        if not self.scattered:
-            _launch_halves(self.p2g, worker)
+        self._scatter_afresh(worker)
         if before is not None:
             before()
-        if self.pre_grid:
-            _launch_halves(self.pre_grid, worker)
         _launch_halves(self.grid_update, worker)
         if self.friction is not None:
             self.friction.launch()
@@ -363,8 +389,7 @@ class SubstepLaunches:
         if len(self.g2p) == 2 and worker is None:
             raise ValueError("run_graph with two threads needs the worker that replays the second half")
         self._sync()
-        if not self.scattered:
-            _launch_halves(self.p2g, worker)
+        self._scatter_afresh(worker)
         # A count is replayed as its binary digits (13 = 8 + 4 + 1), each from a graph of that
         # length: a capture costs about a millisecond per sub-step recorded, so a graph per count
         # (the frame tails take every length below cfl_check_every) would cost more than it saves.
@@ -382,6 +407,13 @@ class SubstepLaunches:
         self.scattered = True
         self._box_stamp = self._stamp
 
+    def _scatter_afresh(self, worker) -> None:
+        """p2g and the integrator's fresh launches, unless the last g2p scattered these particles."""
+        if not self.scattered:
+            _launch_halves(self.p2g, worker)
+            if self.fresh:
+                _launch_halves(self.fresh, worker)
+
     @property
     def meeting(self) -> wp.array | None:
         """The two threads' barrier state (``spin_barrier``); None with one thread."""
@@ -395,17 +427,14 @@ class SubstepLaunches:
             )
 
     def _capture(self, count: int, slot: int):
-        """The launches of ``count`` sub-steps for thread ``slot``. One thread: [pre-grid,]
-        grid_update, friction, [post-grid,] g2p, clock. Two: each thread runs its pre-grid launch
-        and updates its part of the grid (the first all of it when there is surface friction),
-        and both meet after it, after their post-grid launches and after their halves of g2p;
-        each moves its own row of the clock on."""
+        """The launches of ``count`` sub-steps for thread ``slot``. One thread: grid_update,
+        friction, [post-grid,] g2p, clock. Two: each thread updates its part of the grid (the
+        first all of it when there is surface friction), and both meet after it, after their
+        post-grid launches and after their halves of g2p; each moves its own row of the clock on."""
         pair = len(self.g2p) == 2
         wp.capture_begin(device=self.device)
         try:
             for _ in range(count):
-                if self.pre_grid:
-                    self.pre_grid[slot].launch()
                 if slot < len(self.grid_update):
                     self.grid_update[slot].launch()
                 if slot == 0 and self.friction is not None:

@@ -28,8 +28,9 @@ symmetric positive definite, solved for the correction v - v* by Jacobi-precondi
 conjugate gradients over the nodes of the box of cells the particles reach (every product is a
 pass over cells and nodes, not particles), started from the last two sub-steps' corrections
 extrapolated linearly, and stopped at an rms velocity residual of
-``SolverConfig.pressure_tolerance``. Particles then move and deform with v in the unchanged g2p,
-and their new J gives the next sub-step's s and K: backward Euler on the pressure alone, which
+``SolverConfig.pressure_tolerance``. Particles then move and deform with v in g2p, which adds
+their new J's terms to the cells as it goes: the next sub-step's s and K (a pass of its own,
+``gather_cells``, does it only after a fresh scatter). Backward Euler on the pressure alone, which
 damps the volume waves the step does not resolve and leaves the shear's explicit step as it was.
 Both stages are recorded launches inside the sub-step, so the sub-steps still replay from graphs;
 the solve is one serial launch (the CPU's way of running any launch; on a GPU it is correct but
@@ -104,10 +105,12 @@ class PressureCounters:
 
 class PressureStep:
     """The grid stage of the pressure split (module docstring): each thread's particles add their
-    volume terms to the cells (``pressure_kernels.gather_cells``, before the grid update), then
-    each thread solves its half of the grid's layers for the node velocities, the two meeting at
-    a barrier between passes (``pressure_kernels.solve``, after the grid update). All are recorded
-    launches that ``SubstepLaunches`` runs inside every sub-step and its graphs."""
+    volume terms to the cells, in g2p for the next sub-step (``kernels.g2p_kernel(...,
+    pressure=True)``) or, after a fresh scatter, in a pass of their own
+    (``pressure_kernels.gather_cells``), then each thread solves its half of the grid's layers for
+    the node velocities, the two meeting at a barrier between passes (``pressure_kernels.solve``,
+    after the grid update). All are recorded launches that ``SubstepLaunches`` runs; the solve is
+    inside every sub-step and its graphs."""
 
     def __init__(self, solver: MPMSolver, materials: wp.array) -> None:
         dev, res, g, ps = solver.device, solver.grid.res, solver.grid, solver.particles
@@ -115,8 +118,8 @@ class PressureStep:
         self.cell_s = [wp.zeros(res, dtype=float, device=dev) for _ in range(threads)]
         self.cell_k = [wp.zeros(res, dtype=float, device=dev) for _ in range(threads)]
         none = wp.zeros((1, 1, 1), dtype=float, device=dev)  # one thread: no second sums
-        empty = [PK.BOX_EMPTY] * 3 + [-PK.BOX_EMPTY] * 3
-        self.box = wp.array(np.tile(empty, (threads, 1)), dtype=wp.int32, device=dev)
+        self._empty = np.tile([PK.BOX_EMPTY] * 3 + [-PK.BOX_EMPTY] * 3, (threads, 1)).astype(np.int32)
+        self.box = wp.array(self._empty, dtype=wp.int32, device=dev)
         self.t, self.mass, self.diag = (wp.zeros(res, dtype=float, device=dev) for _ in range(3))
         vectors = (wp.zeros(res, dtype=wp.vec3, device=dev) for _ in range(6))
         self.d, self.r, self.z, self.p, self.q, self.w = vectors
@@ -158,6 +161,16 @@ class PressureStep:
             for slot in range(threads)
         ]
 
+        # What g2p adds its particles' volume terms to (``SubstepLaunches.set_grid_stage``).
+        lam = wp.array([m.lam for m in solver.materials], dtype=float, device=dev)
+        self.cells = (lam, self.cell_s, self.cell_k, self.box)
+
+    def clear(self) -> None:
+        """Drop the sums the last g2p left: the particle state they came from was replaced."""
+        for a in (*self.cell_s, *self.cell_k):
+            a.zero_()
+        self.box.assign(self._empty)
+
     def counters(self) -> PressureCounters:
         return PressureCounters(*(int(x) for x in self.stats.numpy()))
 
@@ -194,6 +207,7 @@ class PressureSplitMPMSolver(MPMSolver):
             device=self.device,
         )
         self.pressure = PressureStep(self, self.energy_table)
-        self.launches.set_grid_stage(self.pressure.gathers, self.pressure.solves)
+        self.launches.set_grid_stage(self.pressure.gathers, self.pressure.solves, self.pressure.cells)
+        self.launches.on_invalidate.append(self.pressure.clear)
         self._c_max = step_wave_speed(shear, self.scene.ground, particles, self.grid.dx)
         self._fit_active(self.stable_dt())

@@ -62,6 +62,47 @@ def volume_terms(model: int, jm1: float, lam: float) -> wp.vec2:
     return wp.vec2(tau, wp.max(k, 0.0))
 
 
+@wp.func
+def add_cell_terms(
+    xp: wp.vec3,  # m
+    jm1: float,  # J - 1
+    vol0: float,  # m^3
+    model: int,
+    lam: float,  # Pa, the full material's
+    origin: wp.vec3,
+    dx: float,
+    slot: int,
+    cell_s: wp.array3d(dtype=float),
+    cell_k: wp.array3d(dtype=float),
+    box: wp.array2d(dtype=wp.int32),
+):
+    """One particle's volume terms to the 8 cells whose centres surround it, with trilinear
+    weights w, so the sums change smoothly as particles move between cells (with each particle in
+    its own cell alone, a particle crossing a face moved its whole pressure to the next cell, and
+    a 16-cell rubber drop blew up: docs/measurements_sim.md section 29), and the cells to the box
+    of this thread's row."""
+    rel = (xp - origin) / dx - wp.vec3(0.5)
+    i0 = int(wp.floor(rel[0]))
+    j0 = int(wp.floor(rel[1]))
+    k0 = int(wp.floor(rel[2]))
+    f = rel - wp.vec3(float(i0), float(j0), float(k0))
+    terms = vol0 * volume_terms(model, jm1, lam)
+    for a in range(2):
+        wa = wp.where(a == 0, 1.0 - f[0], f[0])
+        for b in range(2):
+            wb = wa * wp.where(b == 0, 1.0 - f[1], f[1])
+            for e in range(2):
+                w = wb * wp.where(e == 0, 1.0 - f[2], f[2])
+                wp.atomic_add(cell_s, i0 + a, j0 + b, k0 + e, w * terms[0])
+                wp.atomic_add(cell_k, i0 + a, j0 + b, k0 + e, w * terms[1])
+    wp.atomic_min(box, slot, 0, i0)
+    wp.atomic_min(box, slot, 1, j0)
+    wp.atomic_min(box, slot, 2, k0)
+    wp.atomic_max(box, slot, 3, i0 + 1)
+    wp.atomic_max(box, slot, 4, j0 + 1)
+    wp.atomic_max(box, slot, 5, k0 + 1)
+
+
 @wp.kernel
 def gather_cells(
     x: wp.array(dtype=wp.vec3),  # [P] m
@@ -77,33 +118,14 @@ def gather_cells(
     cell_k: wp.array3d(dtype=float),  # out (accumulated), this thread's: sum w V0 J^2 phi'', N m
     box: wp.array2d(dtype=wp.int32),  # [threads, 6] out (min / max): the cells reached, lo xyz, hi xyz
 ):
-    """Each particle's volume terms to the 8 cells whose centres surround it, with trilinear
-    weights w, so the sums change smoothly as particles move between cells (with each particle in
-    its own cell alone, a particle crossing a face moved its whole pressure to the next cell, and
-    a 16-cell rubber drop blew up: docs/measurements_sim.md section 29). Each CPU thread sums its
-    particles into arrays of its own; the solve adds them."""
+    """Each particle's volume terms to its cells (``add_cell_terms``), for a particle state the
+    last g2p did not produce (the first sub-step, a retried frame); g2p adds them otherwise. Each
+    CPU thread sums its particles into arrays of its own; the solve adds them."""
     p = wp.tid() + offset
-    rel = (x[p] - origin) / dx - wp.vec3(0.5)
-    i0 = int(wp.floor(rel[0]))
-    j0 = int(wp.floor(rel[1]))
-    k0 = int(wp.floor(rel[2]))
-    f = rel - wp.vec3(float(i0), float(j0), float(k0))
     mat = materials[material[p]]
-    terms = vol0[p] * volume_terms(mat.model, det_minus_one(H[p]), mat.lam)
-    for a in range(2):
-        wa = wp.where(a == 0, 1.0 - f[0], f[0])
-        for b in range(2):
-            wb = wa * wp.where(b == 0, 1.0 - f[1], f[1])
-            for e in range(2):
-                w = wb * wp.where(e == 0, 1.0 - f[2], f[2])
-                wp.atomic_add(cell_s, i0 + a, j0 + b, k0 + e, w * terms[0])
-                wp.atomic_add(cell_k, i0 + a, j0 + b, k0 + e, w * terms[1])
-    wp.atomic_min(box, slot, 0, i0)
-    wp.atomic_min(box, slot, 1, j0)
-    wp.atomic_min(box, slot, 2, k0)
-    wp.atomic_max(box, slot, 3, i0 + 1)
-    wp.atomic_max(box, slot, 4, j0 + 1)
-    wp.atomic_max(box, slot, 5, k0 + 1)
+    add_cell_terms(
+        x[p], det_minus_one(H[p]), vol0[p], mat.model, mat.lam, origin, dx, slot, cell_s, cell_k, box
+    )
 
 
 @wp.func
