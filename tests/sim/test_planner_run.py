@@ -362,6 +362,28 @@ def test_the_plan_follows_the_pressure_integrator():
     assert traj.substeps == pytest.approx(4 * plan.substeps_per_frame, rel=0.1)
 
 
+def test_the_plan_follows_the_implicit_integrator():
+    """Under ``solver.integrator=implicit`` the sub-step is ``implicit_dt`` for a slow body, so the plan
+    predicts those sub-steps, and caps neither E nor the bulk modulus (no cap would save a step). The
+    soft rubber cube at rest, which the explicit plan caps."""
+    gs = _shell_cube(2000, side=0.1, bottom=0.0)
+    physics = PhysicsSpec("rubber", E=2e5, nu=0.48)
+    planner = PlannerConfig(allow_rigid=False, cells_across=6)
+    explicit = prepare_simulation(gs, physics, GROUND, CAMERAS, 4, planner).plan
+    implicit = SolverConfig(integrator="implicit", implicit_dt=0.01)
+    traj = simulate(gs, physics, GROUND, CAMERAS, n_frames=4, planner=planner, solver=implicit)
+    plan = traj.plan
+    assert (explicit.E_used, explicit.nu_used) != (2e5, pytest.approx(0.48))  # the explicit plan caps
+    assert (plan.E_used, plan.nu_used, plan.predicted_error_px) == (2e5, pytest.approx(0.48), 0.0)
+    assert "implicit integrator" in plan.reason and "capped" not in plan.reason
+    # A frame of 1 / 25 s in steps of at most 10 ms, fewer as the speed the plan allows for grows
+    # (6: it counts the half-spacing fall of a body set on the ground), a tenth of explicit's ...
+    assert 4 <= plan.substeps_per_frame <= 6 and plan.substeps_per_frame < explicit.substeps_per_frame / 10
+    # ... and what the solver took over the 3 simulated frames lies between the step at rest and the
+    # prediction (measured: 14).
+    assert 3 * 4 <= traj.substeps <= 3 * plan.substeps_per_frame
+
+
 def test_the_grid_follows_a_body_that_leaves_the_planned_region():
     """A jelly cube slides across a frictionless floor at 1.5 m/s on a grid planned for a third of
     the way. The grid moves under it by whole cells, on the planned grid's own lattice, so the cube

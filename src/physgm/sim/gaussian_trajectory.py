@@ -257,6 +257,7 @@ def prepare_simulation(
         spacing,
         cfg,
         solver_cfg.integrator,
+        solver_cfg.implicit_dt,
     )
     return PreparedSimulation(
         plan,

@@ -24,7 +24,8 @@ chooses, in order of cost:
 Under the pressure integrator (``solver.integrator=pressure``, ``physgm.sim.mpm.pressure``) the
 explicit step follows the material's shear part, so the sub-steps are predicted from it and the
 bulk cap is not offered: the grid takes the volume term implicitly, and a cap would add its error
-for no step.
+for no step. Under the implicit integrator (``solver.integrator=implicit``, ``physgm.sim.mpm.implicit``)
+the sub-steps are its own (``implicit_dt``, shorter when the body is fast) and neither cap is offered.
 
 Modules, in the order a reader needs them:
     config.py       ``PlannerConfig``, the knobs (conf/sim/planner/default.yaml)

@@ -64,6 +64,7 @@ def plan_simulation(
     particle_spacing: float,
     config: PlannerConfig | None = None,
     integrator: str = "explicit",
+    implicit_dt: float = 0.01,
 ) -> Plan:
     """Choose rigid / MPM with capped E / MPM, fit the grid and set early stop; see module doc.
 
@@ -74,10 +75,16 @@ def plan_simulation(
         integrator: the MPM solver's (``SolverConfig.integrator``). With ``"pressure"`` the
             explicit step follows the material's shear part (``mpm.pressure.shear_part``): the
             sub-steps are predicted from it, and the bulk cap, which would only soften the volume
-            term the grid takes implicitly, is not offered.
+            term the grid takes implicitly, is not offered. With ``"implicit"``
+            (``mpm.implicit``) the sub-step is ``implicit_dt`` (s) while the body is slow and the
+            advective limit cfl dx / |v|max when it is fast, and neither cap is offered: neither
+            would save a step.
     """
     cfg = config or PlannerConfig()
     pressure = integrator == "pressure"
+    implicit = integrator == "implicit"
+    if implicit and not implicit_dt > 0.0:
+        raise ValueError(f"implicit_dt={implicit_dt!r} s must be > 0")
 
     def stepped(m: MaterialParams) -> MaterialParams:
         """The material whose P-wave sets the explicit step under ``integrator``."""
@@ -120,7 +127,11 @@ def plan_simulation(
 
     g_lo, g_hi, grid_dx = grid_region(cfg, material, x, v0, volume, scene, duration, dx, ground)
     n_nodes = int(np.prod(np.ceil((g_hi - g_lo) / grid_dx) + 9))  # + boundary margins of GridSpec.fit
-    steps = {"mpm": substeps_per_frame(grid_dx, [stepped(material)], v_max, cfg.cfl, frame_dt)}
+    if implicit:  # the solver's rule: dt = cfl dx / (c + |v|max), c giving implicit_dt at rest
+        implicit_step = cfg.cfl * grid_dx / (cfg.cfl * grid_dx / implicit_dt + v_max)
+        steps = {"mpm": max(1, math.ceil(frame_dt / implicit_step - 1e-9))}
+    else:
+        steps = {"mpm": substeps_per_frame(grid_dx, [stepped(material)], v_max, cfg.cfl, frame_dt)}
     steps["rigid"] = max(1, math.ceil(frame_dt / cfg.rigid_dt - 1e-9))
     P = len(pts)
     cost = {"mpm": float((n_frames - 1) * steps["mpm"] * P), "rigid": float((n_frames - 1) * steps["rigid"])}
@@ -193,13 +204,13 @@ def plan_simulation(
     dent = impacts and not elastic_impact  # it lands and yields: no rebound (bulk_cap.dent_px)
     cap_impacts = cfg.cap_elastic_impacts or cfg.force_caps
     driven = box_speed > 0.0 and not cfg.force_caps
-    caps_E = cfg.allow_stiffness_cap and (cap_impacts or not elastic_impact) and not driven
+    caps_E = cfg.allow_stiffness_cap and (cap_impacts or not elastic_impact) and not driven and not implicit
     size_px = size * px_per_m
 
     def with_bulk_cap(share: float) -> _Choice:
         """Full stiffness, or the bulk cap within ``share`` px if it saves min_cap_gain."""
         full = _Choice(material, steps["mpm"])
-        if not cfg.allow_bulk_cap or flows or driven or pressure:
+        if not cfg.allow_bulk_cap or flows or driven or pressure or implicit:
             return full
 
         def deformation_px(modulus: float) -> float:
@@ -261,7 +272,9 @@ def plan_simulation(
         choice = with_bulk_cap(cfg.bound_px)
     if pressure:
         choice.notes.append("the pressure integrator: the volume term implicit on the grid, no bulk cap")
-    if driven and (cfg.allow_stiffness_cap or cfg.allow_bulk_cap):
+    if implicit:
+        choice.notes.append(f"the implicit integrator: steps of up to {implicit_dt:.3g} s, no caps")
+    elif driven and (cfg.allow_stiffness_cap or cfg.allow_bulk_cap):
         choice.notes.append("E and nu not capped (moving boxes drive the body: no error model holds)")
     elif cfg.allow_stiffness_cap and not caps_E:
         choice.notes.append(
