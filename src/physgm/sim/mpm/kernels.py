@@ -362,24 +362,6 @@ def moment_matrix(bi: vec8, bj: vec8, bk: vec8, c: int) -> wp.mat33:
     return wp.mat33(bi[c], bj[c], bk[c], bi[c + 1], bj[c + 1], bk[c + 1], bi[c + 2], bj[c + 2], bk[c + 2])
 
 
-@wp.func
-def no_cell_terms(
-    xp: wp.vec3,
-    jm1: float,
-    vol0: float,
-    model: int,
-    lam: float,
-    origin: wp.vec3,
-    dx: float,
-    slot: int,
-    cell_s: wp.array3d(dtype=float),
-    cell_k: wp.array3d(dtype=float),
-    box: wp.array2d(dtype=wp.int32),
-):
-    """``pressure_kernels.add_cell_terms`` for a solver without the pressure split: nothing."""
-    pass
-
-
 def g2p_kernel(models: Iterable[int], pressure: bool = False) -> wp.Kernel:
     """g2p for particles of the given constitutive model ids, compiled on first use.
 
@@ -398,7 +380,6 @@ def g2p_kernel(models: Iterable[int], pressure: bool = False) -> wp.Kernel:
 @functools.cache
 def _g2p_kernel(models: tuple[int, ...], pressure: bool) -> wp.Kernel:
     update = update_for(models)
-    cell_terms = add_cell_terms if pressure else no_cell_terms
 
     @wp.kernel(module="unique", module_options=MODULE_OPTIONS)
     def g2p(
@@ -527,19 +508,11 @@ def _g2p_kernel(models: tuple[int, ...], pressure: bool) -> wp.Kernel:
             scatter_particle(
                 acc, x_new, v_new, c_new, tau_v, mass[p], origin, dx, shape, touched, stamp, fg, cg
             )
-            cell_terms(
-                x_new,
-                jm1,
-                vol0[p],
-                mat.model,
-                cell_lam[material[p]],
-                origin,
-                dx,
-                slot,
-                cell_s,
-                cell_k,
-                cell_box,
-            )
+            if wp.static(pressure):  # compiled in only for the pressure split
+                lam = cell_lam[material[p]]
+                add_cell_terms(
+                    x_new, jm1, vol0[p], mat.model, lam, origin, dx, slot, cell_s, cell_k, cell_box
+                )
         x[p] = x_new
         v[p] = v_new
         C[p] = c_new
