@@ -28,6 +28,9 @@ def video_frames(path) -> int:
 def check_run_folder(run, report, n_videos: int = 1) -> None:
     from physgm.gaussians import read_ply
 
+    cam = report["camera"]  # the planning camera's scale unless a run left its view
+    assert cam["px_per_m"] > 0 and (cam["px_per_m"] == cam["px_per_m_planned"]) != cam["reframed"]
+
     names = {p.name for p in run.iterdir()}
     assert {
         "video.mp4",

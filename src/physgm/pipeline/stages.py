@@ -270,6 +270,7 @@ def _execute(cfg: RunConfig) -> RunResult:
         # A body that left the planned region, and the frame with it: widen the camera (never narrow
         # it, so every error the planner bounded is as small or smaller in the clip).
         reframed = not box_in_view(camera, view_lo, view_hi)
+        planning_camera = camera
         if reframed:
             camera = framing_camera(view_lo, view_hi, az, el, cfg.camera.fov_deg, res, res, cfg.camera.margin)
         bg = np.broadcast_to(np.asarray(cfg.output.background, np.float32), (res, res, 3)).copy()
@@ -336,6 +337,7 @@ def _execute(cfg: RunConfig) -> RunResult:
                 scene.settings,
                 placement,
                 camera,
+                planning_camera,
                 reframed,
                 az,
                 el,
@@ -379,10 +381,14 @@ def _plain_config(cfg: RunConfig) -> dict:
 
 
 def _report(
-    cfg, inp, ckpt_info, scene_cfg, placement, camera, reframed, az, el, sec, results, g, min_opacity
-) -> dict:
+    cfg, inp, ckpt_info, scene_cfg, placement, camera, planning_camera, reframed, az, el, sec, results, g,
+    min_opacity,
+) -> dict:  # fmt: skip
+    from physgm.sim.planner.deformation import pixels_per_metre
+
     mean = results[0]
     eye = camera.c2w[0, :3, 3].double().numpy()
+    rest = placement.gaussians.means[placement.gaussians.opacities >= min_opacity]
     return {
         "input": {"kind": inp.kind, **inp.info},
         "checkpoint": ckpt_info,
@@ -413,6 +419,9 @@ def _report(
             # True: a run left the planned motion region and the camera was moved back to show it
             # (``staging.clip_region``); the runs' px_per_m and pixel errors are the planning camera's
             "reframed": reframed,
+            # the object at rest, px per m, in this camera and in the one the planner measured in
+            "px_per_m": pixels_per_metre(camera, rest),
+            "px_per_m_planned": pixels_per_metre(planning_camera, rest),
         },
         "seconds": {k: round(v, 3) for k, v in sec.items()},
         "mode": mean.mode,
