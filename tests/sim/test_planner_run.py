@@ -355,7 +355,10 @@ def test_the_plan_follows_the_pressure_integrator():
     plan = traj.plan
     assert explicit.nu_used < 0.45  # the explicit plan caps the bulk modulus
     assert (plan.E_used, plan.nu_used, plan.predicted_error_px) == (2e5, pytest.approx(0.48), 0.0)
-    assert "pressure integrator" in plan.reason
+    assert "pressure integrator" in plan.reason and "rebounds lower" not in plan.reason  # it rests
+    # Dropped, the same cube lands elastically, and the plan says what the split does to its rebound.
+    dropped = prepare_simulation(_shell_cube(2000, side=0.1), physics, GROUND, CAMERAS, 5, planner, split)
+    assert "rebounds lower than explicit's" in dropped.plan.reason
     # sqrt((lam + 2 mu) / 2 mu) = 3.6 fewer sub-steps than the uncapped explicit step, as predicted ...
     assert plan.substeps_per_frame < uncapped.substeps_per_frame / 3.3
     # ... and as taken (the cube rests, so |v| adds little to the step's wave speed).
