@@ -40,7 +40,7 @@ from physgm.sim.mpm.implicit_newton import ImplicitStep, NewtonSettings
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.solver import MPMSolver
 from physgm.sim.mpm.state import Particles
-from physgm.sim.mpm.stepping import SolverConfig
+from physgm.sim.mpm.stepping import SolverConfig, implicit_step_speed
 from physgm.warp_runtime import ensure_loaded
 
 # Models whose stress is the gradient of their ``energy`` with no return mapping and no reset of
@@ -100,9 +100,8 @@ class ImplicitMPMSolver(MPMSolver):
         self.implicit = ImplicitStep(self, self.config.implicit_theta, settings or NewtonSettings())
         self.hooks.append(self.implicit)
         ensure_loaded(IK.clear_stress_channels, self.device)
-        # The CFL rule dt = cfl dx / (c + |v|max) with the speed c that gives implicit_dt at rest:
-        # the sub-step is implicit_dt for a slow body and the advective limit for a fast one.
-        self._c_max = self.config.cfl * self.grid.dx / self.config.implicit_dt
+        # The sub-step is implicit_dt for a slow body and the advective limit for a fast one.
+        self._c_max = implicit_step_speed(self.config.cfl, self.grid.dx, self.config.implicit_dt)
         self._fit_active(self.stable_dt())
 
     def substep(self, dt: float) -> None:

@@ -116,13 +116,33 @@ def step_wave_speed(materials: Sequence[MaterialParams], ground, particles, dx: 
     return max(wave_speed(materials), spring)
 
 
-def cfl_dt(dx: float, materials: Sequence[MaterialParams], vmax: float = 0.0, cfl: float = 0.4) -> float:
-    """CFL step dt = cfl dx / (c_p + |v|max), s."""
-    return cfl * dx / (wave_speed(materials) + max(vmax, 0.0))
+def cfl_dt(
+    dx: float,
+    materials: Sequence[MaterialParams],
+    vmax: float = 0.0,
+    cfl: float = 0.4,
+    speed: float | None = None,
+) -> float:
+    """CFL step dt = cfl dx / (c + |v|max), s: c is the materials' P-wave speed, or ``speed`` (m/s)
+    when given (``implicit_step_speed``)."""
+    c = wave_speed(materials) if speed is None else speed
+    return cfl * dx / (c + max(vmax, 0.0))
+
+
+def implicit_step_speed(cfl: float, dx: float, implicit_dt: float) -> float:
+    """The implicit integrator's speed c in the CFL rule dt = cfl dx / (c + |v|max): the one that
+    gives ``implicit_dt`` at rest, so a fast body takes the advective limit instead, m/s."""
+    return cfl * dx / implicit_dt
 
 
 def substeps_per_frame(
-    dx: float, materials: Sequence[MaterialParams], vmax: float, cfl: float, frame_dt: float
+    dx: float,
+    materials: Sequence[MaterialParams],
+    vmax: float,
+    cfl: float,
+    frame_dt: float,
+    speed: float | None = None,
 ) -> int:
-    """Sub-steps the solver will take for one frame at speed ``vmax`` (for cost planning)."""
-    return max(1, math.ceil(frame_dt / cfl_dt(dx, materials, vmax, cfl) - 1e-9))
+    """Sub-steps the solver will take for one frame at speed ``vmax`` (for cost planning); ``speed``
+    as in ``cfl_dt``."""
+    return max(1, math.ceil(frame_dt / cfl_dt(dx, materials, vmax, cfl, speed) - 1e-9))

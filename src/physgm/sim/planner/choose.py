@@ -17,7 +17,7 @@ from physgm.sim.bulk_cap import choose_bulk_cap, rebound_px, wave_shift_px
 from physgm.sim.constitutive import MODELS, MaterialParams
 from physgm.sim.mpm.pressure import shear_part
 from physgm.sim.mpm.scene import Scene
-from physgm.sim.mpm.stepping import substeps_per_frame
+from physgm.sim.mpm.stepping import implicit_step_speed, substeps_per_frame
 from physgm.sim.planner.config import PlannerConfig
 from physgm.sim.planner.deformation import (
     STIFFNESS_DENT_GAIN,
@@ -127,11 +127,8 @@ def plan_simulation(
 
     g_lo, g_hi, grid_dx = grid_region(cfg, material, x, v0, volume, scene, duration, dx, ground)
     n_nodes = int(np.prod(np.ceil((g_hi - g_lo) / grid_dx) + 9))  # + boundary margins of GridSpec.fit
-    if implicit:  # the solver's rule: dt = cfl dx / (c + |v|max), c giving implicit_dt at rest
-        implicit_step = cfg.cfl * grid_dx / (cfg.cfl * grid_dx / implicit_dt + v_max)
-        steps = {"mpm": max(1, math.ceil(frame_dt / implicit_step - 1e-9))}
-    else:
-        steps = {"mpm": substeps_per_frame(grid_dx, [stepped(material)], v_max, cfg.cfl, frame_dt)}
+    speed = implicit_step_speed(cfg.cfl, grid_dx, implicit_dt) if implicit else None
+    steps = {"mpm": substeps_per_frame(grid_dx, [stepped(material)], v_max, cfg.cfl, frame_dt, speed)}
     steps["rigid"] = max(1, math.ceil(frame_dt / cfg.rigid_dt - 1e-9))
     P = len(pts)
     cost = {"mpm": float((n_frames - 1) * steps["mpm"] * P), "rigid": float((n_frames - 1) * steps["rigid"])}
