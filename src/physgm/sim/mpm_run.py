@@ -129,9 +129,10 @@ def _moved_grid(
     return moved if moved is not None and moved.num_nodes <= cfg.max_grid_nodes else None
 
 
-def _can_follow(scene: Scene) -> bool:
-    """The grid may move under the body: nothing in the scene is tied to its place or its time
-    (velocity boxes keep a schedule a rebuilt solver would restart; walls and periods are the grid's)."""
+def _unbound(scene: Scene) -> bool:
+    """Nothing in the scene is tied to the grid's place or the solver's time, so a solver may be
+    rebuilt elsewhere mid-run (after a coasted flight, on a moved grid): velocity boxes keep a
+    schedule a rebuilt solver would restart; side walls and periodic axes are the grid's."""
     return not (scene.boxes or scene.walls or scene.periodic)
 
 
@@ -151,12 +152,7 @@ def _resumed(solver, state, volume: np.ndarray, scene: Scene) -> tuple[Particles
 def _can_coast(scene: Scene, budget_px: float) -> bool:
     """Flights may be coasted: there is a pixel budget and only gravity and the ground act
     (nothing prescribed, no walls, no drag)."""
-    return (
-        budget_px > 0.0
-        and scene.ground is not None
-        and not (scene.boxes or scene.walls or scene.periodic)
-        and scene.damping == 0.0
-    )
+    return budget_px > 0.0 and scene.ground is not None and _unbound(scene) and scene.damping == 0.0
 
 
 def run_mpm(
@@ -197,7 +193,7 @@ def run_mpm(
     particles = Particles(x=xs[k0 - 1], volume=volume, material=0, v=v0 + g * t0)
     solver = make_solver(particles, [material], grid, scene, solver_cfg, device)
     coast_ok = _can_coast(scene, coast_budget_px)
-    follow_ok = follow and _can_follow(scene)
+    follow_ok = follow and _unbound(scene)
     substeps, moved, rest_frame, coasted, faces, coast_px, moves = 0, [], None, 0, 0, 0.0, 0
     try:
         k = k0
