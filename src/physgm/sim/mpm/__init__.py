@@ -61,17 +61,23 @@ cohesion=0, viscosity=0)``                          (``physgm.sim.constitutive``
     guard), boundary_cells, threads (0 = auto: 2 CPU threads from 500 particles, from 2k when it
     steps in Python), cfl_check_every, graphs (replay runs of sub-steps from captured launch graphs,
     one per thread), sort_every, max_substeps;
-    integrator "explicit" | "implicit", implicit_dt 0.01 s, implicit_theta 1.0 (the implicit
-    step's settings, below).
+    integrator "explicit" | "pressure" | "implicit"; pressure_tolerance, pressure_max_iterations
+    (the pressure split's solve); implicit_dt 0.01 s, implicit_theta 1.0 (the implicit step's
+    settings, below).
     ``SolverConfig.load("default")`` reads the YAML.
 
 ``make_solver(particles, materials, grid, scene=None, config=None, device="cpu")`` (integrators.py)
     The solver class of ``config.integrator`` from the ``INTEGRATORS`` registry: ``MPMSolver``
-    (explicit) or ``ImplicitMPMSolver`` (implicit.py: elastic models fixed_corotated and
-    neo_hookean, gravity and a ground plane only, else a ValueError; sub-step implicit_dt while
-    slow and cfl dx / |v|max when fast; Newton on the incremental potential, theta method with
-    1 = backward Euler, 0.5 = implicit midpoint; ``solver.implicit.log`` one ``SolveStats`` per
-    sub-step). docs/measurements_sim.md section 10 measures it against the explicit step.
+    (explicit); ``PressureSplitMPMSolver`` (pressure.py: the elastic models fixed_corotated and
+    neo_hookean with the first Lame parameter's volume term taken implicitly on the grid, a
+    conjugate-gradient solve inside every sub-step, so the explicit step follows the shear part's
+    wave: fewer sub-steps for nearly incompressible bodies; gravity and a ground with contact on
+    the particles only, else a ValueError; ``solver.pressure.counters()``; docs/measurements_sim.md
+    sections 29-31); or ``ImplicitMPMSolver`` (implicit.py: the same two models, gravity and a
+    ground plane only, else a ValueError; sub-step implicit_dt while slow and cfl dx / |v|max when
+    fast; Newton on the incremental potential, theta method with 1 = backward Euler, 0.5 = implicit
+    midpoint; ``solver.implicit.log`` one ``SolveStats`` per sub-step; docs/measurements_sim.md
+    section 10).
 
 ``MPMSolver(particles, materials, grid, scene=None, config=None, device="cpu")``  (solver.py)
     Allocates every array once, then only launches kernels.
@@ -106,18 +112,21 @@ predict the cost of a run before building a solver (for the planner).
 
 Design notes (why the code looks the way it does)
 -------------------------------------------------
-* Three fused kernels per sub-step (kernels.py): p2g (stress + APIC), grid_update, g2p (gather,
-  F update, return mapping, stress, advection, clamp, statistics), recorded once and replayed
-  (launches.py). On the CPU, particles are split over two threads (a launch releases the GIL),
-  each p2g thread with its own accumulator grid, and each thread updates half the grid;
-  particles are re-sorted by cell every frame. g2p is compiled per set of constitutive models
-  (``kernels.g2p_kernel``): a one-material scene runs its model's return mapping inlined.
+* Two fused kernels per sub-step (kernels.py): grid_update, then g2p, which gathers the node
+  velocities, updates F, runs the return mapping and the stress, moves the particle, clamps it,
+  adds to the statistics, and scatters its mass, momentum and stress for the next sub-step.
+  p2g (the same scatter from the stored state) runs only when the state is fresh: the first
+  sub-step, a retried frame, new velocities. All are recorded once and replayed (launches.py).
+  On the CPU, particles are split over two threads (a launch releases the GIL), each scattering
+  into its own accumulator grid, and each thread updates half the grid; particles are re-sorted
+  by cell every frame. g2p is compiled per set of constitutive models (``kernels.g2p_kernel``):
+  a one-material scene runs its model's return mapping inlined.
 * dt, time, the block stamp and the active box live in a device array, one row per CPU thread
-  (substep_params.py), so the launches never change: with one thread (small scenes, any CUDA
-  run) and no hooks, side walls or observers, each run of ``cfl_check_every`` sub-steps, and
-  a frame's shorter tail as its binary pieces (8 + 4 + 1), is replayed from launch graphs
-  captured once (``wp.capture_begin``; Warp replays CPU graphs in C++), bit-identical to
-  stepping in Python.
+  (substep_params.py), so the launches never change: without hooks, side walls, periodic axes or
+  observers, each run of ``cfl_check_every`` sub-steps, and a frame's shorter tail as its binary
+  pieces (8 + 4 + 1), is replayed from launch graphs captured once per thread
+  (``wp.capture_begin``; Warp replays CPU graphs in C++; two threads meet at spin barriers inside
+  them, spin_barrier.py), bit-identical to stepping in Python.
 * grid_update only covers the active box around the particles (re-fitted every
   ``cfl_check_every`` steps); a particle that outruns it is flagged and the frame retried.
 * The deformation state is H = F - I and every constitutive model works in H (b - I, det F - 1,
@@ -132,8 +141,12 @@ Design notes (why the code looks the way it does)
   sim-verify); the stiffness sweep: python -m physgm.bench sim-stability.
 """
 
+from physgm.sim.constitutive import MaterialParams
 from physgm.sim.mpm.boundary import GroundPlane, VelocityBox
 from physgm.sim.mpm.grid import GridSpec
+from physgm.sim.mpm.implicit import ImplicitMPMSolver
+from physgm.sim.mpm.integrators import INTEGRATORS, make_solver
+from physgm.sim.mpm.pressure import PressureSplitMPMSolver
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.solver import GridHook, MPMSolver, run_solver
 from physgm.sim.mpm.state import Energy, FrameStats, Particles, ParticleState, Trajectory
@@ -146,10 +159,14 @@ __all__ = [
     "GridHook",
     "GridSpec",
     "GroundPlane",
+    "INTEGRATORS",
+    "ImplicitMPMSolver",
     "MPMSolver",
+    "MaterialParams",
     "ParticleState",
     "Particles",
     "PeriodicAxis",
+    "PressureSplitMPMSolver",
     "Scene",
     "SideWall",
     "SimulationDiverged",
@@ -157,6 +174,7 @@ __all__ = [
     "Trajectory",
     "VelocityBox",
     "cfl_dt",
+    "make_solver",
     "run_solver",
     "substeps_per_frame",
     "wave_speed",
