@@ -95,6 +95,22 @@ def test_granular_never_rigid_even_when_stiff(name):
     assert _plan(MaterialParams("fixed_corotated", E=1e12, nu=0.3, density=400.0), name).mode == "mpm"
 
 
+@pytest.mark.parametrize("name", ["sand", "snow"])
+def test_a_flowing_material_keeps_its_stiffness(name):
+    # A granular cube set on the ground collapses: how far it runs out follows E, so no cap. Before
+    # this, the planner capped sand (3.5e5 -> 1.9e5 Pa) predicting 0.25 px, and the collapse ended
+    # 1.31 px from the full-stiffness run (docs/measurements_sim.md section 32).
+    granular = MaterialParams("drucker_prager", E=3.5e5, nu=0.3, density=1600.0, friction_angle=35.0)
+    resting = _plan(granular, name, bottom=0.0)
+    assert resting.mode == "mpm" and resting.E_used == granular.E and resting.nu_used == granular.nu
+    assert resting.predicted_error_px == 0.0 and "a flow" in resting.reason
+    # The same stiffness in a solid that springs back is capped at rest (its estimate holds there).
+    solid = MaterialParams("fixed_corotated", E=3.5e5, nu=0.3, density=1600.0)
+    assert _plan(solid, "custom", bottom=0.0, allow_rigid=False, allow_bulk_cap=False).E_used < solid.E
+    dropped = _plan(granular, name)
+    assert dropped.E_used == granular.E and "a flow" in dropped.reason
+
+
 def test_prescribed_motion_is_never_rigid():
     grip = VelocityBox(lo=(-0.1, -0.1, 0.58), hi=(0.1, 0.1, 0.7), velocity=(0.0, 0.0, 0.1))
     plan = _plan(STEEL, "metal", scene=Scene(ground=GroundPlane(), boxes=(grip,)))

@@ -12,8 +12,9 @@ chooses, in order of cost:
    c_p ~ sqrt(E / rho), so a stiff object costs many sub-steps. The cap is the smallest E' whose
    *extra* deformation over the true E stays under (a share of) the bound; E' = min(E, cap) is
    simulated and reported. Not after an elastic impact, whose rebound depends on E, nor for a
-   body that moving boxes drive; after a landing that dents only as far as the dent's own term
-   allows (``deformation.STIFFNESS_DENT_GAIN``; see the comment in ``plan_simulation``).
+   body that moving boxes drive, nor for a granular or fluid material, whose runout depends on E;
+   after a landing that dents only as far as the dent's own term allows
+   (``deformation.STIFFNESS_DENT_GAIN``; see the comment in ``plan_simulation``).
    Before it, a **bulk cap** (``physgm.sim.bulk_cap``) lowers only the bulk modulus of a nearly
    incompressible solid (rubber, jelly, plasticine) so its P-wave is at most ``bulk_wave_ratio``
    times its shear wave, within its own share of the bound (that one also counts the rebound of an

@@ -195,13 +195,23 @@ def plan_simulation(
     # ringing when the grips stop follows E (docs/measurements_sim.md section 20).
     # (A body resting on the ground, its lowest particles half a spacing up, does not impact; nor
     # does one a cell up: the grid does not resolve the gap, and sqrt(2 g dx) is a tap.)
+    # Nor is a material that flows: how far a granular body runs out follows E, which the
+    # deformation estimate does not see. A 15 cm cube of sand set on the ground and left to
+    # collapse (256 px, 50 frames), capped from 3.5e5 to 1.9e5 Pa with 0.25 px predicted, ended
+    # 1.31 px from the full-stiffness run on average; dropped from 0.5 m, E 5 % lower moved it
+    # 0.72 px (docs/measurements_sim.md section 32).
     falls = ground is not None and float(lo[2]) - ground > dx
     impacts = falls or v_throw > 0.0
     elastic_impact = impacts and deform.plastic * px_per_m <= cfg.bound_px
     dent = impacts and not elastic_impact  # it lands and yields: no rebound (bulk_cap.dent_px)
     cap_impacts = cfg.cap_elastic_impacts or cfg.force_caps
     driven = box_speed > 0.0 and not cfg.force_caps
-    caps_E = cfg.allow_stiffness_cap and (cap_impacts or not elastic_impact) and not driven and not implicit
+    runs_out = flows and not cfg.force_caps
+    caps_E = (
+        cfg.allow_stiffness_cap
+        and (cap_impacts or not elastic_impact)
+        and not (driven or runs_out or implicit)
+    )
     size_px = size * px_per_m
 
     def with_bulk_cap(share: float) -> _Choice:
@@ -278,6 +288,8 @@ def plan_simulation(
         choice.notes.append(f"the implicit integrator: steps of up to {implicit_dt:.3g} s, no caps")
     elif driven and (cfg.allow_stiffness_cap or cfg.allow_bulk_cap):
         choice.notes.append("E and nu not capped (moving boxes drive the body: no error model holds)")
+    elif runs_out and cfg.allow_stiffness_cap:
+        choice.notes.append("E not capped (a flow: how far it runs out follows E, which no error model sees)")
     elif cfg.allow_stiffness_cap and not caps_E:
         choice.notes.append(
             "E not capped (an elastic impact: the rebound depends on E; planner.cap_elastic_impacts)"
