@@ -73,6 +73,7 @@ def test_reference_video_falls_like_free_fall_then_is_checked(tmp_path):
     assert len(frames) == 8
     meta = json.loads((tmp_path / "videos" / "drop.json").read_text())
     assert meta["frames"] == 8 and meta["azimuth_deg"] in (-45.0, 135.0)
+    assert meta["height_from"] == "surface"  # what rollouts check before comparing with it
 
     def centroid_row(img):
         w = (255 - img.mean(-1)).clip(0)  # darkness = object over the white background

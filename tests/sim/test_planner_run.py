@@ -236,14 +236,34 @@ def test_registered_drop_scene_places_object_and_gaussians():
     traj = simulate(gs, PhysicsSpec("ceramic"), "drop", CAMERAS, n_frames=5, scene_overrides={"height": 0.2})
     assert traj.plan.mode == "rigid"
     first = traj.gaussians_at(0)
-    # Lifted so the lowest particle is 0.2 m above the ground; Gaussians moved with it.
-    assert traj.x[0, :, 2].min() == pytest.approx(0.2, abs=1e-6)
+    # Lifted so the material's lowest surface, half a spacing under the lowest particles, is 0.2 m
+    # above the ground; the Gaussians moved with it.
+    spacing = traj.particles.spacing
+    assert traj.x[0, :, 2].min() - 0.5 * spacing == pytest.approx(0.2, abs=1e-6)
     shift = first.means - gs.means
     torch.testing.assert_close(shift, shift[:1].expand_as(shift), atol=1e-6, rtol=0)
-    # The bottom face Gaussians sit at z = 0 and the lowest particles half a spacing above them.
-    assert float(shift[0, 2]) == pytest.approx(0.2 - 0.5 * traj.particles.spacing, abs=1e-6)
+    # The bottom face Gaussians started at z = 0, on the lattice's lowest surface: now 0.2 m up.
+    assert float(shift[0, 2]) == pytest.approx(0.2, abs=1e-6)
     with pytest.raises(ValueError, match="overrides"):
         simulate(gs, PhysicsSpec("ceramic"), GROUND, CAMERAS, n_frames=5, scene_overrides={"height": 0.2})
+
+
+def test_a_body_set_on_the_ground_rests_there_on_the_rigid_path_and_in_mpm():
+    # A stiff cube set on the ground (drop height 0): the rigid path and MPM at full stiffness must
+    # rest it in the same place, its lowest Gaussians on the plane. Before the scenes placed the
+    # material's surface, MPM rested it half a particle spacing deeper, 0.76 px off the rigid path
+    # at 256 px (docs/measurements_sim.md section 32).
+    gs = _shell_cube(bottom=0.0)
+    physics = PhysicsSpec("plastic", E=1e8)
+    kw = dict(n_frames=4, scene_overrides={"height": 0.0})
+    rigid = simulate(gs, physics, "drop", CAMERAS, **kw)
+    mpm = simulate(gs, physics, "drop", CAMERAS, planner=PlannerConfig(allow_rigid=False), **kw)
+    assert (rigid.plan.mode, mpm.plan.mode) == ("rigid", "mpm")
+    for traj in (rigid, mpm):
+        assert float(traj.means()[-1, :, 2].min()) == pytest.approx(0.0, abs=2e-4)
+    # Measured: 0.06-0.13 px a frame apart (0.87-0.93 px before), the lowest Gaussian 0.09 mm
+    # under the plane in MPM (2.2 mm before).
+    assert float((_pixels(rigid) - _pixels(mpm)).norm(dim=-1).mean(-1).max()) < 0.25
 
 
 def _pixels(traj) -> torch.Tensor:

@@ -86,6 +86,7 @@ def dpo_root(tmp_path_factory) -> Path:
                 "scene": "drop",
                 "fps": vcfg.fps,
                 "frames": len(frames),
+                "height_from": "surface",
                 "settings": asdict(vcfg),
                 "camera": camera_entry(cam.c2w[0], cam.Ks[0], 32, 32),
             },
@@ -651,3 +652,17 @@ def test_asset_gaussians_need_a_gaussians_file_per_scene(dpo_root, tmp_path):
     cb = make_callback(root, gaussians="asset")
     with pytest.raises(ValueError, match=f"1 scenes .* have none \\({asset_id(1)}\\)"):
         cb.setup(None, None, "fit")
+
+
+def test_reference_videos_placed_the_old_way_are_named(dpo_root, tmp_path):
+    # Videos simulated before drop heights were taken from the object's surface start half a
+    # particle spacing lower than today's rollouts: loading them says so and how to fix it.
+    root = tmp_path / "data"
+    shutil.copytree(dpo_root, root)
+    meta_path = root / asset_id(2) / "videos" / "drop.json"
+    meta = json.loads(meta_path.read_text())
+    del meta["height_from"]
+    meta_path.write_text(json.dumps(meta))
+    with pytest.warns(UserWarning, match=f"1 reference video.*regenerate.*{asset_id(2)}"):
+        scenes = env.load_scenes(root, "dpo", num_views=1)
+    assert len(scenes) == COUNT  # still usable

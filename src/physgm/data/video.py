@@ -141,6 +141,9 @@ def write_reference_video(
         "radius_m": cfg.radius_m,
         "object_to_world": T.tolist(),
         "ground_height_m": 0.0,
+        # The drop height is from the ground to the material's lowest surface (physgm.sim.scenes);
+        # videos without this key were placed by the lowest particle centres, half a spacing lower.
+        "height_from": "surface",
         "settings": asdict(cfg),
         "physics": {
             "material": physics.material,

@@ -129,15 +129,16 @@ def physics_params(physics: PhysicsSpec | MaterialParams) -> tuple[str, Material
     )
 
 
-def apply_scene(scene, x: np.ndarray, overrides: dict | None) -> SceneSetup:
+def apply_scene(scene, x: np.ndarray, overrides: dict | None, surface: float = 0.0) -> SceneSetup:
     """The scene applied to rest particles x [P, 3]: placed particles, velocities, boundaries.
 
     ``scene`` is a registered scene name (conf/sim/scene; it may move the object, e.g. "drop"
     lifts it to its drop height), a ``SceneSetup``, a ``Scene`` (object left where it is, at rest)
-    or a (Scene, v0 [P, 3] or [3]) pair.
+    or a (Scene, v0 [P, 3] or [3]) pair. ``surface``: how far the material reaches below a particle
+    centre, m (half the particle spacing): a registered scene places the material, not the centres.
     """
     if isinstance(scene, str):
-        return build_scene(scene, x, **(overrides or {}))
+        return build_scene(scene, x, surface=surface, **(overrides or {}))
     if overrides:
         raise ValueError("scene_overrides only apply to a registered scene given by name")
     if isinstance(scene, SceneSetup):
@@ -235,11 +236,13 @@ def prepare_simulation(
     extent = gaussians.means[opaque].detach().amax(0) - gaussians.means[opaque].detach().amin(0)
     dx, spacing = choose_spacing(float(extent.max()), cfg)
     rest = sample_particles(gaussians, spacing, threshold, cfg.fill_interior)
-    setup = apply_scene(scene, rest.x.detach().cpu().double().numpy(), scene_overrides)
+    # The lattice's material reaches half a spacing below each particle (sampling).
+    surface = 0.5 * spacing
+    setup = apply_scene(scene, rest.x.detach().cpu().double().numpy(), scene_overrides, surface)
     if setup.stretch is not None and (splits := stretch_splits(setup.stretch[1], spacing, dx, cfg)) > 1:
         # The scene sees the particles it will pull (its grips are set from their extent).
         rest = split_along(rest, setup.stretch[0], splits)
-        setup = apply_scene(scene, rest.x.detach().cpu().double().numpy(), scene_overrides)
+        setup = apply_scene(scene, rest.x.detach().cpu().double().numpy(), scene_overrides, surface)
     gaussians = _place_gaussians(gaussians, rest.x.detach().cpu(), setup.x)
     sample = replace(rest, x=torch.from_numpy(setup.x).float().to(rest.x.device))
     v0 = np.asarray(setup.v, dtype=np.float64)

@@ -82,11 +82,12 @@ def _fall_reach(x: np.ndarray, v: np.ndarray, gravity: np.ndarray, duration: flo
     return reach_lo, reach_hi
 
 
-def drop(x: np.ndarray, material: np.ndarray, cfg: dict) -> SceneSetup:
-    """Place the object ``height`` above the ground with velocity ``velocity``; gravity pulls it down."""
+def drop(x: np.ndarray, material: np.ndarray, cfg: dict, surface: float) -> SceneSetup:
+    """Place the object's lowest point ``height`` above the ground with velocity ``velocity``;
+    gravity pulls it down."""
     ground = _ground(cfg)
     floor = ground.height if ground is not None else 0.0
-    x = x - np.array([0.0, 0.0, x[:, 2].min() - floor - float(cfg["height"])])
+    x = x - np.array([0.0, 0.0, x[:, 2].min() - surface - floor - float(cfg["height"])])
     v = np.tile(_vec(cfg.get("velocity", (0, 0, 0)), "velocity"), (len(x), 1))
     gravity = _vec(cfg["gravity"], "gravity")
     duration = float(cfg["duration"])
@@ -116,7 +117,7 @@ def _peak_stretch(
     return 1.0 + float(strain.max())
 
 
-def stretch(x: np.ndarray, material: np.ndarray, cfg: dict) -> SceneSetup:
+def stretch(x: np.ndarray, material: np.ndarray, cfg: dict, surface: float) -> SceneSetup:
     """Two grips, each holding ``grip_fraction`` of the particles at one end, move apart at
     ``speed`` until the body's length is ``ratio`` x its rest length.
 
@@ -169,12 +170,12 @@ def stretch(x: np.ndarray, material: np.ndarray, cfg: dict) -> SceneSetup:
     )
 
 
-def push(x: np.ndarray, material: np.ndarray, cfg: dict) -> SceneSetup:
+def push(x: np.ndarray, material: np.ndarray, cfg: dict, surface: float) -> SceneSetup:
     """Throw the object at ``speed`` along ``axis`` into a fixed wall ``wall_gap`` ahead of it."""
     a = int(cfg["axis"])
     ground = _ground(cfg)
     floor = ground.height if ground is not None else 0.0
-    x = x - np.array([0.0, 0.0, x[:, 2].min() - floor - float(cfg.get("lift", 0.0))])
+    x = x - np.array([0.0, 0.0, x[:, 2].min() - surface - floor - float(cfg.get("lift", 0.0))])
     lo, hi = x.min(0), x.max(0)
     size = float((hi - lo).max())
     w_lo, w_hi = lo - size, hi + size
@@ -192,7 +193,7 @@ def push(x: np.ndarray, material: np.ndarray, cfg: dict) -> SceneSetup:
     return SceneSetup(scene, x, v, duration, reach_lo, reach_hi)
 
 
-def two_objects(x: np.ndarray, material: np.ndarray, cfg: dict) -> SceneSetup:
+def two_objects(x: np.ndarray, material: np.ndarray, cfg: dict, surface: float) -> SceneSetup:
     """Object with material index 1 starts ``gap`` above object 0, which rests on the ground."""
     top, bottom = material == 1, material == 0
     if not top.any() or not bottom.any() or not (top | bottom).all():
@@ -200,8 +201,9 @@ def two_objects(x: np.ndarray, material: np.ndarray, cfg: dict) -> SceneSetup:
     ground = _ground(cfg)
     floor = ground.height if ground is not None else 0.0
     x = x.copy()
-    x[bottom] -= np.array([0.0, 0.0, x[bottom, 2].min() - floor])
-    x[top] -= np.array([0.0, 0.0, x[top, 2].min() - x[bottom, 2].max() - float(cfg["gap"])])
+    x[bottom] -= np.array([0.0, 0.0, x[bottom, 2].min() - surface - floor])
+    gap = float(cfg["gap"]) + 2.0 * surface  # between the bodies' surfaces
+    x[top] -= np.array([0.0, 0.0, x[top, 2].min() - x[bottom, 2].max() - gap])
     # Centre the top object over the bottom one.
     x[top, :2] += x[bottom, :2].mean(0) - x[top, :2].mean(0)
     v = np.zeros_like(x)
@@ -213,7 +215,8 @@ def two_objects(x: np.ndarray, material: np.ndarray, cfg: dict) -> SceneSetup:
     return SceneSetup(scene, x, v, duration, lo, hi)
 
 
-SceneDriver = Callable[[np.ndarray, np.ndarray, dict], SceneSetup]
+# (rest particles [P, 3] m, material index [P], settings, surface m; ``build_scene``) -> setup
+SceneDriver = Callable[[np.ndarray, np.ndarray, dict, float], SceneSetup]
 SCENES: dict[str, SceneDriver] = {"drop": drop, "stretch": stretch, "push": push, "two_objects": two_objects}
 
 
@@ -224,8 +227,19 @@ def load_scene_config(name: str) -> dict:
     return yaml.safe_load((SCENE_DIR / f"{name}.yaml").read_text())
 
 
-def build_scene(name: str, x: np.ndarray, material: np.ndarray | None = None, **overrides) -> SceneSetup:
-    """Apply scene ``name`` to rest particles ``x`` [P, 3] (m); ``overrides`` replace YAML settings."""
+def build_scene(
+    name: str, x: np.ndarray, material: np.ndarray | None = None, surface: float = 0.0, **overrides
+) -> SceneSetup:
+    """Apply scene ``name`` to rest particles ``x`` [P, 3] (m); ``overrides`` replace YAML settings.
+
+    ``surface``: how far the material reaches below a particle's centre, m (half the spacing of a
+    particle lattice; 0 takes the particles as points). Heights and gaps are the material's: a
+    drop's ``height`` is from the ground to the object's lowest surface, so an object set on the
+    ground (``height`` 0, a push's ``lift`` 0) rests there, as the rigid path and the particle
+    contact both take it (``particle_ground``).
+    """
+    if not (math.isfinite(surface) and surface >= 0.0):
+        raise ValueError(f"surface must be a finite distance >= 0 m, got {surface!r}")
     cfg = load_scene_config(name)
     unknown = set(overrides) - set(cfg)
     if unknown:
@@ -237,4 +251,4 @@ def build_scene(name: str, x: np.ndarray, material: np.ndarray | None = None, **
     material = np.zeros(len(x), np.int32) if material is None else np.asarray(material)
     if not math.isfinite(float(cfg.get("duration", 1.0))):
         raise ValueError("scene duration must be finite")
-    return SCENES[name](x, material, cfg)
+    return SCENES[name](x, material, cfg, float(surface))

@@ -97,6 +97,7 @@ def load_scenes(
     root = Path(root)
     scenes: list[RolloutScene] = []
     skipped: list[str] = []
+    centre_placed: list[str] = []
     view_cfg = ViewConfig(num_targets=4, input_resolution=input_resolution, background=background)
     for aid in read_split(root, split):
         asset = load_asset(root / aid)
@@ -105,6 +106,8 @@ def load_scenes(
             skipped.append(aid)
             continue
         meta = json.loads(video.path.with_suffix(".json").read_text())
+        if meta.get("height_from") != "surface":
+            centre_placed.append(aid)
         known = {f.name for f in fields(VideoConfig)}
         settings = {
             k: (tuple(v) if isinstance(v, list) else v)
@@ -140,6 +143,14 @@ def load_scenes(
         warnings.warn(
             f"{len(skipped)} asset(s) of split {split!r} have no videos/{video_name}.mp4 and are left out: "
             f"{skipped[:5]}",
+            stacklevel=2,
+        )
+    if centre_placed:
+        warnings.warn(
+            f"{len(centre_placed)} reference video(s) of split {split!r} of {root} were simulated before "
+            "drop heights were measured from the object's surface, so they start half a particle "
+            "spacing lower than the rollouts compared with them; regenerate the data "
+            f"(python -m physgm.data.synth) for rollouts that match: {centre_placed[:5]}",
             stacklevel=2,
         )
     if not scenes:

@@ -9,6 +9,7 @@ from scipy.optimize import brentq
 
 from physgm.physics.materials import get_material
 from physgm.sim.mpm import GridSpec, MPMSolver, Particles, SolverConfig
+from physgm.sim.mpm.particle_ground import contact_plane
 from physgm.sim.planner import PlannerConfig, stretch_splits
 from physgm.sim.sampling import ParticleSample, split_along
 from physgm.sim.scenes import SCENES, build_scene
@@ -35,6 +36,25 @@ def test_registry_and_errors():
         build_scene("drop", np.zeros((4, 3)), hieght=1.0)
     with pytest.raises(ValueError, match="finite"):
         build_scene("drop", np.full((4, 3), np.nan))
+
+
+def test_heights_and_gaps_are_the_materials_not_the_particle_centres():
+    """With ``surface`` (half the lattice spacing) a scene places the material's lowest surface:
+    a drop's height and a push's lift are measured from it, and the two objects' gap is between
+    their surfaces; the particle contact then starts uncompressed, as the rigid path takes the body."""
+    p, half = cube(), 0.5 * SP
+    drop = build_scene("drop", p.x, surface=half, height=0.05)
+    assert drop.x[:, 2].min() - half == pytest.approx(0.05)
+    push = build_scene("push", p.x, surface=half)
+    assert push.x[:, 2].min() - half == pytest.approx(0.0)
+    assert contact_plane(push.scene.ground, push.x, p.volume) == pytest.approx(0.0, abs=1e-9)
+    pair = Particles.cat([cube(0.1, material=0), cube(0.075, material=1)])
+    two = build_scene("two_objects", pair.x, pair.material, surface=half, gap=0.08)
+    upper, lower = two.x[pair.material == 1], two.x[pair.material == 0]
+    assert lower[:, 2].min() - half == pytest.approx(0.0)
+    assert (upper[:, 2].min() - half) - (lower[:, 2].max() + half) == pytest.approx(0.08)
+    with pytest.raises(ValueError, match="surface"):
+        build_scene("drop", p.x, surface=-0.01)
 
 
 def test_drop_lands_on_the_ground():

@@ -180,10 +180,11 @@ def contact_plane(ground: GroundPlane, x: np.ndarray, volume: np.ndarray) -> flo
     """Height of the plane the contact springs push from, m (x [P, 3] m, volume [P] m^3 at the start).
 
     The ground's own height, lowered by the deepest overlap of a starting particle's surface with
-    it (at most half that particle's spacing): scenes that put the lowest particle centres on the
-    floor (``physgm.sim.scenes``: push, two_objects) would otherwise start with the springs
-    compressed by half a spacing, which throws the body off the ground (a 10 cm wood block
-    jumped 8 cm). Such a body rests with its lowest particles on the plane instead.
+    it (at most half that particle's spacing): particles given with their lowest centres on the
+    floor would otherwise start with the springs compressed by half a spacing, which throws the
+    body off the ground (a 10 cm wood block jumped 8 cm). Such a body rests with its lowest
+    particles on the plane instead. The registered scenes (``physgm.sim.scenes``) place the
+    material's surface on the floor, so for them the plane is the ground's own.
     A ground whose ``contact_height`` is set keeps that plane.
     """
     if ground.contact_height is not None:

@@ -101,7 +101,9 @@ def plan_simulation(
     vel = v0.detach().double().cpu().numpy().reshape(-1, 3)
     duration = (n_frames - 1) * frame_dt  # frame 0 is the rest state
     box_speed = max((float(np.linalg.norm(b.velocity)) for b in scene.boxes), default=0.0)
-    v_impact = impact_speed(float(lo[2]), ground, float(vel[:, 2].min(initial=0.0)), g)
+    # The body's lowest point is its material's, half a particle spacing under the lowest centres.
+    bottom = float(lo[2]) - 0.5 * particle_spacing
+    v_impact = impact_speed(bottom, ground, float(vel[:, 2].min(initial=0.0)), g)
     v_throw = float(np.linalg.norm(vel, axis=1).max(initial=0.0))
     # The loading speed: an impact on the ground or a wall, or grips pulling (the elastic lag is
     # the same v L / c).
@@ -111,7 +113,7 @@ def plan_simulation(
     # Pixel scale: the object where it starts and where it lands, seen by the closest camera.
     landed = pts.clone()
     if ground is not None:
-        landed[:, 2] -= float(lo[2]) - ground
+        landed[:, 2] -= bottom - ground
     px_per_m = max(pixels_per_metre(cameras, pts.float()), pixels_per_metre(cameras, landed.float()))
 
     flows = material.model in FLOWING_MODELS or name in NEVER_RIGID_MATERIALS
@@ -193,14 +195,14 @@ def plan_simulation(
     # its length) moved 1.47 px with rubber's E capped (0.25 px predicted), 1.32 px with both caps
     # (0.39) and 2.55 px with a jelly's bulk capped (0.5): the stretch's necking follows nu, its
     # ringing when the grips stop follows E (docs/measurements_sim.md section 20).
-    # (A body resting on the ground, its lowest particles half a spacing up, does not impact; nor
-    # does one a cell up: the grid does not resolve the gap, and sqrt(2 g dx) is a tap.)
+    # (A body resting on the ground does not impact; nor does one a cell up: the grid does not
+    # resolve the gap, and sqrt(2 g dx) is a tap.)
     # Nor is a material that flows: how far a granular body runs out follows E, which the
     # deformation estimate does not see. A 15 cm cube of sand set on the ground and left to
     # collapse (256 px, 50 frames), capped from 3.5e5 to 1.9e5 Pa with 0.25 px predicted, ended
     # 1.31 px from the full-stiffness run on average; dropped from 0.5 m, E 5 % lower moved it
     # 0.72 px (docs/measurements_sim.md section 32).
-    falls = ground is not None and float(lo[2]) - ground > dx
+    falls = ground is not None and bottom - ground > dx
     impacts = falls or v_throw > 0.0
     elastic_impact = impacts and deform.plastic * px_per_m <= cfg.bound_px
     dent = impacts and not elastic_impact  # it lands and yields: no rebound (bulk_cap.dent_px)
