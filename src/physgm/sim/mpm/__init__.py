@@ -96,7 +96,8 @@ cohesion=0, viscosity=0)``                          (``physgm.sim.constitutive``
     forces of the ground, the side walls and the grid faces (observables.py;
     ``ObservableRecorder`` keeps them, dropping retried attempts). ``.face_contacts``.
     ``.hooks``: list of ``GridHook``; ``hook.apply(solver, dt)`` runs after each grid update.
-    ``solver.grid_v`` is a wp.array3d [nx, ny, nz] of ``kernels.vec8`` = (vx, vy, vz, mass,
+    ``solver.grid_v`` is a wp.array4d [bx, by, bz, 64] of ``kernels.vec8`` in 4^3-node blocks
+    (``grid_layout``: ``load``, ``store``, ``to_dense``) = (vx, vy, vz, mass,
     dvx, dvy, dvz, grip: the friction impulse a held node leaves for the surface layer, 0 unless
     the ground is held at depth); a hook that changes a node velocity must add the same change to
     components 4-6 (``kernels.set_node_velocity`` does both). Only nodes of the 4^3-node

@@ -9,6 +9,7 @@ import warp as wp
 
 from physgm.sim.mpm import kernels as K
 from physgm.sim.mpm.boundary import BoxStruct, VelocityBox
+from physgm.sim.mpm.grid_layout import block_res, node_shape
 
 
 @dataclass(frozen=True)
@@ -19,8 +20,9 @@ class GridArrays:
     (and the walls the accumulators) in place.
     """
 
-    acc: tuple[wp.array, wp.array]  # 2 x [nx, ny, nz] vec8, one scatter accumulator per thread
-    grid_v: wp.array  # [nx, ny, nz] vec8: velocity m/s, mass kg, velocity change (see kernels)
+    # The node arrays lie in blocks (``grid_layout``): [bx, by, bz, 64] for a grid of [nx, ny, nz].
+    acc: tuple[wp.array, wp.array]  # 2 x [bx, by, bz, 64] vec8, one scatter accumulator per thread
+    grid_v: wp.array  # [bx, by, bz, 64] vec8: velocity m/s, mass kg, velocity change (see kernels)
     touched: wp.array  # [bx, by, bz] int32 stamps of the blocks a scatter reached (kernels.scatter_particle)
     stats: wp.array  # [2, STATS_ROW] per-thread running reductions of g2p (kernels.STAT_*)
     work: wp.array  # [2, WORK_ROW] float64 per-thread driver work, J, and impulses (kernels.WORK_*)
@@ -30,9 +32,9 @@ class GridArrays:
     @classmethod
     def allocate(cls, res: tuple[int, int, int], boxes: Sequence[VelocityBox], device) -> GridArrays:
         return cls(
-            acc=(wp.zeros(res, dtype=K.vec8, device=device), wp.zeros(res, dtype=K.vec8, device=device)),
-            grid_v=wp.zeros(res, dtype=K.vec8, device=device),
-            touched=wp.zeros(K.block_res(res), dtype=wp.int32, device=device),
+            acc=tuple(wp.zeros(node_shape(res), dtype=K.vec8, device=device) for _ in range(2)),
+            grid_v=wp.zeros(node_shape(res), dtype=K.vec8, device=device),
+            touched=wp.zeros(block_res(res), dtype=wp.int32, device=device),
             stats=wp.zeros((2, K.STATS_ROW), dtype=float, device=device),
             work=wp.zeros((2, K.WORK_ROW), dtype=wp.float64, device=device),
             pending=wp.zeros((2, 4), dtype=wp.float64, device=device),

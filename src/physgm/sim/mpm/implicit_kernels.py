@@ -23,6 +23,7 @@ import warp as wp
 from physgm.sim.constitutive.common import EYE, MaterialStruct
 from physgm.sim.constitutive.dispatch import constitutive_update, energy_density
 from physgm.sim.mpm.boundary import GROUND_STICKY, GroundStruct, ground_velocity
+from physgm.sim.mpm.grid_layout import load, store
 from physgm.sim.mpm.kernels import block_reached, stencil, vec8
 
 wp.set_module_options({"enable_backward": False})
@@ -157,7 +158,7 @@ def preconditioner_pass(
 
 @wp.kernel
 def collect_nodes(
-    grid_v: wp.array3d(dtype=vec8),  # [nx, ny, nz] after grid_update: velocity, mass, velocity change
+    grid_v: wp.array4d(dtype=vec8),  # [bx, by, bz, 64] (``grid_layout``) after grid_update
     touched: wp.array3d(dtype=wp.int32),
     stamp: wp.int32,
     lo: wp.vec3i,  # first node of the active box
@@ -170,7 +171,7 @@ def collect_nodes(
     k += lo[2]
     if not block_reached(touched, i // 4, j // 4, k // 4, stamp):
         return
-    if grid_v[i, j, k][3] <= 0.0:
+    if load(grid_v, i, j, k)[3] <= 0.0:
         return
     nodes[wp.atomic_add(count, 0, 1)] = wp.vec3i(i, j, k)
 
@@ -178,7 +179,8 @@ def collect_nodes(
 @wp.kernel
 def init_nodes(
     nodes: wp.array(dtype=wp.vec3i),
-    grid_v: wp.array3d(dtype=vec8),
+    grid_v: wp.array4d(dtype=vec8),
+    shape: wp.vec3i,  # grid node counts
     origin: wp.vec3,
     dx: float,
     h: float,
@@ -197,7 +199,7 @@ def init_nodes(
 ):
     n = nodes[wp.tid()]
     i, j, k = n[0], n[1], n[2]
-    g = grid_v[i, j, k]
+    g = load(grid_v, i, j, k)
     vt = wp.vec3(g[0] - g[4], g[1] - g[5], g[2] - g[6])
     target_v = damping * (vt + h * gravity)
     pos = origin + wp.vec3(float(i), float(j), float(k)) * dx
@@ -209,9 +211,9 @@ def init_nodes(
     if wp.length_sq(held - target_v) > 0.0:
         f = wp.vec3(0.0)
         v0 = held
-    nx = grid_v.shape[0]
-    ny = grid_v.shape[1]
-    nz = grid_v.shape[2]
+    nx = shape[0]
+    ny = shape[1]
+    nz = shape[2]
     if (i < bound and v0[0] < 0.0) or (i >= nx - bound and v0[0] > 0.0):
         f[0] = 0.0
         v0[0] = 0.0
@@ -285,7 +287,7 @@ def write_velocities(
     v_transfer: wp.array3d(dtype=wp.vec3),
     free: wp.array3d(dtype=wp.vec3),
     theta: float,
-    grid_v: wp.array3d(dtype=vec8),  # out: (u, mass, v^{n+1} - v_transfer, 0)
+    grid_v: wp.array4d(dtype=vec8),  # out: (u, mass, v^{n+1} - v_transfer, 0)
 ):
     """The solve's velocity u moves positions and F over the whole step; the particles' velocity
     change is that of v^{n+1} = v^n + (u - v^n) / theta (the theta method), except on components a
@@ -299,21 +301,21 @@ def write_velocities(
     dv = wp.vec3(
         du[0] * (1.0 + f[0] * (s - 1.0)), du[1] * (1.0 + f[1] * (s - 1.0)), du[2] * (1.0 + f[2] * (s - 1.0))
     )
-    m = grid_v[i, j, k][3]
-    grid_v[i, j, k] = vec8(un[0], un[1], un[2], m, dv[0], dv[1], dv[2], 0.0)
+    m = load(grid_v, i, j, k)[3]
+    store(grid_v, i, j, k, vec8(un[0], un[1], un[2], m, dv[0], dv[1], dv[2], 0.0))
 
 
 @wp.kernel
-def clear_stress_channels(lo: wp.vec3i, acc: wp.array3d(dtype=vec8)):
+def clear_stress_channels(lo: wp.vec3i, acc: wp.array4d(dtype=vec8)):
     """The implicit step takes the stress from its solve: the scatter's explicit stress force
     (accumulator channels 4-6) must not reach grid_update's predictor."""
     i, j, k = wp.tid()
-    a = acc[i + lo[0], j + lo[1], k + lo[2]]
+    a = load(acc, i + lo[0], j + lo[1], k + lo[2])
     if a[3] > 0.0:
         a[4] = 0.0
         a[5] = 0.0
         a[6] = 0.0
-        acc[i + lo[0], j + lo[1], k + lo[2]] = a
+        store(acc, i + lo[0], j + lo[1], k + lo[2], a)
 
 
 @wp.kernel

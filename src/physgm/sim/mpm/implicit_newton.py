@@ -223,7 +223,16 @@ class ImplicitStep:
         wp.launch(
             IK.init_nodes,
             n,
-            [nodes, solver.grid_v, origin, g.dx, h, wp.vec3(*scene.gravity), math.exp(-scene.damping * h)]
+            [
+                nodes,
+                solver.grid_v,
+                wp.vec3i(*g.res),
+                origin,
+                g.dx,
+                h,
+                wp.vec3(*scene.gravity),
+                math.exp(-scene.damping * h),
+            ]
             + [ground, solver.config.boundary_cells, self.v_transfer, self.target, self.u, self.free]
             + [self.mass, self.diag, self.grad, self.region],
             device=dev,

@@ -21,6 +21,9 @@ mass, velocity change of this step xyz, the friction impulse a held node leaves 
 above, ``boundary.ground_grip``); a hook that overrides a node velocity adds the same change to
 components 4-6 (``set_node_velocity``).
 
+The node arrays lie in 4^3-node blocks of 64 consecutive nodes (``grid_layout``), read and
+written through ``grid_layout.load`` and ``store``; the stencil sums address the flattened arrays.
+
 Particle kernels take an ``offset`` so the CPU solver can split the particles over threads,
 each thread scattering into its own accumulator. The scatter also stamps the 4^3-node block of
 the particle's base node with the number of the sub-step it feeds (``touched``); grid_update runs
@@ -45,6 +48,8 @@ from physgm.sim.constitutive.common import EYE, MaterialStruct, det_minus_one
 from physgm.sim.constitutive.dispatch import update_for
 from physgm.sim.linalg import is_finite
 from physgm.sim.mpm.boundary import BoxStruct, GroundStruct, box_velocity, ground_grip, ground_velocity
+from physgm.sim.mpm.grid_layout import BLOCK, load, stencil_offsets, store
+from physgm.sim.mpm.grid_layout import block_res as block_res  # the grid's blocks, named here too
 from physgm.sim.mpm.particle_ground import fold_ground_force, particle_ground_force, touches_ground
 from physgm.sim.mpm.pressure_kernels import add_cell_terms
 from physgm.sim.mpm.stencil_sums import gather_moments, scatter_affine, vec8
@@ -72,13 +77,6 @@ WORK_DRIVER = wp.constant(0)  # energy put in by the velocity boxes, J
 WORK_GROUND = wp.constant(1)  # 1-3: impulse of the ground plane on the nodes, N s
 WORK_FACE = wp.constant(4)  # 4-6: impulse of the separating walls at the grid faces, N s
 WORK_FACE_CONTACTS = wp.constant(7)  # node updates in which a grid-face wall stopped mass
-# Grid_update skips 4^3-node blocks that no particle stencil reached this sub-step.
-BLOCK = wp.constant(4)
-
-
-def block_res(res: tuple[int, int, int]) -> tuple[int, int, int]:
-    """Blocks per axis covering ``res`` nodes."""
-    return tuple(-(-int(n) // BLOCK) for n in res)
 
 
 @wp.func
@@ -98,21 +96,21 @@ def stencil(xp: wp.vec3, shape: wp.vec3i):
 
 
 @wp.func
-def set_node_velocity(grid_v: wp.array3d(dtype=vec8), i: int, j: int, k: int, vel: wp.vec3):
+def set_node_velocity(grid_v: wp.array4d(dtype=vec8), i: int, j: int, k: int, vel: wp.vec3):
     """Override a node velocity in ``grid_v`` keeping its FLIP increment consistent."""
-    g = grid_v[i, j, k]
+    g = load(grid_v, i, j, k)
     g[4] = g[4] + vel[0] - g[0]
     g[5] = g[5] + vel[1] - g[1]
     g[6] = g[6] + vel[2] - g[2]
     g[0] = vel[0]
     g[1] = vel[1]
     g[2] = vel[2]
-    grid_v[i, j, k] = g
+    store(grid_v, i, j, k, g)
 
 
 @wp.func
 def scatter_particle(
-    grid: wp.array(dtype=vec8),  # [G] flat accumulator of this thread
+    grid: wp.array(dtype=vec8),  # [G] this thread's accumulator, flattened (``grid_layout``)
     xp: wp.vec3,
     vp: wp.vec3,
     cp: wp.mat33,
@@ -155,13 +153,12 @@ def scatter_particle(
     fx_ = wp.vec3(s[0, 0], s[1, 0], s[2, 0])
     fy_ = wp.vec3(s[0, 1], s[1, 1], s[2, 1])
     fz_ = wp.vec3(s[0, 2], s[1, 2], s[2, 2])
-    nyz = shape[1] * shape[2]
-    b0 = (base[0] * shape[1] + base[1]) * shape[2] + base[2]
+    ox, oy, oz = stencil_offsets(base, shape)
     scatter_affine(
         grid,
-        b0,
-        nyz,
-        shape[2],
+        ox,
+        oy,
+        oz,
         w,
         vec8(q[0], q[1], q[2], m, f[0], f[1], f[2], c_rest),
         vec8(ax[0], ax[1], ax[2], 0.0, fx_[0], fx_[1], fx_[2], 0.0),
@@ -189,7 +186,7 @@ def p2g(
     touched: wp.array3d(dtype=wp.int32),  # [bx, by, bz] out: blocks reached (``scatter_particle``)
     params: wp.array(dtype=SubstepParams),  # [threads] row slot: this sub-step's number
     pending: wp.array2d(dtype=wp.float64),  # [2, 4] out: ground force on the particles, N
-    grid: wp.array(dtype=vec8),  # [G] flat (i ny + j) nz + k: momentum, mass, stress force
+    grid: wp.array(dtype=vec8),  # [G] flattened (``grid_layout``): momentum, mass, stress force
 ):
     p = wp.tid() + offset
     sp = params[slot]
@@ -211,8 +208,8 @@ def add_impulse(work: wp.array2d(dtype=wp.float64), slot: int, col: int, impulse
 
 @wp.func
 def update_node(
-    acc0: wp.array3d(dtype=vec8),
-    acc1: wp.array3d(dtype=vec8),
+    acc0: wp.array4d(dtype=vec8),
+    acc1: wp.array4d(dtype=vec8),
     i: int,
     j: int,
     k: int,
@@ -223,22 +220,23 @@ def update_node(
     gravity: wp.vec3,
     damping: float,
     bound: int,
+    shape: wp.vec3i,
     ground: GroundStruct,
     boxes: wp.array(dtype=BoxStruct),
     num_boxes: int,
     slot: int,
     work: wp.array2d(dtype=wp.float64),
-    grid_v: wp.array3d(dtype=vec8),
+    grid_v: wp.array4d(dtype=vec8),
 ):
     """Accumulators of node (i, j, k) -> its velocity in ``grid_v``; clears the accumulators."""
-    g = acc0[i, j, k] + acc1[i, j, k]
+    g = load(acc0, i, j, k) + load(acc1, i, j, k)
     m = g[3]
     if m <= 0.0:
-        grid_v[i, j, k] = vec8(0.0)
+        store(grid_v, i, j, k, vec8(0.0))
         return
     # Only nodes that received mass were written by the scatter, so only they need clearing.
-    acc0[i, j, k] = vec8(0.0)
-    acc1[i, j, k] = vec8(0.0)
+    store(acc0, i, j, k, vec8(0.0))
+    store(acc1, i, j, k, vec8(0.0))
     inv_m = 1.0 / m  # one division instead of four
     v_transfer = inv_m * wp.vec3(g[0], g[1], g[2])  # APIC transfer alone, for the FLIP increment
     vel = damping * (v_transfer + (dt * inv_m) * wp.vec3(g[4], g[5], g[6]) + dt * gravity)
@@ -263,17 +261,17 @@ def update_node(
     # Separating walls in the margin keep particles off the grid edge. A scene whose grid holds
     # what it can reach never needs them, so each time they act it is counted (face contacts).
     v_free = vel
-    if (i < bound and vel[0] < 0.0) or (i >= grid_v.shape[0] - bound and vel[0] > 0.0):
+    if (i < bound and vel[0] < 0.0) or (i >= shape[0] - bound and vel[0] > 0.0):
         vel[0] = 0.0
-    if (j < bound and vel[1] < 0.0) or (j >= grid_v.shape[1] - bound and vel[1] > 0.0):
+    if (j < bound and vel[1] < 0.0) or (j >= shape[1] - bound and vel[1] > 0.0):
         vel[1] = 0.0
-    if (k < bound and vel[2] < 0.0) or (k >= grid_v.shape[2] - bound and vel[2] > 0.0):
+    if (k < bound and vel[2] < 0.0) or (k >= shape[2] - bound and vel[2] > 0.0):
         vel[2] = 0.0
     if wp.length_sq(vel - v_free) > 0.0:
         add_impulse(work, slot, WORK_FACE, m * (vel - v_free))
         wp.atomic_add(work, slot, WORK_FACE_CONTACTS, wp.float64(1.0))
     dv = vel - v_transfer
-    grid_v[i, j, k] = vec8(vel[0], vel[1], vel[2], m, dv[0], dv[1], dv[2], grip)
+    store(grid_v, i, j, k, vec8(vel[0], vel[1], vel[2], m, dv[0], dv[1], dv[2], grip))
 
 
 @wp.func
@@ -293,12 +291,13 @@ def block_reached(touched: wp.array3d(dtype=wp.int32), bi: int, bj: int, bk: int
 
 @wp.kernel
 def grid_update(
-    acc0: wp.array3d(dtype=vec8),  # [nx, ny, nz] first thread's accumulator, cleared here
-    acc1: wp.array3d(dtype=vec8),  # [nx, ny, nz] second thread's accumulator (zeros if unused)
+    acc0: wp.array4d(dtype=vec8),  # [bx, by, bz, 64] (``grid_layout``) first thread's accumulator, cleared
+    acc1: wp.array4d(dtype=vec8),  # [bx, by, bz, 64] second thread's accumulator (zeros if unused)
     touched: wp.array3d(dtype=wp.int32),  # [bx, by, bz] blocks reached by this sub-step's scatter
     params: wp.array(dtype=SubstepParams),  # [threads] row slot: dt, time, damping, stamp, active box
     origin: wp.vec3,
     dx: float,
+    shape: wp.vec3i,  # grid node counts
     gravity: wp.vec3,
     bound: int,
     ground: GroundStruct,
@@ -310,7 +309,7 @@ def grid_update(
     work: wp.array2d(
         dtype=wp.float64
     ),  # [threads, WORK_ROW] running sums: box work, ground and face impulse, face contacts (WORK_*)
-    grid_v: wp.array3d(dtype=vec8),  # [nx, ny, nz] out: velocity, mass, velocity change
+    grid_v: wp.array4d(dtype=vec8),  # [bx, by, bz, 64] out: velocity, mass, velocity change
 ):
     """One thread per 4^3-node block of the grid; blocks outside the active box and blocks no
     stencil reached are left as they are (no particle reads them this sub-step), and so are the
@@ -331,9 +330,10 @@ def grid_update(
     dt = float(sp.dt)
     t = float(sp.t)
     damping = sp.damping
-    for i in range(bi * BLOCK, wp.min((bi + 1) * BLOCK, grid_v.shape[0])):
-        for j in range(bj * BLOCK, wp.min((bj + 1) * BLOCK, grid_v.shape[1])):
-            for k in range(bk * BLOCK, wp.min((bk + 1) * BLOCK, grid_v.shape[2])):
+    # The block's nodes in memory order (``grid_layout``).
+    for i in range(bi * BLOCK, wp.min((bi + 1) * BLOCK, shape[0])):
+        for j in range(bj * BLOCK, wp.min((bj + 1) * BLOCK, shape[1])):
+            for k in range(bk * BLOCK, wp.min((bk + 1) * BLOCK, shape[2])):
                 update_node(
                     acc0,
                     acc1,
@@ -347,6 +347,7 @@ def grid_update(
                     gravity,
                     damping,
                     bound,
+                    shape,
                     ground,
                     boxes,
                     num_boxes,
@@ -383,7 +384,7 @@ def _g2p_kernel(models: tuple[int, ...], pressure: bool) -> wp.Kernel:
 
     @wp.kernel(module="unique", module_options=MODULE_OPTIONS)
     def g2p(
-        grid_v: wp.array(dtype=vec8),  # [G] flat: velocity, mass, velocity change
+        grid_v: wp.array(dtype=vec8),  # [G] flattened (``grid_layout``): velocity, mass, velocity change
         shape: wp.vec3i,  # grid node counts
         origin: wp.vec3,
         dx: float,
@@ -414,7 +415,7 @@ def _g2p_kernel(models: tuple[int, ...], pressure: bool) -> wp.Kernel:
         ground_k: wp.array(dtype=wp.vec2),  # [M] the particle contact's stiffness (particle_ground)
         pending: wp.array2d(dtype=wp.float64),  # [2, 4] out: ground force on the particles, N
         touched: wp.array3d(dtype=wp.int32),  # [bx, by, bz] out: blocks reached by the next scatter
-        acc: wp.array(dtype=vec8),  # [G] flat, out: this thread's scatter for the next sub-step
+        acc: wp.array(dtype=vec8),  # [G] flattened, out: this thread's scatter for the next sub-step
         cell_lam: wp.array(dtype=float),  # [M] the full materials' lam, Pa (``pressure`` only)
         cell_s: wp.array3d(dtype=float),  # out (added to), this thread's volume sums (``pressure`` only)
         cell_k: wp.array3d(dtype=float),
@@ -433,9 +434,8 @@ def _g2p_kernel(models: tuple[int, ...], pressure: bool) -> wp.Kernel:
         # Sums of whole nodes with their first moments along each axis (``gather_moments``), so
         # B = sum w v (node - fx)^T needs no per-node outer product; velocity and velocity change
         # come in one pass.
-        nyz = shape[1] * shape[2]
-        b0 = (base[0] * shape[1] + base[1]) * shape[2] + base[2]
-        sums = gather_moments(grid_v, b0, nyz, shape[2], w)
+        ox, oy, oz = stencil_offsets(base, shape)
+        sums = gather_moments(grid_v, ox, oy, oz, w)
         total = sums[0]
         bi = sums[1]
         bj = sums[2]

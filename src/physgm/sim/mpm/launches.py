@@ -217,6 +217,7 @@ class SubstepLaunches:
                     self.params,
                     origin,
                     g.dx,
+                    shape,
                     wp.vec3(*scene.gravity),
                     cfg.boundary_cells,
                     ground,

@@ -20,6 +20,7 @@ from physgm.sim.constitutive.common import FIXED_COROTATED, NEO_HOOKEAN, Materia
 from physgm.sim.constitutive.fixed_corotated import J_B
 from physgm.sim.constitutive.fixed_corotated import J_FLOOR as FC_J_FLOOR
 from physgm.sim.constitutive.neo_hookean import J_E, J_FLOOR, log_ext, log_ext_derivative
+from physgm.sim.mpm.grid_layout import load, store
 from physgm.sim.mpm.spin_barrier import wait_for_partner
 from physgm.sim.mpm.stencil_sums import vec8
 from physgm.sim.mpm.substep_params import SubstepParams
@@ -194,7 +195,7 @@ def solve(
     threads: int,  # 1 or 2 CPU threads sharing the solve, meeting at ``counter``
     counter: wp.array(dtype=wp.int64),  # the two halves' barrier state (``spin_barrier``)
     limits: wp.vec2l,  # the barrier's limit and yield cycles
-    grid_v: wp.array3d(dtype=vec8),  # in/out: the grid update's velocities, corrected
+    grid_v: wp.array4d(dtype=vec8),  # in/out: the grid update's velocities, corrected (``grid_layout``)
     cell_s: wp.array3d(dtype=float),  # in/out: the first thread's sums, the total in the solve, then 0
     cell_k: wp.array3d(dtype=float),
     cell_s1: wp.array3d(dtype=float),  # in/out: the second thread's sums (unread with one), then 0
@@ -267,7 +268,7 @@ def solve(
         for i in range(n_lo, n_hi):
             for j in range(cj0, cj1 + 2):
                 for k in range(ck0, ck1 + 2):
-                    g = grid_v[i, j, k]
+                    g = load(grid_v, i, j, k)
                     m = g[3]
                     mass[i, j, k] = m
                     if m > 0.0:
@@ -382,12 +383,12 @@ def solve(
                 for k in range(ck0, ck1 + 2):
                     if mass[i, j, k] > 0.0:
                         d_stamp[i, j, k] = solves
-                        g = grid_v[i, j, k]
+                        g = load(grid_v, i, j, k)
                         dd = d[i, j, k]
                         for e in range(3):
                             g[e] = g[e] + dd[e]
                             g[4 + e] = g[4 + e] + dd[e]
-                        grid_v[i, j, k] = g
+                        store(grid_v, i, j, k, g)
         for i in range(c_lo, c_hi):
             for j in range(cj0, cj1 + 1):
                 for k in range(ck0, ck1 + 1):

@@ -73,9 +73,10 @@ class SubstepStats:
 class GridHook(Protocol):
     """Extension point called after the grid update of every sub-step.
 
-    ``solver.grid_v`` (wp.array3d of ``kernels.vec8``, [nx, ny, nz]: node velocity in m/s, mass
-    in kg, velocity change of this step; see ``physgm.sim.mpm``) may be modified in place with Warp
-    kernels on ``solver.device``; e.g. a rigid collider sets the velocity of the nodes it covers
+    ``solver.grid_v`` (wp.array4d of ``kernels.vec8``, [bx, by, bz, 64] in 4^3-node blocks, read and
+    written through ``grid_layout.load`` and ``store``: node velocity in m/s, mass in kg, velocity
+    change of this step; see ``physgm.sim.mpm``) may be modified in place with Warp kernels on
+    ``solver.device``; e.g. a rigid collider sets the velocity of the nodes it covers
     and reads the momentum change.
     """
 
@@ -475,7 +476,8 @@ class MPMSolver:
 
     @property
     def grid_v(self) -> wp.array:
-        """[nx, ny, nz] ``kernels.vec8`` node velocity, mass and velocity change: what grid hooks change."""
+        """[bx, by, bz, 64] ``kernels.vec8`` node velocity, mass and velocity change, in 4^3-node
+        blocks (``grid_layout``; ``grid_layout.to_dense`` gives [nx, ny, nz, 8]): what grid hooks change."""
         return self.arrays.grid_v
 
     @property

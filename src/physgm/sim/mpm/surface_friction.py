@@ -15,13 +15,14 @@ from __future__ import annotations
 
 import warp as wp
 
+from physgm.sim.mpm.grid_layout import load
 from physgm.sim.mpm.kernels import BLOCK, WORK_GROUND, add_impulse, block_reached, set_node_velocity, vec8
 from physgm.sim.mpm.substep_params import SubstepParams
 
 
 @wp.kernel
 def surface_friction(
-    grid_v: wp.array3d(dtype=vec8),  # [nx, ny, nz] in/out: velocity, mass, velocity change, grip
+    grid_v: wp.array4d(dtype=vec8),  # [bx, by, bz, 64] in/out (``grid_layout``): velocity, mass, dv, grip
     touched: wp.array3d(dtype=wp.int32),  # [bx, by, bz] blocks reached by this sub-step's scatter
     params: wp.array(dtype=SubstepParams),  # [threads] row 0: this sub-step's number, the active box
     layer: int,  # k of the top held node layer; the surface layer is layer + 1
@@ -38,8 +39,8 @@ def surface_friction(
         return
     if not block_reached(touched, i // BLOCK, j // BLOCK, layer // BLOCK, stamp):
         return
-    held = grid_v[i, j, layer]
-    node = grid_v[i, j, k]
+    held = load(grid_v, i, j, layer)
+    node = load(grid_v, i, j, k)
     m = node[3]
     grip = held[7]
     if m <= 0.0 or held[3] <= 0.0 or grip <= 0.0:

@@ -27,6 +27,7 @@ import warp as wp
 from physgm.sim.mpm import kernels as K
 from physgm.sim.mpm.grid import GridSpec
 from physgm.sim.mpm.grid_arrays import GridArrays
+from physgm.sim.mpm.grid_layout import atomic_add_node, load, store
 
 wp.set_module_options({"enable_backward": False})
 
@@ -135,7 +136,7 @@ def apply_walls(
     touched: wp.array3d(dtype=wp.int32),  # [bx, by, bz] blocks the current scatter reached
     stamp: wp.int32,
     impulse: wp.array(dtype=wp.float64),  # [3] running impulse of the walls on the nodes, N s
-    grid_v: wp.array3d(dtype=K.vec8),  # [nx, ny, nz] in/out
+    grid_v: wp.array4d(dtype=K.vec8),  # [bx, by, bz, 64] in/out (``grid_layout``)
 ):
     i, j, k = wp.tid()
     i += lo[0]
@@ -144,7 +145,7 @@ def apply_walls(
     # Nodes of blocks no stencil reached hold an older sub-step's values; no particle reads them.
     if not K.block_reached(touched, i // K.BLOCK, j // K.BLOCK, k // K.BLOCK, stamp):
         return
-    g = grid_v[i, j, k]
+    g = load(grid_v, i, j, k)
     m = g[3]
     if m <= 0.0:
         return
@@ -188,8 +189,8 @@ def ghost_and_image(g: int, u: int, w: int, axis: int, i0: int, i1: int):
 
 @wp.kernel
 def fold_periodic(
-    acc0: wp.array3d(dtype=K.vec8),  # [nx, ny, nz] first thread's scatter, in/out
-    acc1: wp.array3d(dtype=K.vec8),  # [nx, ny, nz] second thread's scatter, in/out
+    acc0: wp.array4d(dtype=K.vec8),  # [bx, by, bz, 64] first thread's scatter, in/out (``grid_layout``)
+    acc1: wp.array4d(dtype=K.vec8),  # [bx, by, bz, 64] second thread's scatter, in/out
     axis: int,
     i0: int,  # node of the plane lo
     i1: int,  # node of the plane hi (same point as i0)
@@ -199,18 +200,18 @@ def fold_periodic(
     """Add the scatter on the ghost nodes (GHOST past each end) to their images, one thread per ghost."""
     g, u, w = wp.tid()  # g: ghost layer 0 .. 2 GHOST - 1; (u, w): node in the plane
     idx, img = ghost_and_image(g, u, w, axis, i0, i1)
-    s = acc0[idx[0], idx[1], idx[2]] + acc1[idx[0], idx[1], idx[2]]
+    s = load(acc0, idx[0], idx[1], idx[2]) + load(acc1, idx[0], idx[1], idx[2])
     if s[3] > 0.0:
-        wp.atomic_add(acc0, img[0], img[1], img[2], s)
-        acc0[idx[0], idx[1], idx[2]] = K.vec8(0.0)
-        acc1[idx[0], idx[1], idx[2]] = K.vec8(0.0)
+        atomic_add_node(acc0, img[0], img[1], img[2], s)
+        store(acc0, idx[0], idx[1], idx[2], K.vec8(0.0))
+        store(acc1, idx[0], idx[1], idx[2], K.vec8(0.0))
         touched[img[0] // K.BLOCK, img[1] // K.BLOCK, img[2] // K.BLOCK] = stamp
 
 
 @wp.kernel
 def mirror_periodic(
-    acc0: wp.array3d(dtype=K.vec8),
-    acc1: wp.array3d(dtype=K.vec8),
+    acc0: wp.array4d(dtype=K.vec8),
+    acc1: wp.array4d(dtype=K.vec8),
     axis: int,
     i0: int,
     i1: int,
@@ -220,9 +221,9 @@ def mirror_periodic(
     """Copy each folded image back onto its ghost, so particles past an end read the same node."""
     g, u, w = wp.tid()
     idx, img = ghost_and_image(g, u, w, axis, i0, i1)
-    s = acc0[img[0], img[1], img[2]] + acc1[img[0], img[1], img[2]]
+    s = load(acc0, img[0], img[1], img[2]) + load(acc1, img[0], img[1], img[2])
     if s[3] > 0.0:
-        acc0[idx[0], idx[1], idx[2]] = s
+        store(acc0, idx[0], idx[1], idx[2], s)
         touched[idx[0] // K.BLOCK, idx[1] // K.BLOCK, idx[2] // K.BLOCK] = stamp
 
 
