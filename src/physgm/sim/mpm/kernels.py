@@ -305,56 +305,75 @@ def grid_update(
     num_boxes: int,
     slot: int,  # this launch's part, its row of params and of work
     parts: int,  # 1, or 2: the two threads each update half the active box's block columns along x
+    slabs: int,  # 1: a thread per slab of blocks across x (CPU), 0: a thread per block (below)
     pending: wp.array2d(dtype=wp.float64),  # [2, 4] ground force the scatter gave the particles, N; cleared
     work: wp.array2d(
         dtype=wp.float64
     ),  # [threads, WORK_ROW] running sums: box work, ground and face impulse, face contacts (WORK_*)
     grid_v: wp.array4d(dtype=vec8),  # [bx, by, bz, 64] out: velocity, mass, velocity change
 ):
-    """One thread per 4^3-node block of the grid; blocks outside the active box and blocks no
-    stencil reached are left as they are (no particle reads them this sub-step), and so are the
-    blocks of the other part. Part 0's first thread adds the particles' ground contact to the
-    ground impulse (``particle_ground``)."""
+    """Updates the blocks of the active box that a stencil reached; blocks outside the box and
+    blocks no stencil reached are left as they are (no particle reads them this sub-step), and so
+    are the blocks of the other part. Part 0's first thread adds the particles' ground contact to
+    the ground impulse (``particle_ground``).
+
+    ``slabs`` 0: one thread per block, launched over the grid's [bx, by, bz] blocks (CUDA). 1: one
+    thread per slab of blocks across x, launched over [bx, 1, 1], each looping over the active
+    box's blocks of its slab (the CPU, where a thread per block cost 16 ns each even when it
+    returned at once: 0.6 ms a sub-step on sand's 233 x 233 x 42 grid, docs/measurements_sim.md
+    section 33). Either way each block's nodes are updated in the same order."""
     bi, bj, bk = wp.tid()
     sp = params[slot]
     if bi == 0 and bj == 0 and bk == 0 and slot == 0 and ground.particles != 0:
         fold_ground_force(pending, work, WORK_GROUND, float(sp.dt))
     lo = sp.block_lo
     hi = sp.block_hi
-    if bi < lo[0] or bj < lo[1] or bk < lo[2] or bi > hi[0] or bj > hi[1] or bk > hi[2]:
+    if bi < lo[0] or bi > hi[0]:
         return
     if (bi - lo[0]) * parts // (hi[0] - lo[0] + 1) != slot:
         return
-    if not block_reached(touched, bi, bj, bk, sp.stamp):
+    j0 = bj
+    j1 = bj
+    k0 = bk
+    k1 = bk
+    if slabs != 0:
+        j0 = lo[1]
+        j1 = hi[1]
+        k0 = lo[2]
+        k1 = hi[2]
+    elif bj < lo[1] or bk < lo[2] or bj > hi[1] or bk > hi[2]:
         return
     dt = float(sp.dt)
     t = float(sp.t)
     damping = sp.damping
-    # The block's nodes in memory order (``grid_layout``).
-    for i in range(bi * BLOCK, wp.min((bi + 1) * BLOCK, shape[0])):
-        for j in range(bj * BLOCK, wp.min((bj + 1) * BLOCK, shape[1])):
-            for k in range(bk * BLOCK, wp.min((bk + 1) * BLOCK, shape[2])):
-                update_node(
-                    acc0,
-                    acc1,
-                    i,
-                    j,
-                    k,
-                    origin,
-                    dx,
-                    dt,
-                    t,
-                    gravity,
-                    damping,
-                    bound,
-                    shape,
-                    ground,
-                    boxes,
-                    num_boxes,
-                    slot,
-                    work,
-                    grid_v,
-                )
+    for cj in range(j0, j1 + 1):
+        for ck in range(k0, k1 + 1):
+            if block_reached(touched, bi, cj, ck, sp.stamp):
+                # The block's nodes in memory order (``grid_layout``).
+                for i in range(bi * BLOCK, wp.min((bi + 1) * BLOCK, shape[0])):
+                    for j in range(cj * BLOCK, wp.min((cj + 1) * BLOCK, shape[1])):
+                        for k in range(ck * BLOCK, wp.min((ck + 1) * BLOCK, shape[2])):
+                            update_node(
+                                acc0,
+                                acc1,
+                                i,
+                                j,
+                                k,
+                                origin,
+                                dx,
+                                dt,
+                                t,
+                                gravity,
+                                damping,
+                                bound,
+                                shape,
+                                ground,
+                                boxes,
+                                num_boxes,
+                                slot,
+                                work,
+                                grid_v,
+                            )
 
 
 @wp.func

@@ -206,10 +206,13 @@ class SubstepLaunches:
         # of a two-thread sub-step otherwise: docs/measurements_sim.md section 22); with the
         # surface friction, which needs the whole grid, the first thread updates it all.
         parts = threads if layer is None else 1
+        # On the CPU a thread per slab of blocks across x, on CUDA one per block (K.grid_update).
+        slabs = int(self.device.is_cpu)
+        blocks = K.block_res(g.res)
         self.grid_update = [
             wp.launch(
                 K.grid_update,
-                K.block_res(g.res),
+                (blocks[0], 1, 1) if slabs else blocks,
                 [
                     a.acc[0],
                     a.acc[1],
@@ -225,6 +228,7 @@ class SubstepLaunches:
                     num_boxes,
                     part,
                     parts,
+                    slabs,
                     a.pending,
                     a.work,
                     a.grid_v,
