@@ -13,7 +13,7 @@ from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.solver import MPMSolver
 from physgm.sim.mpm.state import Particles
 from physgm.sim.mpm.stepping import SolverConfig
-from physgm.sim.mpm_run import _moved_grid, _resumed, followed_grid
+from physgm.sim.mpm_run import GRID_ROOM, _moved_grid, _resumed, followed_grid
 
 DX = 0.02
 MARGIN = 3  # SolverConfig.boundary_cells
@@ -63,13 +63,38 @@ def test_the_grid_widens_where_the_body_and_its_reach_no_longer_fit():
 def test_a_grid_past_the_solvers_node_cap_is_not_moved_to():
     grid = GridSpec.fit((-0.1, -0.1, 0.0), (0.1, 0.1, 0.2), DX, MARGIN)
     x = _block(0.0, half=0.09)
-    v = np.tile([0.0, 2.0, 0.0], (len(x), 1))
+    v = np.tile([0.0, 0.5, 0.0], (len(x), 1))  # 2 cells short along y: the room adds 6
     wider = followed_grid(grid, x, v, FRAME, MARGIN)
-    assert wider is not None and wider.num_nodes > grid.num_nodes
-    roomy = SolverConfig(max_grid_nodes=wider.num_nodes)
-    assert _moved_grid(grid, x, v, FRAME, roomy) == wider
+    roomy = followed_grid(grid, x, v, FRAME, MARGIN, room=GRID_ROOM)
+    assert wider is not None and grid.num_nodes < wider.num_nodes < roomy.num_nodes
+    assert _moved_grid(grid, x, v, FRAME, SolverConfig(max_grid_nodes=roomy.num_nodes)) == roomy
+    # Without the room to spread into when that alone passes the cap.
+    assert _moved_grid(grid, x, v, FRAME, SolverConfig(max_grid_nodes=roomy.num_nodes - 1)) == wider
     tight = SolverConfig(max_grid_nodes=wider.num_nodes - 1)
     assert _moved_grid(grid, x, v, FRAME, tight) is None  # the walls stay, as without following
+
+
+def test_a_spreading_body_moves_a_grid_with_room_a_few_times():
+    """A sheet spreading along x at 1 m/s (sand after its landing), frame after frame: with no room
+    the grid widens at every frame, with a quarter of its width at a time every few frames, and
+    each widened grid holds the sheet and its reach."""
+    grid0 = GridSpec.fit((-0.15, -0.15, 0.0), (0.15, 0.15, 0.1), DX, MARGIN)
+    moves = {}
+    for room in (0.0, GRID_ROOM):
+        grid, count = grid0, 0
+        for frame in range(30):
+            half = 0.1 + 1.0 * FRAME * frame
+            x = np.stack([np.linspace(-half, half, 50), np.zeros(50), np.full(50, 0.01)], -1)
+            v = np.stack([np.linspace(-1.0, 1.0, 50), np.zeros(50), np.zeros(50)], -1)
+            moved = followed_grid(grid, x, v, FRAME, MARGIN, room)
+            if moved is not None:
+                if room > 0 and moved.res[0] > grid.res[0]:
+                    assert moved.res[0] - grid.res[0] >= room * grid.res[0]
+                grid, count = moved, count + 1
+            lo, hi = grid.interior(MARGIN + 1)
+            assert lo[0] <= -half - FRAME and hi[0] >= half + FRAME
+        moves[room] = count
+    assert moves[0.0] >= 25 and moves[GRID_ROOM] <= 8, moves
 
 
 def test_a_resumed_solver_keeps_the_contact_plane_of_the_first():

@@ -125,6 +125,37 @@ def test_block_skipping_grid_update_matches_twin_across_blocks(threads):
     solver.close()
 
 
+def test_a_thread_per_block_updates_the_grid_as_a_thread_per_slab_does():
+    """grid_update launched as CUDA runs it (a thread per block, ``slabs`` 0) leaves the same node
+    velocities as the CPU's thread per slab of blocks across x, on particles spread over several
+    blocks of a ragged grid, with the ground."""
+    rng = np.random.default_rng(11)
+    p = Particles(x=rng.uniform(0.06, 0.2, (300, 3)), volume=1e-6, material=0)
+    p.v = rng.normal(0.0, 0.5, (300, 3))
+    grid = GridSpec((0.0, 0.0, 0.0), 0.01, (30, 26, 29))
+    scene = Scene(ground=GroundPlane(height=0.07, friction=0.4, contact="nodes"))
+    solver = MPMSolver(p, MATS[:1], grid, scene, SolverConfig(threads=1))
+    for _ in range(3):
+        solver.substep(1e-4)
+    launches = solver.launches
+    for launch in launches.p2g:  # the accumulators of the next sub-step, from the current state
+        launch.launch()
+    acc = [a.numpy().copy() for a in solver.arrays.acc]
+    (update,) = launches.grid_update
+    update.launch()
+    slabs = solver.grid_v.numpy().copy()
+    for a, saved in zip(solver.arrays.acc, acc, strict=True):
+        a.assign(saved)
+    solver.grid_v.zero_()
+    update.set_param_by_name("slabs", 0)
+    update.set_dim(solver.arrays.touched.shape)
+    update.launch()
+    per_block = solver.grid_v.numpy()
+    assert (per_block[..., 3] > 0).sum() > 1000  # nodes with mass in many blocks
+    np.testing.assert_array_equal(per_block, slabs)
+    solver.close()
+
+
 def test_fused_scatter_equals_a_fresh_p2g():
     """After g2p, the accumulators hold exactly what a standalone p2g of the new state gives."""
     p = random_block(400, seed=5)
