@@ -130,6 +130,11 @@ Design notes (why the code looks the way it does)
   them, spin_barrier.py), bit-identical to stepping in Python.
 * grid_update only covers the active box around the particles (re-fitted every
   ``cfl_check_every`` steps); a particle that outruns it is flagged and the frame retried.
+* The grid's node arrays lie in 4^3-node blocks of 64 consecutive nodes (grid_layout.py): a body
+  spread thin reaches a few nodes of many blocks, and each block is then 2 KB in one piece, not
+  16 rows a page apart. On the CPU they are lazily zeroed pages, so a grid sized for what a body
+  may reach costs memory only where it goes, and grid_update runs a thread per slab of blocks
+  across x, not one per block.
 * The deformation state is H = F - I and every constitutive model works in H (b - I, det F - 1,
   log1p / expm1): stiff materials strain ~1e-5 per step, which float32 loses near 1.
 * Particle updates blend APIC with an affine FLIP increment (``flip``): pure APIC loses energy
