@@ -127,10 +127,9 @@ def followed_grid(
 
 
 # The share of its width a grid axis that must widen under a spreading body widens by at least
-# (``followed_grid``'s room). Sand's 50-frame bench drop moved its grid 22 times without it and
-# 4 with it, its clip within 0.01 px (docs/measurements_sim.md section 33). A wider grid costs a
-# sub-step only the blocks no particle reaches, and on the CPU its node arrays take memory only
-# where particles go.
+# (``followed_grid``'s room): a sheet of sand moves its grid every few frames instead of every
+# frame (docs/measurements_sim.md section 33). A wider grid costs a sub-step only the blocks no
+# particle reaches, and on the CPU its node arrays take memory only where particles go.
 GRID_ROOM = 0.25
 
 

@@ -26,11 +26,11 @@ written through ``grid_layout.load`` and ``store``; the stencil sums address the
 
 Particle kernels take an ``offset`` so the CPU solver can split the particles over threads,
 each thread scattering into its own accumulator. The scatter also stamps the 4^3-node block of
-the particle's base node with the number of the sub-step it feeds (``touched``); grid_update runs
-one thread per block of the grid, returns at once outside the active box (the only region
-particles can reach before the next re-fit) and skips blocks no stencil reached, so empty space
-costs a few reads per 64 nodes instead of 64 node updates (most nodes of a falling object's
-active box hold no mass); two CPU threads each update half the active box. dt, time, the stamp
+the particle's base node with the number of the sub-step it feeds (``touched``); grid_update
+visits only the blocks of the active box (the only region particles can reach before the next
+re-fit) and skips blocks no stencil reached, so empty space costs a few reads per 64 nodes
+instead of 64 node updates (most nodes of a falling object's active box hold no mass); two CPU
+threads each update half the active box. dt, time, the stamp
 and the active box come from a device array with a row per CPU thread (``substep_params``), so
 the same recorded launches serve every sub-step and can be captured as a graph. Particle
 stencils are clamped inside the grid, so no index can leave an array whatever the state.
@@ -319,9 +319,10 @@ def grid_update(
 
     ``slabs`` 0: one thread per block, launched over the grid's [bx, by, bz] blocks (CUDA). 1: one
     thread per slab of blocks across x, launched over [bx, 1, 1], each looping over the active
-    box's blocks of its slab (the CPU, where a thread per block cost 16 ns each even when it
-    returned at once: 0.6 ms a sub-step on sand's 233 x 233 x 42 grid, docs/measurements_sim.md
-    section 33). Either way each block's nodes are updated in the same order."""
+    box's blocks of its slab (the CPU, where a thread per block costs time even when it returns
+    at once, and a grid sized for a spreading body has tens of thousands of blocks;
+    docs/measurements_sim.md section 33). Either way each block's nodes are updated in the same
+    order."""
     bi, bj, bk = wp.tid()
     sp = params[slot]
     if bi == 0 and bj == 0 and bk == 0 and slot == 0 and ground.particles != 0:
