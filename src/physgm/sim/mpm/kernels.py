@@ -337,11 +337,11 @@ def grid_update(
     j1 = bj
     k0 = bk
     k1 = bk
-    if slabs != 0:
-        j0 = lo[1]
-        j1 = hi[1]
-        k0 = lo[2]
-        k1 = hi[2]
+    if slabs != 0:  # the box's blocks of this slab, never past the grid's (the box is clamped to it)
+        j0 = wp.max(lo[1], 0)
+        j1 = wp.min(hi[1], touched.shape[1] - 1)
+        k0 = wp.max(lo[2], 0)
+        k1 = wp.min(hi[2], touched.shape[2] - 1)
     elif bj < lo[1] or bk < lo[2] or bj > hi[1] or bk > hi[2]:
         return
     dt = float(sp.dt)
