@@ -21,7 +21,7 @@ import warp as wp
 from physgm.sim.mpm.stencil_sums import vec8
 
 BLOCK = wp.constant(4)  # nodes per block side
-BLOCK_NODES = 64
+BLOCK_NODES = wp.constant(64)  # nodes per block
 
 
 def block_res(res: tuple[int, int, int]) -> tuple[int, int, int]:
@@ -95,7 +95,7 @@ def stencil_offsets(base: wp.vec3i, shape: wp.vec3i):
     (base + (a, b, c)) is at ``ox[a] + oy[b] + oz[c]`` of the flattened node array."""
     bz = (shape[2] + 3) >> 2
     by = (shape[1] + 3) >> 2
-    ox = axis_offsets(base[0], by * bz * 64, 16)
-    oy = axis_offsets(base[1], bz * 64, 4)
-    oz = axis_offsets(base[2], 64, 1)
+    ox = axis_offsets(base[0], by * bz * BLOCK_NODES, 16)
+    oy = axis_offsets(base[1], bz * BLOCK_NODES, 4)
+    oz = axis_offsets(base[2], BLOCK_NODES, 1)
     return ox, oy, oz
