@@ -49,7 +49,6 @@ from physgm.sim.constitutive.dispatch import update_for
 from physgm.sim.linalg import is_finite
 from physgm.sim.mpm.boundary import BoxStruct, GroundStruct, box_velocity, ground_grip, ground_velocity
 from physgm.sim.mpm.grid_layout import BLOCK, load, stencil_offsets, store
-from physgm.sim.mpm.grid_layout import block_res as block_res  # the grid's blocks, named here too
 from physgm.sim.mpm.particle_ground import fold_ground_force, particle_ground_force, touches_ground
 from physgm.sim.mpm.pressure_kernels import add_cell_terms
 from physgm.sim.mpm.stencil_sums import gather_moments, scatter_affine, vec8

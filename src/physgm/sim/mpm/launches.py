@@ -26,6 +26,7 @@ from physgm.sim.mpm import particle_ops as ops
 from physgm.sim.mpm.boundary import no_ground
 from physgm.sim.mpm.grid import GridSpec
 from physgm.sim.mpm.grid_arrays import GridArrays
+from physgm.sim.mpm.grid_layout import block_res
 from physgm.sim.mpm.particle_ground import ground_stiffness, pack_contact
 from physgm.sim.mpm.particle_store import ParticleStore
 from physgm.sim.mpm.scene import Scene
@@ -208,7 +209,7 @@ class SubstepLaunches:
         parts = threads if layer is None else 1
         # On the CPU a thread per slab of blocks across x, on CUDA one per block (K.grid_update).
         slabs = int(self.device.is_cpu)
-        blocks = K.block_res(g.res)
+        blocks = block_res(g.res)
         self.grid_update = [
             wp.launch(
                 K.grid_update,
