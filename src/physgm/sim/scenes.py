@@ -82,12 +82,18 @@ def _fall_reach(x: np.ndarray, v: np.ndarray, gravity: np.ndarray, duration: flo
     return reach_lo, reach_hi
 
 
+def _lowest_surface_at(x: np.ndarray, z: float, surface: float) -> np.ndarray:
+    """Particles x [P, 3] moved along z so their material's lowest surface (``surface`` under the
+    lowest centre, ``build_scene``) is at height z, m."""
+    return x - np.array([0.0, 0.0, x[:, 2].min() - surface - z])
+
+
 def drop(x: np.ndarray, material: np.ndarray, cfg: dict, surface: float) -> SceneSetup:
     """Place the object's lowest point ``height`` above the ground with velocity ``velocity``;
     gravity pulls it down."""
     ground = _ground(cfg)
     floor = ground.height if ground is not None else 0.0
-    x = x - np.array([0.0, 0.0, x[:, 2].min() - surface - floor - float(cfg["height"])])
+    x = _lowest_surface_at(x, floor + float(cfg["height"]), surface)
     v = np.tile(_vec(cfg.get("velocity", (0, 0, 0)), "velocity"), (len(x), 1))
     gravity = _vec(cfg["gravity"], "gravity")
     duration = float(cfg["duration"])
@@ -175,7 +181,7 @@ def push(x: np.ndarray, material: np.ndarray, cfg: dict, surface: float) -> Scen
     a = int(cfg["axis"])
     ground = _ground(cfg)
     floor = ground.height if ground is not None else 0.0
-    x = x - np.array([0.0, 0.0, x[:, 2].min() - surface - floor - float(cfg.get("lift", 0.0))])
+    x = _lowest_surface_at(x, floor + float(cfg.get("lift", 0.0)), surface)
     lo, hi = x.min(0), x.max(0)
     size = float((hi - lo).max())
     w_lo, w_hi = lo - size, hi + size
@@ -201,9 +207,9 @@ def two_objects(x: np.ndarray, material: np.ndarray, cfg: dict, surface: float) 
     ground = _ground(cfg)
     floor = ground.height if ground is not None else 0.0
     x = x.copy()
-    x[bottom] -= np.array([0.0, 0.0, x[bottom, 2].min() - surface - floor])
-    gap = float(cfg["gap"]) + 2.0 * surface  # between the bodies' surfaces
-    x[top] -= np.array([0.0, 0.0, x[top, 2].min() - x[bottom, 2].max() - gap])
+    x[bottom] = _lowest_surface_at(x[bottom], floor, surface)
+    # The gap is between the bodies' surfaces: the top of the lower one is surface above its centres.
+    x[top] = _lowest_surface_at(x[top], x[bottom, 2].max() + surface + float(cfg["gap"]), surface)
     # Centre the top object over the bottom one.
     x[top, :2] += x[bottom, :2].mean(0) - x[top, :2].mean(0)
     v = np.zeros_like(x)
