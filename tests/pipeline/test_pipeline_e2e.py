@@ -155,14 +155,21 @@ def test_views_folder_push(make_cfg):
     assert Image.open(cfg.output_dir / "mask.png").size == (4 * 128, 128)
 
 
-def test_ply_skips_the_model(make_cfg, blob_ply, tmp_path):
-    """The PhysGaussian workflow: no checkpoint needed, the material is given, frame PLYs written."""
+def test_ply_skips_the_model(make_cfg, blob_ply, tmp_path, capsys):
+    """The PhysGaussian workflow: no checkpoint needed, the material is given, frame PLYs written;
+    the simulation shows its progress bar."""
     from physgm.gaussians import read_ply
 
     cfg = make_cfg(
-        blob_ply, ckpt=tmp_path / "absent.ckpt", physics__material="rubber", output__frame_plys=True
+        blob_ply,
+        ckpt=tmp_path / "absent.ckpt",
+        physics__material="rubber",
+        output__frame_plys=True,
+        output__progress=True,
     )
     report = run_pipeline(cfg).report
+    bar = f"mean: simulating ({report['mode']}, {report['particles']:,} particles)"
+    assert bar in capsys.readouterr().err
     check_run_folder(cfg.output_dir, report)
     assert report["input"]["kind"] == "ply" and report["checkpoint"] is None
     phys = json.loads((cfg.output_dir / "physics.json").read_text())

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -55,9 +56,10 @@ def _shell_cube(n: int = 3000, side: float = 0.1, bottom: float = 0.3, seed: int
 
 def test_steel_drop_runs_rigid_and_moves_gaussians_rigidly():
     gs = _shell_cube()
-    traj = simulate(gs, PhysicsSpec("metal", E=2e11), GROUND, CAMERAS, n_frames=40)
+    done = []
+    traj = simulate(gs, PhysicsSpec("metal", E=2e11), GROUND, CAMERAS, n_frames=40, on_frame=_record(done))
     assert traj.plan.mode == "rigid"
-    assert len(traj) == 40
+    assert len(traj) == 40 and done == [(40, traj.substeps)]  # the rigid path reports once, at the end
     # Falls 0.3 m: the bottom reaches the ground, and the body never sinks below it.
     assert traj.x[:, :, 2].min() > -1e-3
     # The Gaussians touch the ground; the particles sit at voxel centres, half a spacing inside.
@@ -153,7 +155,10 @@ def test_early_stop_holds_frames_once_still():
         cells_across=8, particles_per_cell=1, allow_rigid=False, allow_stiffness_cap=False, rest_frames=3
     )
     physics = PhysicsSpec("rubber", E=1e6, nu=0.3)
-    traj = simulate(gs, physics, (GROUND, [0.3, 0.0, 0.0]), CAMERAS, n_frames=30, planner=cfg)
+    done = []  # (frames, sub-steps) as the run reports them
+    traj = simulate(
+        gs, physics, (GROUND, [0.3, 0.0, 0.0]), CAMERAS, n_frames=30, planner=cfg, on_frame=_record(done)
+    )
     assert traj.plan.mode == "mpm"
     moved_px = np.linalg.norm(np.diff(traj.x, axis=0), axis=2).max(axis=1) * traj.plan.px_per_m  # [T-1]
     assert moved_px[0] > 1.0  # it visibly slides first
@@ -164,6 +169,9 @@ def test_early_stop_holds_frames_once_still():
         np.testing.assert_array_equal(traj.x[k], traj.x[traj.rest_frame - 1])
     # The held frames cost nothing: fewer sub-steps than planned for the whole clip.
     assert traj.substeps < traj.plan.substeps_per_frame * 29 * 0.8
+    # The progress reported: frame by frame up to the rest frame, then the held rest at once.
+    _check_progress(done, traj)
+    assert [f for f, _ in done[-3:]] == [traj.rest_frame - 2, traj.rest_frame - 1, 30]
     assert traj.face_contacts == traj.grid_moves == 0  # the slide stayed inside the planned grid
 
 
@@ -271,6 +279,17 @@ def _pixels(traj) -> torch.Tensor:
     return project(CAMERAS, traj.means())
 
 
+def _record(done: list) -> Callable[[int, int], None]:
+    return lambda frames, substeps: done.append((frames, substeps))
+
+
+def _check_progress(done: list[tuple[int, int]], traj) -> None:
+    """``on_frame`` reports: the closed-form prefix first, never backwards, the whole clip last."""
+    assert done[0] == (traj.ballistic_frames, 0)
+    assert all(a[0] < b[0] and a[1] <= b[1] for a, b in zip(done, done[1:], strict=False))
+    assert done[-1] == (len(traj), traj.substeps)
+
+
 def test_the_flight_after_a_bounce_is_coasted_within_the_bound():
     """A rubber cube bounces at frame 4 and is still in the air when the clip ends: the MPM stops
     after take-off and the flight is computed in closed form (sim/coast.py). Against the explicit
@@ -278,9 +297,16 @@ def test_the_flight_after_a_bounce_is_coasted_within_the_bound():
     vibration (0.03-0.09 px here) keeps the explicit run."""
     gs = _shell_cube(2000, side=0.06, bottom=0.1)
     off = dict(allow_rigid=False, allow_bulk_cap=False, allow_stiffness_cap=False, cells_across=6)
+    done = {"explicit": [], "coast": [], "tight": []}  # what each run reported as it went
     runs = {
         name: simulate(
-            gs, PhysicsSpec("rubber", E=1e6), GROUND, CAMERAS, n_frames=9, planner=PlannerConfig(**cfg)
+            gs,
+            PhysicsSpec("rubber", E=1e6),
+            GROUND,
+            CAMERAS,
+            n_frames=9,
+            planner=PlannerConfig(**cfg),
+            on_frame=_record(done[name]),
         )
         for name, cfg in {
             "explicit": {**off, "coast": False},
@@ -300,6 +326,11 @@ def test_the_flight_after_a_bounce_is_coasted_within_the_bound():
     # Up to take-off the two runs are the same run.
     take_off = len(explicit) - coasted.coasted_frames
     np.testing.assert_array_equal(coasted.x[:take_off], explicit.x[:take_off])
+    # Progress: each simulated frame of the explicit run; the flight as one step of the coasted run.
+    for name, traj in runs.items():
+        _check_progress(done[name], traj)
+    assert [f for f, _ in done["explicit"]] == list(range(explicit.ballistic_frames, len(explicit) + 1))
+    assert done["coast"][-1][0] - done["coast"][-2][0] == coasted.coasted_frames + 1
 
 
 def test_a_landing_lump_with_its_bulk_capped_stays_within_the_dent_term():

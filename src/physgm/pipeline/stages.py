@@ -143,7 +143,9 @@ def _planner(cfg: RunConfig):
 
 
 def _simulate(g, choice, cfg: RunConfig, planner, camera, overrides: dict):
-    from physgm.sim.gaussian_trajectory import simulate
+    from tqdm import tqdm
+
+    from physgm.sim.gaussian_trajectory import prepare_simulation, run_prepared
     from physgm.sim.mpm.stepping import SolverConfig
 
     try:
@@ -151,7 +153,7 @@ def _simulate(g, choice, cfg: RunConfig, planner, camera, overrides: dict):
     except (TypeError, ValueError) as err:
         raise UserError(f"bad solver settings: {err}") from None
     try:
-        traj = simulate(
+        prepared = prepare_simulation(
             g,
             choice.spec(),
             cfg.scene,
@@ -160,8 +162,19 @@ def _simulate(g, choice, cfg: RunConfig, planner, camera, overrides: dict):
             planner=planner,
             solver=solver,
             scene_overrides=overrides or None,
-            device=cfg.device,
         )
+        # The simulation is most of what a user waits for (minutes for stiff rubbery bodies): a bar
+        # of the clip's frames, with the sub-steps they took.
+        plan = prepared.plan
+        desc = f"{choice.name}: simulating ({plan.mode}, {len(prepared.sample.x):,} particles)"
+        shown = cfg.output.progress
+        with tqdm(total=plan.n_frames, desc=desc, unit="frame", disable=not shown, leave=False) as bar:
+
+            def on_frame(frames: int, substeps: int) -> None:
+                bar.set_postfix_str(f"{substeps:,} sub-steps", refresh=False)
+                bar.update(frames - bar.n)
+
+            traj = run_prepared(prepared, cfg.device, on_frame=on_frame)
     except ValueError as err:  # the simulator validates materials and scenes with ValueError
         raise UserError(f"cannot simulate {choice.label()} in scene {cfg.scene!r}: {err}") from None
     plan_s = float(traj.plan_seconds)  # particle sampling + planning, inside traj.seconds

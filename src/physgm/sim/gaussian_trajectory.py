@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -277,10 +277,14 @@ def prepare_simulation(
 
 
 def run_prepared(
-    prepared: PreparedSimulation, device: str = "cpu", deadline: float | None = None
+    prepared: PreparedSimulation,
+    device: str = "cpu",
+    deadline: float | None = None,
+    on_frame: Callable[[int, int], None] | None = None,
 ) -> GaussianTrajectory:
     """Run a prepared simulation; ``deadline`` (a ``time.perf_counter()`` value) cuts an MPM run
-    between frames with ``mpm_run.SimulationBudgetExceeded``."""
+    between frames with ``mpm_run.SimulationBudgetExceeded``. ``on_frame(frames, substeps)`` hears
+    how much of the clip is done (``mpm_run.run_mpm``; the rigid path calls it once, at the end)."""
     start = time.perf_counter() - prepared.seconds
     plan, sample, gaussians, cfg = prepared.plan, prepared.sample, prepared.gaussians, prepared.planner
     x0, v0, n_frames = sample.x.detach().cpu().double().numpy(), prepared.v0, plan.n_frames
@@ -298,6 +302,8 @@ def run_prepared(
         )
         xs = np.stack([traj.transform(x0, t) for t in range(n_frames)]).astype(np.float32)
         Fs = np.broadcast_to(traj.rotations[:, None].astype(np.float32), (n_frames, len(x0), 3, 3))
+        if on_frame is not None:
+            on_frame(n_frames, traj.steps)
         seconds = time.perf_counter() - start
         return GaussianTrajectory(
             plan,
@@ -327,6 +333,7 @@ def run_prepared(
         deadline,
         max(cfg.bound_px - plan.predicted_error_px, 0.0) if cfg.coast else 0.0,
         cfg.follow,
+        on_frame,
     )
     seconds = time.perf_counter() - start
     return GaussianTrajectory(
@@ -356,15 +363,17 @@ def simulate(
     cameras: Cameras,
     *,
     device: str = "cpu",
+    on_frame: Callable[[int, int], None] | None = None,
     **options,
 ) -> GaussianTrajectory:
     """Plans and runs the cheapest simulation that stays within the pixel bound.
 
     ``prepare_simulation`` then ``run_prepared``: the arguments and the ``options`` (n_frames,
-    planner, solver, scene_overrides) are ``prepare_simulation``'s; ``device`` is the Warp device
-    of the MPM solver.
+    planner, solver, scene_overrides) are ``prepare_simulation``'s; ``device`` (the Warp device of
+    the MPM solver) and ``on_frame`` are ``run_prepared``'s.
     """
-    return run_prepared(prepare_simulation(gaussians, physics, scene, cameras, **options), device)
+    prepared = prepare_simulation(gaussians, physics, scene, cameras, **options)
+    return run_prepared(prepared, device, on_frame=on_frame)
 
 
 def _run_rigid(

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -184,12 +185,16 @@ def run_mpm(
     deadline: float | None = None,
     coast_budget_px: float = 0.0,
     follow: bool = True,
+    on_frame: Callable[[int, int], None] | None = None,
 ) -> MPMRun:
     """MPM with a ballistic prefix, flights after a bounce in closed form, and early stop.
 
     ``coast_budget_px``: pixels a coasted flight's vibration may move a point by (0: never coast).
     ``follow``: move the grid under a body that leaves the planned region (``followed_grid``;
     scenes without velocity boxes, side walls or periodic axes); False stops it at the grid's faces.
+    ``on_frame(frames, substeps)``: called whenever more of the clip is done (the closed-form
+    prefix, each simulated frame, a coasted flight, the held frames after rest) with the frames of
+    the clip done so far and the sub-steps taken; ``simulate.py``'s progress bar.
     """
     T, frame_dt, n = plan.n_frames, plan.frame_dt, len(x0)
     xs = np.empty((T, n, 3), np.float32)
@@ -200,6 +205,8 @@ def run_mpm(
         t = k * frame_dt
         xs[k] = x0 + v0 * t + 0.5 * g * t * t
         Fs[k] = np.eye(3, dtype=np.float32)
+    if on_frame is not None:
+        on_frame(k0, 0)
     if k0 == T:
         return MPMRun(xs, Fs, 0, None, k0, 0, 0)
     t0 = (k0 - 1) * frame_dt
@@ -233,6 +240,8 @@ def run_mpm(
             ):
                 rest_frame = k + 1
                 xs[k + 1 :], Fs[k + 1 :] = xs[k], Fs[k]
+                if on_frame is not None:
+                    on_frame(T, substeps)
                 break
             # A plane lowered under a body that started in the ground would move on a restart.
             flight = (
@@ -261,6 +270,8 @@ def run_mpm(
                 solver.close()
                 solver = make_solver(resume, [material], grid, continued, solver_cfg, device)
             k += 1
+            if on_frame is not None:
+                on_frame(k, substeps)
         faces += solver.face_contacts
     finally:
         solver.close()
