@@ -309,15 +309,20 @@ def test_volume_barrier_holds_when_lam_vanishes(model):
     np.testing.assert_allclose(got["tau"], tau_ref, rtol=1e-4, atol=1e-3 * p.mu)
 
 
+# ||b - I|| of the Hencky models' two paths without eigenvectors: the series, then the quadrature.
+STRAIN_PATHS = {"series": (0.0, 0.05), "quadrature": (0.05, 0.3)}
+
+
 @pytest.mark.parametrize("model", ["von_mises", "foam", "drucker_prager"])
 @pytest.mark.parametrize("rotated", [False, True])
-def test_small_elastic_strains_match_numpy_to_float32_precision(model, rotated):
-    """Below HENCKY_SERIES_MAX the Hencky models take the strain's series instead of its
-    eigenvectors: the stress must still be the twin's, relative to itself, up to the edge of the
-    series (||b - I|| = 0.05). A pure stretch from 1e-6 strain (F - I is exact in float32 there);
-    a rotated one from 1e-3, since rounding the rotated F to float32 costs b - I ~1e-7 absolute.
-    Elastic throughout: von Mises and foam with a high yield stress, Drucker-Prager compressed
-    inside its cone (the deviatoric part a fifth of the volumetric one)."""
+@pytest.mark.parametrize("path", list(STRAIN_PATHS))
+def test_small_elastic_strains_match_numpy_to_float32_precision(model, rotated, path):
+    """Below HENCKY_QUADRATURE_MAX the Hencky models take the strain's series (up to ||b - I|| =
+    0.05) or its quadrature (up to 0.3) instead of its eigenvectors: the stress must still be the
+    twin's, relative to itself, up to the edge of each. A pure stretch from 1e-6 strain (F - I is
+    exact in float32 there); a rotated one from 1e-3, since rounding the rotated F to float32
+    costs b - I ~1e-7 absolute. Elastic throughout: von Mises and foam with a high yield stress,
+    Drucker-Prager compressed inside its cone (the deviatoric part a fifth of the volumetric one)."""
     rng = np.random.default_rng(7)
     granular = model == "drucker_prager"
     p = PARAMS[model] if granular else dataclasses.replace(PARAMS[model], yield_stress=1e9)
@@ -327,13 +332,20 @@ def test_small_elastic_strains_match_numpy_to_float32_precision(model, rotated):
     if granular:
         dev = sym - np.trace(sym, axis1=1, axis2=2)[:, None, None] / 3 * np.eye(3)
         sym = -np.eye(3) + 0.2 * dev / np.linalg.norm(dev, axis=(1, 2))[:, None, None]
-    size = 10.0 ** rng.uniform(-3 if rotated else -6, np.log10(0.024), n)  # strain ~ ||b - I|| / 2
+    lo, hi = STRAIN_PATHS[path]
+    # strain ~ ||b - I|| / 2
+    size = (
+        10.0 ** rng.uniform(-3 if rotated else -6, np.log10(0.024), n)
+        if lo == 0.0
+        else rng.uniform(0.026, 0.138, n)
+    )
     F = np.eye(3) + sym * (size / np.linalg.norm(sym, axis=(1, 2)))[:, None, None]
     if rotated:
         q, _ = np.linalg.qr(rng.standard_normal((n, 3, 3)))
         F = q * np.sign(np.linalg.det(q))[:, None, None] @ F
     F = F.astype(np.float32).astype(np.float64)
-    assert np.linalg.norm(F @ F.transpose(0, 2, 1) - np.eye(3), axis=(1, 2)).max() < 0.05  # series path
+    norm = np.linalg.norm(F @ F.transpose(0, 2, 1) - np.eye(3), axis=(1, 2))
+    assert ((lo < norm) & (norm < hi)).all()  # every state on the path
     got = run_warp(p, F, np.zeros(n))
     _, tau_ref, _ = ref.update(p, F, np.zeros(n), DT)
     err = np.abs(got["tau"] - tau_ref).max(axis=(1, 2)) / np.abs(tau_ref).max(axis=(1, 2))
@@ -343,10 +355,11 @@ def test_small_elastic_strains_match_numpy_to_float32_precision(model, rotated):
 
 
 @pytest.mark.parametrize("model", ["drucker_prager", "mohr_coulomb"])
-def test_small_strains_on_both_sides_of_the_granular_yield_surface_match_numpy(model):
-    """Drucker-Prager's series path decides elastic from invariants: a strain just outside the
-    cone must still be returned as the twin returns it (Mohr-Coulomb, always on the eigen path,
-    as the control)."""
+@pytest.mark.parametrize("path", list(STRAIN_PATHS))
+def test_small_strains_on_both_sides_of_the_granular_yield_surface_match_numpy(model, path):
+    """Drucker-Prager's paths without eigenvectors decide elastic from invariants: a strain just
+    outside the cone must still be returned as the twin returns it (Mohr-Coulomb, always on the
+    eigen path, as the control)."""
     rng = np.random.default_rng(11)
     p = PARAMS[model]
     n = 600
@@ -354,9 +367,12 @@ def test_small_strains_on_both_sides_of_the_granular_yield_surface_match_numpy(m
     sym = 0.5 * (sym + sym.transpose(0, 2, 1))
     dev = sym - np.trace(sym, axis1=1, axis2=2)[:, None, None] / 3 * np.eye(3)
     shear = rng.uniform(0.0, 6.0, n)[:, None, None]  # deviator over volumetric: both sides of yield
-    F = np.eye(3) + 0.003 * (-np.eye(3) + shear * dev / np.linalg.norm(dev, axis=(1, 2))[:, None, None])
+    scale = {"series": 0.003, "quadrature": 0.022}[path]
+    F = np.eye(3) + scale * (-np.eye(3) + shear * dev / np.linalg.norm(dev, axis=(1, 2))[:, None, None])
     F = F.astype(np.float32).astype(np.float64)
-    assert np.linalg.norm(F @ F.transpose(0, 2, 1) - np.eye(3), axis=(1, 2)).max() < 0.05  # series path
+    lo, hi = STRAIN_PATHS[path]
+    norm = np.linalg.norm(F @ F.transpose(0, 2, 1) - np.eye(3), axis=(1, 2))
+    assert ((lo < norm) & (norm < hi)).all()  # every state on the path
     got = run_warp(p, F, np.zeros(n))
     F_ref, tau_ref, pl_ref = ref.update(p, F, np.zeros(n), DT)
     yielded = pl_ref > 0

@@ -49,7 +49,7 @@ def drucker_prager_project(eps: wp.vec3, mat: MaterialStruct):
 
 @wp.func
 def drucker_prager_update(H: wp.mat33, mat: MaterialStruct, plastic: float, dt: float):
-    # A small strain inside the cone (a resting pile's interior) needs no eigenvectors
+    # A strain up to ~15 % inside the cone (a resting pile's interior) needs no eigenvectors
     # (``hencky_small_strain``); the cone test is on invariants.
     small, eps_m = hencky_small_strain(H)
     if small:

@@ -53,9 +53,9 @@ def von_mises_project(eps: wp.vec3, mat: MaterialStruct, kappa: float, viscous_t
 def von_mises_return(H: wp.mat33, mat: MaterialStruct, plastic: float, viscous_term: float):
     """``update`` with the radial return of `von_mises_project`: (H_new, tau [Pa], kappa_new).
 
-    A small elastic strain (the body at rest, most particles between impacts) is decided on the
-    strain's series form (``hencky_small_strain``); only a large or yielding one needs the
-    eigenvectors."""
+    An elastic strain up to ~15 % (the body at rest or ringing, most particles between impacts) is
+    decided on the strain as a matrix (``hencky_small_strain``); only a larger or yielding one
+    needs the eigenvectors."""
     small, eps_m = hencky_small_strain(H)
     if small:
         dev = eps_m - (wp.trace(eps_m) / 3.0) * EYE
