@@ -383,6 +383,40 @@ def test_small_strains_on_both_sides_of_the_granular_yield_surface_match_numpy(m
     np.testing.assert_allclose(got["F"], F_ref, rtol=0, atol=1e-6)
 
 
+@pytest.mark.parametrize("model", ["drucker_prager", "mohr_coulomb"])
+@pytest.mark.parametrize("cohesion", [0.0, 2.0e3])
+@pytest.mark.parametrize("rotated", [False, True])
+def test_trial_states_past_the_granular_apex_match_numpy(model, cohesion, rotated):
+    """A trial state pulled past the apex (log J at or above the tension strain: sand spreading at
+    zero pressure) returns to the isotropic strain there without eigenvectors
+    (``hencky_apex_return``): the new F, the stress and the plastic multiplier must be the twin's.
+    Cohesionless (the table's sand: the apex at J = 1) and cohesive (the apex above it)."""
+    rng = np.random.default_rng(13)
+    p = dataclasses.replace(PARAMS[model], cohesion=cohesion)
+    apex = 3 * cohesion / np.tan(np.radians(p.friction_angle)) / (3 * p.lam + 2 * p.mu)  # tr eps there
+    n = 400
+    sym = rng.standard_normal((n, 3, 3))
+    sym = 0.5 * (sym + sym.transpose(0, 2, 1))
+    dev = sym - np.trace(sym, axis1=1, axis2=2)[:, None, None] / 3 * np.eye(3)
+    dev /= np.linalg.norm(dev, axis=(1, 2))[:, None, None]
+    volume = rng.uniform(apex / 3 + 1e-4, apex / 3 + 4e-3, n)[:, None, None]  # stretch per axis
+    F = np.eye(3) * (1 + volume) + rng.uniform(0.0, 8e-3, n)[:, None, None] * dev
+    if rotated:
+        q, _ = np.linalg.qr(rng.standard_normal((n, 3, 3)))
+        F = q * np.sign(np.linalg.det(q))[:, None, None] @ F
+    F = F.astype(np.float32).astype(np.float64)
+    assert (np.log(np.linalg.det(F)) >= apex).all()  # past the apex
+    assert np.linalg.norm(F @ F.transpose(0, 2, 1) - np.eye(3), axis=(1, 2)).max() < 0.05  # the series' reach
+    got = run_warp(p, F, np.zeros(n))
+    F_ref, tau_ref, pl_ref = ref.update(p, F, np.zeros(n), DT)
+    np.testing.assert_allclose(got["F"], F_ref, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(got["tau"], tau_ref, rtol=1e-5, atol=1e-6 * p.mu)
+    np.testing.assert_allclose(got["plastic"], pl_ref, rtol=1e-4, atol=1e-7)
+    # What the apex leaves: F's rotation, scaled to the apex's volume, and an isotropic stress.
+    J = np.linalg.det(F_ref)
+    np.testing.assert_allclose(J, np.exp(apex), rtol=1e-5)
+
+
 @wp.kernel
 def _log1p_expm1(x: wp.array(dtype=float), out: wp.array2d(dtype=float)):
     i = wp.tid()

@@ -213,6 +213,50 @@ def hencky_small_strain(H: wp.mat33):
 
 
 @wp.func
+def inverse_sqrt_minus_identity(D: wp.mat33) -> wp.mat33:
+    """(I + D)^(-1/2) - I for a symmetric D with ||D|| <= HENCKY_SERIES_MAX, by the binomial series
+    to D^6 (Horner form): its first omitted term, 429 / 2048 ||D||^7, is at most 6.5e-9 of the
+    result's size (||D|| / 2) there."""
+    S = (-63.0 / 256.0) * EYE + (231.0 / 1024.0) * D
+    S = (35.0 / 128.0) * EYE + D * S
+    S = (-5.0 / 16.0) * EYE + D * S
+    S = (3.0 / 8.0) * EYE + D * S
+    S = (-1.0 / 2.0) * EYE + D * S
+    return D * S
+
+
+@wp.func
+def hencky_apex_return(H: wp.mat33, mat: MaterialStruct):
+    """The granular models' return to the apex (the tension cut-off), without eigenvectors.
+
+    A trial state whose volumetric strain tr eps = log J reaches ``tension_strain`` returns to the
+    isotropic strain tension_strain / 3 (``drucker_prager_project``, ``mohr_coulomb_project``):
+    F' = exp(tension_strain / 3) b^(-1/2) F, the rotation of F scaled, with b^(-1/2) from its
+    series. Sand spreading at zero pressure sits there: 59-92 % of its particles every sub-step
+    of the bench drop (docs/measurements_sim.md section 36). Returns (True, H', tau, the plastic
+    multiplier) for a trial state within HENCKY_SERIES_MAX past the apex, else (False, ...): the
+    caller takes the eigenvector path.
+    """
+    D = green_minus_identity(H)
+    if wp.ddot(D, D) > HENCKY_SERIES_MAX * HENCKY_SERIES_MAX:
+        return False, H, wp.mat33(0.0), 0.0
+    eps = hencky_strain_series(D)
+    tr = wp.trace(eps)  # log J
+    if tr < mat.tension_strain:
+        return False, H, wp.mat33(0.0), 0.0
+    dev = eps - (tr / 3.0) * EYE
+    dgamma = wp.sqrt(wp.ddot(dev, dev)) + tr - mat.tension_strain
+    # F' - I = (1 + a) (I + S) F - I with a = exp(tension_strain / 3) - 1, S = b^(-1/2) - I:
+    # H plus small terms, so H' keeps the relative precision of a stiff material's tiny strains.
+    G = inverse_sqrt_minus_identity(D) * (EYE + H)
+    a = expm1(mat.tension_strain / 3.0)
+    H_new = H + G + a * (EYE + H + G)
+    # The StVK-Hencky stress at eps = (tension_strain / 3) I.
+    p = (2.0 * mat.mu + 3.0 * mat.lam) * mat.tension_strain / 3.0
+    return True, H_new, wp.diag(wp.vec3(p)), dgamma
+
+
+@wp.func
 def hencky_stress(eps: wp.mat33, mu: float, lam: float) -> wp.mat33:
     """StVK-Hencky Kirchhoff stress 2 mu eps + lam tr(eps) I of a strain given as a matrix, Pa."""
     return 2.0 * mu * eps + (lam * wp.trace(eps)) * EYE

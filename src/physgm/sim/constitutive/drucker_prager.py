@@ -19,6 +19,7 @@ import warp as wp
 from physgm.sim.constitutive.common import (
     EYE,
     MaterialStruct,
+    hencky_apex_return,
     hencky_decompose,
     hencky_finish,
     hencky_small_strain,
@@ -58,6 +59,9 @@ def drucker_prager_update(H: wp.mat33, mat: MaterialStruct, plastic: float, dt: 
         dev_norm = wp.sqrt(wp.ddot(dev, dev))
         if tr < mat.tension_strain and (dev_norm <= 0.0 or cone_multiplier(tr, dev_norm, mat) <= 0.0):
             return H, hencky_stress(eps_m, mat.mu, mat.lam), plastic
+    apex, H_apex, tau_apex, dgamma_apex = hencky_apex_return(H, mat)  # past the apex: no eigenvectors
+    if apex:
+        return H_apex, tau_apex, plastic + dgamma_apex
     U, sigma, eps, clamped = hencky_decompose(H)
     eps_new, dgamma = drucker_prager_project(eps, mat)
     H_new, tau = hencky_finish(H, U, sigma, eps, eps_new, clamped or dgamma > 0.0, clamped, mat.mu, mat.lam)

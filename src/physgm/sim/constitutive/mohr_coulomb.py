@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from physgm.sim.constitutive.common import MaterialStruct, hencky_decompose, hencky_finish
+from physgm.sim.constitutive.common import MaterialStruct, hencky_apex_return, hencky_decompose, hencky_finish
 
 
 @wp.func
@@ -103,6 +103,10 @@ def mohr_coulomb_project(eps: wp.vec3, mat: MaterialStruct):
 
 @wp.func
 def mohr_coulomb_update(H: wp.mat33, mat: MaterialStruct, plastic: float, dt: float):
+    # Past the apex (grains pulled apart, most of a spreading sand) no eigenvectors are needed.
+    apex, H_apex, tau_apex, dgamma_apex = hencky_apex_return(H, mat)
+    if apex:
+        return H_apex, tau_apex, plastic + dgamma_apex
     U, sigma, eps, clamped = hencky_decompose(H)
     eps_new, dgamma = mohr_coulomb_project(eps, mat)
     H_new, tau = hencky_finish(H, U, sigma, eps, eps_new, clamped or dgamma > 0.0, clamped, mat.mu, mat.lam)
