@@ -170,19 +170,6 @@ HENCKY_QUADRATURE_MAX = wp.constant(0.3)
 
 
 @wp.func
-def sym_inverse(A: wp.mat33) -> wp.mat33:
-    """Inverse of a symmetric 3x3 matrix from its six cofactors (no pivoting: for I + t D, t D small)."""
-    c00 = A[1, 1] * A[2, 2] - A[1, 2] * A[1, 2]
-    c01 = A[0, 2] * A[1, 2] - A[0, 1] * A[2, 2]
-    c02 = A[0, 1] * A[1, 2] - A[0, 2] * A[1, 1]
-    c11 = A[0, 0] * A[2, 2] - A[0, 2] * A[0, 2]
-    c12 = A[0, 1] * A[0, 2] - A[0, 0] * A[1, 2]
-    c22 = A[0, 0] * A[1, 1] - A[0, 1] * A[0, 1]
-    s = 1.0 / (A[0, 0] * c00 + A[0, 1] * c01 + A[0, 2] * c02)
-    return wp.mat33(c00 * s, c01 * s, c02 * s, c01 * s, c11 * s, c12 * s, c02 * s, c12 * s, c22 * s)
-
-
-@wp.func
 def hencky_strain_quadrature(D: wp.mat33) -> wp.mat33:
     """Hencky strain eps = log(b) / 2 of b = I + D (D symmetric) as a matrix, by the 4-point
     Gauss-Legendre rule on log(I + D) = int_0^1 D (I + t D)^-1 dt (the [4/4] Pade approximant of
@@ -190,10 +177,10 @@ def hencky_strain_quadrature(D: wp.mat33) -> wp.mat33:
     models take it for HENCKY_SERIES_MAX < ||D|| <= HENCKY_QUADRATURE_MAX (strains up to ~15 %),
     at a quarter of ``hencky_decompose``'s cost (docs/measurements_sim.md section 35). Each term
     is D times a matrix near I, so the strain keeps D's relative precision."""
-    s = 0.17392742256872679 * (D * sym_inverse(EYE + 0.06943184420297371 * D))
-    s = s + 0.3260725774312732 * (D * sym_inverse(EYE + 0.33000947820757187 * D))
-    s = s + 0.3260725774312732 * (D * sym_inverse(EYE + 0.6699905217924281 * D))
-    s = s + 0.17392742256872679 * (D * sym_inverse(EYE + 0.9305681557970262 * D))
+    s = 0.17392742256872679 * (D * wp.inverse(EYE + 0.06943184420297371 * D))
+    s = s + 0.3260725774312732 * (D * wp.inverse(EYE + 0.33000947820757187 * D))
+    s = s + 0.3260725774312732 * (D * wp.inverse(EYE + 0.6699905217924281 * D))
+    s = s + 0.17392742256872679 * (D * wp.inverse(EYE + 0.9305681557970262 * D))
     return 0.5 * s
 
 
