@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -166,6 +167,40 @@ def test_bad_settings(capsys, tmp_path, tiny_ckpt, examples, blob_ply):
     assert "bad planner settings" in err and "min_opacty" in err
     assert "physics.nu=0.7" in run_expect_error(capsys, tmp_path, [photo, "physics.nu=0.7"])
     assert "input is required" in run_expect_error(capsys, tmp_path, [])
+
+
+def test_a_stretch_the_material_does_not_survive_stops_before_simulating(capsys, tmp_path, blob_ply):
+    """Fracture is not modelled: a ceramic pulled to twice its length is refused, with what to do."""
+    err = run_expect_error(
+        capsys, tmp_path, [f"input={blob_ply}", "physics.material=ceramic", "scene=stretch"]
+    )
+    assert (
+        "cannot simulate mean: ceramic" in err
+        and "real ceramic fails in tension at about 0.002 strain" in err
+    )
+    assert "Stretch it less" in err
+
+
+def test_a_run_predicted_past_max_sim_minutes_stops_before_simulating(
+    capsys, tmp_path, blob_ply, monkeypatch
+):
+    """A 5 mm metal blob drawn 20 % at steel's stiffness: 1.4 million sub-steps a frame (its step
+    follows steel's wave speed across a 0.4 mm cell), half an hour even at the guard's throughput,
+    so the run stops after planning with the prediction and the ways out."""
+    import physgm.sim.gaussian_trajectory as gt
+
+    def no_simulation(*args, **kwargs):
+        raise AssertionError("the guard let the run start")
+
+    monkeypatch.setattr(gt, "run_prepared", no_simulation)
+    drawn = [f"input={blob_ply}", "physics.material=metal", "scene=stretch", "+scene_overrides.ratio=1.2"]
+    err = run_expect_error(capsys, tmp_path, [*drawn, "object.size=0.005"])
+    took = re.search(r"would take ([\d.]+) (minutes|hours) or more, over max_sim_minutes=10 ", err)
+    assert took and float(took[1]) * (60 if took[2] == "hours" else 1) > 10, err
+    assert (
+        "mean: metal" in err and "sub-steps a frame" in err and "max_sim_minutes=null runs it anyway" in err
+    )
+    assert "max_sim_minutes=-1" in run_expect_error(capsys, tmp_path, [*drawn, "max_sim_minutes=-1"])
 
 
 def test_failure_mid_run_leaves_nothing(tmp_path, make_cfg, examples, monkeypatch):

@@ -393,3 +393,26 @@ def test_a_scene_axis_faces_the_camera_and_a_stretch_pulls_a_tall_body_along_its
     assert push.facing(side, tall).settings["axis"] == 1  # a push stays on the ground
     chosen = SceneSettings({**load_scene_config("stretch"), "axis": 0}, {"axis": 0})
     assert chosen.facing(side, tall) is chosen
+
+
+def test_the_time_guard_sums_the_futures_and_applies_on_the_cpu_only(make_cfg, blob_ply):
+    """Two samples under the limit each but over it together stop the run, naming the slower;
+    on CUDA (no throughput known) or with no limit, nothing stops."""
+    from types import SimpleNamespace
+
+    from physgm.errors import UserError
+    from physgm.pipeline.stages import GUARD_THROUGHPUT, check_time
+
+    def future(name: str, seconds: float):
+        plan = SimpleNamespace(mode="mpm", E_used=2e11, substeps_per_frame=40_000)
+        prepared = SimpleNamespace(plan=plan, sample=range(1000))
+        prepared.predicted_seconds = lambda throughput: seconds * GUARD_THROUGHPUT / throughput
+        return SimpleNamespace(label=lambda: f"{name}: metal"), prepared
+
+    futures = [future("mean", 400.0), future("sample0", 500.0)]
+    with pytest.raises(UserError, match=r"15 minutes or more, over max_sim_minutes=10 \(sample0: metal: mpm"):
+        check_time(futures, make_cfg(blob_ply))
+    check_time(futures[:1], make_cfg(blob_ply))  # 6.7 minutes
+    check_time(futures, make_cfg(blob_ply, max_sim_minutes=None))
+    check_time(futures, make_cfg(blob_ply, max_sim_minutes=20))
+    check_time(futures, make_cfg(blob_ply, device="cuda"))

@@ -38,7 +38,8 @@ def test_every_material_is_physical_and_cited(name):
     m = get_material(name)
     assert m.model in MODELS
     assert m.E_range[0] <= m.E <= m.E_range[1] and m.nu_range[0] <= m.nu <= m.nu_range[1] < 0.5
-    for key in ("E", "nu", "density", *m.plasticity):
+    limit = () if m.tensile_limit is None else ("tensile_limit",)
+    for key in ("E", "nu", "density", *m.plasticity, *limit):
         assert len(m.source[key]) > 10, f"{name}: no real source for {key}"
     p = m.params()
     assert p.wave_speed() > 0 and math.isfinite(p.wave_speed())
@@ -51,6 +52,23 @@ def test_expected_models_for_key_materials():
     assert get_material("snow").model == "drucker_prager" and get_material("snow").plasticity["cohesion"] > 0
     assert get_material("metal").model == "von_mises" and get_material("plasticine").model == "von_mises"
     assert get_material("foam").model == "foam" and get_material("rubber").model == "neo_hookean"
+
+
+def test_the_stiff_materials_name_the_strain_they_break_at():
+    """The rigid-looking materials break (or, elastic-only, yield) within a few per cent of tension,
+    metal after tens of per cent; the rubbery, plastic and granular ones carry no limit."""
+    limits = {n: get_material(n).tensile_limit for n in MATERIAL_NAMES}
+    assert {n for n, v in limits.items() if v is not None} == {
+        "plastic",
+        "wood",
+        "metal",
+        "ceramic",
+        "stone",
+        "paper",
+        "glass",
+    }
+    assert max(limits[n] for n in ("ceramic", "stone", "glass")) <= 0.002  # brittle: about 0.1 %
+    assert 0.2 <= limits["metal"] <= 0.6 and max(limits[n] for n in ("plastic", "wood", "paper")) <= 0.1
 
 
 def test_unknown_material_lists_the_known_ones():
@@ -112,3 +130,16 @@ def test_a_broken_material_file_is_rejected(tmp_path):
     )
     with pytest.raises(ValueError, match="no source given for \\['density'\\]"):
         load_material(path)
+    fixed = path.read_text().replace("density: ''", "density: 'a table'")
+    path.write_text(fixed + "tensile_limit: 5.0\n")
+    with pytest.raises(ValueError, match="no source given for \\['tensile_limit'\\]"):
+        load_material(path)
+    path.write_text(
+        fixed.replace("source: {", "source: {tensile_limit: 'a book on rubber', ") + "tensile_limit: -1\n"
+    )
+    with pytest.raises(ValueError, match="tensile_limit=-1.0 must be a positive strain"):
+        load_material(path)
+    path.write_text(
+        fixed.replace("source: {", "source: {tensile_limit: 'a book on rubber', ") + "tensile_limit: 5\n"
+    )
+    assert load_material(path).tensile_limit == 5.0

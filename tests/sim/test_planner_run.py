@@ -374,6 +374,28 @@ def test_the_stretch_scene_splits_the_particles_along_its_axis():
     assert np.diff(layers).min() == pytest.approx(0.5 * drop.sample.spacing, rel=1e-3)
 
 
+def test_a_stretch_past_what_the_material_survives_is_refused():
+    """Fracture is not modelled: a stiff material pulled past its table's tensile limit stops with
+    the limit, the strain asked and what to do; a stretch within it, a material without a limit
+    and parameters given as they are (no table row) are planned."""
+    gs = _shell_cube(bottom=0.0)
+    with pytest.raises(
+        ValueError,
+        match=r"real ceramic fails in tension at about 0.002 strain.*"
+        r"pulls parts of it to 1\.\d+.*Stretch it less",
+    ):
+        prepare_simulation(gs, PhysicsSpec("ceramic"), "stretch", CAMERAS, n_frames=3)
+    with pytest.raises(ValueError, match="real metal fails in tension at about 0.5 strain"):
+        prepare_simulation(gs, PhysicsSpec("metal"), "stretch", CAMERAS, n_frames=3)
+    slight = prepare_simulation(
+        gs, PhysicsSpec("ceramic"), "stretch", CAMERAS, n_frames=3, scene_overrides={"ratio": 1.001}
+    )
+    assert slight.plan.mode == "mpm"
+    for physics in (PhysicsSpec("metal"), PhysicsSpec("jelly", E=5e4)):  # 30 %: metal draws that far
+        prepare_simulation(gs, physics, "stretch", CAMERAS, n_frames=3, scene_overrides={"ratio": 1.3})
+    prepare_simulation(gs, PhysicsSpec("ceramic").params(), "stretch", CAMERAS, n_frames=3)
+
+
 def test_a_translucent_object_is_simulated_with_its_whole_body():
     """Gaussians drawn faint throughout (opacity 0.01-0.04, a jelly as the model draws it) carry mass
     at the planner's ``mass_opacity``: the particles fill the cube as they do when it is opaque;

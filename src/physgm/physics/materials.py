@@ -59,6 +59,10 @@ class Material:
     nu_range: tuple[float, float]  # typical Poisson ratios
     plasticity: dict[str, float] = field(default_factory=dict)  # model extras (yield_stress, ...)
     source: dict[str, str] = field(default_factory=dict)  # value name -> citation
+    # Tensile strain past which the model stops describing the real material: it breaks there
+    # (fracture is not modelled), or, under a model without plasticity, it yields. None: the model
+    # holds as far as the scenes pull (rubbery solids; granular and plastic flows fail in the model).
+    tensile_limit: float | None = None
 
     @property
     def index(self) -> int:
@@ -151,7 +155,10 @@ def _validate(m: Material, path: Path | Traversable) -> None:
     unknown = set(m.plasticity) - set(PLASTICITY_KEYS)
     if unknown:
         _fail(path, f"unknown plasticity keys {sorted(unknown)}; allowed: {', '.join(PLASTICITY_KEYS)}")
-    missing = [k for k in ("E", "nu", "density", *m.plasticity) if not m.source.get(k)]
+    if m.tensile_limit is not None and not (math.isfinite(m.tensile_limit) and m.tensile_limit > 0):
+        _fail(path, f"tensile_limit={m.tensile_limit!r} must be a positive strain (or absent)")
+    limit = () if m.tensile_limit is None else ("tensile_limit",)
+    missing = [k for k in ("E", "nu", "density", *m.plasticity, *limit) if not m.source.get(k)]
     if missing:
         _fail(path, f"no source given for {missing}; every value needs a `source:` entry")
     m.params()  # the solver's own validation (e.g. yield stress > 0 for von Mises)
@@ -174,6 +181,7 @@ def load_material(path: Path | Traversable) -> Material:
         nu_range=tuple(float(v) for v in raw["nu_range"]),
         plasticity={str(k): float(v) for k, v in (raw.get("plasticity") or {}).items()},
         source={str(k): str(v) for k, v in raw["source"].items()},
+        tensile_limit=None if raw.get("tensile_limit") is None else float(raw["tensile_limit"]),
     )
     stem = path.name.removesuffix(".yaml")
     if material.name != stem:

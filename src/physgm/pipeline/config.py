@@ -79,6 +79,7 @@ class RunConfig:
     renderer: dict[str, Any] = field(default_factory=lambda: {"backend": "warp"})
     planner: dict[str, Any] = field(default_factory=dict)
     solver: dict[str, Any] = field(default_factory=dict)
+    max_sim_minutes: float | None = 10.0  # the plans' predicted simulation time a CPU run may take
 
     def __post_init__(self) -> None:
         self.validate()
@@ -131,6 +132,12 @@ class RunConfig:
         _check(
             c.elevation_deg is None or -89 <= c.elevation_deg <= 89,
             f"camera.elevation_deg={c.elevation_deg!r} must be in [-89, 89]",
+        )
+        _check(
+            self.max_sim_minutes is None
+            or (math.isfinite(self.max_sim_minutes) and self.max_sim_minutes > 0),
+            f"max_sim_minutes={self.max_sim_minutes!r} must be a positive number of minutes, or null "
+            "for no limit",
         )
         _check(0 <= self.torch_threads <= 256, f"torch_threads={self.torch_threads!r} must be in [0, 256]")
         _check(
@@ -312,4 +319,5 @@ def from_hydra(cfg: DictConfig) -> RunConfig:
         renderer=renderer or {"backend": "warp"},
         planner=dict(raw.get("planner") or {}),
         solver=dict(raw.get("solver") or {}),
+        max_sim_minutes=_number(raw.get("max_sim_minutes", 10.0), "max_sim_minutes"),
     )

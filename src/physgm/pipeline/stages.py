@@ -142,10 +142,15 @@ def _planner(cfg: RunConfig):
         raise UserError(f"bad planner settings: {err}") from None
 
 
-def _simulate(g, choice, cfg: RunConfig, planner, camera, overrides: dict):
-    from tqdm import tqdm
+# MPM particle-substeps a second at which the time guard predicts a run: faster than any CPU run
+# measured here (14.1 M at best, on a 2-core AVX-512 host: docs/measurements_sim.md section 27), so what it
+# refuses is sure to take longer than the limit.
+GUARD_THROUGHPUT = 1.5e7
 
-    from physgm.sim.gaussian_trajectory import prepare_simulation, run_prepared
+
+def _prepare(g, choice, cfg: RunConfig, planner, camera, overrides: dict):
+    """Particles, scene and plan of one future (``prepare_simulation``), before any solver step."""
+    from physgm.sim.gaussian_trajectory import prepare_simulation
     from physgm.sim.mpm.stepping import SolverConfig
 
     try:
@@ -153,7 +158,7 @@ def _simulate(g, choice, cfg: RunConfig, planner, camera, overrides: dict):
     except (TypeError, ValueError) as err:
         raise UserError(f"bad solver settings: {err}") from None
     try:
-        prepared = prepare_simulation(
+        return prepare_simulation(
             g,
             choice.spec(),
             cfg.scene,
@@ -163,20 +168,57 @@ def _simulate(g, choice, cfg: RunConfig, planner, camera, overrides: dict):
             solver=solver,
             scene_overrides=overrides or None,
         )
-        # The simulation is most of what a user waits for (minutes for stiff rubbery bodies): a bar
-        # of the clip's frames, with the sub-steps they took.
-        plan = prepared.plan
-        desc = f"{choice.name}: simulating ({plan.mode}, {len(prepared.sample.x):,} particles)"
-        shown = cfg.output.progress
-        with tqdm(total=plan.n_frames, desc=desc, unit="frame", disable=not shown, leave=False) as bar:
-
-            def on_frame(frames: int, substeps: int) -> None:
-                bar.set_postfix_str(f"{substeps:,} sub-steps", refresh=False)
-                bar.update(frames - bar.n)
-
-            traj = run_prepared(prepared, cfg.device, on_frame=on_frame)
     except ValueError as err:  # the simulator validates materials and scenes with ValueError
         raise UserError(f"cannot simulate {choice.label()} in scene {cfg.scene!r}: {err}") from None
+
+
+def check_time(futures: list, cfg: RunConfig) -> None:
+    """Stop before simulating when the plans (``futures``: (choice, prepared) pairs) predict more
+    than ``max_sim_minutes`` on a CPU even at ``GUARD_THROUGHPUT``: an explicit step follows the
+    material's wave speed, and a stiff body a scene forces to deform (a metal bar drawn 30 % by
+    the stretch's grips, at steel's stiffness) takes hours."""
+    limit = cfg.max_sim_minutes
+    if limit is None or cfg.device != "cpu":  # no throughput is known for CUDA here
+        return
+    seconds = [prepared.predicted_seconds(GUARD_THROUGHPUT) for _, prepared in futures]
+    if sum(seconds) <= 60.0 * limit:
+        return
+    slow = max(range(len(futures)), key=seconds.__getitem__)
+    choice, prepared = futures[slow]
+    plan = prepared.plan
+    total = sum(seconds)
+    took = f"{total / 60:.0f} minutes" if total < 5400 else f"{total / 3600:.1f} hours"
+    raise UserError(
+        f"the simulation would take {took} or more, over max_sim_minutes={limit:g} "
+        f"({choice.label()}: {plan.mode} at E={plan.E_used:.3g} Pa, {plan.substeps_per_frame:,} sub-steps a "
+        f"frame for {len(prepared.sample):,} particles, predicted at {GUARD_THROUGHPUT / 1e6:.0f} M "
+        f"particle-substeps/s, faster than any CPU measured). The explicit step shrinks as 1 / sqrt(E): "
+        f"a lower physics.E or a softer physics.material takes fewer; max_sim_minutes=null runs it anyway"
+    )
+
+
+def _simulate(prepared, choice, cfg: RunConfig):
+    """Run one prepared future, with a progress bar of the clip's frames."""
+    from tqdm import tqdm
+
+    from physgm.sim.gaussian_trajectory import run_prepared
+
+    # The simulation is most of what a user waits for (minutes for stiff rubbery bodies): a bar of
+    # the clip's frames, with the sub-steps they took.
+    plan = prepared.plan
+    desc = f"{choice.name}: simulating ({plan.mode}, {len(prepared.sample.x):,} particles)"
+    with tqdm(
+        total=plan.n_frames, desc=desc, unit="frame", disable=not cfg.output.progress, leave=False
+    ) as bar:
+
+        def on_frame(frames: int, substeps: int) -> None:
+            bar.set_postfix_str(f"{substeps:,} sub-steps", refresh=False)
+            bar.update(frames - bar.n)
+
+        try:
+            traj = run_prepared(prepared, cfg.device, on_frame=on_frame)
+        except ValueError as err:  # the simulator validates materials and scenes with ValueError
+            raise UserError(f"cannot simulate {choice.label()} in scene {cfg.scene!r}: {err}") from None
     plan_s = float(traj.plan_seconds)  # particle sampling + planning, inside traj.seconds
     return traj, plan_s, max(0.0, traj.seconds - plan_s)
 
@@ -271,12 +313,14 @@ def _execute(cfg: RunConfig) -> RunResult:
         camera = framing_camera(lo, hi, az, el, cfg.camera.fov_deg, res, res, cfg.camera.margin)
         sec["model"] = time.perf_counter() - t0
         # -- per future: plan and simulate ---------------------------------------------------
+        futures = [
+            (choice, _prepare(placement.gaussians, choice, cfg, planner, camera, scene.overrides))
+            for choice in runs
+        ]
+        check_time(futures, cfg)  # every plan first: a run too long to wait for stops before any
         sims = []
-        for choice in runs:
-            traj, plan_s, sim_s = _simulate(
-                placement.gaussians, choice, cfg, planner, camera, scene.overrides
-            )
-            sims.append((choice, traj, plan_s, sim_s))
+        for choice, prepared in futures:
+            sims.append((choice, *_simulate(prepared, choice, cfg)))
         # -- the output camera: the planned region, grown to what the runs did -----------------
         t0 = time.perf_counter()
         view_lo, view_hi = clip_region(lo, hi, [traj.x for _, traj, _, _ in sims])

@@ -20,7 +20,7 @@ import torch
 
 from physgm.cameras import Cameras
 from physgm.gaussians import Gaussians
-from physgm.physics.materials import PhysicsSpec
+from physgm.physics.materials import PhysicsSpec, get_material
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.coupling import follow_and_deform, rigid_transform_gaussians
 from physgm.sim.mpm.scene import Scene
@@ -197,6 +197,34 @@ class PreparedSimulation:
             x0, self.v0, self.scene, self.plan.frame_dt, self.plan.n_frames, 3 * self.plan.dx
         )
 
+    def predicted_seconds(self, throughput: float) -> float:
+        """Seconds the simulation should take at ``throughput`` MPM particle-substeps/s: the plan's
+        cost over the frames after the closed-form prefix (0 for the rigid path, well under a second)."""
+        plan = self.plan
+        if plan.mode == "rigid":
+            return 0.0
+        simulated = max(plan.n_frames - self.ballistic_frames, 0) / max(plan.n_frames - 1, 1)
+        return plan.predicted_cost * simulated / throughput
+
+
+def _check_tensile_limit(name: str, setup: SceneSetup) -> None:
+    """Refuse a stretch past what the material survives (``Material.tensile_limit``).
+
+    Fracture is not modelled, so a ceramic mug pulled to twice its length would stretch like a
+    rubber band, at the cost of hours of a ceramic's sub-steps (the step follows its wave speed)."""
+    if setup.stretch is None or name == "custom":
+        return
+    limit = get_material(name).tensile_limit
+    strain = setup.stretch[1] - 1.0
+    if limit is None or strain <= limit:
+        return
+    raise ValueError(
+        f"real {name} fails in tension at about {limit:.3g} strain, and this stretch pulls parts of it "
+        f"to {strain:.3g}; fracture is not modelled, so the clip would show it drawn out like rubber "
+        f"instead. Stretch it less (a scene ratio nearer 1), or take a material that stretches that "
+        f"far (rubber, jelly, foam, fabric, leather, plasticine)"
+    )
+
 
 def prepare_simulation(
     gaussians: Gaussians,
@@ -239,6 +267,7 @@ def prepare_simulation(
     # The lattice's material reaches half a spacing below each particle (sampling).
     surface = 0.5 * spacing
     setup = apply_scene(scene, rest.x.detach().cpu().double().numpy(), scene_overrides, surface)
+    _check_tensile_limit(name, setup)
     if setup.stretch is not None and (splits := stretch_splits(setup.stretch[1], spacing, dx, cfg)) > 1:
         # The scene sees the particles it will pull (its grips are set from their extent).
         rest = split_along(rest, setup.stretch[0], splits)

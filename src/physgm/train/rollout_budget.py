@@ -97,15 +97,6 @@ class ThroughputEstimate:
 THROUGHPUT = ThroughputEstimate()  # this process's observations (rollout workers are threads)
 
 
-def predicted_seconds(prepared, throughput: float) -> float:
-    """Seconds a prepared simulation should take: the MPM frames after the ballistic prefix."""
-    plan = prepared.plan
-    if plan.mode == "rigid":
-        return 0.0
-    simulated = max(plan.n_frames - prepared.ballistic_frames, 0) / max(plan.n_frames - 1, 1)
-    return plan.predicted_cost * simulated / throughput
-
-
 def bounded_simulate(
     gaussians,
     physics: PhysicsSpec,
@@ -138,7 +129,7 @@ def bounded_simulate(
         prepared = prepare_simulation(
             gaussians, physics, scene, camera, n_frames, over, solver, scene_overrides
         )
-        seconds = predicted_seconds(prepared, throughput)
+        seconds = prepared.predicted_seconds(throughput)
         error = prepared.plan.predicted_error_px
         tried.append(f"{_label(extra)}: {seconds:.0f} s, {error:.2g} px")
         if i > 0 and error > budget.max_error_px:
