@@ -56,7 +56,7 @@ def test_expected_models_for_key_materials():
 
 def test_the_stiff_materials_name_the_strain_they_break_at():
     """The rigid-looking materials break (or, elastic-only, yield) within a few per cent of tension,
-    metal after tens of per cent; the rubbery, plastic and granular ones carry no limit."""
+    metal after tens of per cent; the soft solids, plasticine and the granular ones carry none."""
     limits = {n: get_material(n).tensile_limit for n in MATERIAL_NAMES}
     assert {n for n, v in limits.items() if v is not None} == {
         "plastic",

@@ -60,8 +60,9 @@ class Material:
     plasticity: dict[str, float] = field(default_factory=dict)  # model extras (yield_stress, ...)
     source: dict[str, str] = field(default_factory=dict)  # value name -> citation
     # Tensile strain past which the model stops describing the real material: it breaks there
-    # (fracture is not modelled), or, under a model without plasticity, it yields. None: the model
-    # holds as far as the scenes pull (rubbery solids; granular and plastic flows fail in the model).
+    # (fracture is not modelled), or, under a model without plasticity, it yields. None: none given
+    # (rubber, gels and foams stretch to twice their length; fabrics and leathers range too widely
+    # for one value; the granular models and plasticine give way within the model).
     tensile_limit: float | None = None
 
     @property
