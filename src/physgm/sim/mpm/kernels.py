@@ -77,6 +77,15 @@ WORK_GROUND = wp.constant(1)  # 1-3: impulse of the ground plane on the nodes, N
 WORK_FACE = wp.constant(4)  # 4-6: impulse of the separating walls at the grid faces, N s
 WORK_FACE_CONTACTS = wp.constant(7)  # node updates in which a grid-face wall stopped mass
 
+# A node with less mass than this (kg) is empty. A particle a hair inside the far edge of its
+# stencil in all three axes (weights ~0.5 delta^2 each, delta ~ 1e-6 of a cell: a lattice aligned
+# with the grid, stretched a little) gives its corner node a float32 denormal mass, ~1e-41 kg, whose
+# reciprocal overflows: the node's velocity became inf or NaN and took its particles with it (a
+# plasticine stretch diverged in its first frame, docs/measurements_sim.md section 38). The lightest
+# particle the planner makes (a 1 mm object of foam) is ~1e-12 kg, so such a node carries less than
+# 1e-18 of any particle and its velocity reaches them with a weight as small.
+NODE_MASS_FLOOR = wp.constant(1.0e-30)
+
 
 @wp.func
 def stencil(xp: wp.vec3, shape: wp.vec3i):
@@ -236,6 +245,9 @@ def update_node(
     # Only nodes that received mass were written by the scatter, so only they need clearing.
     store(acc0, i, j, k, vec8(0.0))
     store(acc1, i, j, k, vec8(0.0))
+    if m < NODE_MASS_FLOOR:
+        store(grid_v, i, j, k, vec8(0.0))
+        return
     inv_m = 1.0 / m  # one division instead of four
     v_transfer = inv_m * wp.vec3(g[0], g[1], g[2])  # APIC transfer alone, for the FLIP increment
     vel = damping * (v_transfer + (dt * inv_m) * wp.vec3(g[4], g[5], g[6]) + dt * gravity)

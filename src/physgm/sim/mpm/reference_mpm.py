@@ -11,6 +11,7 @@ import numpy as np
 
 from physgm.sim.constitutive import reference as cref
 from physgm.sim.mpm.boundary import NET_DEPTH
+from physgm.sim.mpm.kernels import NODE_MASS_FLOOR
 from physgm.sim.mpm.particle_ground import ground_stiffness, pack_contact
 
 
@@ -157,7 +158,7 @@ def substep(
     gdv = np.zeros((*res, 3))
     grip = np.zeros(tuple(res))
     g = np.asarray(scene.gravity, float)
-    for node in zip(*np.nonzero(gm > 0), strict=True):
+    for node in zip(*np.nonzero(gm >= NODE_MASS_FLOOR), strict=True):  # lighter nodes are empty
         m = gm[node]
         v_transfer = (mom[node] - force[node]) / m
         vel = mom[node] / m + dt * g
