@@ -203,6 +203,20 @@ def test_a_run_predicted_past_max_sim_minutes_stops_before_simulating(
     assert "max_sim_minutes=-1" in run_expect_error(capsys, tmp_path, [*drawn, "max_sim_minutes=-1"])
 
 
+def test_a_diverged_simulation_is_one_error_line(capsys, tmp_path, blob_ply, monkeypatch):
+    """When the divergence guard gives up, the user gets its reason and the settings to change."""
+    import physgm.sim.gaussian_trajectory as gt
+    from physgm.sim.mpm.stepping import SimulationDiverged
+
+    def diverge(*args, **kwargs):
+        raise SimulationDiverged("MPM diverged in frame 0 (t=0 s): 2 particles reached a non-finite state.")
+
+    monkeypatch.setattr(gt, "run_prepared", diverge)
+    err = run_expect_error(capsys, tmp_path, [f"input={blob_ply}", "physics.material=jelly"])
+    assert "the simulation of mean: jelly" in err and "MPM diverged in frame 0" in err
+    assert "solver.cfl=0.2" in err
+
+
 def test_failure_mid_run_leaves_nothing(tmp_path, make_cfg, examples, monkeypatch):
     """An error after the videos were written removes everything, including an empty run folder
     made beforehand (as Hydra does)."""

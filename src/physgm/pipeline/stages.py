@@ -202,6 +202,7 @@ def _simulate(prepared, choice, cfg: RunConfig):
     from tqdm import tqdm
 
     from physgm.sim.gaussian_trajectory import run_prepared
+    from physgm.sim.mpm.stepping import SimulationDiverged
 
     # The simulation is most of what a user waits for (minutes for stiff rubbery bodies): a bar of
     # the clip's frames, with the sub-steps they took.
@@ -219,6 +220,11 @@ def _simulate(prepared, choice, cfg: RunConfig):
             traj = run_prepared(prepared, cfg.device, on_frame=on_frame)
         except ValueError as err:  # the simulator validates materials and scenes with ValueError
             raise UserError(f"cannot simulate {choice.label()} in scene {cfg.scene!r}: {err}") from None
+        except SimulationDiverged as err:  # the guard gave up after its retries; nothing was written
+            raise UserError(
+                f"the simulation of {choice.label()} in scene {cfg.scene!r} failed: {err} Here: "
+                "solver.cfl=0.2 halves the step, planner.cells_across=16 refines the grid"
+            ) from None
     plan_s = float(traj.plan_seconds)  # particle sampling + planning, inside traj.seconds
     return traj, plan_s, max(0.0, traj.seconds - plan_s)
 
