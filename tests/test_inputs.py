@@ -32,6 +32,16 @@ def test_segmentation_recovers_known_mask(textured):
     assert iou(segment_foreground(img), truth) >= 0.8
 
 
+def test_segmentation_is_the_same_every_time_in_one_process():
+    """GrabCut seeds its colour models from OpenCV's global generator, which each call advances: the
+    shipped cluttered photo came out with 4,771, 4,727 and 11,561 object pixels in three calls."""
+    from pathlib import Path
+
+    photo = load_photo(Path(__file__).resolve().parents[1] / "examples" / "wood_toy_cluttered.jpg")
+    first, *again = (segment_foreground(photo.rgb) for _ in range(3))
+    assert all((m == first).all() for m in again)
+
+
 def test_load_photo_kinds(tmp_path):
     rgb8 = (np.random.default_rng(0).uniform(0, 1, (20, 30, 3)) * 255).astype(np.uint8)
     Image.fromarray(rgb8).save(tmp_path / "rgb.png")
