@@ -16,6 +16,7 @@ from physgm.gaussians import Gaussians, quat_to_rotmat
 from physgm.physics.materials import PhysicsSpec
 from physgm.sim.gaussian_trajectory import ballistic_frames, prepare_simulation, run_prepared, simulate
 from physgm.sim.mpm.boundary import GroundPlane
+from physgm.sim.mpm.implicit import IMPLICIT_PASSES_MIN
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.stepping import SolverConfig
 from physgm.sim.mpm_run import motion_left_px
@@ -394,6 +395,22 @@ def test_a_stretch_past_what_the_material_survives_is_refused():
     for physics in (PhysicsSpec("metal"), PhysicsSpec("jelly", E=5e4)):  # 30 %: metal draws that far
         prepare_simulation(gs, physics, "stretch", CAMERAS, n_frames=3, scene_overrides={"ratio": 1.3})
     prepare_simulation(gs, PhysicsSpec("ceramic").params(), "stretch", CAMERAS, n_frames=3)
+
+
+def test_an_implicit_sub_step_is_predicted_as_several_passes():
+    """The plan counts sub-steps; an implicit one costs at least IMPLICIT_PASSES_MIN passes over the
+    particles (Newton's products and gradients), so its time is predicted that many times longer."""
+    implicit = prepare_simulation(
+        _shell_cube(),
+        PhysicsSpec("jelly", E=5e4),
+        "drop",
+        CAMERAS,
+        n_frames=6,
+        solver=SolverConfig(integrator="implicit"),
+    )
+    explicit = replace(implicit, solver=SolverConfig())
+    ratio = implicit.predicted_seconds(1e7) / explicit.predicted_seconds(1e7)
+    assert implicit.predicted_seconds(1e7) > 0 and ratio == pytest.approx(IMPLICIT_PASSES_MIN)
 
 
 def test_a_translucent_object_is_simulated_with_its_whole_body():

@@ -20,7 +20,7 @@ from physgm.train.rollout_budget import THROUGHPUT, BudgetConfig, bounded_simula
 
 def fake_prepared(cost: float, error: float, n_frames: int = 11):
     plan = SimpleNamespace(mode="mpm", n_frames=n_frames, predicted_cost=cost, predicted_error_px=error)
-    prepared = SimpleNamespace(plan=plan, ballistic_frames=1)
+    prepared = SimpleNamespace(plan=plan, ballistic_frames=1, solver=SimpleNamespace(integrator="explicit"))
     # the real prediction, on the stand-in's plan
     prepared.predicted_seconds = lambda throughput: gt.PreparedSimulation.predicted_seconds(
         prepared, throughput

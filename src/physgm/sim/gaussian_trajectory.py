@@ -23,6 +23,7 @@ from physgm.gaussians import Gaussians
 from physgm.physics.materials import PhysicsSpec, get_material
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.coupling import follow_and_deform, rigid_transform_gaussians
+from physgm.sim.mpm.implicit import IMPLICIT_PASSES_MIN
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.stepping import SolverConfig
 from physgm.sim.mpm_run import ballistic_frames, run_mpm
@@ -199,12 +200,14 @@ class PreparedSimulation:
 
     def predicted_seconds(self, throughput: float) -> float:
         """Seconds the simulation should take at ``throughput`` MPM particle-substeps/s: the plan's
-        cost over the frames after the closed-form prefix (0 for the rigid path, well under a second)."""
+        cost over the frames after the closed-form prefix (0 for the rigid path, well under a second).
+        An implicit sub-step counts as the fewest passes over the particles one was measured to take."""
         plan = self.plan
         if plan.mode == "rigid":
             return 0.0
         simulated = max(plan.n_frames - self.ballistic_frames, 0) / max(plan.n_frames - 1, 1)
-        return plan.predicted_cost * simulated / throughput
+        passes = IMPLICIT_PASSES_MIN if self.solver.integrator == "implicit" else 1
+        return plan.predicted_cost * passes * simulated / throughput
 
 
 def _check_tensile_limit(name: str, setup: SceneSetup) -> None:

@@ -46,6 +46,11 @@ from physgm.warp_runtime import ensure_loaded
 # Models whose stress is the gradient of their ``energy`` with no return mapping and no reset of
 # F: the incremental potential exists for them. The others change F outside the energy.
 IMPLICIT_MODELS = ("fixed_corotated", "neo_hookean")
+# Passes over the particles (Hessian-vector products and gradients, each about an explicit sub-step's
+# cost) one implicit sub-step takes at the fewest: 9 on a thrown 8 cm jelly block at 2 ms steps, 41-64
+# on a resting one at 10 ms, up to 251 through an impact (the blocks of tests/sim/mpm/test_implicit.py,
+# docs/measurements_sim.md section 37). A plan's cost counts sub-steps; an implicit one costs this many.
+IMPLICIT_PASSES_MIN = 9
 
 
 def check_implicit(materials: Sequence[MaterialParams], scene: Scene) -> None:
