@@ -168,8 +168,14 @@ def _prepare(g, choice, cfg: RunConfig, planner, camera, overrides: dict):
             solver=solver,
             scene_overrides=overrides or None,
         )
-    except ValueError as err:  # the simulator validates materials and scenes with ValueError
-        raise UserError(f"cannot simulate {choice.label()} in scene {cfg.scene!r}: {err}") from None
+    except ValueError as err:
+        raise _cannot_simulate(choice, cfg, err) from None
+
+
+def _cannot_simulate(choice, cfg: RunConfig, err: ValueError) -> UserError:
+    """The simulator validates materials and scenes with ValueError, when it plans or when it
+    builds the solver (an integrator that refuses a model): the user's error, with the run named."""
+    return UserError(f"cannot simulate {choice.label()} in scene {cfg.scene!r}: {err}")
 
 
 def check_time(futures: list, cfg: RunConfig) -> None:
@@ -181,12 +187,11 @@ def check_time(futures: list, cfg: RunConfig) -> None:
     if limit is None or cfg.device != "cpu":  # no throughput is known for CUDA here
         return
     seconds = [prepared.predicted_seconds(GUARD_THROUGHPUT) for _, prepared in futures]
-    if sum(seconds) <= 60.0 * limit:
-        return
-    slow = max(range(len(futures)), key=seconds.__getitem__)
-    choice, prepared = futures[slow]
-    plan = prepared.plan
     total = sum(seconds)
+    if total <= 60.0 * limit:
+        return
+    choice, prepared = futures[seconds.index(max(seconds))]
+    plan = prepared.plan
     took = f"{total / 60:.0f} minutes" if total < 5400 else f"{total / 3600:.1f} hours"
     raise UserError(
         f"the simulation would take {took} or more, over max_sim_minutes={limit:g} "
@@ -218,8 +223,8 @@ def _simulate(prepared, choice, cfg: RunConfig):
 
         try:
             traj = run_prepared(prepared, cfg.device, on_frame=on_frame)
-        except ValueError as err:  # the simulator validates materials and scenes with ValueError
-            raise UserError(f"cannot simulate {choice.label()} in scene {cfg.scene!r}: {err}") from None
+        except ValueError as err:
+            raise _cannot_simulate(choice, cfg, err) from None
         except SimulationDiverged as err:  # the guard gave up after its retries; nothing was written
             raise UserError(
                 f"the simulation of {choice.label()} in scene {cfg.scene!r} failed: {err} Here: "

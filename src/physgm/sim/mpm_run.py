@@ -205,8 +205,8 @@ def run_mpm(
         t = k * frame_dt
         xs[k] = x0 + v0 * t + 0.5 * g * t * t
         Fs[k] = np.eye(3, dtype=np.float32)
-    if on_frame is not None:
-        on_frame(k0, 0)
+    report = on_frame if on_frame is not None else (lambda frames, substeps: None)
+    report(k0, 0)
     if k0 == T:
         return MPMRun(xs, Fs, 0, None, k0, 0, 0)
     t0 = (k0 - 1) * frame_dt
@@ -240,8 +240,7 @@ def run_mpm(
             ):
                 rest_frame = k + 1
                 xs[k + 1 :], Fs[k + 1 :] = xs[k], Fs[k]
-                if on_frame is not None:
-                    on_frame(T, substeps)
+                report(T, substeps)
                 break
             # A plane lowered under a body that started in the ground would move on a restart.
             flight = (
@@ -270,8 +269,7 @@ def run_mpm(
                 solver.close()
                 solver = make_solver(resume, [material], grid, continued, solver_cfg, device)
             k += 1
-            if on_frame is not None:
-                on_frame(k, substeps)
+            report(k, substeps)
         faces += solver.face_contacts
     finally:
         solver.close()
