@@ -18,6 +18,7 @@ from physgm.sim.mpm_run import GRID_ROOM, _moved_grid, _resumed, followed_grid
 DX = 0.02
 MARGIN = 3  # SolverConfig.boundary_cells
 FRAME = 0.04  # s
+G = 9.81  # m/s^2
 
 
 def _block(centre_x: float, half: float = 0.05) -> np.ndarray:  # [P, 3] a block's particles, m
@@ -95,6 +96,49 @@ def test_a_spreading_body_moves_a_grid_with_room_a_few_times():
             assert lo[0] <= -half - FRAME and hi[0] >= half + FRAME
         moves[room] = count
     assert moves[0.0] >= 25 and moves[GRID_ROOM] <= 8, moves
+
+
+def _rising(z_bottom: float, vz: float) -> tuple[np.ndarray, np.ndarray]:  # a block at z_bottom, moving at vz
+    x = _block(0.0, half=0.04) + np.array([0.0, 0.0, z_bottom])
+    return x, np.tile([0.0, 0.0, vz], (len(x), 1))
+
+
+def test_the_grid_rises_with_a_rebound_and_comes_back_to_its_floor():
+    """A grid cut short above the ground (a tall drop's, ``planner.domain``): a block rebounding at
+    2 m/s near its top moves it up by whole cells on the floor's lattice; falling back, the block
+    brings it down again, never below the floor; at the floor a block on the ground leaves it."""
+    grid = GridSpec.fit((-0.2, -0.2, 0.0), (0.2, 0.2, 0.4), DX, MARGIN)
+    floor = grid.origin[2]
+    x, v = _rising(0.0, 0.0)
+    assert followed_grid(grid, x, v, FRAME, MARGIN, floor=floor, gravity=G) is None
+    x, v = _rising(0.27, 2.0)  # top 0.35 m, a frame's reach 0.08 + 0.008 m: past the 0.4 m interior
+    up = followed_grid(grid, x, v, FRAME, MARGIN, floor=floor, gravity=G)
+    assert up is not None and up.res == grid.res and up.origin[:2] == grid.origin[:2]
+    cells = (up.origin[2] - floor) / DX
+    assert cells > 0 and abs(cells - round(cells)) < 1e-6
+    lo, hi = up.interior(MARGIN + 1)
+    assert lo[2] <= 0.27 - 0.088 and hi[2] >= 0.35 + 0.088
+    # Without a floor z stays as planned, as before: x and y hold the block.
+    assert followed_grid(grid, x, v, FRAME, MARGIN) is None
+    x, v = _rising(0.02, -3.0)  # back near the ground, falling
+    down = followed_grid(up, x, v, FRAME, MARGIN, floor=floor, gravity=G)
+    assert down is not None and down.origin[2] == pytest.approx(floor, abs=1e-12)
+    assert followed_grid(down, x, v, FRAME, MARGIN, floor=floor, gravity=G) is None
+
+
+def test_a_moved_grid_holds_particles_a_hard_landing_drove_under_its_floor():
+    """Particles 3 cm under the ground (a landing at many times the wave speed, through the contact
+    springs): a move for the sideways spread goes below the floor as far as they need, since a
+    solver is built only around particles inside its interior."""
+    grid = GridSpec.fit((-0.2, -0.2, 0.0), (0.2, 0.2, 0.4), DX, MARGIN)
+    floor = grid.origin[2]
+    x, _ = _rising(-0.03, 0.0)
+    v = np.tile([2.0, 0.0, 0.0], (len(x), 1))
+    moved = followed_grid(grid, x, v, FRAME, MARGIN, floor=floor, gravity=G)
+    lo, hi = moved.interior(MARGIN + 1)
+    assert moved.origin[2] < floor and lo[2] <= -0.03 and hi[2] >= 0.05
+    cells = (moved.origin[2] - floor) / DX
+    assert abs(cells - round(cells)) < 1e-6
 
 
 def test_a_resumed_solver_keeps_the_contact_plane_of_the_first():

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from physgm.cameras import orbit_cameras
+from physgm.sim.coast import ballistic_frames
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.mpm.boundary import GroundPlane, VelocityBox
 from physgm.sim.mpm.scene import Scene
@@ -168,6 +169,39 @@ def test_grid_fits_reachable_region_and_is_small():
     naive = _plan(JELLY, "jelly", fit_grid=False)
     naive_cells = np.ceil((naive.grid_hi - naive.grid_lo) / naive.dx)
     assert naive.grid_lo[2] == 0.0 and naive_cells.prod() > 20 * cells.prod()
+
+
+def test_a_drop_taller_than_the_cell_cap_keeps_the_cell_its_body_asks_for():
+    """A 0.1 m cube 3 m up: 310 cells of the body's 1 cm would pass ``max_cells`` (96). The fall
+    before the first contact is closed form, so the grid holds only the 96 cells above the ground,
+    which hold the body from where the simulation takes over, and follows a rebound; without the
+    closed-form fall or without following, the grid coarsens to fit the height, as a bound scene's does."""
+    cfg = PlannerConfig()
+    plan = _plan(JELLY, "jelly", bottom=3.0)
+    assert plan.dx == pytest.approx(0.1 / cfg.cells_across, rel=1e-9)
+    assert plan.grid_lo[2] <= 0.0 and (plan.grid_hi[2] - plan.grid_lo[2]) / plan.dx == pytest.approx(
+        cfg.max_cells
+    )
+    # Where the simulation takes over (a frame before the lowest point is 3 cells up), the body fits.
+    x, _ = _cube(bottom=3.0)
+    k0 = ballistic_frames(
+        x.numpy(), np.zeros((len(x), 3)), Scene(ground=GroundPlane(0.0)), 0.04, 50, 3 * plan.dx
+    )
+    t = (k0 - 1) * 0.04
+    assert k0 > 1 and float(x[:, 2].max()) - 0.5 * G * t * t < plan.grid_hi[2]
+    whole_height = 3.05 + 0.045 * math.sqrt(3)  # the top as the region has it: centre + radius
+    for kw in ({"ballistic": False}, {"follow": False}):
+        coarse = _plan(JELLY, "jelly", bottom=3.0, **kw)
+        assert coarse.dx == pytest.approx(whole_height / cfg.max_cells, rel=1e-6)
+        assert coarse.grid_hi[2] == pytest.approx(whole_height, abs=1e-6)
+        assert f"coarser than the {plan.dx:.3g} m the object asks for" in coarse.reason
+    assert "coarser" not in plan.reason
+    boxed = Scene(
+        ground=GroundPlane(0.0), boxes=(VelocityBox((-1.0, -1.0, 5.0), (1.0, 1.0, 5.1), (0.0, 0.0, 0.0)),)
+    )
+    assert _plan(JELLY, "jelly", scene=boxed, bottom=3.0).dx > 2 * plan.dx
+    # A short drop is planned whole, as before.
+    assert _plan(JELLY, "jelly").grid_hi[2] == pytest.approx(0.55 + 0.045 * math.sqrt(3), abs=1e-6)
 
 
 def test_reachable_region_includes_velocity_drift_and_grips():

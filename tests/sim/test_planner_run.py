@@ -478,6 +478,25 @@ def test_the_plan_follows_the_implicit_integrator():
     assert 3 * 4 <= traj.substeps <= 3 * plan.substeps_per_frame
 
 
+def test_the_grid_cut_short_of_a_tall_drop_follows_the_rebound():
+    """A 5 cm jelly cube dropped 1 m with the cell cap at 24 cells (0.3 m): the planner keeps the
+    body's cell and cuts the grid above the ground instead of coarsening it to 1.06 m. The grid
+    rises with the rebound and comes back down, and the clip is the one on the whole height's grid
+    at the same cell (``planner.max_cells=200``) to 0.1 mm."""
+    gs = _shell_cube(800, side=0.05, bottom=1.0)
+    physics = PhysicsSpec("jelly", E=2e4)
+    planner = PlannerConfig(allow_rigid=False, cells_across=4, max_cells=24)
+    cut = prepare_simulation(gs, physics, GROUND, CAMERAS, 30, planner)
+    whole = prepare_simulation(gs, physics, GROUND, CAMERAS, 30, replace(planner, max_cells=200))
+    assert cut.plan.dx == whole.plan.dx == pytest.approx(0.05 / 4, rel=1e-6)
+    assert cut.plan.grid_hi[2] == pytest.approx(24 * cut.plan.dx) and whole.plan.grid_hi[2] > 1.0
+    ref, followed = run_prepared(whole), run_prepared(cut)
+    assert followed.grid_moves >= ref.grid_moves + 2  # up with the rebound, down again
+    assert followed.face_contacts == ref.face_contacts == 0
+    assert float(ref.x[:, :, 2].max(1)[15:].max()) > cut.plan.grid_hi[2]  # it rebounds past the cut
+    assert float(np.abs(followed.x - ref.x).max()) < 1e-4  # m
+
+
 def test_the_grid_follows_a_body_that_leaves_the_planned_region():
     """A jelly cube slides across a frictionless floor at 1.5 m/s on a grid planned for a third of
     the way. The grid moves under it by whole cells, on the planned grid's own lattice, so the cube

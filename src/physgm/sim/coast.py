@@ -1,5 +1,5 @@
-"""Flight between contacts in closed form: a body that left the ground moves rigidly until it is
-back within reach of it (issue 25).
+"""Flight in closed form: the first fall (``ballistic_frames``), and a body that left the ground
+moving rigidly until it is back within reach of it (issue 25).
 
 A stiff elastic object dropped on the floor spends most of a clip in the air between bounces,
 and the explicit MPM pays its wave-speed sub-step all the way (rubber: ~1,600 sub-steps a
@@ -66,6 +66,24 @@ def fall_time(height: float, vz: float, gz: float) -> float:
     if gz >= 0.0:
         return math.inf
     return (-vz - math.sqrt(vz * vz - 2.0 * gz * height)) / gz
+
+
+def ballistic_frames(
+    x: np.ndarray, v0: np.ndarray, scene: Scene, frame_dt: float, n_frames: int, gap: float
+) -> int:
+    """Number of leading frames (incl. frame 0) during which the object is in free flight.
+
+    Only for a body moving as a whole (uniform v0), with nothing prescribed, while its lowest
+    point stays ``gap`` (m) above the ground: there uniform gravity leaves it undeformed.
+    """
+    if scene.ground is None or scene.boxes or len(x) == 0 or np.ptp(v0, axis=0).max() > 1e-9:
+        return 1
+    height = x[:, 2].min() - scene.ground.height - gap
+    gz = float(scene.gravity[2])
+    if height <= 0 or gz >= 0:
+        return 1
+    t_hit = fall_time(float(height), float(v0[0, 2]), gz)
+    return int(min(n_frames, max(1, math.floor(t_hit / frame_dt) + 1)))
 
 
 def _skew(w: np.ndarray) -> np.ndarray:

@@ -21,12 +21,13 @@ import torch
 from physgm.cameras import Cameras
 from physgm.gaussians import Gaussians
 from physgm.physics.materials import PhysicsSpec, get_material
+from physgm.sim.coast import ballistic_frames
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.coupling import follow_and_deform, rigid_transform_gaussians
 from physgm.sim.mpm.implicit import IMPLICIT_PASSES_MIN
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.stepping import SolverConfig
-from physgm.sim.mpm_run import ballistic_frames, run_mpm
+from physgm.sim.mpm_run import run_mpm
 from physgm.sim.planner import Plan, PlannerConfig, choose_spacing, plan_simulation, stretch_splits
 from physgm.sim.rigid import ContactParams, RigidBody, RigidSimulator, RigidTrajectory
 from physgm.sim.sampling import (

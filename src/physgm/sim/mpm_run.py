@@ -4,8 +4,9 @@ Warp solver in between, and early stop once everything is still.
 Frames before the first contact are the exact ballistic prefix (``ballistic_frames``: uniform
 gravity does not deform a body moving as a whole); flights after a bounce are computed in closed
 form while the vibration they leave out fits the pixel bound (``physgm.sim.coast``). A body that
-bounces or rolls further than the planner's region is followed: the grid moves under it by whole
-cells (``followed_grid``) instead of stopping it at its faces.
+bounces or rolls further than the planner's region, or rebounds above a grid the planner cut short
+of a tall drop, is followed: the grid moves under it by whole cells (``followed_grid``) instead of
+stopping it at its faces.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from physgm.sim.coast import fall_time, next_flight
+from physgm.sim.coast import ballistic_frames, next_flight
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.mpm.grid import GridSpec
 from physgm.sim.mpm.integrators import make_solver
@@ -26,24 +27,6 @@ from physgm.sim.mpm.state import Particles
 from physgm.sim.mpm.stepping import SolverConfig
 from physgm.sim.planner import Plan
 from physgm.sim.sampling import ParticleSample
-
-
-def ballistic_frames(
-    x: np.ndarray, v0: np.ndarray, scene: Scene, frame_dt: float, n_frames: int, gap: float
-) -> int:
-    """Number of leading frames (incl. frame 0) during which the object is in free flight.
-
-    Only for a body moving as a whole (uniform v0), with nothing prescribed, while its lowest
-    point stays ``gap`` (m) above the ground: there uniform gravity leaves it undeformed.
-    """
-    if scene.ground is None or scene.boxes or len(x) == 0 or np.ptp(v0, axis=0).max() > 1e-9:
-        return 1
-    height = x[:, 2].min() - scene.ground.height - gap
-    gz = float(scene.gravity[2])
-    if height <= 0 or gz >= 0:
-        return 1
-    t_hit = fall_time(float(height), float(v0[0, 2]), gz)
-    return int(min(n_frames, max(1, math.floor(t_hit / frame_dt) + 1)))
 
 
 class SimulationBudgetExceeded(RuntimeError):
@@ -96,35 +79,72 @@ def followed_grid(
     frame_dt: float,  # s
     margin_cells: int,  # the solver's ``boundary_cells``
     room: float = 0.0,  # share of its width an axis that must widen widens by at least
+    floor: float | None = None,  # lowest origin z (m) the grid may take; None: z stays as planned
+    gravity: float = 0.0,  # m/s^2, downward: what a frame adds to a vertical reach
 ) -> GridSpec | None:
-    """``grid`` moved under the body by whole cells along x and y, and widened where the body no
-    longer fits, once the next frame could carry a particle out of the grid's free interior,
-    towards the faces' walls; None while the body stays inside it.
+    """``grid`` moved under the body by whole cells along x and y (and z above ``floor``), and
+    widened where the body no longer fits, once the next frame could carry a particle out of the
+    grid's free interior, towards the faces' walls; None while the body stays inside it.
 
-    "Could" is the fastest particle's horizontal speed kept for a frame (the free interior already
-    keeps a particle's stencil off the walls), so a body the planned grid holds does not move it.
-    The moved grid centres the body with that reach on each side; its nodes keep their lattice, so
-    the body is discretised as before. z is left as planned: the ground below, the highest rise above.
-    An axis that must widen widens by at least ``room`` of its width, so a body that keeps spreading
-    (sand after a landing) moves the grid every few frames instead of every frame: each move
-    builds a new solver and records its launch graphs anew.
+    "Could" is the fastest particle's speed along the axis kept for a frame, plus what gravity
+    adds along z (the free interior already keeps a particle's stencil off the walls), so a body
+    the planned grid holds does not move it. The moved grid centres the body with that reach on
+    each side; its nodes keep their lattice, so the body is discretised as before.
+    An axis that must widen widens by at least ``room`` of its width (x and y), so a body that keeps
+    spreading (sand after a landing) moves the grid every few frames instead of every frame: each
+    move builds a new solver and records its launch graphs anew.
+
+    Along z the grid moves only with a ``floor``: the planned grid's own origin, whose bottom holds
+    the ground. A grid the planner cut short of a tall drop's height (``planner.domain``) rises with
+    a rebound and comes back down to it; at the floor, the ground holds the body. It goes lower only
+    when a move must hold particles a hard landing drove through the floor's interior (a solver is
+    built only around particles inside its interior).
     """
     dx, origin, res = grid.dx, np.asarray(grid.origin, dtype=np.float64), np.asarray(grid.res)
     free_lo, free_hi = grid.interior(margin_cells + 1)
-    lo, hi = x[:, :2].min(0), x[:, :2].max(0)
-    reach = np.abs(v[:, :2]).max(0) * frame_dt
-    if np.all(lo - reach >= free_lo[:2]) and np.all(hi + reach <= free_hi[:2]):
+    lo, hi = x.min(0), x.max(0)
+    reach = np.abs(v).max(0) * frame_dt
+    new_origin, new_res = origin.copy(), res.copy()
+    moves = False
+    if np.any(lo[:2] - reach[:2] < free_lo[:2]) or np.any(hi[:2] + reach[:2] > free_hi[:2]):
+        # Cells to add so the body and its reach fit the free interior, an even number (both sides).
+        missing = (hi[:2] - lo[:2] + 2.0 * reach[:2]) - (free_hi[:2] - free_lo[:2])
+        add = 2 * np.ceil(np.maximum(missing, 0.0) / (2.0 * dx) - 1e-9).astype(int)
+        add = np.where(add > 0, np.maximum(add, 2 * np.ceil(0.5 * room * res[:2]).astype(int)), 0)
+        new_res[:2] = res[:2] + add
+        centre = origin[:2] + 0.5 * (new_res[:2] - 1) * dx  # of the widened grid before it moves
+        new_origin[:2] += np.round((0.5 * (lo[:2] + hi[:2]) - centre) / dx) * dx
+        moves = True
+    if floor is not None:
+        reach_z = reach[2] + 0.5 * abs(gravity) * frame_dt**2  # gravity's share of a frame too
+        vertical = _followed_z(origin[2], res[2], lo[2], hi[2], reach_z, floor, dx, margin_cells + 1)
+        if vertical is not None:
+            new_origin[2], new_res[2] = vertical
+            moves = True
+    if not moves:
         return None
-    # Cells to add so the body and its reach fit the free interior, an even number (both sides).
-    missing = (hi - lo + 2.0 * reach) - (free_hi[:2] - free_lo[:2])
-    add = 2 * np.ceil(np.maximum(missing, 0.0) / (2.0 * dx) - 1e-9).astype(int)
-    add = np.where(add > 0, np.maximum(add, 2 * np.ceil(0.5 * room * res[:2]).astype(int)), 0)
-    nodes = res[:2] + add
-    centre = origin[:2] + 0.5 * (nodes - 1) * dx  # of the widened grid before it moves
-    shift = np.round((0.5 * (lo + hi) - centre) / dx)
-    new_origin = origin.copy()
-    new_origin[:2] += shift * dx
-    return GridSpec(tuple(new_origin), dx, (int(nodes[0]), int(nodes[1]), int(res[2])))
+    return GridSpec(tuple(new_origin), dx, tuple(int(n) for n in new_res))
+
+
+def _followed_z(
+    origin: float, nodes: int, lo: float, hi: float, reach: float, floor: float, dx: float, pad: int
+) -> tuple[float, int] | None:
+    """(origin z, nodes along z) of a grid that holds the body [lo, hi] (m) and its vertical reach,
+    on the lattice of ``floor`` and not below it, or None when the grid ``origin``, ``nodes`` does.
+
+    Below the floor grid's free interior (``pad`` cells up: the ground) the ground, not the grid,
+    stops the body, so the reach below counts only above it. A particle a hard landing drove more
+    than a cell under it, outside the interior a solver is built around, is held by a lower grid."""
+    ground = floor + pad * dx
+    need_lo = lo if lo < ground - dx else max(lo - reach, ground)
+    need_hi = hi + reach
+    if origin + pad * dx <= need_lo and origin + (nodes - 1 - pad) * dx >= need_hi:
+        return None
+    nodes = max(nodes, math.ceil((need_hi - need_lo) / dx - 1e-9) + 2 * pad + 2)
+    highest = math.floor((need_lo - floor) / dx + 1e-9) - pad  # cells above the floor that hold need_lo
+    lowest = math.ceil((need_hi - floor) / dx - 1e-9) - (nodes - 1 - pad)  # ... and need_hi
+    cells = min(max(round(0.5 * (highest + lowest)), lowest, 0), highest)
+    return floor + cells * dx, nodes
 
 
 # The share of its width a grid axis that must widen under a spreading body widens by at least
@@ -135,22 +155,21 @@ GRID_ROOM = 0.25
 
 
 def _moved_grid(
-    grid: GridSpec, x: np.ndarray, v: np.ndarray, frame_dt: float, cfg: SolverConfig
+    grid: GridSpec,
+    x: np.ndarray,
+    v: np.ndarray,
+    frame_dt: float,
+    cfg: SolverConfig,
+    floor: float | None = None,
+    gravity: float = 0.0,
 ) -> GridSpec | None:
     """``followed_grid`` with room to spread into, or without it past the solver's node cap; past
     the cap either way the faces' walls stay, as before."""
     for room in (GRID_ROOM, 0.0):
-        moved = followed_grid(grid, x, v, frame_dt, cfg.boundary_cells, room)
+        moved = followed_grid(grid, x, v, frame_dt, cfg.boundary_cells, room, floor, gravity)
         if moved is None or moved.num_nodes <= cfg.max_grid_nodes:
             return moved
     return None
-
-
-def _unbound(scene: Scene) -> bool:
-    """Nothing in the scene is tied to the grid's place or the solver's time, so a solver may be
-    rebuilt elsewhere mid-run (after a coasted flight, on a moved grid): velocity boxes keep a
-    schedule a rebuilt solver would restart; side walls and periodic axes are the grid's."""
-    return not (scene.boxes or scene.walls or scene.periodic)
 
 
 def _resumed(solver, state, volume: np.ndarray, scene: Scene) -> tuple[Particles, Scene]:
@@ -169,7 +188,7 @@ def _resumed(solver, state, volume: np.ndarray, scene: Scene) -> tuple[Particles
 def _can_coast(scene: Scene, budget_px: float) -> bool:
     """Flights may be coasted: there is a pixel budget and only gravity and the ground act
     (nothing prescribed, no walls, no drag)."""
-    return budget_px > 0.0 and scene.ground is not None and _unbound(scene) and scene.damping == 0.0
+    return budget_px > 0.0 and scene.ground is not None and scene.grid_free and scene.damping == 0.0
 
 
 def run_mpm(
@@ -216,7 +235,10 @@ def run_mpm(
     particles = Particles(x=xs[k0 - 1], volume=volume, material=0, v=v0 + g * t0)
     solver = make_solver(particles, [material], grid, scene, solver_cfg, device)
     coast_ok = _can_coast(scene, coast_budget_px)
-    follow_ok = follow and _unbound(scene)
+    follow_ok = follow and scene.grid_free
+    # Along z the grid follows above the planned one, whose bottom holds the ground.
+    floor = solver.grid.origin[2] if scene.ground is not None else None
+    fall = max(-float(g[2]), 0.0)
     substeps, moved, rest_frame, coasted, faces, coast_px, moves = 0, [], None, 0, 0, 0.0, 0
     try:
         k = k0
@@ -259,7 +281,11 @@ def run_mpm(
                 k += flight.frames
                 moved = []
             follows = follow_ok and k + 1 < T
-            moving = _moved_grid(solver.grid, state.x, state.v, frame_dt, solver_cfg) if follows else None
+            moving = (
+                _moved_grid(solver.grid, state.x, state.v, frame_dt, solver_cfg, floor, fall)
+                if follows
+                else None
+            )
             if flight is not None or moving is not None:  # a new solver continues from ``state``
                 faces += solver.face_contacts
                 grid = solver.grid

@@ -42,3 +42,11 @@ class Scene:
         """This scene with its ground's grid condition at the plane instead of particle contact
         (``GroundPlane.on_nodes``), for steps whose solve replaces the scatter's forces."""
         return self if self.ground is None else replace(self, ground=self.ground.on_nodes())
+
+    @property
+    def grid_free(self) -> bool:
+        """Nothing here is tied to the grid's place or the solver's clock, so a run may continue on
+        a rebuilt solver elsewhere (after a closed-form flight, on a grid moved under the body):
+        velocity boxes keep a schedule a rebuilt solver would restart; side walls and periodic axes
+        are the grid's."""
+        return not (self.boxes or self.walls or self.periodic)

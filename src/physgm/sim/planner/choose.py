@@ -127,7 +127,7 @@ def plan_simulation(
     terms = {"sag_px": deform.sag * px_per_m, "impact_px": deform.impact * px_per_m}
     terms["plastic_px"] = deform.plastic * px_per_m
 
-    g_lo, g_hi, grid_dx = grid_region(cfg, material, x, v0, volume, scene, duration, dx, ground)
+    g_lo, g_hi, grid_dx = grid_region(cfg, material, x, v0, volume, scene, duration, dx, ground, frame_dt)
     n_nodes = int(np.prod(np.ceil((g_hi - g_lo) / grid_dx) + 9))  # + boundary margins of GridSpec.fit
     speed = implicit_step_speed(cfg.cfl, grid_dx, implicit_dt) if implicit else None
     steps = {"mpm": substeps_per_frame(grid_dx, [stepped(material)], v_max, cfg.cfl, frame_dt, speed)}
@@ -302,6 +302,11 @@ def plan_simulation(
     cost["mpm_capped"] = float((n_frames - 1) * choice.steps * P)
     note = "".join(f"; {n}" for n in choice.notes)
     reason = f"MPM because {why}{note}; grid {n_nodes} nodes, dx={grid_dx:.3g} m"
+    if grid_dx > dx * (1.0 + 1e-6):
+        reason += (
+            f" (coarser than the {dx:.3g} m the object asks for, so the region it can reach fits "
+            f"planner.max_cells={cfg.max_cells} cells: {size / grid_dx:.1f} cells across it)"
+        )
     return Plan(
         "mpm",
         E_used=choice.material.E,

@@ -11,7 +11,9 @@ class PlannerConfig:
 
     bound_px: float = 0.5  # largest visual error allowed, pixels at the output resolution
     cells_across: int = 12  # grid cells across the object's largest extent
-    max_cells: int = 96  # cap on grid cells per axis (dx grows to respect it)
+    # Cap on grid cells per axis: dx grows to respect it, except along z for a drop whose fall is
+    # closed form, where the grid is cut above the ground and follows the body (domain.grid_region).
+    max_cells: int = 96
     # MPM particles per grid cell: 8 (2 per axis) is MPM practice; at 1 per cell or fewer a soft
     # body loses its shape. Sets the particle spacing dx / ppc^(1/3); the lattice through the
     # object's bounding box then holds at most (cells_across ppc^(1/3))^3 particles (13,824).
