@@ -130,7 +130,7 @@ def _followed_z(
     origin: float, nodes: int, lo: float, hi: float, reach: float, floor: float, dx: float, pad: int
 ) -> tuple[float, int] | None:
     """(origin z, nodes along z) of a grid that holds the body [lo, hi] (m) and its vertical reach,
-    on the lattice of ``floor`` and not below it, or None when the grid ``origin``, ``nodes`` does.
+    on the lattice of ``floor``, or None when the grid ``origin``, ``nodes`` does.
 
     Below the floor grid's free interior (``pad`` cells up: the ground) the ground, not the grid,
     stops the body, so the reach below counts only above it. A particle a hard landing drove more

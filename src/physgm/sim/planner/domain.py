@@ -173,8 +173,8 @@ def grid_region(
     computed in closed form (``coast.ballistic_frames``; needs ``frame_dt``), gets a grid of
     ``max_cells`` cells above the ground, which holds the body from where the simulation takes over,
     and which follows a rebound upwards (``mpm_run.followed_grid``). The landing is then simulated
-    at the cell the body's size asks for: on a grid stretched over a 5 m fall, a 0.2 m jelly met
-    the ground with 4 cells across it and went a whole cell through it.
+    at the cell the body's size asks for, not at one stretched over the fall, which it does not
+    need (docs/measurements_sim.md section 39).
     """
     pts = x.detach().double().cpu().numpy()
     lo, hi = pts.min(0), pts.max(0)
