@@ -349,17 +349,17 @@ def test_a_run_whose_object_reached_the_region_edge_warns(monkeypatch, capsys, t
     """The grid-face walls are a safety net: when they stopped the object, the user is told."""
     from physgm.pipeline import stages
 
-    def future(name: str, faces: int, nu_used: float = 0.45) -> stages.FutureResult:
+    def future(name: str, faces: int, nu_used: float = 0.45, cells: float = 12.0) -> stages.FutureResult:
         return stages.FutureResult(
             name=name, video=f"{name}.mp4", material="rubber", E=3e7, nu=0.45, mode="mpm",
             predicted_error_px=0.0, error_terms={}, px_per_m=500.0, E_used=3e7, nu_used=nu_used,
-            particles=100, grid_cells=[8, 8, 8],
-            dx_m=0.01, substeps=10, rest_frame=None, face_contacts=faces, grid_moves=0, ballistic_frames=1,
+            particles=100, grid_cells=[8, 8, 8], dx_m=0.01, cells_across=cells,
+            substeps=10, rest_frame=None, face_contacts=faces, grid_moves=0, ballistic_frames=1,
             reason="", finite=True, seconds={},
         )  # fmt: skip
 
     futures = [future("video", 0, nu_used=0.4), future("sample1", 632)]
-    cfg = type("C", (), {"scene": "drop", "size_m": 0.2})()
+    cfg = type("C", (), {"scene": "drop", "size_m": 0.2, "planner": {}})()
     sheet = stages._sheet_lines({"posterior": None}, futures, cfg)
     # A capped run says what was simulated, under what was asked for.
     assert sheet.count("    run as E=3e+07 nu=0.40") == 1
@@ -367,12 +367,26 @@ def test_a_run_whose_object_reached_the_region_edge_warns(monkeypatch, capsys, t
     assert sheet.count("    held by the region's edge (see the warning)") == 1
     assert sheet.index("    held by the region's edge (see the warning)") == len(sheet) - 1  # under sample1
     result = stages.RunResult({"seconds": {"total": 1.0}}, futures)
-    monkeypatch.setattr(stages, "from_hydra", lambda cfg: type("C", (), {"output_dir": tmp_path})())
+    monkeypatch.setattr(
+        stages, "from_hydra", lambda cfg: type("C", (), {"output_dir": tmp_path, "planner": {}})()
+    )
     monkeypatch.setattr(stages, "run_pipeline", lambda cfg: result)
     stages.run(None)
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("warning: sample1.mp4: the object reached the edge")
     assert "632 grid-node updates" in err[0] and "planner.spread_factor=2" in err[0]
+    # A grid under half the planner's cells across the object is reported too; 9.4 cells is not.
+    futures[0] = future("video", 0, cells=2.1)
+    futures.append(future("sample2", 0, cells=9.4))
+    stages.run(None)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and err[0].startswith(
+        "warning: video.mp4: the object was simulated with 2.1 grid cells"
+    )
+    assert "planner.cells_across=12" in err[0] and "raise planner.max_cells" in err[0]
+    sheet = stages._sheet_lines({"posterior": None}, futures, cfg)
+    assert sheet.count("    on a coarse grid, 2.1 cells across (see the warning)") == 1
+    assert not any("coarse" in line for line in sheet[sheet.index("  sample2: rubber E=3e+07 nu=0.45") :])
 
 
 def test_a_scene_axis_faces_the_camera_and_a_stretch_pulls_a_tall_body_along_its_height():

@@ -53,6 +53,7 @@ class FutureResult:
     particles: int
     grid_cells: list[int]  # along x, y, z
     dx_m: float
+    cells_across: float  # grid cells across the object (the planner's cells_across unless coarsened)
     substeps: int
     rest_frame: int | None
     face_contacts: int  # grid-face safety walls touched (0: the grid held)
@@ -86,11 +87,36 @@ def run(cfg) -> dict:
         )
         if r.face_contacts:
             print(f"warning: {r.video}: {wall_warning(r.face_contacts)}", file=sys.stderr)
+        if _coarse(r, run_cfg):
+            print(
+                f"warning: {r.video}: {coarse_warning(r.cells_across, _planner(run_cfg).cells_across)}",
+                file=sys.stderr,
+            )
     print(
         f"done in {result.report['seconds']['total']:.1f} s; contact sheet: "
         f"{run_cfg.output_dir / 'contact_sheet.png'}, report: {run_cfg.output_dir / 'report.json'}"
     )
     return result.report
+
+
+# A grid with fewer than this share of the planner's cells across the object is reported: its clip
+# is the grid's more than the material's (docs/measurements_sim.md section 39).
+COARSE_SHARE = 0.5
+
+
+def _coarse(r: FutureResult, cfg: RunConfig) -> bool:
+    """Was this future simulated on a grid under ``COARSE_SHARE`` of the cells the planner asks for?"""
+    return r.mode != "rigid" and r.cells_across < COARSE_SHARE * _planner(cfg).cells_across
+
+
+def coarse_warning(cells: float, asked: int) -> str:
+    """What to tell a user whose object was simulated on a grid much coarser than it asks for."""
+    return (
+        f"the object was simulated with {cells:.1f} grid cells across it, where planner.cells_across={asked} "
+        "asks for more: the region it can reach (a long fall, a granular runout, a push) did not fit "
+        "planner.max_cells cells per axis at the finer cell, so its deformation is the coarse grid's. "
+        "A finer clip at more cost: raise planner.max_cells (default 96)."
+    )
 
 
 def wall_warning(face_contacts: int) -> str:
@@ -249,6 +275,7 @@ def _future_result(choice, traj, seconds: dict, finite: bool, video: str) -> Fut
         E_used=plan.E_used,
         nu_used=plan.nu_used,
         dx_m=plan.dx,
+        cells_across=round(float(plan.cells_across), 2),
         grid_cells=plan.summary()["grid_cells"],
         reason=plan.reason,
         substeps=int(traj.substeps),
@@ -441,6 +468,8 @@ def _sheet_lines(phys: dict, results: list[FutureResult], cfg: RunConfig) -> lis
         lines.append(f"    {r.mode}, error {r.predicted_error_px:.2f} px, {r.substeps} steps")
         if r.face_contacts:
             lines.append("    held by the region's edge (see the warning)")
+        if _coarse(r, cfg):
+            lines.append(f"    on a coarse grid, {r.cells_across:.1f} cells across (see the warning)")
     return lines
 
 

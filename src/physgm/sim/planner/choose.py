@@ -143,6 +143,7 @@ def plan_simulation(
         grid_hi=g_hi,
         dx=grid_dx,
         particle_spacing=particle_spacing,
+        cells_across=size / grid_dx,
         n_particles=P,
         frame_dt=frame_dt,
         n_frames=n_frames,
