@@ -179,6 +179,7 @@ def test_a_drop_taller_than_the_cell_cap_keeps_the_cell_its_body_asks_for():
     cfg = PlannerConfig()
     plan = _plan(JELLY, "jelly", bottom=3.0)
     assert plan.dx == pytest.approx(0.1 / cfg.cells_across, rel=1e-9)
+    assert plan.cells_across == pytest.approx(cfg.cells_across, rel=1e-9)
     assert plan.grid_lo[2] <= 0.0 and (plan.grid_hi[2] - plan.grid_lo[2]) / plan.dx == pytest.approx(
         cfg.max_cells
     )
@@ -195,6 +196,7 @@ def test_a_drop_taller_than_the_cell_cap_keeps_the_cell_its_body_asks_for():
         assert coarse.dx == pytest.approx(whole_height / cfg.max_cells, rel=1e-6)
         assert coarse.grid_hi[2] == pytest.approx(whole_height, abs=1e-6)
         assert f"coarser than the {plan.dx:.3g} m the object asks for" in coarse.reason
+        assert coarse.cells_across == pytest.approx(0.1 / coarse.dx, rel=1e-6)  # 3.1 across the 0.1 m cube
     assert "coarser" not in plan.reason
     boxed = Scene(
         ground=GroundPlane(0.0), boxes=(VelocityBox((-1.0, -1.0, 5.0), (1.0, 1.0, 5.1), (0.0, 0.0, 0.0)),)

@@ -143,7 +143,7 @@ def plan_simulation(
         grid_hi=g_hi,
         dx=grid_dx,
         particle_spacing=particle_spacing,
-        cells_across=size / grid_dx,
+        cells_across=cfg.cells_across * dx / grid_dx,
         n_particles=P,
         frame_dt=frame_dt,
         n_frames=n_frames,
@@ -306,7 +306,7 @@ def plan_simulation(
     if grid_dx > dx * (1.0 + 1e-6):
         reason += (
             f" (coarser than the {dx:.3g} m the object asks for, so the region it can reach fits "
-            f"planner.max_cells={cfg.max_cells} cells: {size / grid_dx:.1f} cells across it)"
+            f"planner.max_cells={cfg.max_cells} cells: {cfg.cells_across * dx / grid_dx:.1f} cells across it)"
         )
     return Plan(
         "mpm",

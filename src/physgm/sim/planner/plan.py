@@ -21,8 +21,9 @@ class Plan:
         px_per_m: pixels per metre at the object for the closest output camera.
         grid_lo, grid_hi: [3] reachable region the grid must hold, m (before boundary margin).
         dx: grid cell size, m.  particle_spacing: m.
-        cells_across: grid cells across the object's largest extent (``PlannerConfig.cells_across``
-            unless the region it can reach coarsened the grid to fit ``max_cells``).
+        cells_across: grid cells across the object's largest extent: ``PlannerConfig.cells_across``
+            times the object's cell over the grid's (less when the region it can reach coarsened
+            the grid to fit ``max_cells``).
         substeps_per_frame: predicted (rigid: integration steps per frame).
         predicted_cost: predicted particle-substeps (rigid: body steps).
         rest_px, rest_frames, rest_budget_px: early stop once no particle moved more than rest_px
