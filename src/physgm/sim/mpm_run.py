@@ -280,13 +280,11 @@ def run_mpm(
                 coast_px = max(coast_px, flight.predicted_px)
                 k += flight.frames
                 moved = []
-            follows = follow_ok and k + 1 < T
-            moving = (
-                _moved_grid(solver.grid, state.x, state.v, frame_dt, solver_cfg, floor, fall)
-                if follows
-                else None
-            )
-            if flight is not None or moving is not None:  # a new solver continues from ``state``
+            more = k + 1 < T  # frames left to simulate (a flight may have reached the clip's end)
+            moving = None
+            if more and follow_ok:
+                moving = _moved_grid(solver.grid, state.x, state.v, frame_dt, solver_cfg, floor, fall)
+            if more and (flight is not None or moving is not None):  # a new solver continues from ``state``
                 faces += solver.face_contacts
                 grid = solver.grid
                 if moving is not None:
