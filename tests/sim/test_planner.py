@@ -172,7 +172,7 @@ def test_grid_fits_reachable_region_and_is_small():
 
 
 def test_a_drop_taller_than_the_cell_cap_keeps_the_cell_its_body_asks_for():
-    """A 0.1 m cube 3 m up: 310 cells of the body's 1 cm would pass ``max_cells`` (96). The fall
+    """A 0.1 m cube 3 m up: 376 cells of the body's 8.3 mm would pass ``max_cells`` (96). The fall
     before the first contact is closed form, so the grid holds only the 96 cells above the ground,
     which hold the body from where the simulation takes over, and follows a rebound; without the
     closed-form fall or without following, the grid coarsens to fit the height, as a bound scene's does."""
