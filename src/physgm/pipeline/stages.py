@@ -80,6 +80,7 @@ def run(cfg) -> dict:
     except UserError as err:
         print(f"error: {err}", file=sys.stderr)
         raise SystemExit(2) from None
+    asked = _planner(run_cfg).cells_across
     for r in result.futures:
         print(
             f"{run_cfg.output_dir / r.video}: {r.material} E={r.E:.3g} Pa nu={r.nu:.2f}, "
@@ -87,11 +88,8 @@ def run(cfg) -> dict:
         )
         if r.face_contacts:
             print(f"warning: {r.video}: {wall_warning(r.face_contacts)}", file=sys.stderr)
-        if _coarse(r, run_cfg):
-            print(
-                f"warning: {r.video}: {coarse_warning(r.cells_across, _planner(run_cfg).cells_across)}",
-                file=sys.stderr,
-            )
+        if _coarse(r, asked):
+            print(f"warning: {r.video}: {coarse_warning(r.cells_across, asked)}", file=sys.stderr)
     print(
         f"done in {result.report['seconds']['total']:.1f} s; contact sheet: "
         f"{run_cfg.output_dir / 'contact_sheet.png'}, report: {run_cfg.output_dir / 'report.json'}"
@@ -104,9 +102,9 @@ def run(cfg) -> dict:
 COARSE_SHARE = 0.5
 
 
-def _coarse(r: FutureResult, cfg: RunConfig) -> bool:
-    """Was this future simulated on a grid under ``COARSE_SHARE`` of the cells the planner asks for?"""
-    return r.mode != "rigid" and r.cells_across < COARSE_SHARE * _planner(cfg).cells_across
+def _coarse(r: FutureResult, asked: int) -> bool:
+    """Was this future simulated on a grid under ``COARSE_SHARE`` of the ``asked`` cells across?"""
+    return r.mode != "rigid" and r.cells_across < COARSE_SHARE * asked
 
 
 def coarse_warning(cells: float, asked: int) -> str:
@@ -461,6 +459,7 @@ def _sheet_lines(phys: dict, results: list[FutureResult], cfg: RunConfig) -> lis
     else:
         lines.append("no prediction (.ply input)")
     lines.append("simulated:")
+    asked = _planner(cfg).cells_across
     for r in results:
         lines.append(f"  {r.name}: {r.material} E={r.E:.3g} nu={r.nu:.2f}")
         if (r.E_used, r.nu_used) != (r.E, r.nu):  # a cap the planner took, counted in the error
@@ -468,7 +467,7 @@ def _sheet_lines(phys: dict, results: list[FutureResult], cfg: RunConfig) -> lis
         lines.append(f"    {r.mode}, error {r.predicted_error_px:.2f} px, {r.substeps} steps")
         if r.face_contacts:
             lines.append("    held by the region's edge (see the warning)")
-        if _coarse(r, cfg):
+        if _coarse(r, asked):
             lines.append(f"    on a coarse grid, {r.cells_across:.1f} cells across (see the warning)")
     return lines
 

@@ -128,6 +128,7 @@ def plan_simulation(
     terms["plastic_px"] = deform.plastic * px_per_m
 
     g_lo, g_hi, grid_dx = grid_region(cfg, material, x, v0, volume, scene, duration, dx, ground, frame_dt)
+    cells_across = cfg.cells_across * dx / grid_dx  # fewer than asked when the region coarsened it
     n_nodes = int(np.prod(np.ceil((g_hi - g_lo) / grid_dx) + 9))  # + boundary margins of GridSpec.fit
     speed = implicit_step_speed(cfg.cfl, grid_dx, implicit_dt) if implicit else None
     steps = {"mpm": substeps_per_frame(grid_dx, [stepped(material)], v_max, cfg.cfl, frame_dt, speed)}
@@ -143,7 +144,7 @@ def plan_simulation(
         grid_hi=g_hi,
         dx=grid_dx,
         particle_spacing=particle_spacing,
-        cells_across=cfg.cells_across * dx / grid_dx,
+        cells_across=cells_across,
         n_particles=P,
         frame_dt=frame_dt,
         n_frames=n_frames,
@@ -306,7 +307,7 @@ def plan_simulation(
     if grid_dx > dx * (1.0 + 1e-6):
         reason += (
             f" (coarser than the {dx:.3g} m the object asks for, so the region it can reach fits "
-            f"planner.max_cells={cfg.max_cells} cells: {cfg.cells_across * dx / grid_dx:.1f} cells across it)"
+            f"planner.max_cells={cfg.max_cells} cells: {cells_across:.1f} cells across it)"
         )
     return Plan(
         "mpm",

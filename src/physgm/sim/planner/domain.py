@@ -217,7 +217,8 @@ def grid_region(
     grid_dx = max(dx, float((g_hi[:2] - g_lo[:2]).max()) / cfg.max_cells)
     height = float(g_hi[2] - g_lo[2])
     if height > cfg.max_cells * grid_dx:
-        top = landing_top(x, v0, scene, frame_dt, duration, 3 * grid_dx) if _may_cut(cfg, scene) else None
+        vel = v0.detach().double().cpu().numpy().reshape(-1, 3)
+        top = landing_top(pts, vel, scene, frame_dt, duration, 3 * grid_dx) if _may_cut(cfg, scene) else None
         if top is not None and top <= g_lo[2] + cfg.max_cells * grid_dx:
             g_hi[2] = g_lo[2] + cfg.max_cells * grid_dx
         else:
@@ -229,12 +230,12 @@ def grid_region(
 
 def _may_cut(cfg: PlannerConfig, scene: Scene) -> bool:
     """The grid may be cut short of a drop's height: the fall is closed form and the grid may move."""
-    return cfg.ballistic and cfg.follow and cfg.fit_grid and scene.grid_free and scene.ground is not None
+    return cfg.ballistic and cfg.follow and scene.grid_free
 
 
 def landing_top(
-    x: Tensor,  # [P, 3] rest particles, m
-    v0: Tensor,  # [P, 3] initial velocities, m/s
+    x: np.ndarray,  # [P, 3] rest particles, m
+    v0: np.ndarray,  # [P, 3] initial velocities, m/s
     scene: Scene,
     frame_dt: float | None,  # s
     duration: float,  # s
@@ -244,15 +245,13 @@ def landing_top(
     closed-form fall until a frame later; None when no fall is computed in closed form."""
     if frame_dt is None or not frame_dt > 0:
         return None
-    pts = x.detach().double().cpu().numpy()
-    vel = v0.detach().double().cpu().numpy().reshape(-1, 3)
     n_frames = int(round(duration / frame_dt)) + 1
-    k0 = ballistic_frames(pts, vel, scene, frame_dt, n_frames, gap)
+    k0 = ballistic_frames(x, v0, scene, frame_dt, n_frames, gap)  # 1 without a ground to fall to
     if k0 <= 1:
         return None
     t = (k0 - 1) * frame_dt
     gz = float(scene.gravity[2])
-    vz = float(vel[0, 2]) + gz * t
-    top = float(pts[:, 2].max()) + float(vel[0, 2]) * t + 0.5 * gz * t * t
+    vz = float(v0[0, 2]) + gz * t
+    top = float(x[:, 2].max()) + float(v0[0, 2]) * t + 0.5 * gz * t * t
     # A frame later it is lower (falling); a frame's reach still counts: the grid's check runs then.
     return top + abs(vz) * frame_dt + 0.5 * abs(gz) * frame_dt**2
