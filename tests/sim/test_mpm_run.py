@@ -143,7 +143,7 @@ def test_a_moved_grid_holds_particles_a_hard_landing_drove_under_its_floor():
 
 def test_a_resumed_solver_keeps_the_contact_plane_of_the_first():
     """A soft block (E = 1e4 Pa) resting on the contact springs, its surface on the plane. A solver
-    started afresh from its state would lower the plane by the springs' compression (0.20 of a
+    started afresh from its state would lower the plane by the springs' compression (0.13 of a
     spacing here, measured) and the block would sink by it at every rebuild; the solver that
     continues a run (``_resumed``, as when the grid moves) keeps the first plane."""
     sp = DX / 2
@@ -153,7 +153,7 @@ def test_a_resumed_solver_keeps_the_contact_plane_of_the_first():
     scene = Scene(ground=GroundPlane(0.0, friction=0.3, contact="particles"))
     cfg = SolverConfig(threads=1)
     first = MPMSolver(p, [soft], grid, scene, cfg)
-    for _ in range(10):  # it settles on the springs
+    for _ in range(20):  # it settles on the springs
         first.step_frame()
     state = first.state()
     resume, continued = _resumed(first, state, p.volume, scene)
@@ -161,7 +161,7 @@ def test_a_resumed_solver_keeps_the_contact_plane_of_the_first():
     assert continued.ground.contact_height == plane == pytest.approx(0.0, abs=1e-6)
     first.close()
     afresh = MPMSolver(resume, [soft], grid, scene, cfg)
-    assert afresh.launches.contact_height < -0.15 * sp  # what it avoids
+    assert afresh.launches.contact_height < -0.1 * sp  # what it avoids
     afresh.close()
     solver = MPMSolver(resume, [soft], grid, continued, cfg)
     assert solver.launches.contact_height == plane
@@ -170,7 +170,7 @@ def test_a_resumed_solver_keeps_the_contact_plane_of_the_first():
         solver.step_frame()
     low = float(solver.state().x[:, 2].min())
     solver.close()
-    assert abs(low - low0) < 0.01 * sp  # measured 0.0008 of a spacing (afresh: 0.23)
+    assert abs(low - low0) < 0.01 * sp, (low - low0) / sp  # measured 0.0004 of a spacing (afresh: 0.13)
 
 
 def test_a_contact_height_above_the_ground_is_refused():

@@ -102,6 +102,49 @@ def test_heavy_sand_heap_on_a_coulomb_floor_does_not_sink():
     assert low == pytest.approx(0.25, abs=0.02), low  # measured 0.245 dx after 1 s
 
 
+SOFT = MaterialParams("fixed_corotated", 2e3, 0.45, 1000.0)  # a jelly about as soft as its weight
+
+
+def _soft_cube(speed: float) -> MPMSolver:
+    """A 10 cm cube of SOFT, 1,000 particles, on a Coulomb floor or, moving down, 1 cm above it."""
+    lift = 0.01 if speed > 0 else 0.0
+    p = Particles.lattice((-0.05, -0.05, lift), (0.05, 0.05, 0.1 + lift), SP)
+    p = replace(p, v=np.tile(np.float32([0.0, 0.0, -speed]), (len(p), 1)))
+    grid = GridSpec.fit((-0.2, -0.2, 0.0), (0.2, 0.2, 0.22), DX)
+    scene = Scene(ground=GroundPlane(0.0, friction=0.3, contact="particles"))
+    return MPMSolver(p, [SOFT], grid, scene, SolverConfig(threads=1, frame_dt=0.005))
+
+
+def test_the_spring_under_a_body_as_soft_as_its_weight_is_raised_to_its_load():
+    # W = rho g V^(1/3) = 981 Pa under the 10 cm cube: 8 W = 7,848 Pa lies above G = 690 Pa and is
+    # capped at M = 7,586 Pa; the 1e5 Pa jelly's G = 38,462 Pa is already above 8 W.
+    for material, expected in [(SOFT, SOFT.lam + 2 * SOFT.mu), (JELLY, JELLY.mu)]:
+        solver = MPMSolver(
+            Particles.lattice((-0.05, -0.05, 0.01), (0.05, 0.05, 0.11), SP), [material],
+            GridSpec.fit((-0.2, -0.2, 0.0), (0.2, 0.2, 0.22), DX),
+            Scene(ground=GroundPlane(0.0, contact="particles")), SolverConfig(threads=1),
+        )  # fmt: skip
+        k = solver.launches.ground_k.numpy()[0]
+        solver.close()
+        assert k[0] == pytest.approx(expected, rel=1e-5)
+        assert k[1] == pytest.approx(0.5 * np.sqrt(expected / material.density), rel=1e-5)
+    assert SOFT.mu < 8 * 1000.0 * 9.81 * 0.1 < JELLY.mu
+
+
+@pytest.mark.parametrize("speed, deepest", [(0.0, 0.4), (3.0, 1.6)])
+def test_a_body_as_soft_as_its_weight_rests_and_lands_on_the_plane(speed, deepest):
+    # Its surface's deepest point under the plane over 0.3 s, in spacings: set down and sagging
+    # under its weight, 0.31 (1.57 with the spring at G); thrown down at 3 m/s, faster than its
+    # P-wave (2.8 m/s), 1.22 (3.74 at G).
+    solver = _soft_cube(speed)
+    depth = []
+    for _ in range(60):
+        solver.step_frame()
+        depth.append((SP / 2 - float(solver.state().x[:, 2].min())) / SP)
+    solver.close()
+    assert max(depth) < deepest, depth
+
+
 def test_body_placed_with_its_particles_on_the_plane_stays_down():
     # Scenes put the lowest particle centres on the floor (half a spacing of overlap): the springs
     # push from a plane lowered by that overlap, so a stiff block neither jumps nor sinks.
@@ -126,8 +169,9 @@ def test_step_allows_for_the_springs_only_when_they_need_it():
     for per_axis, expected in [(2, wave_speed([JELLY])), (4, 2.0 * np.sqrt(JELLY.mu / 1000.0))]:
         s = DX / per_axis
         p = Particles.lattice((0.0, 0.0, 0.0), (0.04, 0.04, 0.04), s)
-        assert step_wave_speed([JELLY], ground, p, DX) == pytest.approx(max(expected, wave_speed([JELLY])))
+        speed = step_wave_speed([JELLY], Scene(ground=ground), p, DX)
+        assert speed == pytest.approx(max(expected, wave_speed([JELLY])))
     nodes = replace(ground, contact="nodes")
-    assert step_wave_speed([JELLY], nodes, p, DX) == wave_speed([JELLY])
+    assert step_wave_speed([JELLY], Scene(ground=nodes), p, DX) == wave_speed([JELLY])
     with pytest.raises(ValueError, match="contact='nodes'"):
         GroundPlane(0.0, mode="sticky", contact="particles")

@@ -13,9 +13,10 @@ stiffness-dependent depth.
 ``contact="particles"``, the default for slip and Coulomb grounds (``physgm.sim.mpm.particle_ground``),
 acts on the particles instead: each particle whose material surface (half a particle spacing s
 below it) is under the plane is pushed out by a penalty spring as stiff as a layer s thick of
-its material's shear modulus G, with a normal dashpot (``damping`` = zeta 0.2), so impacts
-begin at the surface, bodies rest there (their surface sinks rho g H s / G: 0.14 cell for a
-10 cm jelly cube at E = 1e4 Pa), and an elastic ball keeps most of its bounce (restitution
+its material's shear modulus G (stiffer for a body about as soft as its own weight), with a
+normal dashpot (``damping`` = zeta 0.2), so impacts begin at the surface, bodies rest there
+(their surface sinks rho g H s / X, X the spring's modulus: 0.07 cell for a 10 cm jelly cube at
+E = 2e3 Pa), and an elastic ball keeps most of its bounce (restitution
 0.909); slow approaches are damped on the grid against the weight each spring carries
 (``rest_damping``), so a body resting on its springs stops rocking; the nodes two cells or more
 below the plane stay held as a safety net that a resting body never reaches. Without the dashpot
@@ -87,8 +88,9 @@ class GroundPlane:
     particle's material surface, ``particle_ground``; contact and rest at the plane) or "nodes"
     (the grid condition); None (default) picks "particles" unless the ground is sticky or held
     at depth.
-    stiffness: kappa of the particle contact: a particle of spacing s gets min(kappa G, M) s N/m,
-    G and M its material's shear and P-wave moduli (``particle_ground``).
+    stiffness: kappa of the particle contact: a particle of spacing s gets min(max(kappa G, 8 W),
+    M) s N/m, G and M its material's shear and P-wave moduli, W the pressure under the body's
+    weight (``particle_ground``).
     damping: zeta of the particle contact's normal dashpot, c = 2 zeta sqrt(k m), in [0, 0.25]
     (``particle_ground``); 0 makes the contact elastic.
     rest_damping: zeta of the resting dashpot, c = 2 zeta sqrt(k W / g) with W the weight the

@@ -7,17 +7,22 @@ Here the ground pushes the particles themselves: a particle of spacing s = V0^(1
 volume's side) carries the material down to s / 2 below its centre, and when that surface is a
 depth d under the plane it gets the normal force
 
-    f_n = k d,   k = X s   (N/m),   X = min(kappa G, M),
+    f_n = k d,   k = X s   (N/m),   X = min(max(kappa G, LOAD_FACTOR W), M),
 
 G the shear modulus of its material (a fluid, which has none: its bulk modulus), M = lam + 2 mu
-its P-wave modulus, kappa = ``GroundPlane.stiffness`` (1). Per particle column of cross-section
-s^2 the ground is as stiff as a layer s / kappa thick of a material of modulus G: a body of
-height H rests with its surface rho g H s / X under the plane (0.013 dx for the 5 cm test block,
-0.14 dx for a 10 cm jelly cube at E = 1e4 Pa, nu = 0.45; docs/measurements_sim.md section 11), and,
-the spring being elastic and its dashpot light, an elastic body keeps most of its bounce. G, not
-M: the bulk cap (issue 25) lowers M and keeps G, so the ground does not sink a capped body deeper
-than the uncapped one; and a spring as stiff as M made the bouncing ball's bottom layer chatter
-(restitution 0.908 against 0.938 with G).
+its P-wave modulus, kappa = ``GroundPlane.stiffness`` (1), W = rho |g| V^(1/3) the pressure at the
+base of a compact body of the material's rest volume V (``body_load``). Per particle column of
+cross-section s^2 the ground is as stiff as a layer s thick of a material of modulus X: a body of
+height H rests with its surface rho g H s / X under the plane (0.013 dx for the 5 cm test block;
+docs/measurements_sim.md section 11), and, the spring being elastic and its dashpot light, an
+elastic body keeps most of its bounce. G, not M, where the body's weight allows: the bulk cap (issue
+25) lowers M and keeps G, so the ground does not sink a capped body deeper than the uncapped one
+(except where the load term reaches the capped M); and a spring as stiff as M made the bouncing
+ball's bottom layer chatter (restitution 0.908 against 0.938 with G). The load term is for bodies
+about as soft as their own weight, a jelly of a few kPa: with G alone a 10 cm cube at E = 2e3 Pa
+rested with its surface 1.15 spacings under the plane, and thrown down at 3 m/s it went 3.7 spacings
+in; with LOAD_FACTOR W (capped at M) 0.14 and 1.2 (section 40). Under M it needs no shorter step
+(last paragraph).
 
 On a Coulomb ground a tangential force opposes the particle's sliding velocity v_t, at most mu f_n
 and at most m |v_t| / (cfl tau), tau = 2 / omega below. The solver's step never exceeds cfl tau
@@ -73,6 +78,10 @@ from physgm.sim.constitutive import MODELS, MaterialParams
 from physgm.sim.mpm.boundary import GROUND_SLIP, GroundPlane, GroundStruct
 
 wp.set_module_options({"enable_backward": False})
+
+# The spring is at least this many times the pressure under the body's own weight (``body_load``),
+# so a resting body's surface sinks at most 1 / LOAD_FACTOR of a spacing while that stays under M.
+LOAD_FACTOR = 8.0
 
 
 @wp.func
@@ -134,23 +143,45 @@ def fold_ground_force(
             pending[row, a] = wp.float64(0.0)
 
 
-def contact_modulus(ground: GroundPlane, material: MaterialParams) -> float:
+def contact_modulus(ground: GroundPlane, material: MaterialParams, load: float = 0.0) -> float:
     """X of the contact spring, Pa: kappa x the material's shear modulus (a fluid, which has none:
-    its bulk modulus), at most its P-wave modulus M (module docstring)."""
+    its bulk modulus), raised to ``LOAD_FACTOR`` x ``load`` (the pressure under the body's own
+    weight, Pa; ``body_load``) and at most its P-wave modulus M (module docstring)."""
     p_wave = MODELS[material.model].stiffness(material)
     if material.model == "fluid":
         return p_wave
-    return min(ground.stiffness * material.mu, p_wave)
+    return min(max(ground.stiffness * material.mu, LOAD_FACTOR * load), p_wave)
 
 
-def ground_stiffness(ground: GroundPlane | None, materials: Sequence[MaterialParams]) -> np.ndarray:
+def body_load(
+    materials: Sequence[MaterialParams],
+    volume: np.ndarray,  # [P] rest volumes, m^3
+    material: np.ndarray,  # [P] int
+    gravity: Sequence[float],  # m/s^2, the scene's
+) -> np.ndarray:
+    """[M] rho |g| V^(1/3) per material, Pa: the pressure at the base of a compact body of that
+    material's rest volume V resting under the scene's gravity (module docstring). Rest volumes
+    do not change, so a solver rebuilt in the middle of a run computes the same springs."""
+    g = float(np.linalg.norm(np.asarray(gravity, dtype=np.float64)))
+    material = np.asarray(material)
+    volume = np.broadcast_to(np.asarray(volume, dtype=np.float64), material.shape)
+    sums = np.bincount(material, weights=volume, minlength=len(materials))[: len(materials)]
+    return np.array([m.density * g * np.cbrt(v) for m, v in zip(materials, sums, strict=True)])
+
+
+def ground_stiffness(
+    ground: GroundPlane | None,
+    materials: Sequence[MaterialParams],
+    load: Sequence[float] | None = None,  # [M] Pa, ``body_load``; None: none
+) -> np.ndarray:
     """[M, 2] per material (X, Pa; sqrt(X / rho) / 2, m/s) of the contact spring (module
     docstring); zeros unless the ground acts on the particles."""
     if ground is None or not ground.on_particles:
         return np.zeros((len(materials), 2), dtype=np.float32)
+    load = np.zeros(len(materials)) if load is None else load
     rows = []
-    for m in materials:
-        x = contact_modulus(ground, m)
+    for m, w in zip(materials, load, strict=True):
+        x = contact_modulus(ground, m, float(w))
         rows.append((x, 0.5 * math.sqrt(x / m.density)))
     return np.array(rows, dtype=np.float32)
 
@@ -200,15 +231,18 @@ def contact_wave_speed(
     volume: np.ndarray,  # [P] rest volumes, m^3
     material: np.ndarray,  # [P] int
     dx: float,
+    gravity: Sequence[float] = (0.0, 0.0, 0.0),  # m/s^2, the scene's
 ) -> float:
     """Speed c the contact springs need in dt = cfl dx / c (module docstring), m/s; 0 without them."""
     if ground is None or not ground.on_particles:
         return 0.0
     volume = np.broadcast_to(np.asarray(volume, dtype=np.float64), np.shape(material))
+    load = body_load(materials, volume, material, gravity)
     c = 0.0
     for index, m in enumerate(materials):
         sel = material == index
         if sel.any():
             s = float(volume[sel].min()) ** (1.0 / 3.0)
-            c = max(c, math.sqrt(contact_modulus(ground, m) / m.density) * dx / (2.0 * s))
+            x = contact_modulus(ground, m, float(load[index]))
+            c = max(c, math.sqrt(x / m.density) * dx / (2.0 * s))
     return c

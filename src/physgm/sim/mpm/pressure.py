@@ -213,5 +213,5 @@ class PressureSplitMPMSolver(MPMSolver):
         self.pressure = PressureStep(self, self.energy_table)
         self.launches.set_grid_stage(self.pressure.gathers, self.pressure.solves, self.pressure.cells)
         self.launches.on_invalidate.append(self.pressure.clear)
-        self._c_max = step_wave_speed(shear, self.scene.ground, particles, self.grid.dx)
+        self._c_max = step_wave_speed(shear, self.scene, particles, self.grid.dx)
         self._fit_active(self.stable_dt())

@@ -134,7 +134,7 @@ class MPMSolver:
         least = _AUTO_THREADS_MIN_PARTICLES_GRAPHS if replays else _AUTO_THREADS_MIN_PARTICLES
         auto = 2 if self.device.is_cpu and n >= least and (os.cpu_count() or 1) >= 2 else 1
         self.threads = min(self.config.threads or auto, 2) if self.device.is_cpu else 1
-        self._c_max = step_wave_speed(self.materials, ground, particles, self.grid.dx)
+        self._c_max = step_wave_speed(self.materials, self.scene, particles, self.grid.dx)
         self.particles = ParticleStore(particles, self.materials, self.device)
         # The materials whose energy ``energy()`` reports (an integrator that splits the stress
         # between the particles and the grid runs another table in g2p).

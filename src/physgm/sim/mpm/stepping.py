@@ -108,11 +108,13 @@ def wave_speed(materials: Sequence[MaterialParams]) -> float:
     return max(m.wave_speed() for m in materials)
 
 
-def step_wave_speed(materials: Sequence[MaterialParams], ground, particles, dx: float) -> float:
+def step_wave_speed(materials: Sequence[MaterialParams], scene, particles, dx: float) -> float:
     """Speed c of the solver's CFL rule dt = cfl dx / (c + |v|max): the fastest material's P-wave
     speed, or more if the ground's particle contact springs need it (``particle_ground``), m/s.
-    ``ground``: GroundPlane or None; ``particles``: the solver's input ``Particles``."""
-    spring = contact_wave_speed(ground, materials, particles.volume, particles.material, dx)
+    ``scene``: the solver's ``Scene``; ``particles``: its input ``Particles``."""
+    spring = contact_wave_speed(
+        scene.ground, materials, particles.volume, particles.material, dx, scene.gravity
+    )
     return max(wave_speed(materials), spring)
 
 
