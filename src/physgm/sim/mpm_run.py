@@ -6,7 +6,8 @@ gravity does not deform a body moving as a whole); flights after a bounce are co
 form while the vibration they leave out fits the pixel bound (``physgm.sim.coast``). A body that
 bounces or rolls further than the planner's region, or rebounds above a grid the planner cut short
 of a tall drop, is followed: the grid moves under it by whole cells (``followed_grid``) instead of
-stopping it at its faces.
+stopping it at its faces, and a frame whose body met the faces anyway (a landing's splash) is run
+again from its start on a grid that holds it (``_splash_grid``).
 """
 
 from __future__ import annotations
@@ -49,7 +50,8 @@ class MPMRun:
     coasted_frames: int  # later frames in closed form (flights after a bounce, sim/coast.py)
     face_contacts: int
     coast_predicted_px: float = 0.0  # the largest predicted error of a coasted flight, pixels
-    grid_moves: int = 0  # times the grid moved under the body (``followed_grid``)
+    grid_moves: int = 0  # times the grid moved under the body (``followed_grid``), retried frames included
+    retried_frames: int = 0  # frames run again on a wider grid after meeting its faces (``_splash_grid``)
 
 
 def motion_left_px(window: list[float], frames_left: int) -> float:
@@ -172,6 +174,31 @@ def _moved_grid(
     return None
 
 
+# Times one frame is run again on a wider grid after the body met the faces' walls (``_splash_grid``).
+FACE_RETRIES = 2
+
+
+def _splash_grid(
+    grid: GridSpec,
+    start,  # ParticleState at the frame's start
+    end,  # ParticleState at its end, on ``grid``
+    frame_dt: float,
+    cfg: SolverConfig,
+    floor: float | None,
+    gravity: float,
+) -> GridSpec | None:
+    """A grid that holds what a frame did, for running it again, or None when none can (the node
+    cap, or a grid that already holds it).
+
+    ``followed_grid`` reads a frame's reach from the speeds at its start, and a landing's splash
+    starts within the frame: just before it the body moves down and not sideways, so the grid it
+    keeps meets the splash at its side faces (docs/measurements_sim.md section 41). The frame's
+    start and end together, positions and speeds, give the reach the splash took."""
+    x = np.concatenate([start.x, end.x])
+    v = np.concatenate([start.v, end.v])
+    return _moved_grid(grid, x, v, frame_dt, cfg, floor, gravity)
+
+
 def _resumed(solver, state, volume: np.ndarray, scene: Scene) -> tuple[Particles, Scene]:
     """The particles and scene of a solver that continues ``solver``'s run from ``state`` (after a
     coasted flight, or on a moved grid): the contact plane stays where the first solver put it (a
@@ -210,7 +237,8 @@ def run_mpm(
 
     ``coast_budget_px``: pixels a coasted flight's vibration may move a point by (0: never coast).
     ``follow``: move the grid under a body that leaves the planned region (``followed_grid``;
-    scenes without velocity boxes, side walls or periodic axes); False stops it at the grid's faces.
+    scenes without velocity boxes, side walls or periodic axes), and run a frame whose body met the
+    grid's faces again on a wider grid (``_splash_grid``); False stops it at the grid's faces.
     ``on_frame(frames, substeps)``: called whenever more of the clip is done (the closed-form
     prefix, each simulated frame, a coasted flight, the held frames after rest) with the frames of
     the clip done so far and the sub-steps taken; ``simulate.py``'s progress bar.
@@ -240,14 +268,28 @@ def run_mpm(
     floor = solver.grid.origin[2] if scene.ground is not None else None
     fall = max(-float(g[2]), 0.0)
     substeps, moved, rest_frame, coasted, faces, coast_px, moves = 0, [], None, 0, 0, 0.0, 0
+    retried, tries = 0, 0
+    state = solver.state()
     try:
         k = k0
         while k < T:
             if deadline is not None and time.perf_counter() > deadline:
                 raise SimulationBudgetExceeded(k, T)
+            start, faces_before = state, solver.face_contacts
             stats = solver.step_frame()
             substeps += stats.substeps
             state = solver.state()
+            wider = None
+            if follow_ok and tries < FACE_RETRIES and solver.face_contacts > faces_before:
+                wider = _splash_grid(solver.grid, start, state, frame_dt, solver_cfg, floor, fall)
+            if wider is not None:  # the frame again from its start, on a grid that holds it
+                faces += faces_before
+                resume, continued = _resumed(solver, start, volume, scene)
+                solver.close()
+                solver = make_solver(resume, [material], wider, continued, solver_cfg, device)
+                state, tries, retried, moves = start, tries + 1, retried + 1, moves + 1
+                continue
+            tries = 0
             xs[k], Fs[k] = state.x, state.F
             # Still = no particle moved a visible amount in each of the last rest_frames frames,
             # and the motion they extrapolate to over the frames left (a slow creep) stays under
@@ -297,4 +339,4 @@ def run_mpm(
         faces += solver.face_contacts
     finally:
         solver.close()
-    return MPMRun(xs, Fs, substeps, rest_frame, k0, coasted, faces, coast_px, moves)
+    return MPMRun(xs, Fs, substeps, rest_frame, k0, coasted, faces, coast_px, moves, retried)
