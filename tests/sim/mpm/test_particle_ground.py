@@ -115,20 +115,28 @@ def _soft_cube(speed: float) -> MPMSolver:
     return MPMSolver(p, [SOFT], grid, scene, SolverConfig(threads=1, frame_dt=0.005))
 
 
-def test_the_spring_under_a_body_as_soft_as_its_weight_is_raised_to_its_load():
+M_SOFT = SOFT.lam + 2 * SOFT.mu  # 7,586 Pa
+
+
+@pytest.mark.parametrize(
+    "material, dx, expected",
+    [(SOFT, DX, M_SOFT), (JELLY, DX, JELLY.mu), (SOFT, 0.026, M_SOFT * (2 * SP / 0.026) ** 2)],
+)
+def test_the_spring_under_a_body_as_soft_as_its_weight_is_raised_to_its_load(material, dx, expected):
     # W = rho g V^(1/3) = 981 Pa under the 10 cm cube: 8 W = 7,848 Pa lies above G = 690 Pa and is
-    # capped at M = 7,586 Pa; the 1e5 Pa jelly's G = 38,462 Pa is already above 8 W.
-    for material, expected in [(SOFT, SOFT.lam + 2 * SOFT.mu), (JELLY, JELLY.mu)]:
-        solver = MPMSolver(
-            Particles.lattice((-0.05, -0.05, 0.01), (0.05, 0.05, 0.11), SP), [material],
-            GridSpec.fit((-0.2, -0.2, 0.0), (0.2, 0.2, 0.22), DX),
-            Scene(ground=GroundPlane(0.0, contact="particles")), SolverConfig(threads=1),
-        )  # fmt: skip
-        k = solver.launches.ground_k.numpy()[0]
-        solver.close()
-        assert k[0] == pytest.approx(expected, rel=1e-5)
-        assert k[1] == pytest.approx(0.5 * np.sqrt(expected / material.density), rel=1e-5)
+    # capped at M = 7,586 Pa; the 1e5 Pa jelly's G = 38,462 Pa is already above 8 W. On a cell 2.6
+    # spacings wide the spring stops at M (2 s / dx)^2 = 4,489 Pa, where it rings as fast as the
+    # P-wave crosses a cell, so the step is the material's own.
     assert SOFT.mu < 8 * 1000.0 * 9.81 * 0.1 < JELLY.mu
+    p = Particles.lattice((-0.05, -0.05, 0.01), (0.05, 0.05, 0.11), SP)
+    scene = Scene(ground=GroundPlane(0.0, contact="particles"))
+    grid = GridSpec.fit((-0.2, -0.2, 0.0), (0.2, 0.2, 0.22), dx)
+    solver = MPMSolver(p, [material], grid, scene, SolverConfig(threads=1))
+    k = solver.launches.ground_k.numpy()[0]
+    solver.close()
+    assert k[0] == pytest.approx(expected, rel=1e-5)
+    assert k[1] == pytest.approx(0.5 * np.sqrt(expected / material.density), rel=1e-5)
+    assert step_wave_speed([material], scene, p, dx) == pytest.approx(wave_speed([material]), rel=1e-6)
 
 
 @pytest.mark.parametrize("speed, deepest", [(0.0, 0.4), (3.0, 1.6)])

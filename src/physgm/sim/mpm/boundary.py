@@ -88,9 +88,9 @@ class GroundPlane:
     particle's material surface, ``particle_ground``; contact and rest at the plane) or "nodes"
     (the grid condition); None (default) picks "particles" unless the ground is sticky or held
     at depth.
-    stiffness: kappa of the particle contact: a particle of spacing s gets min(max(kappa G, 8 W),
-    M) s N/m, G and M its material's shear and P-wave moduli, W the pressure under the body's
-    weight (``particle_ground``).
+    stiffness: kappa of the particle contact: a particle of spacing s gets min(max(kappa G,
+    min(8 W, M (2 s / dx)^2)), M) s N/m, G and M its material's shear and P-wave moduli, W the
+    pressure under the body's weight, dx the cell (``particle_ground``).
     damping: zeta of the particle contact's normal dashpot, c = 2 zeta sqrt(k m), in [0, 0.25]
     (``particle_ground``); 0 makes the contact elastic.
     rest_damping: zeta of the resting dashpot, c = 2 zeta sqrt(k W / g) with W the weight the

@@ -27,7 +27,7 @@ from physgm.sim.mpm.boundary import no_ground
 from physgm.sim.mpm.grid import GridSpec
 from physgm.sim.mpm.grid_arrays import GridArrays
 from physgm.sim.mpm.grid_layout import block_res
-from physgm.sim.mpm.particle_ground import body_load, ground_stiffness, pack_contact
+from physgm.sim.mpm.particle_ground import ground_stiffness, pack_contact, raised_modulus
 from physgm.sim.mpm.particle_store import ParticleStore
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.spin_barrier import LIMIT_CYCLES, YIELD_AFTER_CYCLES, abandoned, barrier, new_counter
@@ -108,8 +108,8 @@ class SubstepLaunches:
         else:
             ground = scene.ground.pack()
         self.contact_height = float(ground.height)  # m, the plane the particle contact pushes from
-        load = body_load(ps.materials, ps.vol0.numpy(), ps.material.numpy(), scene.gravity)
-        springs = ground_stiffness(scene.ground, ps.materials, load)
+        raised = raised_modulus(ps.materials, ps.vol0.numpy(), ps.material.numpy(), scene.gravity, g.dx)
+        springs = ground_stiffness(scene.ground, ps.materials, raised)
         self.ground_k = wp.array(springs, dtype=wp.vec2, device=dev)
         num_boxes = len(scene.boxes)
         n = ps.n

@@ -7,22 +7,25 @@ Here the ground pushes the particles themselves: a particle of spacing s = V0^(1
 volume's side) carries the material down to s / 2 below its centre, and when that surface is a
 depth d under the plane it gets the normal force
 
-    f_n = k d,   k = X s   (N/m),   X = min(max(kappa G, LOAD_FACTOR W), M),
+    f_n = k d,   k = X s   (N/m),   X = min(max(kappa G, min(LOAD_FACTOR W, M (2 s / dx)^2)), M),
 
 G the shear modulus of its material (a fluid, which has none: its bulk modulus), M = lam + 2 mu
 its P-wave modulus, kappa = ``GroundPlane.stiffness`` (1), W = rho |g| V^(1/3) the pressure at the
-base of a compact body of the material's rest volume V (``body_load``). Per particle column of
-cross-section s^2 the ground is as stiff as a layer s thick of a material of modulus X: a body of
-height H rests with its surface rho g H s / X under the plane (0.013 dx for the 5 cm test block;
-docs/measurements_sim.md section 11), and, the spring being elastic and its dashpot light, an
-elastic body keeps most of its bounce. G, not M, where the body's weight allows: the bulk cap (issue
-25) lowers M and keeps G, so the ground does not sink a capped body deeper than the uncapped one
-(except where the load term reaches the capped M); and a spring as stiff as M made the bouncing
-ball's bottom layer chatter (restitution 0.908 against 0.938 with G). The load term is for bodies
-about as soft as their own weight, a jelly of a few kPa: with G alone a 10 cm cube at E = 2e3 Pa
-rested with its surface 1.15 spacings under the plane, and thrown down at 3 m/s it went 3.7 spacings
-in; with LOAD_FACTOR W (capped at M) 0.14 and 1.2 (section 40). Under M it needs no shorter step
-(last paragraph).
+base of a compact body of the material's rest volume V, dx the grid's cell (``raised_modulus``).
+Per particle column of cross-section s^2 the ground is as stiff as a layer s thick of a material
+of modulus X: a body of height H rests with its surface rho g H s / X under the plane (0.013 dx for
+the 5 cm test block; docs/measurements_sim.md section 11), and, the spring being elastic and its
+dashpot light, an elastic body keeps most of its bounce. G, not M, where the body's weight allows:
+the bulk cap (issue 25) lowers M and keeps G, so the ground does not sink a capped body deeper than
+the uncapped one (except where the load term reaches the capped M); and a spring as stiff as M
+made the bouncing ball's bottom layer chatter (restitution 0.908 against 0.938 with G).
+
+The load term is for bodies about as soft as their own weight, a jelly of a few kPa: with G alone
+a 10 cm cube at E = 2e3 Pa rested with its surface 1.15 spacings under the plane, and thrown down
+at 3 m/s it went 3.7 spacings in; raised to LOAD_FACTOR W, 0.14 and 1.2 (section 40). It stops at
+M (2 s / dx)^2, where the spring rings as fast as the material's P-wave crosses a cell (last
+paragraph), so it never shortens the step: at 2 particles a cell axis that is M itself; a grid
+the planner coarsened under the same particles (a push, dx = 2.6 s) affords 0.58 M.
 
 On a Coulomb ground a tangential force opposes the particle's sliding velocity v_t, at most mu f_n
 and at most m |v_t| / (cfl tau), tau = 2 / omega below. The solver's step never exceeds cfl tau
@@ -79,8 +82,8 @@ from physgm.sim.mpm.boundary import GROUND_SLIP, GroundPlane, GroundStruct
 
 wp.set_module_options({"enable_backward": False})
 
-# The spring is at least this many times the pressure under the body's own weight (``body_load``),
-# so a resting body's surface sinks at most 1 / LOAD_FACTOR of a spacing while that stays under M.
+# The spring is at least this many times the pressure under the body's own weight (``raised_modulus``),
+# so a resting body's surface sinks at most 1 / LOAD_FACTOR of a spacing while the step affords it.
 LOAD_FACTOR = 8.0
 
 
@@ -143,44 +146,54 @@ def fold_ground_force(
             pending[row, a] = wp.float64(0.0)
 
 
-def contact_modulus(ground: GroundPlane, material: MaterialParams, load: float = 0.0) -> float:
+def contact_modulus(ground: GroundPlane, material: MaterialParams, raised: float = 0.0) -> float:
     """X of the contact spring, Pa: kappa x the material's shear modulus (a fluid, which has none:
-    its bulk modulus), raised to ``LOAD_FACTOR`` x ``load`` (the pressure under the body's own
-    weight, Pa; ``body_load``) and at most its P-wave modulus M (module docstring)."""
+    its bulk modulus), raised to ``raised`` (Pa, ``raised_modulus``) and at most its P-wave
+    modulus M (module docstring)."""
     p_wave = MODELS[material.model].stiffness(material)
     if material.model == "fluid":
         return p_wave
-    return min(max(ground.stiffness * material.mu, LOAD_FACTOR * load), p_wave)
+    return min(max(ground.stiffness * material.mu, raised), p_wave)
 
 
-def body_load(
+def raised_modulus(
     materials: Sequence[MaterialParams],
     volume: np.ndarray,  # [P] rest volumes, m^3
     material: np.ndarray,  # [P] int
     gravity: Sequence[float],  # m/s^2, the scene's
+    dx: float,  # the grid's cell, m
 ) -> np.ndarray:
-    """[M] rho |g| V^(1/3) per material, Pa: the pressure at the base of a compact body of that
-    material's rest volume V resting under the scene's gravity (module docstring). Rest volumes
-    do not change, so a solver rebuilt in the middle of a run computes the same springs."""
+    """[M] Pa per material: ``LOAD_FACTOR`` x rho |g| V^(1/3), the pressure at the base of a
+    compact body of that material's rest volume V resting under the scene's gravity, but no more
+    than M (2 s / dx)^2, s its smallest particle spacing: a spring that stiff rings no faster than
+    the material's P-wave at the CFL step (module docstring). Rest volumes do not change, so a
+    solver rebuilt in the middle of a run on the same cell computes the same springs."""
     g = float(np.linalg.norm(np.asarray(gravity, dtype=np.float64)))
     material = np.asarray(material)
     volume = np.broadcast_to(np.asarray(volume, dtype=np.float64), material.shape)
     sums = np.bincount(material, weights=volume, minlength=len(materials))[: len(materials)]
-    return np.array([m.density * g * np.cbrt(v) for m, v in zip(materials, sums, strict=True)])
+    raised = np.zeros(len(materials))
+    for index, m in enumerate(materials):
+        sel = material == index
+        if sel.any():
+            s = float(np.cbrt(volume[sel].min()))
+            step = MODELS[m.model].stiffness(m) * (2.0 * s / dx) ** 2
+            raised[index] = min(LOAD_FACTOR * m.density * g * float(np.cbrt(sums[index])), step)
+    return raised
 
 
 def ground_stiffness(
     ground: GroundPlane | None,
     materials: Sequence[MaterialParams],
-    load: Sequence[float] | None = None,  # [M] Pa, ``body_load``; None: none
+    raised: Sequence[float] | None = None,  # [M] Pa, ``raised_modulus``; None: none
 ) -> np.ndarray:
     """[M, 2] per material (X, Pa; sqrt(X / rho) / 2, m/s) of the contact spring (module
     docstring); zeros unless the ground acts on the particles."""
     if ground is None or not ground.on_particles:
         return np.zeros((len(materials), 2), dtype=np.float32)
-    load = np.zeros(len(materials)) if load is None else load
+    raised = np.zeros(len(materials)) if raised is None else raised
     rows = []
-    for m, w in zip(materials, load, strict=True):
+    for m, w in zip(materials, raised, strict=True):
         x = contact_modulus(ground, m, float(w))
         rows.append((x, 0.5 * math.sqrt(x / m.density)))
     return np.array(rows, dtype=np.float32)
@@ -237,12 +250,12 @@ def contact_wave_speed(
     if ground is None or not ground.on_particles:
         return 0.0
     volume = np.broadcast_to(np.asarray(volume, dtype=np.float64), np.shape(material))
-    load = body_load(materials, volume, material, gravity)
+    raised = raised_modulus(materials, volume, material, gravity, dx)
     c = 0.0
     for index, m in enumerate(materials):
         sel = material == index
         if sel.any():
             s = float(volume[sel].min()) ** (1.0 / 3.0)
-            x = contact_modulus(ground, m, float(load[index]))
+            x = contact_modulus(ground, m, float(raised[index]))
             c = max(c, math.sqrt(x / m.density) * dx / (2.0 * s))
     return c

@@ -12,7 +12,7 @@ import numpy as np
 from physgm.sim.constitutive import reference as cref
 from physgm.sim.mpm.boundary import NET_DEPTH
 from physgm.sim.mpm.kernels import NODE_MASS_FLOOR
-from physgm.sim.mpm.particle_ground import body_load, ground_stiffness, pack_contact
+from physgm.sim.mpm.particle_ground import ground_stiffness, pack_contact, raised_modulus
 
 
 def _weights(fx: np.ndarray) -> np.ndarray:  # fx: [3] -> [3 (node), 3 (axis)]
@@ -119,8 +119,8 @@ def substep(
     res, dx, origin = np.array(grid.res), grid.dx, np.asarray(grid.origin)
     n = len(x)
     ground = scene.ground
-    load = body_load(params, vol0, material, scene.gravity)
-    ground_k = ground_stiffness(ground, params, load).astype(np.float64)
+    raised = raised_modulus(params, vol0, material, scene.gravity, dx)
+    ground_k = ground_stiffness(ground, params, raised).astype(np.float64)
     # Stress of the current (already projected) F.
     tau = np.zeros((n, 3, 3))
     for m, p in enumerate(params):
