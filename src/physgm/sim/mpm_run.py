@@ -51,7 +51,6 @@ class MPMRun:
     face_contacts: int
     coast_predicted_px: float = 0.0  # the largest predicted error of a coasted flight, pixels
     grid_moves: int = 0  # times the grid moved under the body (``followed_grid``), retried frames included
-    retried_frames: int = 0  # frames run again on a wider grid after meeting its faces (``_splash_grid``)
 
 
 def motion_left_px(window: list[float], frames_left: int) -> float:
@@ -268,7 +267,7 @@ def run_mpm(
     floor = solver.grid.origin[2] if scene.ground is not None else None
     fall = max(-float(g[2]), 0.0)
     substeps, moved, rest_frame, coasted, faces, coast_px, moves = 0, [], None, 0, 0, 0.0, 0
-    retried, tries = 0, 0
+    tries = 0
     state = solver.state()
     try:
         k = k0
@@ -287,7 +286,7 @@ def run_mpm(
                 resume, continued = _resumed(solver, start, volume, scene)
                 solver.close()
                 solver = make_solver(resume, [material], wider, continued, solver_cfg, device)
-                state, tries, retried, moves = start, tries + 1, retried + 1, moves + 1
+                state, tries, moves = start, tries + 1, moves + 1
                 continue
             tries = 0
             xs[k], Fs[k] = state.x, state.F
@@ -339,4 +338,4 @@ def run_mpm(
         faces += solver.face_contacts
     finally:
         solver.close()
-    return MPMRun(xs, Fs, substeps, rest_frame, k0, coasted, faces, coast_px, moves, retried)
+    return MPMRun(xs, Fs, substeps, rest_frame, k0, coasted, faces, coast_px, moves)

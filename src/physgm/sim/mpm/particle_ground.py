@@ -146,7 +146,7 @@ def fold_ground_force(
             pending[row, a] = wp.float64(0.0)
 
 
-def contact_modulus(ground: GroundPlane, material: MaterialParams, raised: float = 0.0) -> float:
+def contact_modulus(ground: GroundPlane, material: MaterialParams, raised: float) -> float:
     """X of the contact spring, Pa: kappa x the material's shear modulus (a fluid, which has none:
     its bulk modulus), raised to ``raised`` (Pa, ``raised_modulus``) and at most its P-wave
     modulus M (module docstring)."""
@@ -185,13 +185,12 @@ def raised_modulus(
 def ground_stiffness(
     ground: GroundPlane | None,
     materials: Sequence[MaterialParams],
-    raised: Sequence[float] | None = None,  # [M] Pa, ``raised_modulus``; None: none
+    raised: Sequence[float],  # [M] Pa, ``raised_modulus``
 ) -> np.ndarray:
     """[M, 2] per material (X, Pa; sqrt(X / rho) / 2, m/s) of the contact spring (module
     docstring); zeros unless the ground acts on the particles."""
     if ground is None or not ground.on_particles:
         return np.zeros((len(materials), 2), dtype=np.float32)
-    raised = np.zeros(len(materials)) if raised is None else raised
     rows = []
     for m, w in zip(materials, raised, strict=True):
         x = contact_modulus(ground, m, float(w))
@@ -244,7 +243,7 @@ def contact_wave_speed(
     volume: np.ndarray,  # [P] rest volumes, m^3
     material: np.ndarray,  # [P] int
     dx: float,
-    gravity: Sequence[float] = (0.0, 0.0, 0.0),  # m/s^2, the scene's
+    gravity: Sequence[float],  # m/s^2, the scene's
 ) -> float:
     """Speed c the contact springs need in dt = cfl dx / c (module docstring), m/s; 0 without them."""
     if ground is None or not ground.on_particles:
