@@ -62,7 +62,8 @@ cohesion=0, viscosity=0)``                          (``physgm.sim.constitutive``
     steps in Python), cfl_check_every, graphs (replay runs of sub-steps from captured launch graphs,
     one per thread), sort_every, max_substeps;
     integrator "explicit" | "pressure" | "implicit"; pressure_tolerance, pressure_max_iterations
-    (the pressure split's solve); implicit_dt 0.01 s, implicit_theta 1.0 (the implicit step's
+    (the pressure split's solve), pressure_theta 0.6 (where in the sub-step it takes the volume
+    term: 0.5 its middle to 1 its end); implicit_dt 0.01 s, implicit_theta 1.0 (the implicit step's
     settings, below).
     ``SolverConfig.load("default")`` reads the YAML.
 

@@ -16,13 +16,14 @@ stiffness V0 J^2 phi''(J) to the 8 cells whose centres surround it, with triline
 giving each cell the sums s_c and K_c. After the grid update has given the node velocities v*
 (shear stress, gravity, ground contact), the velocities of the step are the minimiser of
 
-    sum_n m_n |v_n - v*_n|^2 / 2 + h sum_c (s_c (D v)_c + h K_c (D v)_c^2 / 2),
+    sum_n m_n |v_n - v*_n|^2 / 2 + h sum_c (s_c (D v)_c + theta h K_c (D v)_c^2 / 2),
 
-the volume energy linearised about the sub-step's start, each particle's J growing by h times
-the w-weighted Q1 divergence D v of its cells (``pressure_kernels``; the weights are lumped into
-the cells' K, which only stiffens it). That is the linear system
+the volume energy linearised about the sub-step's start and taken at theta of the way through
+it, each particle's J growing by h times the w-weighted Q1 divergence D v of its cells
+(``pressure_kernels``; the weights are lumped into the cells' K, which only stiffens it). That is
+the linear system
 
-    (M + h^2 D^T K D) v = M v* - h D^T s,
+    (M + theta h^2 D^T K D) v = M v* - h D^T s,
 
 symmetric positive definite, solved for the correction v - v* by Jacobi-preconditioned
 conjugate gradients over the nodes of the box of cells the particles reach (every product is a
@@ -30,12 +31,20 @@ pass over cells and nodes, not particles), started from the last two sub-steps' 
 extrapolated linearly, and stopped at an rms velocity residual of
 ``SolverConfig.pressure_tolerance``. Particles then move and deform with v in g2p, which adds
 their new J's terms to the cells as it goes: the next sub-step's s and K (a pass of its own,
-``gather_cells``, does it only after a fresh scatter). Backward Euler on the pressure alone, which
-damps the volume waves the step does not resolve and leaves the shear's explicit step as it was.
-The energy a landing puts into those waves is lost, where explicit gives it back to the rebound:
-the bench's 15 cm rubber cube (E = 5e6 Pa, nu = 0.48) dropped 0.5 m follows explicit within 0.34 px
-through its first contact, then rises 0.115 m instead of 0.161 (restitution ~0.48 against ~0.57;
-docs/measurements_sim.md section 31).
+``gather_cells``, does it only after a fresh scatter).
+
+``SolverConfig.pressure_theta`` places the volume term. A volume wave of frequency omega keeps
+a share 1 / (1 + theta (omega h)^2) of its energy a sub-step (the determinant of the step's map
+for one wave): theta = 1 is backward Euler, theta = 0.5 takes the volume term at the step's
+middle and damps half as fast, and every theta from 0.5 up is stable at any step (below 0.5 the
+waves the step does not resolve grow once (1 - 2 theta) (omega h)^2 passes 4). The volume waves
+are what a landing excites and explicit MPM, which damps none, gives back to the rebound. The
+default, 0.6, damps them at about 0.6 times backward Euler's rate: 0.5 left a particle or two crushed
+(det F < 0.1) in the stability matrix's impacts at twice the P-wave speed (fixed-corotated,
+nu = 0.49), where 0.6 and 1 leave none. Dropped 0.5 m, the bench's 15 cm rubber cube (E = 5e6 Pa,
+nu = 0.48) follows explicit within 0.25 px through its first contact and rebound under any theta;
+its second bounce rises to 0.275 m under explicit (0.262 at half its step), 0.237 m at theta =
+0.6 and 0.220 m at theta = 1 (docs/measurements_sim.md section 42).
 Both stages are recorded launches inside the sub-step, so the sub-steps still replay from graphs;
 the solve is one serial launch (the CPU's way of running any launch; on a GPU it is correct but
 does not use the device's threads).
@@ -156,7 +165,7 @@ class PressureStep:
                 1,
                 [slot, threads, meeting, wp.vec2l(LIMIT_CYCLES, YIELD_AFTER_CYCLES), solver.grid_v]
                 + [self.cell_s[0], self.cell_k[0], s1, k1, self.box, solver.launches.params]
-                + [cfg.pressure_tolerance, cfg.pressure_max_iterations, self.partial]
+                + [cfg.pressure_tolerance, cfg.pressure_max_iterations, cfg.pressure_theta, self.partial]
                 + [self.t, self.mass, self.diag, self.d, self.r, self.z, self.p, self.q, self.w]
                 + [self.d_stamp, self.d_old, self.old_stamp, self.stats, g.dx],
                 device=dev,

@@ -204,10 +204,11 @@ def solve(
     params: wp.array(dtype=SubstepParams),  # [threads] row 0: this sub-step's dt
     tolerance: float,  # m/s, rms velocity residual at which the solve stops
     max_iterations: int,
+    theta: float,  # in [0.5, 1]: the volume term at J + theta h D v (``pressure.py``)
     partial: wp.array2d(dtype=wp.float64),  # [2, 4] scratch: each thread's partial sums
     t: wp.array3d(dtype=float),  # scratch, cell scalars
     mass: wp.array3d(dtype=float),  # scratch, node masses (0: not in the solve)
-    diag: wp.array3d(dtype=float),  # scratch, h^2 (D^T K D)_nn
+    diag: wp.array3d(dtype=float),  # scratch, theta h^2 (D^T K D)_nn
     d: wp.array3d(dtype=wp.vec3),  # in/out: the velocity correction, kept for the next warm start
     r: wp.array3d(dtype=wp.vec3),  # scratch, residual
     z: wp.array3d(dtype=wp.vec3),  # scratch, preconditioned residual
@@ -227,7 +228,7 @@ def solve(
     is recorded, so the sub-step's graphs replay it. (On a GPU it is correct but serial.)"""
     h = float(params[0].dt)
     inv4dx = 0.25 / dx
-    h2 = h * h
+    h2 = theta * h * h  # the operator is M + theta h^2 D^T K D
     scale = h2 * inv4dx * inv4dx
     last = box.shape[0] - 1
     ci0 = wp.min(box[0, 0], box[last, 0])
@@ -260,7 +261,7 @@ def solve(
                         cell_s1[i, j, k] = 0.0
                         cell_k1[i, j, k] = 0.0
             meet(counter, slot, threads, limits)
-        # Nodes: mass, Jacobi diagonal, warm start, and v = v* + d0 in p for the start's divergence.
+        # Nodes: mass, Jacobi diagonal, warm start, and theta (v* + d0) in p for the start's divergence.
         # The warm start extrapolates the last two solves' corrections linearly where a node had
         # both (the last one alone where it had one): on the 50-frame rubber drop's first 21 frames
         # that took 5.1 iterations a solve instead of 8.1 (docs/measurements_sim.md section 30).
@@ -283,7 +284,7 @@ def solve(
                             d_old[i, j, k] = prev_d
                             old_stamp[i, j, k] = solves - 1
                         d[i, j, k] = d0
-                        p[i, j, k] = wp.vec3(g[0], g[1], g[2]) + d0
+                        p[i, j, k] = theta * (wp.vec3(g[0], g[1], g[2]) + d0)
                     else:
                         p[i, j, k] = wp.vec3(0.0)
         partial[slot, 0] = mass_sum

@@ -60,6 +60,10 @@ class SolverConfig:
     # pressure_max_iterations conjugate-gradient iterations (physgm.sim.mpm.pressure).
     pressure_tolerance: float = 2.0e-4
     pressure_max_iterations: int = 100
+    # Where in the sub-step the pressure integrator takes the volume term, from 0.5 (its middle) to 1
+    # (its end: backward Euler); the volume waves are damped in proportion, and every value is
+    # stable at any step (physgm.sim.mpm.pressure).
+    pressure_theta: float = 0.6
 
     def __post_init__(self) -> None:
         checks = {
@@ -79,6 +83,7 @@ class SolverConfig:
             "implicit_theta": 0.5 <= self.implicit_theta <= 1,
             "pressure_tolerance": self.pressure_tolerance > 0,
             "pressure_max_iterations": self.pressure_max_iterations >= 1,
+            "pressure_theta": 0.5 <= self.pressure_theta <= 1,
         }
         for name, ok in checks.items():
             if not ok:

@@ -283,10 +283,10 @@ def plan_simulation(
         choice = with_bulk_cap(cfg.bound_px)
     if pressure:
         choice.notes.append("the pressure integrator: the volume term implicit on the grid, no bulk cap")
-        if elastic_impact:  # measured: the bench's rubber cube, restitution ~0.48 against ~0.57
+        if elastic_impact:  # measured: the bench's rubber cube bounces a second time to 0.237 m against 0.275
             choice.notes.append(
                 "it damps the volume vibration the impact excites, so the body rebounds lower than "
-                "explicit's (docs/measurements_sim.md section 31)"
+                "explicit's (docs/measurements_sim.md sections 31 and 42)"
             )
     if implicit:
         choice.notes.append(f"the implicit integrator: steps of up to {implicit_dt:.3g} s, no caps")
