@@ -43,8 +43,8 @@ default, 0.6, damps them at about 0.6 times backward Euler's rate: 0.5 left a pa
 (det F < 0.1) in the stability matrix's impacts at twice the P-wave speed (fixed-corotated,
 nu = 0.49), where 0.6 and 1 leave none. Dropped 0.5 m, the bench's 15 cm rubber cube (E = 5e6 Pa,
 nu = 0.48) follows explicit within 0.25 px through its first contact and rebound under any theta;
-its second bounce rises to 0.275 m under explicit (0.262 at half its step), 0.237 m at theta =
-0.6 and 0.220 m at theta = 1 (docs/measurements_sim.md section 42).
+its second bounce rises to 0.275 m under explicit (0.256 m at a quarter of explicit's step),
+0.237 m at theta = 0.6 and 0.220 m at theta = 1 (docs/measurements_sim.md section 42).
 Both stages are recorded launches inside the sub-step, so the sub-steps still replay from graphs;
 the solve is one serial launch (the CPU's way of running any launch; on a GPU it is correct but
 does not use the device's threads).
