@@ -22,7 +22,10 @@ in the bench camera (256 px):
                    backward Euler, 0.5 midpoint. Elastic models only; others are listed as skipped.
     cfl_<c>        the explicit run's plan at another CFL number c (the default is 0.4): a smaller c
                    measures the reference's own time-step error, a larger one what fewer sub-steps
-                   would cost (docs/measurements_sim.md section 13).
+                   would cost (docs/measurements_sim.md section 13). c also sets the particle
+                   friction's cap, m |v_t| / (c tau) (sim/mpm/particle_ground.py), so a row measures
+                   the step and that cap together: on the rubber drop cfl 0.2 moves the first
+                   contact 3.4 px, a half step with the cap kept 0.09 px (section 42).
 
 A row gives seconds, sub-steps, the planner's predicted error and the measured error: mean over
 frames and Gaussians, the worst frame's mean, and the largest single Gaussian's distance.

@@ -264,7 +264,8 @@ def main(argv: list[str] | None = None) -> dict:
         nargs="*",
         default=[],
         help="options: explicit rows at these CFL numbers (the solver's is 0.4); 0.2 gives the reference's "
-        "own time-step error, at twice the reference's cost",
+        "own time-step error with its friction cap's (docs/measurements_sim.md section 42), at twice the "
+        "reference's cost",
     )
     parser.add_argument(
         "--no-pressure", action="store_true", help="options: leave out the pressure integrator's rows"

@@ -33,18 +33,18 @@ extrapolated linearly, and stopped at an rms velocity residual of
 their new J's terms to the cells as it goes: the next sub-step's s and K (a pass of its own,
 ``gather_cells``, does it only after a fresh scatter).
 
-``SolverConfig.pressure_theta`` places the volume term. A volume wave of frequency omega keeps
-a share 1 / (1 + theta (omega h)^2) of its energy a sub-step (the determinant of the step's map
-for one wave): theta = 1 is backward Euler, theta = 0.5 takes the volume term at the step's
-middle and damps half as fast, and every theta from 0.5 up is stable at any step (below 0.5 the
-waves the step does not resolve grow once (1 - 2 theta) (omega h)^2 passes 4). The volume waves
-are what a landing excites and explicit MPM, which damps none, gives back to the rebound. The
-default, 0.6, damps them at about 0.6 times backward Euler's rate: 0.5 left a particle or two crushed
-(det F < 0.1) in the stability matrix's impacts at twice the P-wave speed (fixed-corotated,
-nu = 0.49), where 0.6 and 1 leave none. Dropped 0.5 m, the bench's 15 cm rubber cube (E = 5e6 Pa,
-nu = 0.48) follows explicit within 0.25 px through its first contact and rebound under any theta;
-its second bounce rises to 0.275 m under explicit (0.256 m at a quarter of explicit's step),
-0.237 m at theta = 0.6 and 0.220 m at theta = 1 (docs/measurements_sim.md section 42).
+``SolverConfig.pressure_theta`` places the volume term. A volume wave of frequency omega keeps a
+share 1 / (1 + theta (omega h)^2) of its energy a sub-step (the determinant of the step's map for
+one wave): theta = 1 is backward Euler, theta = 0.5 takes the volume term at the step's middle and
+damps half as fast, and every theta from 0.5 up is stable at any step (below 0.5 the waves the step
+does not resolve grow once (1 - 2 theta) (omega h)^2 passes 4). The volume waves are what a landing
+excites and explicit MPM, which damps none, gives back to the rebound. The default, 0.6, damps them
+at about 0.6 times backward Euler's rate: 0.5 left a particle or two crushed (det F < 0.1) in the
+stability matrix's impacts at twice the P-wave speed (fixed-corotated, nu = 0.49), where 0.6 and 1
+leave none. Dropped 0.5 m, the bench's 15 cm rubber cube (E = 5e6 Pa, nu = 0.48) follows explicit
+within 0.25 px through its first contact and rebound under any theta; its second bounce rises to
+0.275 m under explicit (0.256 m at a quarter of explicit's step), 0.237 m at theta = 0.6 and
+0.220 m at theta = 1 (docs/measurements_sim.md section 42).
 Both stages are recorded launches inside the sub-step, so the sub-steps still replay from graphs;
 the solve is one serial launch (the CPU's way of running any launch; on a GPU it is correct but
 does not use the device's threads).
