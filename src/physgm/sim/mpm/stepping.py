@@ -66,28 +66,31 @@ class SolverConfig:
     pressure_theta: float = 0.6
 
     def __post_init__(self) -> None:
-        checks = {
-            "frame_dt": self.frame_dt > 0,
-            "cfl": 0 < self.cfl <= 1,
-            "flip": 0 <= self.flip <= 1,
-            "max_retries": self.max_retries >= 0,
-            "j_min": 0 <= self.j_min < 1,
-            "j_max": self.j_max > 1,
-            "boundary_cells": self.boundary_cells >= 2,
-            "threads": self.threads >= 0,
-            "cfl_check_every": self.cfl_check_every >= 1,
-            "sort_every": self.sort_every >= 0,
-            "max_substeps": self.max_substeps >= 1,
-            "max_grid_nodes": self.max_grid_nodes >= 512,
-            "implicit_dt": self.implicit_dt > 0,
-            "implicit_theta": 0.5 <= self.implicit_theta <= 1,
-            "pressure_tolerance": self.pressure_tolerance > 0,
-            "pressure_max_iterations": self.pressure_max_iterations >= 1,
-            "pressure_theta": 0.5 <= self.pressure_theta <= 1,
+        rules = {  # setting -> (holds, the rule in words)
+            "frame_dt": (self.frame_dt > 0, "> 0 s"),
+            "cfl": (0 < self.cfl <= 1, "in (0, 1]"),
+            "flip": (0 <= self.flip <= 1, "in [0, 1]"),
+            "max_retries": (self.max_retries >= 0, ">= 0"),
+            "j_min": (0 <= self.j_min < 1, "in [0, 1)"),
+            "j_max": (self.j_max > 1, "> 1"),
+            "boundary_cells": (self.boundary_cells >= 2, ">= 2"),
+            "threads": (self.threads >= 0, ">= 0 (0: automatic)"),
+            "cfl_check_every": (self.cfl_check_every >= 1, ">= 1"),
+            "sort_every": (self.sort_every >= 0, ">= 0"),
+            "max_substeps": (self.max_substeps >= 1, ">= 1"),
+            "max_grid_nodes": (self.max_grid_nodes >= 512, ">= 512"),
+            "implicit_dt": (self.implicit_dt > 0, "> 0 s"),
+            "implicit_theta": (0.5 <= self.implicit_theta <= 1, "in [0.5, 1]"),
+            "pressure_tolerance": (self.pressure_tolerance > 0, "> 0 m/s"),
+            "pressure_max_iterations": (self.pressure_max_iterations >= 1, ">= 1"),
+            "pressure_theta": (0.5 <= self.pressure_theta <= 1, "in [0.5, 1]"),
         }
-        for name, ok in checks.items():
-            if not ok:
-                raise ValueError(f"solver setting {name}={getattr(self, name)!r} is out of range")
+        for name, (holds, rule) in rules.items():
+            if not holds:
+                raise ValueError(
+                    f"solver setting {name}={getattr(self, name)!r} is out of range: it must be {rule} "
+                    "(conf/sim/solver/default.yaml says what each setting does)"
+                )
 
     @classmethod
     def from_dict(cls, values: dict) -> SolverConfig:
