@@ -263,8 +263,8 @@ def main(argv: list[str] | None = None) -> dict:
         type=float,
         nargs="*",
         default=[],
-        help="options: explicit rows at these CFL numbers (the solver's is 0.4); 0.2 gives the reference's "
-        "own time-step error with its friction cap's (docs/measurements_sim.md section 42), at twice the "
+        help="options: explicit rows at these CFL numbers (the solver's is 0.4); 0.2 halves the reference's "
+        "step and doubles its particle friction's cap (docs/measurements_sim.md section 42), at twice the "
         "reference's cost",
     )
     parser.add_argument(
