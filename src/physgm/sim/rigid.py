@@ -3,9 +3,11 @@
 The body is the particle set (mass and inertia tensor from the particles); its contact points are
 the vertices of their convex hull. Obstacles are planes: the ground and the static walls of a
 scene. Each step: gravity, contact impulses on the touching points (projected Gauss-Seidel on the
-normal impulse with restitution and on a Coulomb-clamped friction impulse), then free motion. A
-step that would carry the body through a plane is cut at the time of impact, so the bounce
-happens at the right place and speed whatever the step size. Angular
+normal impulse and on a Coulomb-clamped friction impulse; a bounce is Poisson's: the impulse that
+stops the approach, then restitution times it), then free motion. Points that reach a plane within
+a millisecond of the first share its impact. A step that would carry the body through a plane is
+cut at the time of impact, so the bounce happens at the right place and speed whatever the step
+size. Angular
 momentum (world frame) is the rotational state, which keeps it exactly constant in free flight
 and gets the torque-free tumbling of an asymmetric body right.
 
@@ -95,6 +97,10 @@ class ContactParams:
         gravity: [3] m/s^2.
         min_bounce_speed: impacts slower than this (m/s) do not bounce, so a body comes to rest
             instead of chattering in ever smaller bounces.
+        impact_time: s; hull points that reach a plane within this time of the first one share
+            its impact. A real impact lasts about a millisecond, so a flat base that lands a hair
+            off level lands on the whole base at once, rather than on one edge first, which
+            would spin the body and tip it over.
         iterations: projected Gauss-Seidel sweeps per contact solve.
         max_contacts: touching points kept per step (extreme points of the contact patch).
     """
@@ -105,6 +111,7 @@ class ContactParams:
     walls: tuple[tuple[tuple[float, float, float], float], ...] = ()
     gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
     min_bounce_speed: float = 0.05
+    impact_time: float = 1e-3
     iterations: int = 30
     max_contacts: int = 8
 
@@ -305,12 +312,20 @@ class RigidSimulator:
         self.steps += 1
 
     def _contact_set(self) -> tuple[list[tuple[int, int]], np.ndarray, np.ndarray]:
-        """Touching (plane, hull point) pairs, their arms [C, 3] and contact frames [C, 3, 3]."""
+        """(plane, hull point) pairs in contact, their arms [C, 3] and contact frames [C, 3, 3].
+
+        On a plane some point touches, the set also holds the points that will reach it within
+        ``impact_time`` at their present speed (see ``ContactParams``).
+        """
         s = self.state
         dist, arms = self._distances(s.x, s.q)
+        approach = -(s.v + np.cross(self.omega(), arms)) @ self.normals.T  # [H, K] speeds towards
         keys, frames = [], []
         for k, frame in enumerate(self.frames):
-            idx = np.flatnonzero(dist[k] <= self.slop)
+            if not (dist[k] <= self.slop).any():
+                continue
+            reach = self.slop + np.maximum(approach[:, k], 0.0) * self.contact.impact_time
+            idx = np.flatnonzero(dist[k] <= reach)
             if len(idx) > self.contact.max_contacts:
                 # Keep the extreme points of the patch (they carry the torque) plus the deepest.
                 angles = np.linspace(0, 2 * np.pi, self.contact.max_contacts - 1, endpoint=False)
@@ -324,6 +339,16 @@ class RigidSimulator:
         return keys, arms[hull], np.array(frames).reshape(-1, 3, 3)
 
     def _solve_contacts(self) -> None:
+        """Contact impulses in two phases (Poisson's impact law).
+
+        Compression: normal impulses that stop every contact point's approach, with Coulomb
+        friction. Restitution: each bouncing point then gets ``restitution`` times its compression
+        impulse, and friction is solved again under the larger normal impulse. On a single point
+        this is the usual rebound at ``restitution`` times the impact speed. On a face it keeps
+        the impulses in the proportion that stopped the face, so a face that lands flat rebounds
+        flat: a solve that asked each point for its own rebound speed would share the impulse
+        among a face's points in the sweep's order and spin the body.
+        """
         keys, arms, axes = self._contact_set()
         if not keys:
             self._warm = {}
@@ -341,28 +366,51 @@ class RigidSimulator:
         omega = i_inv @ s.L
         vel = jac_lin @ s.v + jac_ang @ omega  # [3C]
         vn_in = vel[0::3].copy()
-        target = np.where(vn_in < -c.min_bounce_speed, -c.restitution * vn_in, 0.0)
+        bouncing = vn_in < -c.min_bounce_speed
         lam = np.zeros(3 * n_c)
         for j, key in enumerate(keys):  # warm start from the last step's impulses on the same points
-            if key in self._warm and target[j] == 0.0:
+            if key in self._warm and not bouncing[j]:
                 lam[3 * j : 3 * j + 3] = self._warm[key]
         vel = vel + delassus @ lam
         diag = np.diag(delassus).copy()
-        for _ in range(c.iterations):
+        self._sweeps(lam, vel, delassus, diag, normals=True)
+        if bouncing.any() and c.restitution > 0.0:
+            kick = np.zeros(3 * n_c)
+            kick[0::3] = np.where(bouncing, c.restitution * lam[0::3], 0.0)
+            vel += delassus @ kick
+            lam += kick
+            self._sweeps(lam, vel, delassus, diag, normals=False)
+        impulses = np.einsum("cj,cjk->ck", lam.reshape(n_c, 3), axes)  # [C, 3] world
+        s.v = s.v + m_inv * impulses.sum(0)
+        s.L = s.L + np.cross(arms, impulses).sum(0)
+        self._warm = {key: lam[3 * j : 3 * j + 3].copy() for j, key in enumerate(keys)}
+        if bouncing.any():
+            j = int(np.argmin(vn_in))
+            self.events.append((self.time, float(vn_in[j]), float(vel[3 * j])))
+
+    def _sweeps(
+        self, lam: np.ndarray, vel: np.ndarray, delassus: np.ndarray, diag: np.ndarray, normals: bool
+    ) -> None:
+        """Projected Gauss-Seidel on the impulses lam [3C] in place, vel [3C] kept equal to the
+        contact velocities they give: normal impulses >= 0 that stop the approach (when
+        ``normals``; otherwise they stay as they are) and friction inside mu times each normal."""
+        n_c = len(lam) // 3
+        for _ in range(self.contact.iterations):
             change = 0.0
             for j in range(n_c):
                 i = 3 * j
-                new_n = max(0.0, lam[i] + (target[j] - vel[i]) / diag[i])
-                d = new_n - lam[i]
-                if d != 0.0:
-                    vel += delassus[:, i] * d
-                    lam[i] = new_n
-                    change = max(change, abs(d))
+                if normals:
+                    new_n = max(0.0, lam[i] - vel[i] / diag[i])
+                    d = new_n - lam[i]
+                    if d != 0.0:
+                        vel += delassus[:, i] * d
+                        lam[i] = new_n
+                        change = max(change, abs(d))
                 # Friction: drive the tangential velocity to zero inside the Coulomb disc mu * jn.
                 t_old = lam[i + 1 : i + 3].copy()
                 t_new = t_old - vel[i + 1 : i + 3] / diag[i + 1 : i + 3]
                 norm = math.hypot(t_new[0], t_new[1])
-                limit = c.friction * lam[i]
+                limit = self.contact.friction * lam[i]
                 if norm > limit:
                     t_new *= limit / norm
                 d_t = t_new - t_old
@@ -372,12 +420,6 @@ class RigidSimulator:
                     change = max(change, abs(d_t[0]), abs(d_t[1]))
             if change < 1e-12 * (1.0 + np.abs(lam).max()):
                 break
-        impulses = np.einsum("cj,cjk->ck", lam.reshape(n_c, 3), axes)  # [C, 3] world
-        s.v = s.v + m_inv * impulses.sum(0)
-        s.L = s.L + np.cross(arms, impulses).sum(0)
-        self._warm = {key: lam[3 * j : 3 * j + 3].copy() for j, key in enumerate(keys)}
-        if (target > 0).any():
-            self.events.append((self.time, float(vn_in.min()), float(vel[0::3][np.argmin(vn_in)])))
 
     def kinetic_energy(self) -> float:
         s = self.state
