@@ -66,6 +66,12 @@ def check_run_folder(run, report, n_videos: int = 1) -> None:
     lo, hi = (opaque.double().quantile(q, dim=0) for q in (OUTLIER_QUANTILE, 1 - OUTLIER_QUANTILE))
     assert float((hi - lo).max()) == pytest.approx(report["object"]["size_m"], rel=0.15)
     assert float(opaque[:, 2].quantile(OUTLIER_QUANTILE)) >= -0.01 * report["object"]["size_m"]
+    base = report["object"]["base"]  # null for a .ply or a scene without a ground
+    if base is not None:
+        from physgm.pipeline.standing import MAX_CUT, TIP_DEG
+
+        assert 0.0 <= base["cut"] <= MAX_CUT and (base["cut"] > 0) == (base["moved"] > 0)
+        assert base["cut"] == 0.0 or (base["turn_deg"] > TIP_DEG >= base["turn_after_deg"])
     assert json.loads((run / "report.json").read_text()) == json.loads(json.dumps(report))
 
 

@@ -366,7 +366,7 @@ def test_a_run_whose_object_reached_the_region_edge_warns(monkeypatch, capsys, t
     assert sheet.index("    run as E=3e+07 nu=0.40") == sheet.index("  video: rubber E=3e+07 nu=0.45") + 1
     assert sheet.count("    held by the region's edge (see the warning)") == 1
     assert sheet.index("    held by the region's edge (see the warning)") == len(sheet) - 1  # under sample1
-    result = stages.RunResult({"seconds": {"total": 1.0}}, futures)
+    result = stages.RunResult({"seconds": {"total": 1.0}, "object": {"base": None}}, futures)
     monkeypatch.setattr(
         stages, "from_hydra", lambda cfg: type("C", (), {"output_dir": tmp_path, "planner": {}})()
     )

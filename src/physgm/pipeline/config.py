@@ -73,6 +73,7 @@ class RunConfig:
     physics: PhysicsOverrides = field(default_factory=PhysicsOverrides)
     size_m: float = 0.2  # object's largest extent
     drop_height_m: float | None = 0.1
+    stand: bool = True  # cut a photographed object's underside flat when it would not stand (standing.py)
     up: str = "z"
     camera: CameraSettings = field(default_factory=CameraSettings)
     output: OutputSettings = field(default_factory=OutputSettings)
@@ -298,6 +299,7 @@ def from_hydra(cfg: DictConfig) -> RunConfig:
         ),
         size_m=_number(obj.get("size", 0.2), "object.size"),
         drop_height_m=_number(obj.get("drop_height", 0.1), "object.drop_height"),
+        stand=bool(obj.get("stand", True)),
         up=str(obj.get("up", "z")),
         camera=CameraSettings(
             azimuth_deg=_number(cam.get("azimuth_deg"), "camera.azimuth_deg"),

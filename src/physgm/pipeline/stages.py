@@ -81,6 +81,10 @@ def run(cfg) -> dict:
         print(f"error: {err}", file=sys.stderr)
         raise SystemExit(2) from None
     asked = _planner(run_cfg).cells_across
+    from physgm.pipeline.standing import describe as describe_base  # torch is loaded by now
+
+    if (note := describe_base(result.report["object"]["base"])) is not None:
+        print(f"note: {note}")
     for r in result.futures:
         print(
             f"{run_cfg.output_dir / r.video}: {r.material} E={r.E:.3g} Pa nu={r.nu:.2f}, "
@@ -315,6 +319,7 @@ def _execute(cfg: RunConfig) -> RunResult:
         opaque_bounds,
         place_object,
     )
+    from physgm.pipeline.standing import stand_on_base
     from physgm.render.frames import Shot, render_trajectory
     from physgm.sim.sampling import mass_opacity
     from physgm.view.sequence import sequence_file, sequence_from_trajectory
@@ -339,6 +344,10 @@ def _execute(cfg: RunConfig) -> RunResult:
         min_opacity = mass_opacity(g.opacities, planner.min_opacity, planner.relative_opacity)
         ground = scene.ground_height
         placement = place_object(g, cfg.size_m, ground or 0.0, min_opacity)
+        base = None
+        if cfg.stand and kind != "ply" and ground is not None:
+            friction = float(scene.settings["ground"].get("friction", 0.0))
+            placement, base = stand_on_base(placement, min_opacity, ground, friction, planner)
         az = inp.azimuth_deg if cfg.camera.azimuth_deg is None else cfg.camera.azimuth_deg
         el = inp.elevation_deg if cfg.camera.elevation_deg is None else cfg.camera.elevation_deg
         rest_lo, rest_hi = opaque_bounds(placement.gaussians, min_opacity)
@@ -438,6 +447,7 @@ def _execute(cfg: RunConfig) -> RunResult:
                 results,
                 g,
                 min_opacity,
+                base,
             )
         )
         write_json(tmp / "report.json", report)
@@ -478,7 +488,7 @@ def _plain_config(cfg: RunConfig) -> dict:
 
 def _report(
     cfg, inp, ckpt_info, scene_cfg, placement, camera, planning_camera, reframed, az, el, sec, results, g,
-    min_opacity,
+    min_opacity, base,
 ) -> dict:  # fmt: skip
     from physgm.sim.planner.deformation import pixels_per_metre
 
@@ -506,6 +516,8 @@ def _report(
             "mass_opacity": min_opacity,
             "gaussians_with_mass": int((g.opacities >= min_opacity).sum()),
             "object_to_world": placement.object_to_world,
+            # the underside cut flat so the object stands (pipeline/standing.py; null: not tested)
+            "base": None if base is None else base.as_dict(),
         },
         "camera": {
             "azimuth_deg": az,
