@@ -7,9 +7,8 @@ normal impulse and on a Coulomb-clamped friction impulse; a bounce is Poisson's:
 stops the approach, then restitution times it), then free motion. Points that reach a plane within
 a millisecond of the first share its impact. A step that would carry the body through a plane is
 cut at the time of impact, so the bounce happens at the right place and speed whatever the step
-size. Angular
-momentum (world frame) is the rotational state, which keeps it exactly constant in free flight
-and gets the torque-free tumbling of an asymmetric body right.
+size. Angular momentum (world frame) is the rotational state, which keeps it exactly constant in
+free flight and gets the torque-free tumbling of an asymmetric body right.
 
 Numpy float64 on the CPU: a body is one 13-number state, far too small for a kernel launch.
 """
