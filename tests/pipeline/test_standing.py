@@ -69,6 +69,9 @@ def test_a_can_with_a_domed_underside_is_cut_flat_and_stands():
     assert placed.object_to_world[2, 3] == pytest.approx(
         _placed(_can(0.015)).object_to_world[2, 3] - base.cut_m
     )
+    # The user is told what was cut, and the setting that keeps the shape.
+    note = describe(base.as_dict())
+    assert "lowest 6.0 mm (3 % of its height) were cut flat" in note and "object.stand=false" in note
 
 
 def test_a_flat_bottomed_can_is_left_as_it_is():
