@@ -229,3 +229,25 @@ def test_a_rod_landing_on_one_end_rebounds_at_the_restitution_speed():
     arm = body.points[np.argmin(body.points[:, 2]), 0]
     impulse = 1.5 * body.mass * 0.5 / (1 + body.mass * arm**2 / body.inertia[1, 1])
     assert sim.state.v[2] == pytest.approx(-0.5 + impulse / body.mass, rel=1e-6)
+
+
+@pytest.mark.parametrize("speed", [10.0, 30.0])
+def test_a_fast_landing_on_a_corner_spins_as_on_that_corner(speed):
+    # A 10 cm cube tilted 10 and 5 degrees lands on one corner; its neighbours are 9 and 17 mm up.
+    # A millisecond at 10 or 30 m/s reaches 10 or 30 mm: with no limit (impact_reach = 1) it lands
+    # on an edge (89 rad/s against the corner's 24) or flat (2.2 against 71). A faster impact is
+    # shorter, and the window stops at 2 % of the body's size, so the spin is the single corner's
+    # (impact_time = 0).
+    from scipy.spatial.transform import Rotation
+
+    x, mass = _cube(center=(0.0, 0.0, 0.0))
+    x = x @ Rotation.from_euler("xyz", [10, 5, 0], degrees=True).as_matrix().T
+    x[:, 2] += 0.05 - x[:, 2].min()
+    v = np.tile([0.0, 0.0, -speed], (len(x), 1))
+    spins = []
+    for impact_time in (0.0, 1e-3):
+        sim = _sim(x, mass, v, restitution=0.6, friction=0.3, gravity=(0, 0, 0), impact_time=impact_time)
+        sim.run(n_frames=3, frame_dt=0.005, dt=1e-4)
+        spins.append(sim.omega())
+    assert np.linalg.norm(spins[0]) > 0.7 * speed  # the corner's impulse spins it hard
+    np.testing.assert_allclose(spins[1], spins[0], rtol=1e-6, atol=1e-9)

@@ -100,6 +100,9 @@ class ContactParams:
             its impact. A real impact lasts about a millisecond, so a flat base that lands a hair
             off level lands on the whole base at once, rather than on one edge first, which
             would spin the body and tip it over.
+        impact_reach: the farthest from the plane a point may be and share the impact, as a
+            share of the body's size. A faster impact is shorter, so at 30 m/s a cube that lands
+            on a corner lands on that corner, not on a face whose other corners are 9-17 mm up.
         iterations: projected Gauss-Seidel sweeps per contact solve.
         max_contacts: touching points kept per step (extreme points of the contact patch).
     """
@@ -111,6 +114,7 @@ class ContactParams:
     gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
     min_bounce_speed: float = 0.05
     impact_time: float = 1e-3
+    impact_reach: float = 0.02
     iterations: int = 30
     max_contacts: int = 8
 
@@ -247,6 +251,7 @@ class RigidSimulator:
         self._warm: dict[tuple[int, int], np.ndarray] = {}  # (plane, hull index) -> last impulses
         # Points closer to a plane than this count as touching (1e-4 of the body size: invisible).
         self.slop = 1e-4 * float(np.abs(body.points).max()) + 1e-9
+        self.reach = contact.impact_reach * 2.0 * float(np.abs(body.points).max())  # see ContactParams
 
     @staticmethod
     def initial_state(body: RigidBody, x: np.ndarray, mass: np.ndarray, v: np.ndarray) -> RigidState:
@@ -314,7 +319,7 @@ class RigidSimulator:
         """(plane, hull point) pairs in contact, their arms [C, 3] and contact frames [C, 3, 3].
 
         On a plane some point touches, the set also holds the points that will reach it within
-        ``impact_time`` at their present speed (see ``ContactParams``).
+        ``impact_time`` at their present speed, up to ``impact_reach`` away (``ContactParams``).
         """
         s = self.state
         dist, arms = self._distances(s.x, s.q)
@@ -323,7 +328,8 @@ class RigidSimulator:
         for k, frame in enumerate(self.frames):
             if not (dist[k] <= self.slop).any():
                 continue
-            reach = self.slop + np.maximum(approach[:, k], 0.0) * self.contact.impact_time
+            ahead = np.maximum(approach[:, k], 0.0) * self.contact.impact_time
+            reach = self.slop + np.minimum(ahead, self.reach)
             idx = np.flatnonzero(dist[k] <= reach)
             if len(idx) > self.contact.max_contacts:
                 # Keep the extreme points of the patch (they carry the torque) plus the deepest.
