@@ -345,6 +345,26 @@ def test_default_config():
     assert run.planner["bound_px"] > 0 and run.solver["cfl"] > 0
 
 
+@pytest.mark.parametrize(
+    "setting", ["output.gif", "output.frame_plys", "output.floor", "output.progress", "object.stand"]
+)
+def test_a_true_false_setting_given_anything_else_is_an_error(setting):
+    # Before, Python's truth took "maybe" (or "no") as true, and the run went on doing the opposite.
+    from hydra import compose, initialize_config_dir
+
+    from physgm.errors import UserError
+    from physgm.pipeline import from_hydra
+
+    overrides = ["input=x.png", "paths.output_dir=/tmp/x"]
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        ok = from_hydra(compose("simulate", overrides=[*overrides, f"{setting}=false"]))
+        bad = compose("simulate", overrides=[*overrides, f"{setting}=maybe"])
+    section, name = setting.split(".")
+    assert getattr(ok if section == "object" else ok.output, name) is False
+    with pytest.raises(UserError, match=rf"{setting}='maybe' must be true or false"):
+        from_hydra(bad)
+
+
 def test_a_run_whose_object_reached_the_region_edge_warns(monkeypatch, capsys, tmp_path):
     """The grid-face walls are a safety net: when they stopped the object, the user is told."""
     from physgm.pipeline import stages

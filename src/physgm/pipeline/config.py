@@ -166,6 +166,13 @@ def _number(value: Any, key: str, kind=float) -> Any:
     return out
 
 
+def _flag(value: Any, key: str) -> bool:
+    """A true/false setting; anything else (``output.gif=maybe``, ``object.stand=1``) is an error."""
+    if not isinstance(value, bool):
+        raise UserError(f"{key}={value!r} must be true or false")
+    return value
+
+
 def _with_physgaussian(raw: dict) -> dict:
     """``raw`` with a PhysGaussian simulation config's settings in place (docs/interop.md).
 
@@ -299,7 +306,7 @@ def from_hydra(cfg: DictConfig) -> RunConfig:
         ),
         size_m=_number(obj.get("size", 0.2), "object.size"),
         drop_height_m=_number(obj.get("drop_height", 0.1), "object.drop_height"),
-        stand=bool(obj.get("stand", True)),
+        stand=_flag(obj.get("stand", True), "object.stand"),
         up=str(obj.get("up", "z")),
         camera=CameraSettings(
             azimuth_deg=_number(cam.get("azimuth_deg"), "camera.azimuth_deg"),
@@ -311,12 +318,12 @@ def from_hydra(cfg: DictConfig) -> RunConfig:
             resolution=_number(out.get("resolution", 256), "output.resolution", int),
             frames=_number(out.get("frames", 50), "output.frames", int),
             fps=_number(out.get("fps", 25), "output.fps"),
-            gif=bool(out.get("gif", False)),
-            frame_plys=bool(out.get("frame_plys", False)),
+            gif=_flag(out.get("gif", False), "output.gif"),
+            frame_plys=_flag(out.get("frame_plys", False), "output.frame_plys"),
             keyframes=_number(out.get("keyframes", 5), "output.keyframes", int),
-            floor=bool(out.get("floor", True)),
+            floor=_flag(out.get("floor", True), "output.floor"),
             background=tuple(_number(v, "output.background") for v in out.get("background", (1.0, 1.0, 1.0))),
-            progress=bool(out.get("progress", True)),
+            progress=_flag(out.get("progress", True), "output.progress"),
         ),
         renderer=renderer or {"backend": "warp"},
         planner=dict(raw.get("planner") or {}),
