@@ -7,6 +7,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, fields
 
 from physgm.resources import package_file
+from physgm.settings import check_types
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.mpm.particle_ground import contact_wave_speed
 
@@ -66,6 +67,7 @@ class SolverConfig:
     pressure_theta: float = 0.6
 
     def __post_init__(self) -> None:
+        check_types(self, "solver setting")
         rules = {  # setting -> (holds, the rule in words)
             "frame_dt": (self.frame_dt > 0, "> 0 s"),
             "cfl": (0 < self.cfl <= 1, "in (0, 1]"),

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from physgm.settings import check_types
+
 
 @dataclass
 class PlannerConfig:
@@ -62,6 +64,7 @@ class PlannerConfig:
     domain_size: float = 1.0  # m, only with fit_grid = False
 
     def __post_init__(self) -> None:
+        check_types(self, "planner setting")
         positive = (
             "bound_px",
             "cells_across",
