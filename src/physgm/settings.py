@@ -14,9 +14,12 @@ from numbers import Real
 def check_types(settings, label: str) -> None:
     """Raise ValueError naming ``label`` (e.g. "planner setting") and the field whose value is not
     of its declared type: bool fields want True or False, int fields an integer, float fields a
-    number (an int is a number; True and False are not). Other fields are not checked."""
+    number (an int is a number; True and False are not). None passes, since several settings take
+    null for "the default" without saying so in their type; other fields are not checked."""
     for f in fields(settings):
         value = getattr(settings, f.name)
+        if value is None:
+            continue
         kind = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", "")
         if kind == "bool" and not isinstance(value, bool):
             raise ValueError(f"{label} {f.name}={value!r} must be true or false")

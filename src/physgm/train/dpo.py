@@ -31,6 +31,7 @@ from physgm.model.checkpoint import load_model
 from physgm.model.config import PhysGMConfig
 from physgm.model.physgm import PhysGM
 from physgm.model.posterior import PhysicsPosterior
+from physgm.settings import check_types
 from physgm.train.optim import OptimConfig, build_optimizer
 from physgm.train.pairs import DPOBatch
 
@@ -49,6 +50,7 @@ class DPOLossConfig:
     label_smoothing: float = 0.0
 
     def __post_init__(self) -> None:
+        check_types(self, "loss setting")
         if not self.beta > 0 or self.sft_weight < 0 or self.kl_weight < 0:
             raise ValueError(
                 f"DPO needs beta > 0, sft_weight >= 0 and kl_weight >= 0, got {self.beta}, "

@@ -15,6 +15,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from physgm.model.posterior import PhysicsPosterior, PhysicsSample
+from physgm.settings import check_types
 
 
 @dataclass
@@ -37,6 +38,7 @@ class PretrainLossConfig:
     lpips_backbone_path: str | None = None  # local torchvision weights; default torchvision's cache
 
     def __post_init__(self) -> None:
+        check_types(self, "loss setting")
         if self.aniso < 0:
             raise ValueError(f"loss.aniso is a weight and must be >= 0, got {self.aniso}")
         if self.aniso_ratio < 1.0:

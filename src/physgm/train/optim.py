@@ -9,6 +9,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from physgm.settings import check_types
+
 
 @dataclass
 class OptimConfig:
@@ -22,6 +24,9 @@ class OptimConfig:
     # lr a step, so at 1e-4 a bias moves 0.1 in 1000 steps). Empty: one learning rate.
     scaled: tuple[str, ...] = ()
     lr_scale: float = 1.0
+
+    def __post_init__(self) -> None:
+        check_types(self, "optim setting")
 
 
 def param_groups(

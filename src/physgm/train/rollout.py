@@ -26,6 +26,7 @@ from torch.utils.data import DataLoader
 
 from physgm.gaussians import read_ply
 from physgm.physics.materials import MATERIAL_NAMES
+from physgm.settings import check_types
 from physgm.train.pairs import (
     PAIRINGS,
     Candidate,
@@ -92,6 +93,7 @@ class RolloutConfig:
     sim: SimSettings = field(default_factory=SimSettings)
 
     def __post_init__(self) -> None:
+        check_types(self, "rollout setting")
         if isinstance(self.sim, dict):
             self.sim = SimSettings(**self.sim)
         if self.material not in ("sample", "mode"):

@@ -19,6 +19,7 @@ import time
 from dataclasses import dataclass, field
 
 from physgm.physics.materials import PhysicsSpec
+from physgm.settings import check_types
 
 log = logging.getLogger("physgm.train.rollout")
 
@@ -47,6 +48,7 @@ class BudgetConfig:
     reserve_seconds: float = 2.0  # kept for rendering and scoring after the simulation
 
     def __post_init__(self) -> None:
+        check_types(self, "rollout budget setting")
         if self.max_seconds is not None and not self.max_seconds > self.reserve_seconds >= 0:
             raise ValueError(
                 f"budget.max_seconds={self.max_seconds} must exceed budget.reserve_seconds="
