@@ -209,6 +209,9 @@ def test_train_py_shows_a_settings_mistake_as_one_error_line(tiny_dataset, tmp_p
         ("stage.trainable=backbone", "error: stage.trainable must be one of"),
         ("stage.name=finetune", "error: unknown stage 'finetune'"),
         ("torch_threads=-1", "error: torch_threads must be >= 0"),
+        # checked before the data set, which a run without one spends minutes generating
+        ("stage.optim.lr=fast", "error: bad stage settings: optim setting lr='fast' must be a number"),
+        ("stage.loss.ce=yes", "error: bad stage settings: loss setting ce='yes' must be a number"),
     ]:
         with pytest.raises(SystemExit) as stop:
             main(compose_train([*tiny_overrides(tiny_dataset, tmp_path / "bad"), override]))

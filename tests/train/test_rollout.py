@@ -462,6 +462,29 @@ def test_fit_stops_on_a_part_outside_the_physics_head_before_any_rollout(
     assert not stand_in.calls
 
 
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("stage.rollout.workers=two", "rollout setting workers='two' must be a number"),
+        ("stage.loss.factorised=yes", "loss setting factorised='yes' must be true or false"),
+        ("stage.optim.warmup_steps=2.5", "optim setting warmup_steps=2.5 must be an integer"),
+    ],
+)
+def test_fit_stops_on_a_setting_of_the_wrong_type_before_the_data(
+    override, message, dpo_root, stage1_ckpt, tmp_path, monkeypatch
+):
+    # Checked before ensure_data, which a run without a data set spends minutes generating.
+    from physgm.errors import UserError
+    from physgm.train import run as run_module
+
+    def no_data(*args, **kwargs):
+        raise AssertionError("the data set was looked for before the settings were checked")
+
+    monkeypatch.setattr(run_module, "ensure_data", no_data)
+    with pytest.raises(UserError, match=f"bad stage settings: {message}"):
+        run_module.run(compose_dpo(dpo_root, stage1_ckpt, tmp_path, override))
+
+
 @pytest.mark.parametrize("experiment", [None, "tiny_cpu_dpo"])
 def test_fast_dev_run_trains_one_batch_and_rolls_out_only_its_scenes(
     experiment, dpo_root, stage1_ckpt, tmp_path, monkeypatch

@@ -395,7 +395,7 @@ def _merge_overrides(cfg, key: str, overrides) -> None:
 def fit(cfg) -> dict[str, float]:
     """Train stage 2 from a Hydra config and return the last logged metrics."""
     from physgm.data.format import read_split
-    from physgm.train.rollout import RolloutCallback
+    from physgm.train.rollout import RolloutCallback, RolloutConfig
     from physgm.train.run import build_trainer, ensure_data, plain
 
     L.seed_everything(cfg.seed, workers=True)
@@ -410,6 +410,12 @@ def fit(cfg) -> dict[str, float]:
     rollout = plain(stage.rollout)
     data = plain(cfg.get("data")) or {}
     rollout["data_root"] = rollout.get("data_root") or data.get("root")
+    try:  # before ensure_data, which may spend minutes generating a data set
+        DPOLossConfig(**plain(stage.loss))
+        OptimConfig(**plain(stage.optim))
+        RolloutConfig(**rollout)
+    except (TypeError, ValueError) as err:
+        raise UserError(f"bad stage settings: {err}") from None
     ensure_data(cfg, rollout["data_root"], rollout["split"])
     rollout["input_resolution"] = rollout.get("input_resolution") or data.get("input_resolution")
     rollout["background"] = next(

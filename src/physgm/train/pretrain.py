@@ -232,6 +232,11 @@ def fit(cfg) -> dict[str, float]:
     from physgm.train.run import build_trainer, ensure_data, plain
 
     # Settings are checked before ensure_data, which may spend minutes generating a data set.
+    try:
+        PretrainLossConfig(**plain(cfg.stage.loss))
+        OptimConfig(**plain(cfg.stage.optim))
+    except (TypeError, ValueError) as err:
+        raise UserError(f"bad stage settings: {err}") from None
     trainable = cfg.stage.get("trainable", "all")
     if trainable not in TRAINABLE:
         raise UserError(f"stage.trainable must be one of {', '.join(TRAINABLE)}, got {trainable!r}")
