@@ -31,7 +31,7 @@ from physgm.model.checkpoint import load_model
 from physgm.model.config import PhysGMConfig
 from physgm.model.physgm import PhysGM
 from physgm.model.posterior import PhysicsPosterior
-from physgm.settings import check_types
+from physgm.setting_types import check_types
 from physgm.train.optim import OptimConfig, build_optimizer
 from physgm.train.pairs import DPOBatch
 

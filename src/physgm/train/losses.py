@@ -15,7 +15,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from physgm.model.posterior import PhysicsPosterior, PhysicsSample
-from physgm.settings import check_types
+from physgm.setting_types import check_types
 
 
 @dataclass

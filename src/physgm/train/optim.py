@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from physgm.settings import check_types
+from physgm.setting_types import check_types
 
 
 @dataclass

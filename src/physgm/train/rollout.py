@@ -26,7 +26,7 @@ from torch.utils.data import DataLoader
 
 from physgm.gaussians import read_ply
 from physgm.physics.materials import MATERIAL_NAMES
-from physgm.settings import check_types
+from physgm.setting_types import check_types
 from physgm.train.pairs import (
     PAIRINGS,
     Candidate,

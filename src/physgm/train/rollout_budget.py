@@ -19,7 +19,7 @@ import time
 from dataclasses import dataclass, field
 
 from physgm.physics.materials import PhysicsSpec
-from physgm.settings import check_types
+from physgm.setting_types import check_types
 
 log = logging.getLogger("physgm.train.rollout")
 

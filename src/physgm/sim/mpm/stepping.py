@@ -7,7 +7,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, fields
 
 from physgm.resources import package_file
-from physgm.settings import check_types
+from physgm.setting_types import check_types
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.mpm.particle_ground import contact_wave_speed
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from physgm.settings import check_types
+from physgm.setting_types import check_types
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""Settings of the wrong type stop with a message that names them (physgm.settings.check_types)."""
+"""Settings of the wrong type stop with a message that names them (physgm.setting_types.check_types)."""
 
 from __future__ import annotations
 
