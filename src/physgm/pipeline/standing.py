@@ -98,20 +98,15 @@ def _widest_section(surface: np.ndarray, ground: float, height: float) -> float:
     return max(_area(surface[slab == k, :2]) for k in range(SECTIONS))
 
 
-def _base(
-    surface: np.ndarray, x: np.ndarray, ground: float, depth: float, widest: float
-) -> tuple[float, float]:
+def _base(xy: np.ndarray, com: np.ndarray, ground: float, widest: float) -> tuple[float, float]:
     """(share of the widest section, tilt in degrees the body takes before it tips) of the base that
-    the points surface [N, 3] below ground + depth span, for the body of particles x [P, 3] (equal
-    masses, before the cut) standing on it."""
-    xy = surface[surface[:, 2] <= ground + depth, :2]
-    area = _area(xy)
-    if not (area > 0 and widest > 0):
+    the points xy [N, 2] of the cut span, for the body's centre of mass com [3] standing on it."""
+    try:
+        hull = ConvexHull(xy)
+    except (QhullError, ValueError):  # fewer than three points, or all on a line: no base
         return 0.0, -90.0
-    hull = ConvexHull(xy)
-    com = _flatten(x, ground, depth).mean(0)
     inside = float(-(hull.equations[:, :2] @ com[:2] + hull.equations[:, 2]).max())  # < 0: outside
-    return area / widest, math.degrees(math.atan2(inside, com[2] - ground))
+    return hull.volume / widest, math.degrees(math.atan2(inside, com[2] - ground))
 
 
 def _flatten(points: np.ndarray, floor: float, depth: float) -> np.ndarray:
@@ -142,12 +137,16 @@ def stand_on_base(
         return placement, Base(turn, 0.0, 0.0, 0, turn)
 
     widest = _widest_section(surface, ground, height)
+    if not widest > 0:
+        return placement, Base(turn, 0.0, 0.0, 0, turn)
     for k in range(1, int(round(MAX_CUT / CUT_STEP)) + 1):
         depth = k * CUT_STEP * height
-        share, margin = _base(surface, x, ground, depth, widest)
+        body = _flatten(x, ground, depth)
+        xy = surface[surface[:, 2] <= ground + depth, :2]
+        share, margin = _base(xy, body.mean(0), ground, widest)
         if share < BASE_SHARE or margin < MARGIN_DEG:
             continue
-        after = _turn(_flatten(x, ground, depth), _flatten(surface, ground, depth), ground, friction)
+        after = _turn(body, _flatten(surface, ground, depth), ground, friction)
         if after <= TIP_DEG:
             moved = int((means[:, 2] < ground + depth).sum())
             flat = torch.from_numpy(_flatten(means, ground, depth)).to(g.means)
