@@ -19,6 +19,7 @@ SUITES = {
     "material-probe": "physgm.bench.material_probe",
     "clips": "physgm.bench.clips",
     "volume": "physgm.bench.volume",
+    "depth": "physgm.bench.depth",
 }
 
 
