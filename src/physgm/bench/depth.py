@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from physgm.bench.model_split import check_model_and_split
 from physgm.errors import UserError
 
 SIDE_DEG = 90.0  # azimuth of the side view from the input view
@@ -125,13 +126,12 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--split", default="val")
     p.add_argument("--assets", type=int, default=64, help="at most this many of the split's assets")
     a = p.parse_args(argv)
-    if not a.ckpt.is_file():
-        raise UserError(f"checkpoint {a.ckpt} not found")
-    if not (a.data / "splits" / f"{a.split}.txt").is_file():
-        raise UserError(
-            f"{a.data} has no split {a.split!r} (splits/{a.split}.txt); make a data set with "
-            "python -m physgm.data.synth --out ROOT or python -m physgm.data.real_objects --out ROOT"
-        )
+    check_model_and_split(
+        a.ckpt,
+        a.data,
+        a.split,
+        "python -m physgm.data.synth --out ROOT or python -m physgm.data.real_objects --out ROOT",
+    )
     if a.assets < 1:
         raise UserError("--assets must be >= 1")
     from physgm.model.checkpoint import input_size, load_model

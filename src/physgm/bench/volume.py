@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from physgm.bench.model_split import check_model_and_split
 from physgm.errors import UserError
 from physgm.gaussians import Gaussians, read_ply
 from physgm.physics.materials import MATERIAL_NAMES
@@ -115,13 +116,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--assets", type=int, default=64, help="at most this many of the split's assets")
     p.add_argument("--min-opacity", type=float, nargs="+", default=[0.05], help="thresholds to compare")
     a = p.parse_args(argv)
-    if not a.ckpt.is_file():
-        raise UserError(f"checkpoint {a.ckpt} not found")
-    if not (a.data / "splits" / f"{a.split}.txt").is_file():
-        raise UserError(
-            f"{a.data} has no split {a.split!r} (splits/{a.split}.txt); make a data set with "
-            "python -m physgm.data.synth --out ROOT"
-        )
+    check_model_and_split(a.ckpt, a.data, a.split, "python -m physgm.data.synth --out ROOT")
     if a.assets < 1 or any(not 0 <= t < 1 for t in a.min_opacity):
         raise UserError("--assets must be >= 1 and every --min-opacity in [0, 1)")
     from physgm.model.checkpoint import input_size, load_model
