@@ -5,7 +5,7 @@
 One photo hides an object's depth, and the model has to guess it. Per asset of the split, the model
 reads the view at elevation 0 and azimuth 0 the way ``simulate.py`` reads a photo
 (``physgm.pipeline.prepared_input``: framed, the canonical camera), and its Gaussians are rendered
-from that camera and from azimuth 90 degrees. The width of the side silhouette (alpha > 0.5) over
+from that camera and from azimuth 90 degrees. The width of the side silhouette (alpha 0.5 or more) over
 the front's is the depth over the width the model gave the object; the asset's own views at azimuth 0
 and 90 give the true one. Each asset's score is predicted over true: 1 is as deep as the object,
 under 1 flatter (a ball read as a thick coin scores about 0.5). The report gives every asset's score
