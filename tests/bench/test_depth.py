@@ -21,8 +21,9 @@ from physgm.gaussians import Gaussians
 def _box(width: float, deep: float, n: int = 24) -> Gaussians:
     """Small opaque Gaussians filling a box ``deep`` along x (the canonical camera's axis) and
     ``width`` along y and z."""
-    axis = lambda extent: torch.linspace(-extent / 2, extent / 2, n)  # noqa: E731
-    x, y, z = torch.meshgrid(axis(deep), axis(width), axis(width), indexing="ij")
+    x, y, z = torch.meshgrid(
+        *(torch.linspace(-extent / 2, extent / 2, n) for extent in (deep, width, width)), indexing="ij"
+    )
     means = torch.stack([x, y, z], -1).reshape(-1, 3)
     step = width / (n - 1)
     return Gaussians(
