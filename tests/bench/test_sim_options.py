@@ -64,3 +64,21 @@ def test_the_pressure_row_takes_fewer_steps_and_skips_plastic_models():
     # the default planner's choice with the integrator: what simulate.py solver.integrator=pressure runs
     (planned,) = _rows(rows, material="jelly", option="planner_pressure")
     assert planned["substeps"] <= split["substeps"] and planned["error_px"] < 1.0
+
+
+def test_the_planner_row_of_a_rubber_runs_the_split_the_planner_took():
+    """The default planner takes the pressure split for rubber (nu = 0.48), so its row is a run of
+    its own, not the same as the explicit coast row that shares its E, nu and coasting."""
+    rows = sim_options.option_table(DropBench(("rubber",), **BENCH), cells_across=4, pressure=False)
+    (ref,) = _rows(rows, option="explicit")
+    (coast,) = _rows(rows, option="coast")
+    (planner,) = _rows(rows, option="planner")
+    assert (ref["integrator"], coast["integrator"], planner["integrator"]) == (
+        "explicit",
+        "explicit",
+        "pressure",
+    )
+    assert "same_as" not in planner and planner["substeps"] < ref["substeps"] / 2
+    assert (
+        planner["error_px"] < 1.0
+    )  # the landing, before the runs part (docs/measurements_sim.md section 42)

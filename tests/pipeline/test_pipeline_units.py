@@ -372,8 +372,8 @@ def test_a_run_whose_object_reached_the_region_edge_warns(monkeypatch, capsys, t
     def future(name: str, faces: int, nu_used: float = 0.45, cells: float = 12.0) -> stages.FutureResult:
         return stages.FutureResult(
             name=name, video=f"{name}.mp4", material="rubber", E=3e7, nu=0.45, mode="mpm",
-            predicted_error_px=0.0, error_terms={}, px_per_m=500.0, E_used=3e7, nu_used=nu_used,
-            particles=100, grid_cells=[8, 8, 8], dx_m=0.01, cells_across=cells,
+            integrator="explicit", predicted_error_px=0.0, error_terms={}, px_per_m=500.0,
+            E_used=3e7, nu_used=nu_used, particles=100, grid_cells=[8, 8, 8], dx_m=0.01, cells_across=cells,
             substeps=10, rest_frame=None, face_contacts=faces, grid_moves=0, ballistic_frames=1,
             reason="", finite=True, seconds={},
         )  # fmt: skip

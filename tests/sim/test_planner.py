@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -12,6 +13,7 @@ from physgm.cameras import orbit_cameras
 from physgm.sim.coast import ballistic_frames
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.mpm.boundary import GroundPlane, VelocityBox
+from physgm.sim.mpm.pressure import PRESSURE_STEP_COST
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.planner import (
     PlannerConfig,
@@ -52,6 +54,7 @@ def _plan(
 
 STEEL = MaterialParams("von_mises", E=2e11, nu=0.3, density=7850.0, yield_stress=2.5e8)
 JELLY = MaterialParams("fixed_corotated", E=1e5, nu=0.3, density=1000.0)
+GROUND = Scene(ground=GroundPlane(0.0, friction=0.3))
 SAND = MaterialParams("drucker_prager", E=3.5e7, nu=0.3, density=1600.0, friction_angle=30.0)
 
 
@@ -229,27 +232,27 @@ def test_reachable_region_includes_velocity_drift_and_grips():
 
 def test_cap_spends_its_budget_and_keeps_nu():
     # Stiff rubber (nu = 0.48 makes it costly) resting on the ground (rigid off: it would not
-    # deform visibly), so capped. (The bulk cap, off here, has its own tests.)
+    # deform visibly), so capped. (The bulk cap, off here, has its own tests; the caps of the explicit
+    # step, so the pressure split is off too.)
     rubber = MaterialParams("neo_hookean", E=5e7, nu=0.48, density=1100.0)
-    plan = _plan(rubber, "rubber", bottom=0.0, allow_bulk_cap=False, allow_rigid=False)
+    explicit = functools.partial(_plan, rubber, "rubber", allow_pressure=False)
+    plan = explicit(bottom=0.0, allow_bulk_cap=False, allow_rigid=False)
     assert plan.mode == "mpm" and plan.E_used < rubber.E
     # The cap spends only cap_budget of the bound; the extra deformation equals that share.
     assert plan.predicted_error_px == pytest.approx(PlannerConfig().cap_budget * 0.5, rel=1e-6)
     assert plan.predicted_cost < plan.alternatives["mpm"] / 1.25
-    off = _plan(
-        rubber, "rubber", bottom=0.0, allow_stiffness_cap=False, allow_bulk_cap=False, allow_rigid=False
-    )
+    off = explicit(bottom=0.0, allow_stiffness_cap=False, allow_bulk_cap=False, allow_rigid=False)
     assert off.E_used == rubber.E
     # Its top pulled up by a grip: no cap, bulk or E (their models failed on the stretch scene).
     grip = VelocityBox(lo=(-0.1, -0.1, 0.08), hi=(0.1, 0.1, 0.2), velocity=(0.0, 0.0, 0.5))
-    pulled = _plan(rubber, "rubber", scene=Scene(ground=GroundPlane(), boxes=(grip,)), bottom=0.0)
+    pulled = explicit(scene=Scene(ground=GroundPlane(), boxes=(grip,)), bottom=0.0)
     assert (pulled.E_used, pulled.nu_used, pulled.predicted_error_px) == (rubber.E, rubber.nu, 0.0)
     assert "moving boxes drive the body" in pulled.reason
     # Dropped from 1 m it bounces: the rebound depends on E, so no cap (and nothing promised).
-    dropped = _plan(rubber, "rubber", bottom=1.0, allow_bulk_cap=False)
+    dropped = explicit(bottom=1.0, allow_bulk_cap=False)
     assert dropped.mode == "mpm" and dropped.E_used == rubber.E and dropped.predicted_error_px == 0.0
     assert "not capped" in dropped.reason
-    fast = _plan(rubber, "rubber", bottom=1.0, cap_elastic_impacts=True, allow_bulk_cap=False)  # the opt-in
+    fast = explicit(bottom=1.0, cap_elastic_impacts=True, allow_bulk_cap=False)  # the opt-in
     assert fast.E_used < rubber.E and fast.predicted_cost < dropped.predicted_cost / 1.25
     # Yield is checked with the impact stress rho c_p v (P-wave speed, the larger one).
     c_p = rubber.wave_speed()
@@ -257,6 +260,44 @@ def test_cap_spends_its_budget_and_keeps_nu():
         5e6, 1100.0, 0.1, 2.0, yield_stress=1100 * c_p * 2.0 * 0.99, wave_factor=c_p**2 * 1100 / 5e6
     )
     assert d.plastic > 0
+
+
+RUBBER = MaterialParams("neo_hookean", E=5e6, nu=0.48, density=1100.0)
+
+
+def test_the_planner_takes_the_pressure_split_where_its_fewer_sub_steps_pay():
+    """A dropped rubber cube (nu = 0.48) runs with the pressure split: its step follows the shear
+    wave, about 3.5x fewer sub-steps than explicit's, which pays for the split's solve
+    (PRESSURE_STEP_COST each) by more than min_cap_gain. At nu = 0.3 the split would save 1.4x, not
+    enough; nor is it taken when switched off, under another integrator, or where it cannot run."""
+    split = _plan(RUBBER, "rubber")
+    assert (split.mode, split.integrator) == ("mpm", "pressure")
+    assert (split.E_used, split.nu_used, split.predicted_error_px) == (RUBBER.E, RUBBER.nu, 0.0)
+    assert "pressure split" in split.reason and "rebounds lower" in split.reason
+    gain = split.alternatives["mpm"] / split.alternatives["mpm_pressure"]
+    assert gain >= PlannerConfig().min_cap_gain * PRESSURE_STEP_COST and gain > 3.0
+    assert split.predicted_cost == split.alternatives["mpm_pressure"]
+
+    off = _plan(RUBBER, "rubber", allow_pressure=False)
+    assert off.integrator == "explicit" and off.predicted_cost == split.alternatives["mpm"]
+    assert "pressure" not in off.reason
+    lower = _plan(RUBBER.with_elasticity(E=RUBBER.E, nu=0.3), "rubber")
+    saving = lower.alternatives["mpm"] / lower.alternatives["mpm_pressure"]
+    assert lower.integrator == "explicit" and 1.2 < saving < PlannerConfig().min_cap_gain * PRESSURE_STEP_COST
+    assert _plan(JELLY.with_elasticity(E=1e5, nu=0.48), "jelly").integrator == "pressure"  # fixed-corotated
+    assert _plan(STEEL, "metal", allow_rigid=False).integrator == "explicit"  # von Mises: no split
+
+    x, vol = _cube()
+    config = PlannerConfig()
+    dx, spacing = choose_spacing(0.1, config)
+    args = (x, vol, torch.zeros_like(x), "rubber", RUBBER)
+    for integrator in ("implicit", "pressure"):  # the solver's own integrator is kept
+        plan = plan_simulation(*args, GROUND, CAMERAS, 50, 0.04, dx, spacing, config, integrator)
+        assert plan.integrator == integrator
+    grip = VelocityBox(lo=(-0.1, -0.1, 0.58), hi=(0.1, 0.1, 0.7), velocity=(0.0, 0.0, 0.1))
+    gripped = Scene(ground=GroundPlane(0.0, friction=0.3), boxes=(grip,))  # the split refuses boxes
+    plan = plan_simulation(*args, gripped, CAMERAS, 50, 0.04, dx, spacing, config)
+    assert plan.integrator == "explicit" and "mpm_pressure" not in plan.alternatives
 
 
 def test_yaml_config_matches_dataclass_defaults():

@@ -18,6 +18,7 @@ from physgm.sim import mpm_run
 from physgm.sim.gaussian_trajectory import ballistic_frames, prepare_simulation, run_prepared, simulate
 from physgm.sim.mpm.boundary import GroundPlane
 from physgm.sim.mpm.implicit import IMPLICIT_PASSES_MIN
+from physgm.sim.mpm.pressure import PRESSURE_STEP_COST
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.stepping import SolverConfig
 from physgm.sim.mpm_run import motion_left_px
@@ -298,7 +299,8 @@ def test_the_flight_after_a_bounce_is_coasted_within_the_bound():
     run: far fewer sub-steps and under a tenth of a pixel. A bound below the flight's predicted
     vibration (0.03-0.09 px here) keeps the explicit run."""
     gs = _shell_cube(2000, side=0.06, bottom=0.1)
-    off = dict(allow_rigid=False, allow_bulk_cap=False, allow_stiffness_cap=False, cells_across=6)
+    off = dict(allow_rigid=False, allow_bulk_cap=False, allow_stiffness_cap=False, allow_pressure=False)
+    off["cells_across"] = 6
     done = {"explicit": [], "coast": [], "tight": []}  # what each run reported as it went
     runs = {
         name: simulate(
@@ -436,7 +438,9 @@ def test_the_plan_follows_the_pressure_integrator():
     resting on the ground, which the explicit plan bulk-caps."""
     gs = _shell_cube(2000, side=0.1, bottom=0.0)
     physics = PhysicsSpec("rubber", E=2e5, nu=0.48)
-    planner = PlannerConfig(allow_rigid=False, allow_stiffness_cap=False, cells_across=8)
+    planner = PlannerConfig(
+        allow_rigid=False, allow_stiffness_cap=False, allow_pressure=False, cells_across=8
+    )
     explicit = prepare_simulation(gs, physics, GROUND, CAMERAS, 5, planner).plan
     uncapped = prepare_simulation(
         gs, physics, GROUND, CAMERAS, 5, replace(planner, allow_bulk_cap=False)
@@ -456,13 +460,32 @@ def test_the_plan_follows_the_pressure_integrator():
     assert traj.substeps == pytest.approx(4 * plan.substeps_per_frame, rel=0.1)
 
 
+def test_a_rubber_drop_runs_with_the_pressure_split_the_planner_took():
+    """The default planner takes the pressure split for a dropped rubber cube (nu = 0.48): the
+    prepared solver runs it, the time is predicted at PRESSURE_STEP_COST explicit sub-steps each,
+    and the solver takes the split's sub-steps, not explicit's (the solver sets its own step from
+    the material it runs, so a count this low shows which one ran)."""
+    gs, physics = _shell_cube(2000, side=0.1, bottom=0.05), PhysicsSpec("rubber", E=5e6, nu=0.48)
+    planner = PlannerConfig(allow_rigid=False, cells_across=8)
+    split = prepare_simulation(gs, physics, GROUND, CAMERAS, 4, planner)
+    explicit = prepare_simulation(gs, physics, GROUND, CAMERAS, 4, replace(planner, allow_pressure=False))
+    assert (split.plan.integrator, split.solver.integrator) == ("pressure", "pressure")
+    assert explicit.solver.integrator == "explicit"
+    steps = explicit.plan.substeps_per_frame / split.plan.substeps_per_frame
+    assert steps > 3.0
+    seconds = explicit.predicted_seconds(1e7) / split.predicted_seconds(1e7)
+    assert seconds == pytest.approx(steps / PRESSURE_STEP_COST)
+    traj = run_prepared(split)
+    assert traj.substeps <= 3 * split.plan.substeps_per_frame < 3 * explicit.plan.substeps_per_frame / 3
+
+
 def test_the_plan_follows_the_implicit_integrator():
     """Under ``solver.integrator=implicit`` the sub-step is ``implicit_dt`` for a slow body, so the plan
     predicts those sub-steps, and caps neither E nor the bulk modulus (no cap would save a step). The
     soft rubber cube at rest, which the explicit plan caps."""
     gs = _shell_cube(2000, side=0.1, bottom=0.0)
     physics = PhysicsSpec("rubber", E=2e5, nu=0.48)
-    planner = PlannerConfig(allow_rigid=False, cells_across=6)
+    planner = PlannerConfig(allow_rigid=False, allow_pressure=False, cells_across=6)
     explicit = prepare_simulation(gs, physics, GROUND, CAMERAS, 4, planner).plan
     implicit = SolverConfig(integrator="implicit", implicit_dt=0.01)
     traj = simulate(gs, physics, GROUND, CAMERAS, n_frames=4, planner=planner, solver=implicit)

@@ -46,7 +46,9 @@ from physgm.sim.mpm.pressure import PRESSURE_MODELS
 from physgm.sim.mpm.stepping import SimulationDiverged, SolverConfig
 from physgm.sim.planner import PlannerConfig
 
-OFF = dict(allow_rigid=False, allow_bulk_cap=False, allow_stiffness_cap=False, coast=False)
+OFF = dict(
+    allow_rigid=False, allow_bulk_cap=False, allow_stiffness_cap=False, allow_pressure=False, coast=False
+)
 
 
 def options(bulk_ratios: tuple[float, ...] = (2.0,)) -> dict[str, dict]:
@@ -122,8 +124,9 @@ def option_table(
                 gaussians, physics, "drop", cameras, bench.n_frames, cfg, scene_overrides=scene_overrides
             )
             probe = prepared.plan
-            key = (probe.mode, probe.E_used, probe.nu_used, cfg.coast)
+            key = (probe.mode, probe.integrator, probe.E_used, probe.nu_used, cfg.coast)
             row = {"material": name, "option": option, **physics.to_dict(), **grid, "mode": probe.mode}
+            row["integrator"] = probe.integrator
             row.update(E_used=probe.E_used, nu_used=probe.nu_used)
             row.update(
                 substeps_per_frame=probe.substeps_per_frame, predicted_error_px=probe.predicted_error_px

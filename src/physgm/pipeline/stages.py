@@ -45,6 +45,7 @@ class FutureResult:
     E: float  # Pa, as chosen
     nu: float
     mode: str  # the planner's choice: rigid | mpm_capped | mpm
+    integrator: str  # the MPM's time integration (solver.integrator, or the planner's pressure split)
     predicted_error_px: float
     error_terms: dict[str, float]  # the planner's named parts of its estimate, pixels
     px_per_m: float  # pixels per metre at the object in the closest output camera
@@ -271,6 +272,7 @@ def _future_result(choice, traj, seconds: dict, finite: bool, video: str) -> Fut
         nu=choice.nu,
         particles=int(len(traj.particles.x)),
         mode=plan.mode,
+        integrator=plan.integrator,
         predicted_error_px=plan.predicted_error_px,
         error_terms={k: round(float(v), 4) for k, v in plan.error_terms.items()},
         px_per_m=round(float(plan.px_per_m), 2),

@@ -25,6 +25,7 @@ from physgm.sim.coast import ballistic_frames
 from physgm.sim.constitutive import MaterialParams
 from physgm.sim.coupling import follow_and_deform, rigid_transform_gaussians
 from physgm.sim.mpm.implicit import IMPLICIT_PASSES_MIN
+from physgm.sim.mpm.pressure import PRESSURE_STEP_COST
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.stepping import SolverConfig
 from physgm.sim.mpm_run import run_mpm
@@ -202,13 +203,14 @@ class PreparedSimulation:
     def predicted_seconds(self, throughput: float) -> float:
         """Seconds the simulation should take at ``throughput`` MPM particle-substeps/s: the plan's
         cost over the frames after the closed-form prefix (0 for the rigid path, well under a second).
-        An implicit sub-step counts as the fewest passes over the particles one was measured to take."""
+        An implicit sub-step counts as the fewest passes over the particles one was measured to take,
+        a pressure-split one as ``pressure.PRESSURE_STEP_COST`` explicit ones."""
         plan = self.plan
         if plan.mode == "rigid":
             return 0.0
         simulated = max(plan.n_frames - self.ballistic_frames, 0) / max(plan.n_frames - 1, 1)
-        passes = IMPLICIT_PASSES_MIN if self.solver.integrator == "implicit" else 1
-        return plan.predicted_cost * passes * simulated / throughput
+        passes = {"implicit": IMPLICIT_PASSES_MIN, "pressure": PRESSURE_STEP_COST}
+        return plan.predicted_cost * passes.get(self.solver.integrator, 1) * simulated / throughput
 
 
 def _check_tensile_limit(name: str, setup: SceneSetup) -> None:
@@ -295,6 +297,8 @@ def prepare_simulation(
         solver_cfg.integrator,
         solver_cfg.implicit_dt,
     )
+    if plan.integrator != solver_cfg.integrator:  # the planner took the pressure split
+        solver_cfg = replace(solver_cfg, integrator=plan.integrator)
     return PreparedSimulation(
         plan,
         gaussians,

@@ -83,6 +83,27 @@ def shear_part(material: MaterialParams) -> MaterialParams:
     return material.with_elasticity(E=2.0 * material.mu, nu=0.0)
 
 
+# What a sub-step of this integrator costs over an explicit one on the same body, the
+# conjugate-gradient solve included: on the AVX2 host of docs/measurements_sim.md section 27, two
+# threads, 2.12 on the bench's 50-frame rubber drop (13,824 particles) and 2.04 on
+# `simulate.py input=examples/basketball.png` (2,944 particles), measured the same hour (section 45;
+# 1.64-1.82 in session 63). The planner takes the split only where it saves sub-steps by
+# ``planner.min_cap_gain`` times this (``planner.allow_pressure``).
+PRESSURE_STEP_COST = 2.1
+
+
+def scene_extras(scene: Scene) -> list[str]:
+    """What in ``scene`` the pressure split does not handle (empty when it handles the scene)."""
+    ground = scene.ground
+    extras = {
+        "velocity boxes": bool(scene.boxes),
+        "side walls": bool(scene.walls),
+        "periodic axes": bool(scene.periodic),
+        "a ground held on the grid nodes": ground is not None and not ground.on_particles,
+    }
+    return [name for name, present in extras.items() if present]
+
+
 def check_pressure(materials: Sequence[MaterialParams], scene: Scene) -> None:
     """Raise ValueError for what the pressure split does not handle, saying what to do instead."""
     unsupported = sorted({m.model for m in materials} - set(PRESSURE_MODELS))
@@ -91,14 +112,7 @@ def check_pressure(materials: Sequence[MaterialParams], scene: Scene) -> None:
             f"the pressure integrator handles the elastic models {', '.join(PRESSURE_MODELS)} only, "
             f"not {', '.join(unsupported)}; run them with integrator='explicit'"
         )
-    ground = scene.ground
-    extras = {
-        "velocity boxes": bool(scene.boxes),
-        "side walls": bool(scene.walls),
-        "periodic axes": bool(scene.periodic),
-        "a ground held on the grid nodes": ground is not None and not ground.on_particles,
-    }
-    named = [name for name, present in extras.items() if present]
+    named = scene_extras(scene)
     if named:
         raise ValueError(
             f"the pressure integrator supports gravity and a ground with contact on the particles only, "

@@ -15,7 +15,7 @@ from torch import Tensor
 from physgm.cameras import Cameras
 from physgm.sim.bulk_cap import choose_bulk_cap, rebound_px, wave_shift_px
 from physgm.sim.constitutive import MODELS, MaterialParams
-from physgm.sim.mpm.pressure import shear_part
+from physgm.sim.mpm.pressure import PRESSURE_MODELS, PRESSURE_STEP_COST, scene_extras, shear_part
 from physgm.sim.mpm.scene import Scene
 from physgm.sim.mpm.stepping import implicit_step_speed, substeps_per_frame
 from physgm.sim.planner.config import PlannerConfig
@@ -78,7 +78,9 @@ def plan_simulation(
             term the grid takes implicitly, is not offered. With ``"implicit"``
             (``mpm.implicit``) the sub-step is ``implicit_dt`` (s) while the body is slow and the
             advective limit cfl dx / |v|max when it is fast, and neither cap is offered: neither
-            would save a step.
+            would save a step. With ``"explicit"`` and ``config.allow_pressure`` the planner
+            runs an elastic body with the pressure split instead where that pays
+            (``Plan.integrator`` says which runs).
     """
     cfg = config or PlannerConfig()
     pressure = integrator == "pressure"
@@ -86,9 +88,9 @@ def plan_simulation(
     if implicit and not implicit_dt > 0.0:
         raise ValueError(f"implicit_dt={implicit_dt!r} s must be > 0")
 
-    def stepped(m: MaterialParams) -> MaterialParams:
-        """The material whose P-wave sets the explicit step under ``integrator``."""
-        return shear_part(m) if pressure else m
+    def stepped(m: MaterialParams, split: bool) -> MaterialParams:
+        """The material whose P-wave sets the explicit step, with the pressure split or without."""
+        return shear_part(m) if split else m
 
     if n_frames < 1 or frame_dt <= 0:
         raise ValueError(f"need n_frames >= 1 and frame_dt > 0, got {n_frames} and {frame_dt}")
@@ -131,7 +133,11 @@ def plan_simulation(
     cells_across = cfg.cells_across * dx / grid_dx  # fewer than asked when the region coarsened it
     n_nodes = int(np.prod(np.ceil((g_hi - g_lo) / grid_dx) + 9))  # + boundary margins of GridSpec.fit
     speed = implicit_step_speed(cfg.cfl, grid_dx, implicit_dt) if implicit else None
-    steps = {"mpm": substeps_per_frame(grid_dx, [stepped(material)], v_max, cfg.cfl, frame_dt, speed)}
+
+    def mpm_steps(m: MaterialParams, split: bool) -> int:
+        return substeps_per_frame(grid_dx, [stepped(m, split)], v_max, cfg.cfl, frame_dt, speed)
+
+    steps = {"mpm": mpm_steps(material, pressure)}
     steps["rigid"] = max(1, math.ceil(frame_dt / cfg.rigid_dt - 1e-9))
     P = len(pts)
     cost = {"mpm": float((n_frames - 1) * steps["mpm"] * P), "rigid": float((n_frames - 1) * steps["rigid"])}
@@ -174,6 +180,7 @@ def plan_simulation(
             predicted_cost=cost["rigid"],
             reason=reason,
             walls=walls,
+            integrator=integrator,
             **common,
         )
     if flows:
@@ -218,10 +225,10 @@ def plan_simulation(
     )
     size_px = size * px_per_m
 
-    def with_bulk_cap(share: float) -> _Choice:
+    def with_bulk_cap(share: float, split: bool) -> _Choice:
         """Full stiffness, or the bulk cap within ``share`` px if it saves min_cap_gain."""
-        full = _Choice(material, steps["mpm"])
-        if not cfg.allow_bulk_cap or flows or driven or pressure or implicit:
+        full = _Choice(material, mpm_steps(material, split))
+        if not cfg.allow_bulk_cap or flows or driven or split or implicit:
             return full
 
         def deformation_px(modulus: float) -> float:
@@ -250,14 +257,14 @@ def plan_simulation(
         own = {"bulk_cap_rebound_px": bulk.rebound_px, "bulk_cap_dent_px": bulk.dent_px}
         return _Choice(bulk.material, bulk_steps, [note], bulk_px=bulk.predicted_px, terms=own)
 
-    def with_stiffness_cap(base: _Choice) -> _Choice:
+    def with_stiffness_cap(base: _Choice, split: bool) -> _Choice:
         """``base`` with E capped within cap_budget of the bound, if it saves min_cap_gain."""
         share_px = cfg.cap_budget * cfg.bound_px
         cap = stiffness_cap(base.material.E, material.density, size, v_load, share_px / px_per_m, g)
         if dent:  # the dent moves with the wave speed, which the deformation estimate does not see
             cap = max(cap, stiffness_dent_floor(base.material.E, share_px, size_px))
         softer = base.material.with_elasticity(E=cap)
-        cap_steps = substeps_per_frame(grid_dx, [stepped(softer)], v_max, cfg.cfl, frame_dt)
+        cap_steps = mpm_steps(softer, split)
         if base.steps < cfg.min_cap_gain * cap_steps:
             return base
         soft = deformation_estimate(cap, material.density, size, v_load, g)
@@ -273,14 +280,33 @@ def plan_simulation(
         note = f"E capped to {cap:.3g} Pa ({base.steps} -> {cap_steps} sub-steps/frame)"
         return _Choice(softer, cap_steps, base.notes + [note], base.bulk_px, cap_px, own)
 
-    if caps_E:
+    def capped(split: bool) -> _Choice:
+        """The cheapest way to run the MPM within the bound, with the pressure split or without."""
+        if not caps_E:
+            return with_bulk_cap(cfg.bound_px, split)
         # The bound is shared when both caps apply; when the stiffness cap saves nothing, the bulk
         # cap alone may use all of it. The cheaper of the two is taken (the shared one on a tie).
-        shared = with_stiffness_cap(with_bulk_cap(cfg.bound_px * (1.0 - cfg.cap_budget)))
-        alone = with_bulk_cap(cfg.bound_px)
-        choice = alone if alone.steps < shared.steps else shared
-    else:
-        choice = with_bulk_cap(cfg.bound_px)
+        shared = with_stiffness_cap(with_bulk_cap(cfg.bound_px * (1.0 - cfg.cap_budget), split), split)
+        alone = with_bulk_cap(cfg.bound_px, split)
+        return alone if alone.steps < shared.steps else shared
+
+    choice = capped(pressure)
+    # The pressure split in place of explicit MPM, where its fewer sub-steps pay for its solve. It
+    # is not a cap: the body keeps its E and nu, and its clip is as close to converged MPM as the
+    # explicit one (the rubber drop's mean distance to the step-halving extrapolation over 30
+    # frames: 1.64 px, explicit's 2.03; docs/measurements_sim.md section 42), so it adds no error
+    # term.
+    split_fits = material.model in PRESSURE_MODELS and not scene_extras(scene)
+    if integrator == "explicit" and cfg.allow_pressure and split_fits:
+        split = capped(True)
+        cost["mpm_pressure"] = float((n_frames - 1) * split.steps * P)
+        if choice.steps >= cfg.min_cap_gain * PRESSURE_STEP_COST * split.steps:
+            split.notes.insert(
+                0,
+                f"the pressure split ({choice.steps} -> {split.steps} sub-steps/frame, each "
+                f"~{PRESSURE_STEP_COST:g}x the cost)",
+            )
+            choice, pressure = split, True
     if pressure:
         choice.notes.append("the pressure integrator: the volume term implicit on the grid, no bulk cap")
         if elastic_impact:  # measured: the bench's rubber cube bounces a second time to 0.237 m against 0.275
@@ -318,5 +344,6 @@ def plan_simulation(
         substeps_per_frame=choice.steps,
         predicted_cost=cost["mpm_capped"],
         reason=reason,
+        integrator="pressure" if pressure else integrator,
         **common,
     )

@@ -40,6 +40,11 @@ class PlannerConfig:
     allow_bulk_cap: bool = True
     bulk_wave_ratio: float = 2.0  # smallest c_p / c_s the bulk cap may reach (2: nu = 1/3)
     force_caps: bool = False  # benchmarks: take each allowed cap whatever its predicted error
+    # Run an elastic body (fixed-corotated, neo-Hookean) with the pressure split (sim/mpm/pressure.py)
+    # instead of explicit MPM where the split's fewer sub-steps pay for its solve by min_cap_gain:
+    # nearly incompressible bodies (nu >= 0.45 when the wave sets the step). Only when the solver is
+    # explicit (solver.integrator); the split's clip is as close to converged MPM as explicit's.
+    allow_pressure: bool = True
     # Cap E after an elastic impact too: far fewer sub-steps for stiff objects thrown at a wall,
     # but the rebound then differs by pixels (measured 3 px) beyond the bound: predicted_error_px
     # counts them (bulk_cap.rebound_px), the bound does not limit them.

@@ -31,6 +31,9 @@ class Plan:
             over the remaining frames is below rest_budget_px.
         reason: one human-readable sentence.
         walls: contact planes ((n, d), ...) of the scene's still walls, for the rigid path.
+        integrator: the MPM solver's integrator the plan runs with (``SolverConfig.integrator``):
+            the solver's own, or ``"pressure"`` where the planner took the split
+            (``PlannerConfig.allow_pressure``). Unused by the rigid path.
     """
 
     mode: str
@@ -59,6 +62,7 @@ class Plan:
     reason: str
     alternatives: dict[str, float] = field(default_factory=dict)  # mode -> predicted cost
     walls: list = field(default_factory=list)
+    integrator: str = "explicit"
 
     def summary(self) -> dict:
         """JSON-friendly view (grid as cell counts)."""
