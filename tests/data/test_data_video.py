@@ -84,3 +84,16 @@ def test_reference_video_falls_like_free_fall_then_is_checked(tmp_path):
     expect = f * 0.5 * 9.81 * t**2 / cfg.radius_m
     moved = centroid_row(frames[5]) - centroid_row(frames[0])
     assert 0.75 * expect < moved < 1.25 * expect
+
+
+def test_a_rubber_reference_video_is_simulated_with_explicit_mpm(tmp_path):
+    """Stage 2 scores explicit rollouts against these videos, so a rubber at nu = 0.49, which the
+    default planner would run with the pressure split, is simulated explicitly here."""
+    from physgm.data.priors import TruePhysics
+    from physgm.data.video import write_reference_video
+
+    phys = TruePhysics("rubber", 5e6, 0.49, 1100.0, 0.6, 0.9)
+    g = make_object("ellipsoid", phys, 400, np.random.default_rng(2)).gaussians
+    write_reference_video(tmp_path, g, phys, np.random.default_rng(0), 32, cfg=VideoConfig(n_frames=9))
+    meta = json.loads((tmp_path / "videos" / "drop.json").read_text())
+    assert meta["simulation"]["mode"] == "mpm" and meta["simulation"]["integrator"] == "explicit"

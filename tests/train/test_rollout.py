@@ -350,7 +350,9 @@ def test_evaluate_physics_wiring(dpo_root, monkeypatch):
         seen["scene"] == "drop" and seen["n"] == 6 and seen["over"] == {"height": scene.video.drop_height_m}
     )
     assert seen["solver"].frame_dt == pytest.approx(1 / scene.fps)
-    assert seen["planner"] == {"min_opacity": pytest.approx(0.05)}  # min(0.05, half the faintest opacity 0.9)
+    # Every Gaussian carries mass (min(0.05, half the faintest opacity 0.9)), and explicit MPM for every
+    # candidate, as for the reference videos: no pressure split where the candidate's E would pick it.
+    assert seen["planner"] == {"min_opacity": pytest.approx(0.05), "allow_pressure": False}
     # Rendering at half the reference size: the pixel bounds halve, so the plan is the reference's.
     from physgm.sim.planner import PlannerConfig
 
@@ -362,6 +364,7 @@ def test_evaluate_physics_wiring(dpo_root, monkeypatch):
     d = PlannerConfig()
     assert seen["planner"] == {
         "min_opacity": pytest.approx(0.05),
+        "allow_pressure": False,
         "bound_px": pytest.approx(d.bound_px / 2),
         "rest_px": pytest.approx(d.rest_px / 2),
         "rest_budget_px": pytest.approx(d.rest_budget_px / 2),

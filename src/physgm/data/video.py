@@ -115,6 +115,7 @@ def write_reference_video(
     camera = video_camera(cfg, az, resolution)
     # Translucent glass and jelly are drawn with very faint Gaussians (opacity ~0.02); the
     # planner's default would treat them as empty space, so every Gaussian carries mass here.
+    # Explicit MPM throughout (no pressure split), as stage 2's rollouts against these videos.
     min_opacity = min(0.05, 0.5 * float(world.opacities.min()))
     traj = simulate(
         world,
@@ -122,7 +123,7 @@ def write_reference_video(
         cfg.scene,
         camera,
         n_frames=cfg.n_frames,
-        planner={"min_opacity": min_opacity},
+        planner={"min_opacity": min_opacity, "allow_pressure": False},
         solver=SolverConfig(frame_dt=1.0 / cfg.fps),
         scene_overrides={"height": cfg.drop_height_m},
     )
@@ -153,6 +154,7 @@ def write_reference_video(
         },
         "simulation": {
             "mode": str(getattr(plan, "mode", "")),
+            "integrator": str(getattr(plan, "integrator", "explicit")),
             "E_used": float(getattr(plan, "E_used", physics.E)),
             "substeps": int(getattr(traj, "substeps", 0)),
         },

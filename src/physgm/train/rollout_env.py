@@ -229,8 +229,10 @@ def simulate_clip(
     world, _ = place_object(gaussians, scene.video)
     camera = render_camera(scene, settings.resolution)
     solver = SolverConfig(**{**settings.solver, "frame_dt": 1.0 / scene.fps})
-    # As write_reference_video does: every Gaussian carries mass (faint glass / jelly Gaussians too).
-    planner = {"min_opacity": min(0.05, 0.5 * float(world.opacities.min()))}
+    # As write_reference_video does: every Gaussian carries mass (faint glass / jelly Gaussians too),
+    # and explicit MPM for every candidate (no pressure split), so the candidates of a scene differ
+    # only in their physics, never in the integrator the planner picks for their stiffness.
+    planner = {"min_opacity": min(0.05, 0.5 * float(world.opacities.min())), "allow_pressure": False}
     # The planner's pixel bounds are measured at the output size; scaled with the render size they
     # stay the same length in metres, so a small render gets the reference video's plan.
     scale = camera.width / scene.camera.width
