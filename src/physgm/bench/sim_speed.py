@@ -121,6 +121,7 @@ def drop_scenes(bench: DropBench) -> list[dict]:
                 "material": name,
                 "E": physics.E,
                 "mode": plan.mode,
+                "integrator": plan.integrator,
                 "E_used": plan.E_used,
                 "particles": len(traj.particles),
                 "grid": plan.summary()["grid_cells"],
@@ -178,8 +179,8 @@ def speed_vs_error(n_frames: int, n_gaussians: int, side: float, bottom: float, 
 
     Grid, density and CFL: a soft jelly drop against a run with a finer grid and half the CFL
     number at the default density.
-    Planner on / off: "off" simulates everything at full stiffness with no rigid path, no
-    ballistic prefix and no early stop (for the jelly also in a fixed 1 m cube instead of the
+    Planner on / off: "off" simulates everything at full stiffness with explicit MPM, no rigid
+    path, no ballistic prefix and no early stop (for the jelly also in a fixed 1 m cube instead of the
     fitted grid); "on" is the default planner, and its error is measured against "off".
     """
     gaussians = hollow_cube_gaussians(n_gaussians, side, bottom, seed=1)
@@ -223,7 +224,9 @@ def speed_vs_error(n_frames: int, n_gaussians: int, side: float, bottom: float, 
                 particles_per_cell=ppc,
             )
         )
-    naive = dict(allow_rigid=False, allow_stiffness_cap=False, ballistic=False, rest_frames=10**6)
+    naive = dict(
+        allow_rigid=False, allow_stiffness_cap=False, allow_pressure=False, ballistic=False, rest_frames=10**6
+    )
     cases = [(jelly, {**naive, "fit_grid": False}), (PhysicsSpec("rubber"), naive)]
     if not quick:
         cases.append((PhysicsSpec("plastic", E=5e7), naive))
