@@ -42,7 +42,7 @@ class PlannerConfig:
     force_caps: bool = False  # benchmarks: take each allowed cap whatever its predicted error
     # Run an elastic body (fixed-corotated, neo-Hookean) with the pressure split (sim/mpm/pressure.py)
     # instead of explicit MPM where the split's fewer sub-steps pay for its solve by min_cap_gain:
-    # nearly incompressible bodies (nu >= 0.45 when the wave sets the step). Only when the solver is
+    # nearly incompressible bodies (nu from about 0.47 where the wave sets the step). Only when the solver is
     # explicit (solver.integrator); the split's clip is as close to converged MPM as explicit's.
     allow_pressure: bool = True
     # Cap E after an elastic impact too: far fewer sub-steps for stiff objects thrown at a wall,
