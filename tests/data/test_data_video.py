@@ -86,11 +86,15 @@ def test_reference_video_falls_like_free_fall_then_is_checked(tmp_path):
     assert 0.75 * expect < moved < 1.25 * expect
 
 
-def test_a_rubber_reference_video_is_simulated_with_explicit_mpm(tmp_path):
+def test_a_rubber_reference_video_is_simulated_with_explicit_mpm(tmp_path, monkeypatch):
     """Stage 2 scores explicit rollouts against these videos, so a rubber at nu = 0.49, which the
-    default planner would run with the pressure split, is simulated explicitly here."""
+    default planner would run with the pressure split (were it 12 cells thick: the split's least
+    thickness is lowered here), is simulated explicitly here."""
     from physgm.data.priors import TruePhysics
     from physgm.data.video import write_reference_video
+    from physgm.sim.planner import choose
+
+    monkeypatch.setattr(choose, "PRESSURE_MIN_CELLS", 0.0)
 
     phys = TruePhysics("rubber", 5e6, 0.49, 1100.0, 0.6, 0.9)
     g = make_object("ellipsoid", phys, 400, np.random.default_rng(2)).gaussians

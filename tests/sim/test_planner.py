@@ -266,38 +266,53 @@ RUBBER = MaterialParams("neo_hookean", E=5e6, nu=0.48, density=1100.0)
 
 
 def test_the_planner_takes_the_pressure_split_where_its_fewer_sub_steps_pay():
-    """A dropped rubber cube (nu = 0.48) runs with the pressure split: its step follows the shear
-    wave, about 3.5x fewer sub-steps than explicit's, which pays for the split's solve
-    (PRESSURE_STEP_COST each) by more than min_cap_gain. At nu = 0.3 the split would save 1.4x, not
-    enough; nor is it taken when switched off, under another integrator, or where it cannot run."""
-    split = _plan(RUBBER, "rubber")
+    """A dropped rubber cube (nu = 0.48, 12 cells across) runs with the pressure split: its step
+    follows the shear wave, about 3.5x fewer sub-steps than explicit's, which pays for the split's
+    solve (PRESSURE_STEP_COST each) by more than min_cap_gain. At nu = 0.3 the split would save 1.4x,
+    not enough; nor is it taken for a slab under PRESSURE_MIN_CELLS cells thick, when switched off,
+    under another integrator, or where it cannot run."""
+    config = PlannerConfig()
+    dx, spacing = choose_spacing(0.1, config)
+    cube = _cube(spacing=spacing)  # the planner's own lattice: 24 particles, 12 cells across
+
+    def plan(material, name="rubber", scene=GROUND, x_vol=cube, integrator="explicit", **cfg):
+        x, vol = x_vol
+        cfg = PlannerConfig(**cfg)
+        args = (x, vol, torch.zeros_like(x), name, material, scene, CAMERAS, 50, 0.04, dx, spacing, cfg)
+        return plan_simulation(*args, integrator)
+
+    split = plan(RUBBER)
     assert (split.mode, split.integrator) == ("mpm", "pressure")
     assert (split.E_used, split.nu_used, split.predicted_error_px) == (RUBBER.E, RUBBER.nu, 0.0)
     assert "pressure split" in split.reason and "rebounds lower" in split.reason
     gain = split.alternatives["mpm"] / split.alternatives["mpm_pressure"]
-    assert gain >= PlannerConfig().min_cap_gain * PRESSURE_STEP_COST and gain > 3.0
+    assert gain >= config.min_cap_gain * PRESSURE_STEP_COST and gain > 3.0
     assert split.predicted_cost == split.alternatives["mpm_pressure"]
 
-    off = _plan(RUBBER, "rubber", allow_pressure=False)
+    off = plan(RUBBER, allow_pressure=False)
     assert off.integrator == "explicit" and off.predicted_cost == split.alternatives["mpm"]
     assert "pressure" not in off.reason
-    lower = _plan(RUBBER.with_elasticity(E=RUBBER.E, nu=0.3), "rubber")
+    lower = plan(RUBBER.with_elasticity(E=RUBBER.E, nu=0.3))
     saving = lower.alternatives["mpm"] / lower.alternatives["mpm_pressure"]
-    assert lower.integrator == "explicit" and 1.2 < saving < PlannerConfig().min_cap_gain * PRESSURE_STEP_COST
-    assert _plan(JELLY.with_elasticity(E=1e5, nu=0.48), "jelly").integrator == "pressure"  # fixed-corotated
-    assert _plan(STEEL, "metal", allow_rigid=False).integrator == "explicit"  # von Mises: no split
-
-    x, vol = _cube()
-    config = PlannerConfig()
-    dx, spacing = choose_spacing(0.1, config)
-    args = (x, vol, torch.zeros_like(x), "rubber", RUBBER)
+    assert lower.integrator == "explicit" and 1.2 < saving < config.min_cap_gain * PRESSURE_STEP_COST
+    assert plan(JELLY.with_elasticity(E=1e5, nu=0.48), "jelly").integrator == "pressure"  # fixed-corotated
+    assert plan(STEEL, "metal", allow_rigid=False).integrator == "explicit"  # von Mises: no split
+    # The same rubber as a slab 9 cells thick (the cube's top quarter cut off), flat or turned 30
+    # degrees about x: explicit.
+    x, vol = cube
+    keep = x[:, 2] < x[:, 2].min() + 9 * dx - spacing / 2
+    slab = x[keep]
+    turn = torch.tensor(
+        [[1.0, 0.0, 0.0], [0.0, math.cos(0.52), -math.sin(0.52)], [0.0, math.sin(0.52), math.cos(0.52)]]
+    )
+    for body in (slab, (slab - slab.mean(0)) @ turn.T.to(slab) + slab.mean(0)):
+        thin = plan(RUBBER, x_vol=(body, vol[keep]))
+        assert thin.integrator == "explicit" and "mpm_pressure" not in thin.alternatives
     for integrator in ("implicit", "pressure"):  # the solver's own integrator is kept
-        plan = plan_simulation(*args, GROUND, CAMERAS, 50, 0.04, dx, spacing, config, integrator)
-        assert plan.integrator == integrator
+        assert plan(RUBBER, integrator=integrator).integrator == integrator
     grip = VelocityBox(lo=(-0.1, -0.1, 0.58), hi=(0.1, 0.1, 0.7), velocity=(0.0, 0.0, 0.1))
-    gripped = Scene(ground=GroundPlane(0.0, friction=0.3), boxes=(grip,))  # the split refuses boxes
-    plan = plan_simulation(*args, gripped, CAMERAS, 50, 0.04, dx, spacing, config)
-    assert plan.integrator == "explicit" and "mpm_pressure" not in plan.alternatives
+    gripped = plan(RUBBER, scene=Scene(ground=GroundPlane(0.0, friction=0.3), boxes=(grip,)))
+    assert gripped.integrator == "explicit" and "mpm_pressure" not in gripped.alternatives
 
 
 def test_yaml_config_matches_dataclass_defaults():

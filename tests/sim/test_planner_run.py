@@ -466,7 +466,7 @@ def test_a_rubber_drop_runs_with_the_pressure_split_the_planner_took():
     and the solver takes the split's sub-steps, not explicit's (the solver sets its own step from
     the material it runs, so a count this low shows which one ran)."""
     gs, physics = _shell_cube(2000, side=0.1, bottom=0.05), PhysicsSpec("rubber", E=5e6, nu=0.48)
-    planner = PlannerConfig(allow_rigid=False, cells_across=8)
+    planner = PlannerConfig(allow_rigid=False)  # 12 cells across: PRESSURE_MIN_CELLS
     split = prepare_simulation(gs, physics, GROUND, CAMERAS, 4, planner)
     explicit = prepare_simulation(gs, physics, GROUND, CAMERAS, 4, replace(planner, allow_pressure=False))
     assert (split.plan.integrator, split.solver.integrator) == ("pressure", "pressure")

@@ -91,6 +91,24 @@ def shear_part(material: MaterialParams) -> MaterialParams:
 # ``planner.min_cap_gain`` times this (``planner.allow_pressure``).
 PRESSURE_STEP_COST = 2.1
 
+# Grid cells the body must span in its thinnest direction for the planner to take the split. The
+# split's volume term lives on the grid's cells, and a body few cells thick resolves it poorly: the
+# bench's rubber drop (E = 5e6 Pa, nu = 0.48) with the cube squashed to a slab drifted from explicit
+# through its first contact by at most 0.21 px at 12 cells thick, 1.42 px at 9, 1.68 px at 6 and
+# 2.58 px at 3 (frames 0-18), where explicit's own half step moved 0.09-0.89 px
+# (docs/measurements_sim.md section 45).
+PRESSURE_MIN_CELLS = 12.0
+
+
+def thinnest_extent(x: np.ndarray, spacing: float) -> float:
+    """The body's smallest extent, m: the least of its extents along the axes and along its principal
+    axes (a slab turned off the axes), the particles' centres plus one lattice spacing."""
+    x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
+    centred = x - x.mean(0)
+    axes = np.linalg.eigh(centred.T @ centred)[1]
+    extents = np.concatenate([np.ptp(x, axis=0), np.ptp(centred @ axes, axis=0)])
+    return float(extents.min()) + spacing
+
 
 def scene_extras(scene: Scene) -> list[str]:
     """What in ``scene`` the pressure split does not handle (empty when it handles the scene)."""
