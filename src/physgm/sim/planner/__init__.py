@@ -26,12 +26,14 @@ Under the pressure integrator (``solver.integrator=pressure``, ``physgm.sim.mpm.
 explicit step follows the material's shear part, so the sub-steps are predicted from it and the
 bulk cap is not offered: the grid takes the volume term implicitly, and a cap would add its error
 for no step. With the explicit integrator (the default) the planner weighs that split too, for
-the elastic models in a scene it handles: the cheapest of options 2 and 3 with it and without,
-counting each of its sub-steps as ``pressure.PRESSURE_STEP_COST`` explicit ones and taking it only
-when it saves ``min_cap_gain`` (nearly incompressible bodies: rubber from nu of about 0.47, where
-the wave sets the step). It keeps E and nu and adds no error term: its clip is as close to
-converged MPM as explicit's (docs/measurements_sim.md sections 42 and 45). ``Plan.integrator``
-says which runs; ``planner.allow_pressure=false`` keeps explicit.
+the elastic models in a scene it handles, on a body at least ``pressure.PRESSURE_MIN_CELLS`` (12)
+cells thick: the cheapest of options 2 and 3 with it and without, counting each of its sub-steps
+as ``pressure.PRESSURE_STEP_COST`` explicit ones and taking it only when it saves ``min_cap_gain``
+(nearly incompressible bodies: rubber from nu of about 0.47, where the wave sets the step). It
+keeps E and nu and adds no error term: on such a body its clip is as close to converged MPM as
+explicit's, while a thinner one drifts from explicit from its first contact
+(docs/measurements_sim.md sections 42 and 45). ``Plan.integrator`` says which runs;
+``planner.allow_pressure=false`` keeps explicit.
 
 Under the implicit integrator (``solver.integrator=implicit``, ``physgm.sim.mpm.implicit``) the
 sub-steps are its own (``implicit_dt``, shorter when the body is fast) and neither cap is offered.

@@ -40,10 +40,10 @@ class PlannerConfig:
     allow_bulk_cap: bool = True
     bulk_wave_ratio: float = 2.0  # smallest c_p / c_s the bulk cap may reach (2: nu = 1/3)
     force_caps: bool = False  # benchmarks: take each allowed cap whatever its predicted error
-    # Run an elastic body (fixed-corotated, neo-Hookean) with the pressure split (sim/mpm/pressure.py)
-    # instead of explicit MPM where the split's fewer sub-steps pay for its solve by min_cap_gain:
-    # nearly incompressible bodies (nu from about 0.47 where the wave sets the step). Only when the solver is
-    # explicit (solver.integrator); the split's clip is as close to converged MPM as explicit's.
+    # Run an elastic body (fixed-corotated, neo-Hookean) at least 12 cells thick with the pressure
+    # split (sim/mpm/pressure.py) instead of explicit MPM where the split's fewer sub-steps pay for
+    # its solve by min_cap_gain: nearly incompressible bodies (nu from about 0.47 where the wave sets
+    # the step). Only when the solver is explicit (solver.integrator).
     allow_pressure: bool = True
     # Cap E after an elastic impact too: far fewer sub-steps for stiff objects thrown at a wall,
     # but the rebound then differs by pixels (measured 3 px) beyond the bound: predicted_error_px
