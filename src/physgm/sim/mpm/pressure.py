@@ -95,8 +95,8 @@ PRESSURE_STEP_COST = 2.1
 # split's volume term lives on the grid's cells, and a body few cells thick resolves it poorly: the
 # bench's rubber drop (E = 5e6 Pa, nu = 0.48) with the cube squashed to a slab drifted from explicit
 # through its first contact by at most 0.21 px at 12 cells thick, 1.42 px at 9, 1.68 px at 6 and
-# 2.58 px at 3 (frames 0-18), where explicit's own half step moved 0.09-0.89 px
-# (docs/measurements_sim.md section 45).
+# 2.58 px at 3 (frames 0-18), where explicit's own half step moved 0.09-0.89 px; at 10.5 cells, 0.26
+# px there and 1.50 px in frames 19-20 (docs/measurements_sim.md section 45).
 PRESSURE_MIN_CELLS = 12.0
 
 
