@@ -304,12 +304,14 @@ def plan_simulation(
     # close to converged MPM as explicit's later (the rubber drop's mean distance to the
     # step-halving extrapolation over 30 frames: 1.64 px, explicit's 2.03; docs/measurements_sim.md
     # sections 42 and 45), so it adds no error term there; a thinner body keeps explicit.
-    split_fits = (
-        material.model in PRESSURE_MODELS
+    split_fits = (  # cheapest test first: the body's thickness is a pass over its particles
+        integrator == "explicit"
+        and cfg.allow_pressure
+        and material.model in PRESSURE_MODELS
         and not scene_extras(scene)
         and thinnest_extent(pts.numpy(), particle_spacing) >= PRESSURE_MIN_CELLS * grid_dx * (1.0 - 1e-6)
     )
-    if integrator == "explicit" and cfg.allow_pressure and split_fits:
+    if split_fits:
         split = capped(True)
         cost["mpm_pressure"] = float((n_frames - 1) * split.steps * P)
         if choice.steps >= cfg.min_cap_gain * PRESSURE_STEP_COST * split.steps:
