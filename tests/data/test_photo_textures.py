@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -41,3 +43,22 @@ def test_photo_textures_change_the_look_deterministically_and_default_off_keeps_
     assert (photo - plain).abs().mean() > 0.02
     with pytest.raises(KeyError):
         PHOTO_TEXTURES["jelly"]  # materials without photographs keep their procedural look
+
+
+def test_a_photographed_texture_carries_the_stiffness_and_poisson_cues():
+    """Same asset, photo and light; the stiffest is darker than the softest, as procedural ones are."""
+    base = sample_physics("wood", np.random.default_rng(0))
+
+    def colours(stiffness, poisson, seed):
+        phys = dataclasses.replace(base, stiffness=stiffness, poisson=poisson)
+        obj = make_object("ellipsoid", phys, 600, np.random.default_rng(seed), photo_textures=1.0)
+        return obj.gaussians.colors.numpy().astype(np.float64)
+
+    def saturation(c):
+        return ((c.max(1) - c.min(1)) / np.maximum(c.max(1), 1e-6)).mean()
+
+    for seed in range(4):
+        soft, stiff = colours(0.0, 0.5, seed), colours(1.0, 0.5, seed)
+        # tone_factor(1) / tone_factor(0) = 0.82 / 1.12; the texture's scale changes too
+        assert 0.6 < stiff.mean() / soft.mean() < 0.85
+        assert saturation(colours(0.5, 1.0, seed)) > 1.3 * saturation(colours(0.5, 0.0, seed))

@@ -111,11 +111,34 @@ def hsv(h: float, s: float, v: float) -> np.ndarray:
     return np.array(colorsys.hsv_to_rgb(h % 1.0, float(np.clip(s, 0, 1)), float(np.clip(v, 0, 1))))
 
 
+def tone_factor(stiffness: float) -> float:
+    """The E cue on a colour's HSV value: stiffer assets are darker (x1.12 .. x0.82)."""
+    return 1.12 - 0.3 * stiffness
+
+
+def saturation_factor(poisson: float) -> float:
+    """The nu cue on a colour's saturation: x0.55 .. x1.45, 1 on average."""
+    return 0.55 + 0.9 * poisson
+
+
 def base_colour(ctx: TextureContext, h: float, s: float, v: float) -> np.ndarray:
     """Apply the physics cues to a palette colour: saturation from nu, tone from E."""
-    s = s * (0.55 + 0.9 * ctx.poisson)
-    v = v * (1.12 - 0.3 * ctx.stiffness)
-    return hsv(h, s, v)
+    return hsv(h, s * saturation_factor(ctx.poisson), v * tone_factor(ctx.stiffness))
+
+
+def cued_photo(photo: np.ndarray, procedural: np.ndarray, ctx: TextureContext) -> np.ndarray:
+    """A photographed albedo [N, 3] that carries the cues the procedural one [N, 3] carries.
+
+    The procedural texture's brightness pattern, relative to its mean, shades the photograph
+    (within x0.6 .. x1.4); its mean cannot carry the tone, since that cancels, so the
+    photograph's tone and saturation take the factors ``base_colour`` gives a palette colour,
+    relative to a mid-range asset's. ``photo_textures.photo_albedo`` scales the photograph with
+    ``ctx.freq``, the texture cue.
+    """
+    pattern = procedural.mean(axis=1, keepdims=True) / max(float(procedural.mean()), 1e-6)
+    out = photo * np.clip(pattern, 0.6, 1.4) * (tone_factor(ctx.stiffness) / tone_factor(0.5))
+    grey = out.mean(axis=1, keepdims=True)
+    return np.clip(grey + (out - grey) * saturation_factor(ctx.poisson), 0.0, 1.0)
 
 
 def _any_hue(ctx: TextureContext, s: tuple[float, float], v: tuple[float, float]) -> np.ndarray:

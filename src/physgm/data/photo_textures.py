@@ -112,11 +112,14 @@ def triplanar(
 
 
 def photo_albedo(
-    material: str, p: np.ndarray, n: np.ndarray, rng: np.random.Generator
+    material: str, p: np.ndarray, n: np.ndarray, rng: np.random.Generator, freq: float = 1.0
 ) -> np.ndarray:  # [N, 3]
-    """A randomly chosen photograph of ``material`` on the surface, at a random scale and offset."""
+    """A randomly chosen photograph of ``material`` on the surface, at a random scale and offset.
+
+    ``freq`` multiplies the texture's frequency (the stiffness cue, ``TextureContext.freq``).
+    """
     choices = PHOTO_TEXTURES[material]
     package, relpath = choices[int(rng.integers(len(choices)))]
     image = load_texture(package, relpath)
-    texels_per_m = TEXTURE_PX / rng.uniform(0.15, 0.5)  # one texture tile spans 15-50 cm
+    texels_per_m = freq * TEXTURE_PX / rng.uniform(0.15, 0.5)  # one tile spans 15-50 cm at freq 1
     return triplanar(image, p, n, texels_per_m, rng.uniform(0, 1, size=3))

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from physgm.data.appearance import STYLES, Lighting, TextureContext, shade
+from physgm.data.appearance import STYLES, Lighting, TextureContext, cued_photo, shade
 from physgm.data.photo_textures import has_photos, photo_albedo
 from physgm.data.priors import TruePhysics
 from physgm.data.shapes import Shape, make_shape, sample_surface
@@ -58,7 +58,7 @@ def make_object(
         count: number of Gaussians N.
         rng: the asset's generator (the only source of randomness).
         photo_textures: chance that a material with photographs (``physgm.data.photo_textures``)
-            wears one instead of its procedural texture; the cues still modulate its tone.
+            wears one instead of its procedural texture, with the same cues (``appearance.cued_photo``).
         varied_light: a random light above the front half and a sky-brighter ambient, instead
             of the one fixed light.
     """
@@ -98,9 +98,7 @@ def make_object(
     # Drawn from a stream of their own, so assets made without these options keep their bytes.
     rng_look = rng.spawn(1)[0] if photo_textures or varied_light else None
     if photo_textures and has_photos(physics.material) and rng_look.random() < photo_textures:
-        photo = photo_albedo(physics.material, ctx.p, ctx.n, rng_look)
-        tone = albedo.mean(axis=1, keepdims=True) / max(float(albedo.mean()), 1e-6)  # the cue-driven tone
-        albedo = np.clip(photo * np.clip(tone, 0.6, 1.4), 0.0, 1.0)
+        albedo = cued_photo(photo_albedo(physics.material, ctx.p, ctx.n, rng_look, ctx.freq), albedo, ctx)
     gloss = float(style.gloss[0] + (style.gloss[1] - style.gloss[0]) * rng_gauss.random())
     colors = shade(albedo, nrm, gloss, Lighting.sample(rng_look) if varied_light else Lighting())
 

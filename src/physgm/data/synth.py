@@ -34,7 +34,8 @@ from physgm.data.shapes import FAMILIES
 from physgm.data.writer import TMP_PREFIX, atomic_asset_dir, to_rgba8, write_json, write_views_cameras_physics
 from physgm.gaussians import Gaussians, write_ply
 
-GENERATOR_VERSION = 2  # 2: photo textures and varied light (off by default: version-1 bytes otherwise)
+GENERATOR_VERSION = 3  # 2: photo textures and varied light (off by default: version-1 bytes otherwise);
+# 3: a photographed texture carries the stiffness and poisson cues (appearance.cued_photo)
 _RENDER_THREADS = 2  # CPU threads per rasterize call; 1 inside worker processes (see _worker_init)
 CONFIG_FILE = "synth.json"  # at the data set root: the settings every asset was made with
 # Settings added after data sets were made: a synth.json without one was made at this value.
