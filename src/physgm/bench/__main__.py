@@ -17,6 +17,7 @@ SUITES = {
     "hull": "physgm.bench.hull_speed",
     "dpo-landscape": "physgm.bench.dpo_landscape",
     "material-probe": "physgm.bench.material_probe",
+    "stiffness-probe": "physgm.bench.stiffness_probe",
     "clips": "physgm.bench.clips",
     "volume": "physgm.bench.volume",
     "depth": "physgm.bench.depth",
