@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -32,12 +33,16 @@ def test_the_probe_reads_a_position_a_feature_carries_and_not_one_it_does_not():
     assert np.median(np.abs(pred - position)) > 0.2 and abs(np.corrcoef(pred, position)[0, 1]) < 0.3
 
 
-def test_the_report_of_a_data_set_scores_the_mid_range_guess_from_its_labels(tiny_dataset, capsys):
-    report = stiffness_probe.main([str(tiny_dataset), "--resolution", "64", "--folds", "2", "--alphas", "10"])
+def test_the_report_of_a_data_set_scores_the_mid_range_guess_from_its_labels(tiny_dataset, tmp_path, capsys):
+    root = tmp_path / "data"
+    shutil.copytree(tiny_dataset, root)
+    splits = root / "splits"
+    (splits / "val.txt").write_text((splits / "train.txt").read_text())  # assets listed twice count once
+    report = stiffness_probe.main([str(root), "--resolution", "64", "--folds", "2", "--alphas", "10"])
     assert json.loads(capsys.readouterr().out) == report
     (probe,) = report["data_sets"]
-    assets = sorted(p.parent for p in tiny_dataset.glob("syn_*/physical.json"))
-    assert probe["assets"] == len(assets) == 10  # each asset once, though the test splits repeat them
+    assets = sorted(p.parent for p in root.glob("syn_*/physical.json"))
+    assert probe["assets"] == len(assets) == 10
     errors = []
     for a in assets:
         phys = json.loads((a / "physical.json").read_text())
