@@ -4,7 +4,12 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -151,3 +156,44 @@ def test_plan_split_fractions_follow_config(make_config):
     assert all(p.split in ("dpo", "test") for p in plans if p.video)
     assert all(p.split in ("train", "val", "test") for p in plans if not p.video)
     assert len({p.material for p in plans}) == 15 and len({p.family for p in plans}) >= 10
+
+
+_BUSY_POOL = """
+import multiprocessing as mp, os, sys, time
+from physgm.data import synth
+if __name__ == "__main__":
+    pool = mp.get_context("spawn").Pool(2, initializer=synth._pool_worker_init)
+    pool.map(time.sleep, [0.5, 0.5])  # both workers up
+    for _ in range(2):
+        pool.apply_async(time.sleep, (60,))  # busy, as on an asset, when the parent dies
+    time.sleep(1.0)
+    print(" ".join(str(p.pid) for p in mp.active_children()), flush=True)
+    time.sleep(120)
+"""
+
+
+def _running(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"  # a zombie has exited
+    except FileNotFoundError:
+        return False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_pool_workers_stop_when_the_generating_process_is_killed(tmp_path):
+    script = tmp_path / "busy_pool.py"
+    script.write_text(_BUSY_POOL)
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[2] / "src")}
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        workers = [int(p) for p in proc.stdout.readline().split()]
+        assert len(workers) == 2 and all(_running(w) for w in workers)
+        proc.kill()
+        proc.wait()
+        deadline = time.monotonic() + 10.0  # the workers' tasks would run for another minute
+        while any(_running(w) for w in workers) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not any(_running(w) for w in workers)
+    finally:
+        proc.kill()

@@ -17,6 +17,7 @@ import json
 import multiprocessing as mp
 import os
 import sys
+import threading
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -226,6 +227,22 @@ def _worker_init(render_threads: int = 1) -> None:
     _RENDER_THREADS = render_threads
 
 
+def _pool_worker_init() -> None:
+    """``_worker_init`` for a pool worker, which also stops when the generating process is killed.
+
+    Otherwise it would finish its asset (up to about 30 s with a video) and write it into a folder
+    that the user may have deleted and started again with other settings.
+    """
+    _worker_init()
+    threading.Thread(target=_stop_with_parent, args=(os.getppid(),), daemon=True).start()
+
+
+def _stop_with_parent(parent: int, poll_s: float = 0.5) -> None:
+    while os.getppid() == parent:  # a dead parent's children are handed to another process
+        time.sleep(poll_s)
+    os._exit(1)
+
+
 def _work(args: tuple[SynthConfig, int, Path]) -> tuple[int, str, str]:
     cfg, index, out = args
     try:
@@ -258,7 +275,7 @@ def generate(cfg: SynthConfig, out: str | os.PathLike, workers: int = 1, progres
         finally:
             torch.set_num_threads(threads)
     else:
-        with mp.get_context("spawn").Pool(workers, initializer=_worker_init) as pool:
+        with mp.get_context("spawn").Pool(workers, initializer=_pool_worker_init) as pool:
             for index, status, err in pool.imap_unordered(_work, jobs):
                 counts[status] += 1
                 failures.update({index: err} if err else {})
