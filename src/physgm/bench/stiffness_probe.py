@@ -27,10 +27,9 @@ import math
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 from scipy.stats import spearmanr
 
-from physgm.data.format import load_asset
+from physgm.data.format import load_asset, read_split
 from physgm.errors import UserError
 from physgm.physics.materials import MATERIAL_NAMES, log10_E_range
 from physgm.train.refit_material import pooled_splits
@@ -63,25 +62,18 @@ def ridge_cv(
     return pred
 
 
-def brightness(rgba_files: list[Path]) -> float:
-    """Mean HSV value (the largest of R, G, B) over the pixels with alpha > 0.5 of these views."""
-    values = []
-    for f in rgba_files:
-        with Image.open(f) as im:
-            a = np.asarray(im.convert("RGBA"), dtype=np.float64) / 255.0
-        inside = a[..., 3] > 0.5
-        if inside.any():
-            values.append(a[..., :3][inside].max(1).mean())
+def brightness(rgba: np.ndarray) -> float:  # [V, H, W, 4] in [0, 1], straight alpha
+    """Mean HSV value (the largest of R, G, B) over the pixels with alpha > 0.5 of each view."""
+    values = [view[..., :3][view[..., 3] > 0.5].max(1).mean() for view in rgba if (view[..., 3] > 0.5).any()]
     return float(np.mean(values)) if values else math.nan
 
 
 def probe(root: Path, resolution: int, alphas: list[float], folds: int) -> dict:
     ids, feats = [], []
     for split in ("train", "val", "test"):
-        try:
-            part = pooled_splits([root], split, resolution)
-        except UserError:  # a split without assets
+        if not read_split(root, split):
             continue
+        part = pooled_splits([root], split, resolution)
         new = [i for i, aid in enumerate(part.ids) if aid not in ids]  # an asset listed twice counts once
         ids += [part.ids[i] for i in new]
         feats.append(part.views[new].mean(1).double().numpy())
@@ -97,7 +89,7 @@ def probe(root: Path, resolution: int, alphas: list[float], folds: int) -> dict:
         material.append(MATERIAL_NAMES.index(phys.material))
         position.append((math.log10(phys.E) - lo) / (hi - lo))
         span.append(hi - lo)
-        tone.append(brightness(sorted((root / aid / "rgba").glob("*.png"))[::4]))
+        tone.append(brightness(asset.load_rgba(list(range(0, len(asset), 4)))))
     x = np.concatenate(feats)
     material, position, span, tone = map(np.asarray, (material, position, span, tone))
     report = {
