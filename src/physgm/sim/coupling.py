@@ -197,6 +197,12 @@ def _follow_and_deform(
         F += w * pF[j]
     means[i] = x
     A = F * axes0[i]
+    # Split A / |A| and scale back: in m (scales ~1e-2) sym_eig3's cross products of a nearly
+    # round Gaussian's covariance fall to float32's denormals (~1e-44), and its axes came out up
+    # to 10 % off.
+    size = wp.sqrt(wp.ddot(A, A))
+    if size > 0.0:
+        A = A / size
     Q, beta = sym_eig3(A * wp.transpose(A))
     proj = wp.transpose(Q) * A  # proj[j, k] = u_j . a_k
     best = int(0)  # noqa: UP018 (Warp: a dynamic variable, mutated in the loop)
@@ -218,7 +224,7 @@ def _follow_and_deform(
         sign = wp.where(d < 0.0, -1.0, 1.0)
         for r in range(3):
             R[r, k] = sign * Q[r, e]
-        s[k] = wp.sqrt(wp.max(beta[e], 0.0))
+        s[k] = size * wp.sqrt(wp.max(beta[e], 0.0))
         if wp.abs(d) < worst_dot:
             worst_dot = wp.abs(d)
             worst = k
