@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from physgm.bench import clips
-from physgm.view.sequence import SEQUENCE_FILE, GaussianSequence
+from physgm.view.sequence import SEQUENCE_FILE, GaussianSequence, StoredFrames
 
 FOV = math.radians(60.0)
 RES = 256
@@ -22,8 +22,10 @@ def _sequence(means: np.ndarray, n_frames: int) -> GaussianSequence:
     return GaussianSequence(
         colors=np.full((n, 3), 0.5, np.float32),
         opacities=np.ones(n, np.float32),
-        means=means.astype(np.float32),
-        covs=np.tile(np.array([1e-4, 0, 0, 1e-4, 0, 1e-4], np.float32), (s, n, 1)),
+        motion=StoredFrames(
+            means=means.astype(np.float32),
+            covs=np.tile(np.array([1e-4, 0, 0, 1e-4, 0, 1e-4], np.float32), (s, n, 1)),
+        ),
         n_frames=n_frames,
         fps=25.0,
         camera_c2w=np.eye(4),
@@ -39,7 +41,7 @@ def _still(n_frames: int = 4) -> GaussianSequence:
 
 def test_distances_are_the_projected_shifts():
     ref = _still()
-    moved = ref.means.copy()
+    moved = ref.motion.means.copy()
     moved[2:, 0, 0] += 0.02  # the first Gaussian (depth 2 m) 2 cm to the right from frame 2 on
     run = _sequence(moved, 4)
     px = FOCAL * 0.02 / 2.0
@@ -51,7 +53,7 @@ def test_distances_are_the_projected_shifts():
 
 def test_a_clip_at_rest_repeats_its_last_stored_frame():
     ref = _still()
-    moved = ref.means[:2].copy()
+    moved = ref.motion.means[:2].copy()
     moved[1, 1, 1] += 0.04  # stored frames 0 and 1; frames 2 and 3 repeat frame 1
     run = _sequence(moved, 4)
     px = FOCAL * 0.04 / 4.0
@@ -63,12 +65,12 @@ def test_a_clip_at_rest_repeats_its_last_stored_frame():
 
 def test_clips_of_different_inputs_are_refused():
     ref = _still()
-    other = _sequence(ref.means[:, :1], 4)
+    other = _sequence(ref.motion.means[:, :1], 4)
     with pytest.raises(ValueError, match="same input"):
         clips.compare(ref, other, RES)
     with pytest.raises(ValueError, match="output.frames"):
         clips.compare(ref, _still(5), RES)
-    behind = ref.means.copy()
+    behind = ref.motion.means.copy()
     behind[:, 1, 2] = -1.0  # the second Gaussian behind the camera: no pixel to compare
     with pytest.raises(ValueError, match="behind the camera"):
         clips.compare(ref, _sequence(behind, 4), RES)
@@ -79,7 +81,7 @@ def test_main_reads_run_folders(tmp_path, capsys):
     for folder, shift in ((ref_dir, 0.0), (run_dir, 0.02)):
         folder.mkdir()
         seq = _still()
-        seq.means[:, 0, 0] += shift
+        seq.motion.means[:, 0, 0] += shift
         seq.save(folder / SEQUENCE_FILE)
         report = {"output": {"resolution": RES}, "seconds": {"simulate": 1.5}, "runs": [{"substeps": 10}]}
         (folder / "report.json").write_text(json.dumps(report))

@@ -136,6 +136,23 @@ def test_warp_follow_and_deform_matches_torch_twin():
     torch.testing.assert_close(same.covariances(), gs.covariances(), atol=1e-8, rtol=1e-4)
 
 
+def test_warp_follow_covariances_matches_torch_twin():
+    from physgm.sim.coupling import follow_covariances
+    from physgm.sim.sampling import build_followers
+
+    gs = _random_gaussians(2000, seed=13)
+    g = torch.Generator().manual_seed(14)
+    particles = torch.randn(500, 3, generator=g)
+    followers = build_followers(gs.means, particles, k=8)
+    x = particles + 0.05 * torch.randn(500, 3, generator=g)
+    F = torch.eye(3) + 0.3 * torch.randn(500, 3, 3, generator=g)
+    means, covs = follow_covariances(followers, gs.covariances(), x, F)
+    ref_means, Fg = followers.apply(x, F)
+    torch.testing.assert_close(means, ref_means, atol=1e-5, rtol=1e-5)
+    ref_covs = deform_covariances(gs.covariances().double(), Fg.double())
+    torch.testing.assert_close(covs.double(), ref_covs, atol=1e-9, rtol=1e-5)
+
+
 def test_round_gaussians_turned_by_the_simulation_stay_round():
     """Round Gaussians of 1 cm carried by nearly rigid rotations (a body at rest after a bounce):
     their covariances, ~1e-4 m^2, have an eigen-split whose cross products would reach float32's

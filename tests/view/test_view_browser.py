@@ -36,7 +36,7 @@ def falling_ball(tmp_path):
     import torch
 
     from physgm.cameras import look_at
-    from physgm.view.sequence import GaussianSequence, matrix_to_triu
+    from physgm.view.sequence import GaussianSequence, StoredFrames, matrix_to_triu
 
     rng = np.random.default_rng(0)
     n = 300
@@ -49,7 +49,7 @@ def falling_ball(tmp_path):
     covs = np.broadcast_to(matrix_to_triu(np.eye(3) * 0.012**2), (FRAMES, n, 6))
     c2w = look_at(torch.tensor(EYE)[None], torch.tensor(TARGET)[None])[0].numpy()
     seq = GaussianSequence(colors=np.tile([0.9, 0.05, 0.05], (n, 1)), opacities=np.full(n, 0.95),
-                           means=means, covs=np.ascontiguousarray(covs), n_frames=FRAMES, fps=25.0,
+                           motion=StoredFrames(means, np.ascontiguousarray(covs)), n_frames=FRAMES, fps=25.0,
                            camera_c2w=c2w, camera_fov_y=FOV_Y, ground=-0.1)  # fmt: skip
     path = tmp_path / "run" / "gaussians_t.npz"
     path.parent.mkdir()

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from physgm.view.sequence import GaussianSequence, matrix_to_triu
+from physgm.view.sequence import GaussianSequence, StoredFrames, matrix_to_triu
 
 pytest.importorskip(
     "viser",
@@ -30,9 +30,9 @@ def millimetre_sequence(frames: int = 6) -> GaussianSequence:
         [-1, 0, 0],
     )  # OpenCV: right, down, forward (-x)
     c2w[:3, 3] = [0.5, 0.0, 0.0]
-    return GaussianSequence(colors=rng.uniform(size=(n, 3)), opacities=np.full(n, 0.8), means=means,
-                            covs=np.broadcast_to(covs, (frames, n, 6)).copy(), n_frames=frames, fps=25.0,
-                            camera_c2w=c2w, camera_fov_y=0.7)  # fmt: skip
+    motion = StoredFrames(means=means, covs=np.broadcast_to(covs, (frames, n, 6)).copy())
+    return GaussianSequence(colors=rng.uniform(size=(n, 3)), opacities=np.full(n, 0.8), motion=motion,
+                            n_frames=frames, fps=25.0, camera_c2w=c2w, camera_fov_y=0.7)  # fmt: skip
 
 
 @pytest.fixture
@@ -50,7 +50,7 @@ def test_a_frame_reaches_the_splats_in_metres_with_millimetre_detail(viewer):
     assert viewer.frame == 4 and viewer.time_text.value == "0.160"
     splats = viewer.splats
     assert splats.scale == pytest.approx(viewer.unit)  # the node maps display units back to metres
-    np.testing.assert_allclose(splats.centers * viewer.unit, seq.means[4], atol=1e-7)
+    np.testing.assert_allclose(splats.centers * viewer.unit, seq.frame(4)[0], atol=1e-7)
     # viser stores covariances as float16; in metres these variances (1e-7..1e-6 m^2) would be
     # subnormal with 2-3 significant bits. Sent in object units they keep float16's 3 digits.
     sent = splats.covariances.astype(np.float64) * viewer.unit**2

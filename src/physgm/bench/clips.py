@@ -19,6 +19,7 @@ is what decides whether the simulator's rest stop can fire.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 from pathlib import Path
@@ -31,24 +32,28 @@ from physgm.cameras import Cameras, intrinsics_from_fov
 from physgm.view.sequence import SEQUENCE_FILE, GaussianSequence
 
 
-def pixel_coordinates(seq: GaussianSequence, camera: GaussianSequence, resolution: int) -> np.ndarray:
-    """Centres of all T frames of ``seq`` [T, N, 2] in pixels of ``camera``'s square image."""
-    t = np.minimum(np.arange(seq.n_frames), seq.stored_frames - 1)
+def _camera(camera: GaussianSequence, resolution: int) -> Cameras:
+    """``camera``'s clip camera at a square ``resolution``."""
     fov_deg = math.degrees(camera.camera_fov_y)  # square image: the horizontal field of view too
-    cameras = Cameras(
+    return Cameras(
         c2w=torch.as_tensor(camera.camera_c2w, dtype=torch.float64)[None],
         Ks=intrinsics_from_fov(fov_deg, resolution, resolution).double()[None],
         width=resolution,
         height=resolution,
     )
-    return project(cameras, torch.as_tensor(seq.means[t], dtype=torch.float64)).numpy()
+
+
+def pixel_coordinates(seq: GaussianSequence, cameras: Cameras, t: int) -> np.ndarray:
+    """Centres of frame t of ``seq`` [N, 2] in pixels of ``cameras`` (a clip that came to rest
+    repeats its last stored frame)."""
+    return project(cameras, torch.as_tensor(seq.frame(t)[0], dtype=torch.float64)).numpy()
 
 
 def compare(reference: GaussianSequence, run: GaussianSequence, resolution: int) -> dict[str, float]:
     """Projected centre distance of ``run`` to ``reference``, px: mean, worst frame's mean, largest."""
-    if run.means.shape[1] != reference.means.shape[1]:
+    if len(run.colors) != len(reference.colors):
         raise ValueError(
-            f"the clips hold {reference.means.shape[1]} and {run.means.shape[1]} Gaussians: compare runs "
+            f"the clips hold {len(reference.colors)} and {len(run.colors)} Gaussians: compare runs "
             "of the same input (the same photo and checkpoint, or the same .ply)"
         )
     if run.n_frames != reference.n_frames or run.fps != reference.fps:
@@ -56,24 +61,29 @@ def compare(reference: GaussianSequence, run: GaussianSequence, resolution: int)
             f"the clips have {reference.n_frames} frames at {reference.fps} fps and {run.n_frames} at "
             f"{run.fps} fps: compare runs with the same output.frames and output.fps"
         )
-    dist = np.linalg.norm(
-        pixel_coordinates(run, reference, resolution) - pixel_coordinates(reference, reference, resolution),
-        axis=-1,
-    )  # [T, N]
-    per_frame = dist.mean(1)
+    cameras = _camera(reference, resolution)
+    per_frame, largest = [], 0.0
+    for t in range(reference.n_frames):
+        dist = np.linalg.norm(
+            pixel_coordinates(run, cameras, t) - pixel_coordinates(reference, cameras, t), axis=-1
+        )  # [N]
+        per_frame.append(float(dist.mean()))
+        largest = max(largest, float(dist.max()))
     return {
-        "error_px": float(per_frame.mean()),
-        "error_px_worst_frame": float(per_frame.max()),
-        "error_px_largest": float(dist.max()),
+        "error_px": float(np.mean(per_frame)),
+        "error_px_worst_frame": max(per_frame),
+        "error_px_largest": largest,
     }
 
 
 def tail_motion(seq: GaussianSequence, resolution: int, tail: int) -> float:
     """Largest motion of a Gaussian between consecutive frames over the last ``tail`` frames, px
     (0 when the clip came to rest that early: its last frames repeat)."""
-    px = pixel_coordinates(seq, seq, resolution)
-    steps = np.linalg.norm(np.diff(px, axis=0), axis=-1)  # [T - 1, N]
-    return float(steps[-tail:].max()) if len(steps) else 0.0
+    cameras = _camera(seq, resolution)
+    first = max(seq.n_frames - tail - 1, 0)
+    px = [pixel_coordinates(seq, cameras, t) for t in range(first, seq.n_frames)]
+    steps = [float(np.linalg.norm(b - a, axis=-1).max()) for a, b in itertools.pairwise(px)]
+    return max(steps, default=0.0)
 
 
 def _load(folder: Path) -> tuple[GaussianSequence, dict]:

@@ -266,3 +266,57 @@ def follow_and_deform(
     ensure_loaded(_follow_and_deform, device)
     wp.launch(_follow_and_deform, n, arrays + outs, device=device)
     return Gaussians(means, quats, scales, gaussians.opacities, gaussians.colors, gaussians.sh_rest)
+
+
+@wp.kernel
+def _follow_covariance(
+    index: wp.array2d(dtype=int),  # [N, K] particle indices
+    weight: wp.array2d(dtype=float),  # [N, K]
+    offset: wp.array2d(dtype=wp.vec3),  # [N, K] rest offsets X_g - X_j, m
+    px: wp.array(dtype=wp.vec3),  # [P] particle positions, m
+    pF: wp.array(dtype=wp.mat33),  # [P] particle deformation gradients
+    covs0: wp.array(dtype=wp.mat33),  # [N] rest covariances, m^2
+    means: wp.array(dtype=wp.vec3),  # [N] out, m
+    covs: wp.array(dtype=wp.mat33),  # [N] out, m^2
+):
+    i = wp.tid()
+    x = wp.vec3(0.0)
+    F = wp.mat33(0.0)
+    for k in range(index.shape[1]):
+        j = index[i, k]
+        w = weight[i, k]
+        x += w * (px[j] + pF[j] * offset[i, k])
+        F += w * pF[j]
+    means[i] = x
+    covs[i] = F * covs0[i] * wp.transpose(F)
+
+
+def follow_covariances(
+    followers: Followers,
+    covs0: Tensor,  # [N, 3, 3] rest covariances, m^2
+    x: Tensor,  # [P, 3] particle positions, m
+    F: Tensor,  # [P, 3, 3] particle deformation gradients
+) -> tuple[Tensor, Tensor]:  # [N, 3] m, [N, 3, 3] m^2
+    """Centres and covariances F Sigma_0 F^T of Gaussians that follow particles, without the
+    (quat, scale) split: ``Followers.apply`` and ``deform_covariances`` in one Warp launch, for
+    reading a stored clip (``physgm.view.motion``)."""
+    wp.init()
+    device = wp.device_from_torch(covs0.device)
+    n = covs0.shape[0]
+    arrays = [
+        wp.from_torch(followers.index.int().contiguous(), dtype=wp.int32),
+        wp.from_torch(followers.weight.float().contiguous(), dtype=wp.float32),
+        wp.from_torch(followers.offset.float().contiguous(), dtype=wp.vec3),
+        wp.from_torch(x.to(covs0.device).float().contiguous(), dtype=wp.vec3),
+        wp.from_torch(F.to(covs0.device).float().contiguous(), dtype=wp.mat33),
+        wp.from_torch(covs0.float().contiguous(), dtype=wp.mat33),
+    ]
+    means, covs = torch.empty(n, 3, device=covs0.device), torch.empty(n, 3, 3, device=covs0.device)
+    ensure_loaded(_follow_covariance, device)
+    wp.launch(
+        _follow_covariance,
+        n,
+        arrays + [wp.from_torch(means, dtype=wp.vec3), wp.from_torch(covs, dtype=wp.mat33)],
+        device=device,
+    )
+    return means, covs

@@ -72,23 +72,25 @@ class SequenceViewer:
         self.server = viser.ViserServer(host=host, port=port, label=title, verbose=False)
         scene = self.server.scene
         scene.set_up_direction("+z")  # physgm's world is +z up
-        centers0 = sequence.means[0]
-        variances = sequence.covs[..., [0, 3, 5]]  # [S, N, 3] m^2
+        centers0, covs0 = sequence.frame(0)
+        extent = sequence.extent()  # every frame once: large clips take seconds here
+        variances0 = covs0[:, np.arange(3), np.arange(3)]  # [N, 3] m^2
         # m per display unit (see module doc); the largest variance stays below float16's 65504
-        self.unit = max(float(np.sqrt(np.median(variances[0]))), float(np.sqrt(variances.max() / 1e4))) or 1.0
+        largest = float(np.sqrt(extent.max_variance / 1e4))
+        self.unit = max(float(np.sqrt(np.median(variances0))), largest) or 1.0
         size = float(np.ptp(centers0, axis=0).max()) or 1.0  # m, the object's extent
         self._rgbs = sequence.colors.astype(np.float32)
         self._opacities = sequence.opacities.astype(np.float32)[:, None]
         self.splats = scene.add_gaussian_splats(
             "/object",
             centers=centers0 / self.unit,
-            covariances=sequence.frame(0)[1] / self.unit**2,
+            covariances=covs0 / self.unit**2,
             rgbs=self._rgbs,
             opacities=self._opacities,
             scale=self.unit,
         )
         if sequence.ground is not None:
-            lo, hi = sequence.means[..., :2].min((0, 1)), sequence.means[..., :2].max((0, 1))
+            lo, hi = extent.lo[:2], extent.hi[:2]
             width = 4.0 * float(max(hi - lo)) + 2.0 * size
             center = 0.5 * (lo + hi)
             scene.add_grid(
@@ -99,7 +101,7 @@ class SequenceViewer:
                 section_size=size,
                 position=(float(center[0]), float(center[1]), sequence.ground),
             )
-        eye, look_at, up = camera_view(sequence.camera_c2w, sequence.means.mean((0, 1)))  # orbit the motion
+        eye, look_at, up = camera_view(sequence.camera_c2w, extent.centre)  # orbit the motion
         self.server.initial_camera.position = eye
         self.server.initial_camera.look_at = look_at
         self.server.initial_camera.up = up
