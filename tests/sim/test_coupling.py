@@ -153,6 +153,26 @@ def test_warp_follow_covariances_matches_torch_twin():
     torch.testing.assert_close(covs.double(), ref_covs, atol=1e-9, rtol=1e-5)
 
 
+def test_two_threads_deform_exactly_as_one():
+    """Each thread takes a range of the Gaussians; every Gaussian is computed alone, so the split
+    changes no bit."""
+    from physgm.sim.coupling import PARALLEL_MIN_GAUSSIANS, follow_and_deform, follow_covariances
+    from physgm.sim.sampling import build_followers
+
+    n = PARALLEL_MIN_GAUSSIANS + 1001  # an odd count: the ranges differ in size
+    gs = _random_gaussians(n, seed=15)
+    g = torch.Generator().manual_seed(16)
+    particles = torch.randn(700, 3, generator=g)
+    followers = build_followers(gs.means, particles)
+    x = particles + 0.05 * torch.randn(700, 3, generator=g)
+    F = torch.eye(3) + 0.3 * torch.randn(700, 3, 3, generator=g)
+    one, two = (follow_and_deform(gs, followers, x, F, num_threads=k) for k in (1, 2))
+    for a, b in ((one.means, two.means), (one.quats, two.quats), (one.scales, two.scales)):
+        assert torch.equal(a, b)
+    one, two = (follow_covariances(followers, gs.covariances(), x, F, num_threads=k) for k in (1, 2))
+    assert torch.equal(one[0], two[0]) and torch.equal(one[1], two[1])
+
+
 def test_round_gaussians_turned_by_the_simulation_stay_round():
     """Round Gaussians of 1 cm carried by nearly rigid rotations (a body at rest after a bounce):
     their covariances, ~1e-4 m^2, have an eigen-split whose cross products would reach float32's

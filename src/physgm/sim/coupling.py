@@ -21,6 +21,7 @@ import warp as wp
 from torch import Tensor
 
 from physgm.gaussians import Gaussians, quat_to_rotmat, rotmat_to_quat
+from physgm.parallel import helpers_for_this_thread, run_split
 from physgm.sim.linalg import sym_eig3
 from physgm.sim.sampling import Followers
 from physgm.warp_runtime import ensure_loaded
@@ -177,17 +178,19 @@ def _perm_axis(p: int, k: int) -> int:
 
 @wp.kernel
 def _follow_and_deform(
+    start: int,  # first Gaussian of this launch (a launch covers a range; see _launch_ranges)
     index: wp.array2d(dtype=int),  # [N, K] particle indices
     weight: wp.array2d(dtype=float),  # [N, K]
     offset: wp.array2d(dtype=wp.vec3),  # [N, K] rest offsets X_g - X_j, m
     px: wp.array(dtype=wp.vec3),  # [P] particle positions, m
     pF: wp.array(dtype=wp.mat33),  # [P] particle deformation gradients
-    axes0: wp.array(dtype=wp.mat33),  # [N] rest R_0 S_0 (columns: scaled rest axes), m
+    quats0: wp.array(dtype=wp.vec4),  # [N] rest (w, x, y, z), normalised here
+    scales0: wp.array(dtype=wp.vec3),  # [N] rest, m
     means: wp.array(dtype=wp.vec3),  # [N] out, m
     quats: wp.array(dtype=wp.vec4),  # [N] out (w, x, y, z), w >= 0
     scales: wp.array(dtype=wp.vec3),  # [N] out, m
 ):
-    i = wp.tid()
+    i = start + wp.tid()
     x = wp.vec3(0.0)
     F = wp.mat33(0.0)
     for k in range(index.shape[1]):
@@ -196,7 +199,10 @@ def _follow_and_deform(
         x += w * (px[j] + pF[j] * offset[i, k])
         F += w * pF[j]
     means[i] = x
-    A = F * axes0[i]
+    q0 = quats0[i]
+    rot0 = wp.quat_to_matrix(wp.normalize(wp.quat(q0[1], q0[2], q0[3], q0[0])))
+    s0 = scales0[i]
+    A = F * wp.matrix_from_cols(s0[0] * rot0[:, 0], s0[1] * rot0[:, 1], s0[2] * rot0[:, 2])  # F R_0 S_0
     # Split A / |A| and scale back: in m (scales ~1e-2) sym_eig3's cross products of a nearly
     # round Gaussian's covariance fall to float32's denormals (~1e-44), and its axes came out up
     # to 10 % off.
@@ -243,19 +249,20 @@ def follow_and_deform(
     followers: Followers,
     x: Tensor,  # [P, 3] particle positions, m
     F: Tensor,  # [P, 3, 3] particle deformation gradients
+    num_threads: int = 2,  # CPU threads (one launch each over a range of the Gaussians)
 ) -> Gaussians:
-    """Deformed Gaussians of one frame: ``deform_gaussians(g, *followers.apply(x, F))`` in one Warp launch."""
+    """Deformed Gaussians of one frame: ``deform_gaussians(g, *followers.apply(x, F))`` in one Warp kernel."""
     wp.init()
     device = wp.device_from_torch(gaussians.means.device)
     n = len(gaussians)
-    rest = (quat_to_rotmat(gaussians.quats) * gaussians.scales[:, None, :]).float().contiguous()
     arrays = [
         wp.from_torch(followers.index.int().contiguous(), dtype=wp.int32),
         wp.from_torch(followers.weight.float().contiguous(), dtype=wp.float32),
         wp.from_torch(followers.offset.float().contiguous(), dtype=wp.vec3),
         wp.from_torch(x.to(gaussians.means.device).float().contiguous(), dtype=wp.vec3),
         wp.from_torch(F.to(gaussians.means.device).float().contiguous(), dtype=wp.mat33),
-        wp.from_torch(rest, dtype=wp.mat33),
+        wp.from_torch(gaussians.quats.detach().float().contiguous(), dtype=wp.vec4),
+        wp.from_torch(gaussians.scales.detach().float().contiguous(), dtype=wp.vec3),
     ]
     means, quats, scales = (torch.empty(n, c, device=gaussians.means.device) for c in (3, 4, 3))
     outs = [
@@ -263,13 +270,13 @@ def follow_and_deform(
         wp.from_torch(quats, dtype=wp.vec4),
         wp.from_torch(scales, dtype=wp.vec3),
     ]
-    ensure_loaded(_follow_and_deform, device)
-    wp.launch(_follow_and_deform, n, arrays + outs, device=device)
+    _launch_ranges(_follow_and_deform, n, arrays + outs, device, num_threads)
     return Gaussians(means, quats, scales, gaussians.opacities, gaussians.colors, gaussians.sh_rest)
 
 
 @wp.kernel
 def _follow_covariance(
+    start: int,  # first Gaussian of this launch
     index: wp.array2d(dtype=int),  # [N, K] particle indices
     weight: wp.array2d(dtype=float),  # [N, K]
     offset: wp.array2d(dtype=wp.vec3),  # [N, K] rest offsets X_g - X_j, m
@@ -279,7 +286,7 @@ def _follow_covariance(
     means: wp.array(dtype=wp.vec3),  # [N] out, m
     covs: wp.array(dtype=wp.mat33),  # [N] out, m^2
 ):
-    i = wp.tid()
+    i = start + wp.tid()
     x = wp.vec3(0.0)
     F = wp.mat33(0.0)
     for k in range(index.shape[1]):
@@ -296,9 +303,10 @@ def follow_covariances(
     covs0: Tensor,  # [N, 3, 3] rest covariances, m^2
     x: Tensor,  # [P, 3] particle positions, m
     F: Tensor,  # [P, 3, 3] particle deformation gradients
+    num_threads: int = 2,  # CPU threads (one launch each over a range of the Gaussians)
 ) -> tuple[Tensor, Tensor]:  # [N, 3] m, [N, 3, 3] m^2
     """Centres and covariances F Sigma_0 F^T of Gaussians that follow particles, without the
-    (quat, scale) split: ``Followers.apply`` and ``deform_covariances`` in one Warp launch, for
+    (quat, scale) split: ``Followers.apply`` and ``deform_covariances`` in one Warp kernel, for
     reading a stored clip (``physgm.view.motion``)."""
     wp.init()
     device = wp.device_from_torch(covs0.device)
@@ -312,11 +320,25 @@ def follow_covariances(
         wp.from_torch(covs0.float().contiguous(), dtype=wp.mat33),
     ]
     means, covs = torch.empty(n, 3, device=covs0.device), torch.empty(n, 3, 3, device=covs0.device)
-    ensure_loaded(_follow_covariance, device)
-    wp.launch(
-        _follow_covariance,
-        n,
-        arrays + [wp.from_torch(means, dtype=wp.vec3), wp.from_torch(covs, dtype=wp.mat33)],
-        device=device,
-    )
+    outs = [wp.from_torch(means, dtype=wp.vec3), wp.from_torch(covs, dtype=wp.mat33)]
+    _launch_ranges(_follow_covariance, n, arrays + outs, device, num_threads)
     return means, covs
+
+
+# Fewer Gaussians than this run on one thread: the hand-off to a helper costs more than it saves.
+PARALLEL_MIN_GAUSSIANS = 32_768
+
+
+def _launch_ranges(kernel, n: int, args: list, device, num_threads: int) -> None:
+    """``kernel`` over Gaussians 0..n-1, on the CPU split into ``num_threads`` ranges run at once
+    (a Warp CPU launch runs on one core and releases the GIL); each Gaussian is computed alone,
+    so the result does not depend on the split."""
+    ensure_loaded(kernel, device)
+    parts = num_threads if device.is_cpu and n >= PARALLEL_MIN_GAUSSIANS else 1
+    cuts = [n * k // parts for k in range(parts + 1)]
+    launches = [
+        wp.launch(kernel, hi - lo, [lo, *args], device=device, record_cmd=True)
+        for lo, hi in itertools.pairwise(cuts)
+        if hi > lo
+    ]
+    run_split([launch.launch for launch in launches], helpers_for_this_thread(len(launches) - 1))
