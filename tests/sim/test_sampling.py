@@ -15,6 +15,7 @@ from physgm.sim.sampling import (
     fill_interior,
     lattice_frame,
     mass_opacity,
+    occupied_voxels,
     sample_particles,
     split_along,
     voxel_downsample,
@@ -221,3 +222,26 @@ def test_split_along_cuts_each_voxel_into_slabs():
     assert split_along(sample, 0, 1) is sample
     with pytest.raises(ValueError, match="n >= 1"):
         split_along(sample, 0, 0)
+
+
+def test_dense_and_sparse_voxel_tallies_agree_to_the_bit(monkeypatch):
+    """A small lattice is tallied in dense arrays, a large one by sorting; both give the same
+    voxels and surface points (more Gaussians than one chunk, so chunks are summed too)."""
+    from physgm.sim import sampling
+
+    n = sampling._CHUNK + 5000
+    g = torch.Generator().manual_seed(3)
+    gs = Gaussians(
+        means=torch.rand(n, 3, generator=g) * torch.tensor([0.3, 0.2, 0.1]),
+        quats=torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=-1),
+        scales=torch.rand(n, 3, generator=g) * 0.01,
+        opacities=torch.ones(n),
+        colors=torch.rand(n, 3, generator=g),
+    )
+    origin, counts = lattice_frame(np.zeros(3), np.array([0.3, 0.2, 0.1]), 0.01)
+    dense = occupied_voxels(gs, origin, counts, 0.01)
+    monkeypatch.setattr(sampling, "_DENSE_VOXELS", 0)
+    sparse = occupied_voxels(gs, origin, counts, 0.01)
+    assert len(dense[0]) > 1000
+    np.testing.assert_array_equal(dense[0], sparse[0])
+    np.testing.assert_array_equal(dense[1], sparse[1])

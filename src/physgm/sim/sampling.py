@@ -38,6 +38,7 @@ MAX_FILL_VOXELS = 2**26
 # {-1, 0, 1}^3, so splats wider than a voxel also mark the voxels next to their centre. [27, 3]
 _BOX_POINTS = torch.cartesian_prod(*[torch.tensor([-1.0, 0.0, 1.0], dtype=torch.float64)] * 3)
 _CHUNK = 65_536  # Gaussians voxelised at once (27 points each: ~40 MB of float64)
+_DENSE_VOXELS = 1 << 21  # lattices up to this many voxels are tallied densely (64 MB of float64)
 MASS_QUANTILE = 0.99  # an object's strong opacity, for ``mass_opacity``: its Gaussians' 99th percentile
 MASS_OPACITY_FLOOR = 0.005  # ``mass_opacity`` never goes below this: fainter Gaussians carry no mass
 
@@ -162,6 +163,12 @@ def occupied_voxels(
         voxels [Q, 3] (int, unpadded, unique) and the centroid [Q, 3] (m) of the marking points in
         each: where the surface passes through the voxel.
     """
+    # A lattice this small is tallied in dense arrays, without sorting; a larger one (a few far
+    # floaters span it) by the voxels each chunk touches. Both add each voxel's points in the
+    # same order, so they give the same sums.
+    volume = int(np.prod(counts))
+    dense = volume <= _DENSE_VOXELS
+    c, acc = (np.zeros(volume), np.zeros((volume, 3))) if dense else (None, None)
     keys, sums, n = [], [], []
     for start in range(0, len(gaussians), _CHUNK):
         part = gaussians[start : start + _CHUNK]
@@ -172,12 +179,22 @@ def occupied_voxels(
         axes = rot * part.scales.detach().double().cpu().clamp_max(spacing)[:, None, :]
         pts = (means[:, None, :] + _BOX_POINTS @ axes.transpose(1, 2)).reshape(-1, 3).numpy()  # [n * 27, 3]
         ijk = np.clip(np.floor((pts - origin) / spacing).astype(np.int64), 0, counts - 1)
-        k, inverse = np.unique(np.ravel_multi_index(ijk.T, counts), return_inverse=True)
+        flat = np.ravel_multi_index(ijk.T, counts)
+        if dense:
+            c += np.bincount(flat, minlength=volume)
+            for a in range(3):
+                acc[:, a] += np.bincount(flat, pts[:, a], volume)
+            continue
+        k, inverse = np.unique(flat, return_inverse=True)
         keys.append(k), n.append(np.bincount(inverse, minlength=len(k)))
         sums.append(np.stack([np.bincount(inverse, pts[:, a], len(k)) for a in range(3)], -1))
-    k, inverse = np.unique(np.concatenate(keys), return_inverse=True)
-    c = np.bincount(inverse, np.concatenate(n), len(k))
-    acc = np.stack([np.bincount(inverse, np.concatenate(sums)[:, a], len(k)) for a in range(3)], -1)
+    if dense:
+        k = np.flatnonzero(c)
+        c, acc = c[k], acc[k]
+    else:
+        k, inverse = np.unique(np.concatenate(keys), return_inverse=True)
+        c = np.bincount(inverse, np.concatenate(n), len(k))
+        acc = np.stack([np.bincount(inverse, np.concatenate(sums)[:, a], len(k)) for a in range(3)], -1)
     return np.stack(np.unravel_index(k, counts), -1), acc / c[:, None]
 
 
@@ -323,7 +340,7 @@ def build_followers(
     p = particles.detach().double().cpu().numpy()
     q = means.detach().double().cpu().numpy()
     k = min(k, len(p))
-    dist, idx = cKDTree(p).query(q, k=k)
+    dist, idx = cKDTree(p).query(q, k=k, workers=2)  # the same answer, the query on two threads
     dist, idx = dist.reshape(len(q), k), idx.reshape(len(q), k)
     if radius is None:
         radius = max(2.0 * float(np.median(dist[:, 0])), 1e-9)
