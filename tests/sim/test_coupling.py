@@ -109,16 +109,24 @@ def test_rigid_transform_matches_deform_with_rotation():
     torch.testing.assert_close(out.scales, gs.scales)
 
 
-def test_warp_follow_and_deform_matches_torch_twin():
-    from physgm.sim.coupling import follow_and_deform
+def _followed_scene(n: int, p: int, seed: int, k: int = 8):
+    """n random Gaussians following p particles moved and deformed at random: (gaussians,
+    followers, particles' rest positions, positions, deformation gradients)."""
     from physgm.sim.sampling import build_followers
 
-    gs = _random_gaussians(3000, seed=11)
-    g = torch.Generator().manual_seed(12)
-    particles = torch.randn(800, 3, generator=g)
-    followers = build_followers(gs.means, particles, k=6)
-    x = particles + 0.05 * torch.randn(800, 3, generator=g)
-    F = torch.eye(3) + 0.3 * torch.randn(800, 3, 3, generator=g)
+    gs = _random_gaussians(n, seed=seed)
+    g = torch.Generator().manual_seed(seed + 1)
+    particles = torch.randn(p, 3, generator=g)
+    followers = build_followers(gs.means, particles, k=k)
+    x = particles + 0.05 * torch.randn(p, 3, generator=g)
+    F = torch.eye(3) + 0.3 * torch.randn(p, 3, 3, generator=g)
+    return gs, followers, particles, x, F
+
+
+def test_warp_follow_and_deform_matches_torch_twin():
+    from physgm.sim.coupling import follow_and_deform
+
+    gs, followers, particles, x, F = _followed_scene(3000, 800, seed=11, k=6)
     F = torch.where(torch.linalg.det(F)[:, None, None] < 0, -F, F)
     fast = follow_and_deform(gs, followers, x, F)
     means, Fg = followers.apply(x, F)
@@ -138,14 +146,8 @@ def test_warp_follow_and_deform_matches_torch_twin():
 
 def test_warp_follow_covariances_matches_torch_twin():
     from physgm.sim.coupling import follow_covariances
-    from physgm.sim.sampling import build_followers
 
-    gs = _random_gaussians(2000, seed=13)
-    g = torch.Generator().manual_seed(14)
-    particles = torch.randn(500, 3, generator=g)
-    followers = build_followers(gs.means, particles, k=8)
-    x = particles + 0.05 * torch.randn(500, 3, generator=g)
-    F = torch.eye(3) + 0.3 * torch.randn(500, 3, 3, generator=g)
+    gs, followers, _, x, F = _followed_scene(2000, 500, seed=13)
     means, covs = follow_covariances(followers, gs.covariances(), x, F)
     ref_means, Fg = followers.apply(x, F)
     torch.testing.assert_close(means, ref_means, atol=1e-5, rtol=1e-5)
@@ -157,15 +159,9 @@ def test_two_threads_deform_exactly_as_one():
     """Each thread takes a range of the Gaussians; every Gaussian is computed alone, so the split
     changes no bit."""
     from physgm.sim.coupling import PARALLEL_MIN_GAUSSIANS, follow_and_deform, follow_covariances
-    from physgm.sim.sampling import build_followers
 
-    n = PARALLEL_MIN_GAUSSIANS + 1001  # an odd count: the ranges differ in size
-    gs = _random_gaussians(n, seed=15)
-    g = torch.Generator().manual_seed(16)
-    particles = torch.randn(700, 3, generator=g)
-    followers = build_followers(gs.means, particles)
-    x = particles + 0.05 * torch.randn(700, 3, generator=g)
-    F = torch.eye(3) + 0.3 * torch.randn(700, 3, 3, generator=g)
+    # an odd count: the ranges differ in size
+    gs, followers, _, x, F = _followed_scene(PARALLEL_MIN_GAUSSIANS + 1001, 700, seed=15)
     one, two = (follow_and_deform(gs, followers, x, F, num_threads=k) for k in (1, 2))
     for a, b in ((one.means, two.means), (one.quats, two.quats), (one.scales, two.scales)):
         assert torch.equal(a, b)

@@ -176,6 +176,26 @@ def _perm_axis(p: int, k: int) -> int:
     return wp.where(k == 0, 2, wp.where(k == 1, 1, 0))
 
 
+@wp.func
+def _followed(
+    i: int,
+    index: wp.array2d(dtype=int),
+    weight: wp.array2d(dtype=float),
+    offset: wp.array2d(dtype=wp.vec3),
+    px: wp.array(dtype=wp.vec3),
+    pF: wp.array(dtype=wp.mat33),
+):
+    """Gaussian i's centre sum_k w_k (x_j + F_j o_k) and deformation gradient sum_k w_k F_j."""
+    x = wp.vec3(0.0)
+    F = wp.mat33(0.0)
+    for k in range(index.shape[1]):
+        j = index[i, k]
+        w = weight[i, k]
+        x += w * (px[j] + pF[j] * offset[i, k])
+        F += w * pF[j]
+    return x, F
+
+
 @wp.kernel
 def _follow_and_deform(
     start: int,  # first Gaussian of this launch (a launch covers a range; see _launch_ranges)
@@ -191,13 +211,7 @@ def _follow_and_deform(
     scales: wp.array(dtype=wp.vec3),  # [N] out, m
 ):
     i = start + wp.tid()
-    x = wp.vec3(0.0)
-    F = wp.mat33(0.0)
-    for k in range(index.shape[1]):
-        j = index[i, k]
-        w = weight[i, k]
-        x += w * (px[j] + pF[j] * offset[i, k])
-        F += w * pF[j]
+    x, F = _followed(i, index, weight, offset, px, pF)
     means[i] = x
     q0 = quats0[i]
     rot0 = wp.quat_to_matrix(wp.normalize(wp.quat(q0[1], q0[2], q0[3], q0[0])))
@@ -287,13 +301,7 @@ def _follow_covariance(
     covs: wp.array(dtype=wp.mat33),  # [N] out, m^2
 ):
     i = start + wp.tid()
-    x = wp.vec3(0.0)
-    F = wp.mat33(0.0)
-    for k in range(index.shape[1]):
-        j = index[i, k]
-        w = weight[i, k]
-        x += w * (px[j] + pF[j] * offset[i, k])
-        F += w * pF[j]
+    x, F = _followed(i, index, weight, offset, px, pF)
     means[i] = x
     covs[i] = F * covs0[i] * wp.transpose(F)
 
