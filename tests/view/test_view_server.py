@@ -86,3 +86,32 @@ def test_camera_opens_at_the_clips_camera():
     np.testing.assert_allclose(look_at, eye + c2w[:3, 2] * np.dot([0.0, 0.3, 0.0] - eye, c2w[:3, 2]))
     np.testing.assert_allclose(look_at, [0.0, 0.0, 0.0], atol=1e-12)
     np.testing.assert_allclose(up, [0.0, 0.0, 1.0])  # OpenCV's y points down in the image
+
+
+def test_a_clip_stored_as_followed_particles_is_shown_frame_by_frame():
+    """The viewer computes each frame of a clip stored as its particles' motion when it shows it."""
+    from physgm.view.sequence import FollowedParticles
+    from physgm.view.server import SequenceViewer
+
+    rng = np.random.default_rng(4)
+    n, p, k, frames = 50, 6, 3, 4
+    x = rng.uniform(-0.05, 0.05, (p, 3)) + np.arange(frames)[:, None, None] * np.array([0.01, 0.0, 0.0])
+    motion = FollowedParticles(
+        rest_covs=np.tile(np.array([1e-6, 0, 0, 1e-6, 0, 1e-6], np.float32), (n, 1)),
+        index=rng.integers(0, p, (n, k)).astype(np.int32),
+        weight=np.full((n, k), 1.0 / k, np.float32),
+        offset=rng.normal(scale=0.005, size=(n, k, 3)).astype(np.float32),
+        x=x.astype(np.float32),
+        F=np.broadcast_to(np.eye(3, dtype=np.float32), (frames, p, 3, 3)).copy(),
+    )
+    c2w = millimetre_sequence(frames).camera_c2w
+    seq = GaussianSequence(colors=np.full((n, 3), 0.5), opacities=np.full(n, 0.8), motion=motion,
+                           n_frames=frames, fps=25.0, camera_c2w=c2w, camera_fov_y=0.7)  # fmt: skip
+    viewer = SequenceViewer(seq, port=0, frame=0, playing=False)
+    try:
+        viewer.set_frame(3)
+        np.testing.assert_allclose(viewer.splats.centers * viewer.unit, seq.frame(3)[0], atol=1e-6)
+        shift = (viewer.splats.centers * viewer.unit - seq.frame(0)[0]).mean(0)
+        np.testing.assert_allclose(shift, [0.03, 0.0, 0.0], atol=1e-6)  # three frames of 1 cm along +x
+    finally:
+        viewer.close()
