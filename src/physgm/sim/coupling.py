@@ -196,6 +196,17 @@ def _followed(
     return x, F
 
 
+def _followed_arrays(followers: Followers, x: Tensor, F: Tensor, device: torch.device) -> list[wp.array]:
+    """``_followed``'s inputs as Warp views: index, weight, offset, particle positions and F."""
+    return [
+        wp.from_torch(followers.index.int().contiguous(), dtype=wp.int32),
+        wp.from_torch(followers.weight.float().contiguous(), dtype=wp.float32),
+        wp.from_torch(followers.offset.float().contiguous(), dtype=wp.vec3),
+        wp.from_torch(x.to(device).float().contiguous(), dtype=wp.vec3),
+        wp.from_torch(F.to(device).float().contiguous(), dtype=wp.mat33),
+    ]
+
+
 @wp.kernel
 def _follow_and_deform(
     start: int,  # first Gaussian of this launch (a launch covers a range; see _launch_ranges)
@@ -270,11 +281,7 @@ def follow_and_deform(
     device = wp.device_from_torch(gaussians.means.device)
     n = len(gaussians)
     arrays = [
-        wp.from_torch(followers.index.int().contiguous(), dtype=wp.int32),
-        wp.from_torch(followers.weight.float().contiguous(), dtype=wp.float32),
-        wp.from_torch(followers.offset.float().contiguous(), dtype=wp.vec3),
-        wp.from_torch(x.to(gaussians.means.device).float().contiguous(), dtype=wp.vec3),
-        wp.from_torch(F.to(gaussians.means.device).float().contiguous(), dtype=wp.mat33),
+        *_followed_arrays(followers, x, F, gaussians.means.device),
         wp.from_torch(gaussians.quats.detach().float().contiguous(), dtype=wp.vec4),
         wp.from_torch(gaussians.scales.detach().float().contiguous(), dtype=wp.vec3),
     ]
@@ -320,11 +327,7 @@ def follow_covariances(
     device = wp.device_from_torch(covs0.device)
     n = covs0.shape[0]
     arrays = [
-        wp.from_torch(followers.index.int().contiguous(), dtype=wp.int32),
-        wp.from_torch(followers.weight.float().contiguous(), dtype=wp.float32),
-        wp.from_torch(followers.offset.float().contiguous(), dtype=wp.vec3),
-        wp.from_torch(x.to(covs0.device).float().contiguous(), dtype=wp.vec3),
-        wp.from_torch(F.to(covs0.device).float().contiguous(), dtype=wp.mat33),
+        *_followed_arrays(followers, x, F, covs0.device),
         wp.from_torch(covs0.float().contiguous(), dtype=wp.mat33),
     ]
     means, covs = torch.empty(n, 3, device=covs0.device), torch.empty(n, 3, 3, device=covs0.device)

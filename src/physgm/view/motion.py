@@ -135,7 +135,7 @@ class FollowedParticles:
 
         if self._followers is None:  # torch views of the arrays, made once
             self._followers = Followers(
-                torch.from_numpy(self.index.astype(np.int64)),
+                torch.from_numpy(self.index.astype(np.int32)),  # what the kernel reads: no copy a frame
                 torch.from_numpy(self.weight.astype(np.float32)),
                 torch.from_numpy(self.offset.astype(np.float32)),
             )
@@ -144,6 +144,11 @@ class FollowedParticles:
             self._followers, self._covs0, torch.from_numpy(self.x[s]), torch.from_numpy(self.F[s])
         )
         return means.numpy(), covs.numpy()
+
+    @property
+    def stored_bytes(self) -> int:
+        """Bytes ``arrays()`` writes (every one a 4-byte number), without making them."""
+        return 4 * sum(getattr(self, name).size for name in _FIELDS[self.kind][1].values())
 
     def arrays(self) -> dict[str, np.ndarray]:
         return {

@@ -223,12 +223,6 @@ class GaussianSequence:
         )
 
 
-def _stored_bytes(motion: FollowedParticles) -> int:
-    """Bytes of the arrays ``motion.arrays()`` writes, every one of 4-byte numbers."""
-    arrays = (motion.rest_covs, motion.index, motion.weight, motion.offset, motion.x, motion.F)
-    return 4 * sum(a.size for a in arrays)
-
-
 def sequence_from_trajectory(trajectory, camera, fps: float, ground: float | None = None) -> GaussianSequence:
     """The moving Gaussians of a ``physgm.sim.gaussian_trajectory.GaussianTrajectory`` as seen in its clip.
 
@@ -264,7 +258,7 @@ def sequence_from_trajectory(trajectory, camera, fps: float, ground: float | Non
             x=trajectory.x[:stored],
             F=trajectory.F[:stored],
         )
-        if _stored_bytes(motion) > 36 * stored * motion.n_gaussians:  # the particles would take more room
+        if motion.stored_bytes > 36 * stored * motion.n_gaussians:  # the particles would take more room
             frames = [motion.frame(s) for s in range(stored)]
             motion = StoredFrames(
                 means=np.stack([m for m, _ in frames]), covs=np.stack([matrix_to_triu(c) for _, c in frames])
