@@ -13,6 +13,7 @@ from physgm.render.torch_backend import rasterize_torch
 
 SPLIT_KERNELS = {
     "project_bounds_kernel",
+    "gather_pairs_kernel",
     "bin_entries_kernel",
     "scatter_entry_grads_kernel",
     "project_vjp_kernel",
@@ -55,7 +56,11 @@ def test_split_launches_match_one_thread_and_the_torch_twin(kit, monkeypatch, nu
 
     def recording(kernel, launches, device):
         split.append((kernel.key, len(launches)))
+        if kernel.key == "bin_entries_kernel":
+            bin_dims.append([dim for dim, _ in launches])
         run_parallel(kernel, launches, device)
+
+    bin_dims = []
 
     monkeypatch.setattr(warp_backend, "_MIN_SPLIT", 1)  # split even these small launches
     monkeypatch.setattr(warp_backend, "_MIN_SPLIT_BIN", 1)
@@ -63,17 +68,18 @@ def test_split_launches_match_one_thread_and_the_torch_twin(kit, monkeypatch, nu
     monkeypatch.setattr(warp_backend, "_run_parallel", recording)
     parallel = render(scene, warp_backend.rasterize_warp, RasterSettings(40, 32, num_threads=threads))
 
-    # per image: bounds split with 2 or more images; binning always (by images, or by the raster's
+    # bounds and the depth-ordered copy by pairs; binning always (by images, or by the raster's
     # tile ranges within one image); per scene: with 2 or more scenes, and the projection's
     # gradient with one camera per scene (a pair then writes only its own Gaussian)
-    expected = (
-        {"project_bounds_kernel", "bin_entries_kernel"} if num_b * num_c > 1 else {"bin_entries_kernel"}
-    )
+    expected = {"project_bounds_kernel", "gather_pairs_kernel", "bin_entries_kernel"}
     if num_b > 1:
         expected |= {"scatter_entry_grads_kernel", "project_vjp_kernel"}
     if num_c == 1:
         expected |= {"project_vjp_kernel"}
     assert {key for key, parts in split if key in SPLIT_KERNELS and parts > 1} == expected
+    if num_b * num_c == 1:  # by tile ranges: a thread skips the pairs that touch none of its tiles
+        (dims,) = bin_dims
+        assert len(dims) == threads and max(dims) < sum(dims) < threads * max(dims)
     for a, b in zip(serial[:2], parallel[:2], strict=True):
         assert torch.equal(a, b)  # each pixel and each Gaussian's sum is computed by one thread, in order
     for name in serial[2]:
@@ -127,21 +133,26 @@ def test_binning_by_tile_ranges_writes_each_tile_once_and_only_its_own():
         torch.rand(num_n, 3, generator=gen),
     ]
     m = int(tile_end[-1])
+    # the pairs in depth order, as gather_pairs_kernel leaves them (one image, one camera: g = pid)
+    in_order = [x[order] for x in pair_in]
+    spans = torch.stack([rect[:, 2] * tiles_x + rect[:, 0], rect[:, 3] * tiles_x + rect[:, 1]], 1)[order]
+    all_rows = torch.arange(num_n)
 
-    def bin_ranges(ranges):
+    def bin_ranges(ranges, rows_of=lambda lo, hi: all_rows):
         cursor = tile_start.clone()
         out = [torch.full((m,), -1, dtype=torch.int64), torch.full((m,), -1, dtype=torch.int64)]
         out += [torch.zeros(m, k) if k > 1 else torch.zeros(m) for k in (2, 3, 1, 1, 3, 2)]
         dtypes = (wp.vec2, wp.vec3, wp.float32, wp.vec2, wp.float32, wp.vec3)
-        pair_args = [warp_backend._arr(x, d) for x, d in zip(pair_in, dtypes, strict=True)]
+        row_args = [warp_backend._arr(x, d) for x, d in zip(in_order, dtypes, strict=True)]
         out_dtypes = (wp.int64, wp.int64, wp.vec2, wp.vec3, wp.float32, wp.float32, wp.vec3, wp.vec2)
         out_args = [warp_backend._arr(x, d) for x, d in zip(out, out_dtypes, strict=True)]
         for lo, hi in ranges:
+            rows = rows_of(lo, hi)
             warp_backend._launch(
                 K.bin_entries_kernel,
-                num_n,
+                rows.numel(),
                 [
-                    warp_backend._arr(order, wp.int64),
+                    warp_backend._arr(rows, wp.int64),
                     width,
                     height,
                     tile,
@@ -152,7 +163,8 @@ def test_binning_by_tile_ranges_writes_each_tile_once_and_only_its_own():
                     warp_backend._arr(cursor, wp.int32),
                     num_n,
                     1,
-                    *pair_args,
+                    warp_backend._arr(order, wp.int64),
+                    *row_args,
                     *out_args,
                 ],
                 torch.device("cpu"),
@@ -168,3 +180,13 @@ def test_binning_by_tile_ranges_writes_each_tile_once_and_only_its_own():
             assert torch.equal(a, b), cut
         cursor, _ = bin_ranges([(cut, tiles)])
         assert torch.equal(cursor[:cut], tile_start[:cut]) and torch.equal(cursor[cut:], tile_end[cut:])
+        # walking only the rows whose span of tiles meets the range (what a thread of the
+        # backend walks) changes nothing, and skips some rows
+        meeting = dict(
+            zip([0, cut], warp_backend._rows_meeting(spans, [(0, cut), (cut, tiles - cut)]), strict=True)
+        )
+        cursor, out = bin_ranges([(0, cut), (cut, tiles)], lambda lo, hi, rows=meeting: rows[lo])
+        assert torch.equal(cursor, tile_end), cut
+        for a, b in zip(out, out_all, strict=True):
+            assert torch.equal(a, b), cut
+        assert sum(r.numel() for r in meeting.values()) < 2 * num_n

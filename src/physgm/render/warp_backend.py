@@ -11,9 +11,10 @@ Backward: raster backward into per-entry slots -> summed into pairs / Gaussians 
 projection's hand-written vector-Jacobian product (tested against Warp's generated adjoint).
 The same code runs on CPU and CUDA (tile layout with 16-pixel SIMD rows on CPU, pixel layout on
 CUDA). On the CPU the launches are split over Python threads (``physgm.parallel``), which run in
-parallel because a Warp launch releases the GIL: the raster launches by tiles, the per-pair and
-per-entry launches of large batches by images or scenes (``_cuts``), so no two threads write the
-same memory.
+parallel because a Warp launch releases the GIL: the raster launches by tiles, the projection by
+pairs (each thread counting tiles into its own row), the binning by images or, within one image,
+by the raster's tile ranges, and the backward's per-entry launches by scenes (``_cuts``), so no
+two threads write the same memory.
 """
 
 from __future__ import annotations
@@ -208,15 +209,52 @@ def _launch_split(
 # Fewer indices per thread than this and a helper-thread hand-off (50-75 us, physgm.parallel)
 # costs about what it saves: a CPU handles a few thousand pairs or entries in that time.
 _MIN_SPLIT = 8192
-# The fused projection and bounds (`project_bounds_kernel`) split like the rest.
-# Binning one image on two threads: each walks all pairs and writes half the entries, so a small
-# image gains nothing from the split.
+# The fused projection and bounds (`project_bounds_kernel`) split like the rest, by pairs.
+# Binning one image on two threads: each walks the pairs that touch its tiles (in a busy image about
+# two in three) and writes its share of the entries, so a small image gains nothing from the split.
 _MIN_SPLIT_BIN = 8192
 # The projection's vector-Jacobian product costs more per pair, so it splits from fewer pairs.
 _MIN_SPLIT_VJP = 2048
 
 _FORWARD = (T.raster_forward_tile_kernel, R.raster_forward_pixel_kernel)
 _BACKWARD = (T.raster_backward_tile_kernel, R.raster_backward_pixel_kernel)
+
+
+def _project_bounds(args: list, num_pairs: int, num_tiles: int, threads: int, device: torch.device) -> Tensor:
+    """Runs ``project_bounds_kernel(offset, *args, tile_counts)`` over all pairs and returns the
+    [num_tiles] int32 tile counts. On the CPU the pairs split into ``threads`` ranges (from
+    ``_MIN_SPLIT`` pairs each), each counting into its own row; the rows' sum is the same in any
+    split, so one image's Gaussians split as well as many images do."""
+    cuts = _cuts(num_pairs, 1, threads)
+    ranges = [(a, b - a) for a, b in itertools.pairwise(cuts) if b > a]
+    if device.type != "cpu" or len(ranges) < 2 or min(n for _, n in ranges) < _MIN_SPLIT:
+        ranges = [(0, num_pairs)]
+    rows = torch.zeros(len(ranges), num_tiles, dtype=torch.int32, device=device)
+    launches = [(n, [a, *args, _arr(rows[k], wp.int32)]) for k, (a, n) in enumerate(ranges)]
+    if len(launches) > 1:
+        _run_parallel(K.project_bounds_kernel, launches, device)
+        return rows.sum(0, dtype=torch.int32)
+    _launch(K.project_bounds_kernel, *launches[0], device)
+    return rows[0]
+
+
+def _pairs_in_order(order: Tensor, pair_in: list, threads: int, device: torch.device) -> list:
+    """``bin_entries_kernel``'s per-row inputs: the pairs ``order`` [E] lists, their data copied
+    in that order by ``gather_pairs_kernel`` (split over threads by rows)."""
+    num = order.numel()
+    copies = [torch.empty(num, k, device=device) for k in (2, 3, 1, 2, 1, 3)]
+    dtypes = (wp.vec2, wp.vec3, wp.float32, wp.vec2, wp.float32, wp.vec3)
+    out = [_arr(c.squeeze(1) if c.shape[1] == 1 else c, d) for c, d in zip(copies, dtypes, strict=True)]
+    order_arr = _arr(order, wp.int64)
+    _launch_split(K.gather_pairs_kernel, _cuts(num, 1, threads), [order_arr, *pair_in, *out], device)
+    return [order_arr, *out]
+
+
+def _rows_meeting(spans: Tensor, tile_ranges: list[tuple[int, int]]) -> list[Tensor]:
+    """For each tile range (first, count), the rows whose span of tiles (first and last global
+    tile id, [E, 2]) meets it, ascending."""
+    first, last = spans[:, 0], spans[:, 1]
+    return [torch.nonzero((first < t0 + n) & (last >= t0))[:, 0] for t0, n in tile_ranges]
 
 
 def _projection_args(means, quats, scales, opacities, viewmats, Ks, num_n, num_c, s) -> list:
@@ -257,13 +295,17 @@ class _RasterizeWarp(torch.autograd.Function):
         extents = means.new_empty(num_pairs, 2)
         qmax = means.new_empty(num_pairs)
         counts = torch.empty(num_pairs, dtype=torch.int32, device=device)
-        tile_counts = torch.zeros(num_i * tiles_per_image, dtype=torch.int32, device=device)
+        spans = torch.empty(num_pairs, 2, dtype=torch.int32, device=device)
         bounds = [_arr(extents, wp.vec2), _arr(qmax, wp.float32), _arr(counts, wp.int32)]
         threads = s.num_threads if device.type == "cpu" else 1
-        image_cuts = _cuts(num_pairs, num_n, threads)  # tile counts are per image
-        _launch_split(K.project_bounds_kernel, image_cuts,
-                      [*proj_in, s.tile_size, s.tiles_x, tiles_per_image, *proj_out, *bounds,
-                       _arr(tile_counts, wp.int32)], device)  # fmt: skip
+        image_cuts = _cuts(num_pairs, num_n, threads)
+        tile_counts = _project_bounds(
+            [*proj_in, s.tile_size, s.tiles_x, tiles_per_image, *proj_out, *bounds, _arr(spans, wp.vec2i)],
+            num_pairs,
+            num_i * tiles_per_image,
+            threads,
+            device,
+        )
         # forward split by entry count (+1: empty tiles are not free); binning within an image
         # splits by the same ranges, so each thread writes the entries it will read. The backward
         # split uses the pixel tests the forward counted, since its cost follows the composited pairs.
@@ -278,35 +320,36 @@ class _RasterizeWarp(torch.autograd.Function):
         entries += [means.new_empty(num_entries), means.new_empty(num_entries)]
         entries += [means.new_empty(num_entries, 3), means.new_empty(num_entries, 2)]
         entry_arrs = _entry_arrays(entries)
-        pair_data = [num_n, num_c, proj_out[0], proj_out[1], bounds[1], bounds[0], proj_in[3],
-                     _arr(colors, wp.vec3), _arr(e_pair, wp.int64), _arr(e_gauss, wp.int64),
-                     *entry_arrs]  # fmt: skip
+        pair_in = [num_n, num_c, proj_out[0], proj_out[1], bounds[1], bounds[0], proj_in[3],
+                   _arr(colors, wp.vec3)]  # fmt: skip
+        entry_out = [_arr(e_pair, wp.int64), _arr(e_gauss, wp.int64), *entry_arrs]
         if num_entries and _binning(s, device) == "counting":
             # Only pairs that touch a tile are ordered. Their depths are > near_plane > 0, so the
             # float bits sort like the floats, and torch sorts integers by radix, far faster than
             # a comparison sort. Stable: equal depths keep pair order.
             emitted = torch.nonzero(counts, as_tuple=True)[0]
             by_depth = emitted[torch.sort(depths[emitted].view(torch.int32), stable=True)[1]]
+            in_order = _pairs_in_order(by_depth, pair_in, threads, device)
             cursor = _arr(tile_start.clone(), wp.int32)
             head = [s.width, s.height, s.tile_size, s.tiles_x, tiles_per_image]
             all_tiles = [0, tile_counts.numel()]
             if len(image_cuts) > 2 and by_depth.numel() >= 2 * _MIN_SPLIT:
                 # Each thread appends the pairs of its own images (so to its own tiles), in depth order.
                 part = torch.bucketize(by_depth, torch.tensor(image_cuts[1:-1]), right=True)
-                orders = [by_depth[part == k] for k in range(len(image_cuts) - 1)]
-                _run_parallel(K.bin_entries_kernel,
-                              [(o.numel(), [_arr(o, wp.int64), *head, *all_tiles, cursor, *pair_data])
-                               for o in orders if o.numel()], device)  # fmt: skip
+                walks = [(torch.nonzero(part == k)[:, 0], all_tiles) for k in range(len(image_cuts) - 1)]
             elif len(tile_ranges) > 1 and by_depth.numel() >= _MIN_SPLIT_BIN:
-                # Every thread walks all pairs and appends to the tiles it rasterises.
-                order = _arr(by_depth, wp.int64)
-                _run_parallel(K.bin_entries_kernel,
-                              [(by_depth.numel(), [order, *head, t0, t0 + n, cursor, *pair_data])
-                               for t0, n in tile_ranges], device)  # fmt: skip
+                # Each thread appends to the tiles it rasterises, walking the pairs whose span of
+                # tiles meets them (a subsequence of the depth order, so each tile's stays).
+                rows = _rows_meeting(spans[by_depth], tile_ranges)
+                walks = [(r, [t0, t0 + n]) for r, (t0, n) in zip(rows, tile_ranges, strict=True)]
             else:
-                _launch(K.bin_entries_kernel, by_depth.numel(),
-                        [_arr(by_depth, wp.int64), *head, *all_tiles, cursor, *pair_data],
-                        device)  # fmt: skip
+                walks = [(torch.arange(by_depth.numel(), device=device), all_tiles)]
+            rest = [cursor, num_n, num_c, *in_order, *entry_out]
+            launches = [(r.numel(), [_arr(r, wp.int64), *head, *own, *rest]) for r, own in walks if r.numel()]
+            if len(launches) > 1:
+                _run_parallel(K.bin_entries_kernel, launches, device)
+            else:
+                _launch(K.bin_entries_kernel, *launches[0], device)
         elif num_entries:
             csum = torch.cumsum(counts, dim=0, dtype=torch.int32)
             entry_tile = torch.empty(num_entries, dtype=torch.int32, device=device)
@@ -320,7 +363,8 @@ class _RasterizeWarp(torch.autograd.Function):
             keys = (entry_tile.to(torch.int64) << 32) | depth_bits[entry_pair.to(torch.int64)]
             order = torch.sort(keys, stable=True)[1]  # stable: equal depths keep Gaussian order
             _launch(K.gather_entries_kernel, num_entries,
-                    [_arr(order, wp.int64), _arr(entry_pair, wp.int32), *pair_data], device)  # fmt: skip
+                    [_arr(order, wp.int64), _arr(entry_pair, wp.int32), *pair_in, *entry_out],
+                    device)  # fmt: skip
 
         num_pix = num_i * s.height * s.width
         rgb = means.new_zeros(num_pix, 3)

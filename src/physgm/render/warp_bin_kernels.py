@@ -3,9 +3,10 @@
 Each (image, Gaussian) pair is projected, boxed (its alpha >= 1/255 extent) and counted in every
 tile the box touches (``project_bounds_kernel``); every (pair, tile) intersection is then an
 *entry*, put in (image, tile, depth) order with its data gathered contiguously: by a global sort
-and ``emit_entries_kernel`` + ``gather_entries_kernel``, or by a counting sort in one pass on the
-CPU (``bin_entries_kernel``). After the raster backward, ``scatter_entry_grads_kernel`` sums the
-per-entry gradients back into pairs and Gaussians. Layout: ``warp_kernels``.
+and ``emit_entries_kernel`` + ``gather_entries_kernel``, or on the CPU by a counting sort in one
+pass over the pairs in depth order (``gather_pairs_kernel``, then ``bin_entries_kernel``). After
+the raster backward, ``scatter_entry_grads_kernel`` sums the per-entry gradients back into pairs
+and Gaussians. Layout: ``warp_kernels``.
 """
 
 from __future__ import annotations
@@ -46,11 +47,14 @@ def project_bounds_kernel(
     extents: wp.array(dtype=wp.vec2),  # [I*N] half-size (px) of the alpha >= 1/255 box, out
     qmax: wp.array(dtype=float),  # [I*N] largest q with alpha >= 1/255, plus a margin, out
     counts: wp.array(dtype=wp.int32),  # [I*N] tiles touched, out
+    spans: wp.array(dtype=wp.vec2i),  # [I*N] global ids of the first and last tile touched, out
     tile_counts: wp.array(dtype=wp.int32),  # [I*tiles] pairs touching each tile, zeroed by the caller
 ):
     """`project_kernel` and then the pair's box and tiles in one pass. The box mirrors
     `projection.extents_from_cov` and `projection.tile_rects`; the entries of every tile are
-    counted with atomics, so the counts are the same in any thread order."""
+    counted with atomics, so the counts are the same in any thread order. A pair touches no tile
+    outside its span (row-major ids), so a thread binning a range of tiles can skip the pairs
+    whose span misses it."""
     pid = wp.tid() + offset
     img, g = pair_gaussian(pid, num_gaussians, num_cameras)
     m2, con, depth, cd = project_pair(img, g, means, quats, scales, opacities, viewmats, Ks, width, height,
@@ -69,6 +73,8 @@ def project_bounds_kernel(
     qmax[pid] = k2 + _QMAX_MARGIN
     r = tile_rect(m2, ext, width, height, tile_size)
     counts[pid] = wp.max(r[1] - r[0] + 1, 0) * wp.max(r[3] - r[2] + 1, 0)
+    first = img * tiles_per_image + r[2] * tiles_x
+    spans[pid] = wp.vec2i(first + r[0], first + (r[3] - r[2]) * tiles_x + r[1])
     for ty in range(r[2], r[3] + 1):
         for tx in range(r[0], r[1] + 1):
             wp.atomic_add(tile_counts, img * tiles_per_image + ty * tiles_x + tx, 1)
@@ -183,8 +189,41 @@ def gather_entries_kernel(
 
 
 @wp.kernel(enable_backward=False)
+def gather_pairs_kernel(
+    offset: int,  # first row of this launch (the CPU splits a launch over threads)
+    order: wp.array(dtype=wp.int64),  # [E] pairs sorted by depth (stable)
+    num_gaussians: int,
+    num_cameras: int,
+    means2d: wp.array(dtype=wp.vec2),  # [I*N] per pair
+    conics: wp.array(dtype=wp.vec3),  # [I*N]
+    qmax: wp.array(dtype=float),  # [I*N]
+    extents: wp.array(dtype=wp.vec2),  # [I*N]
+    opacities: wp.array(dtype=float),  # [B*N] per Gaussian
+    colors: wp.array(dtype=wp.vec3),  # [B*N]
+    d_means2d: wp.array(dtype=wp.vec2),  # [E] row r holds pair order[r], out
+    d_conics: wp.array(dtype=wp.vec3),
+    d_qmax: wp.array(dtype=float),
+    d_extents: wp.array(dtype=wp.vec2),
+    d_opacities: wp.array(dtype=float),
+    d_colors: wp.array(dtype=wp.vec3),
+):
+    """What the raster kernels read about each pair, copied in depth order, so that
+    ``bin_entries_kernel`` reads it front to back (read through the order, a large image's pairs
+    are one cache miss each, and binning took twice as long)."""
+    r = wp.tid() + offset
+    pid = int(order[r])
+    img, g = pair_gaussian(pid, num_gaussians, num_cameras)
+    d_means2d[r] = means2d[pid]
+    d_conics[r] = conics[pid]
+    d_qmax[r] = qmax[pid]
+    d_extents[r] = extents[pid]
+    d_opacities[r] = opacities[g]
+    d_colors[r] = colors[g]
+
+
+@wp.kernel(enable_backward=False)
 def bin_entries_kernel(
-    order: wp.array(dtype=wp.int64),  # [I*N] pairs sorted by depth (stable)
+    rows: wp.array(dtype=wp.int64),  # rows of the depth order this launch walks, ascending
     width: int,
     height: int,
     tile_size: int,
@@ -195,12 +234,13 @@ def bin_entries_kernel(
     cursor: wp.array(dtype=wp.int32),  # [I*tiles] next free entry of each tile; starts at tile_start
     num_gaussians: int,
     num_cameras: int,
-    means2d: wp.array(dtype=wp.vec2),  # [I*N] per pair
-    conics: wp.array(dtype=wp.vec3),  # [I*N]
-    qmax: wp.array(dtype=float),  # [I*N]
-    extents: wp.array(dtype=wp.vec2),  # [I*N]
-    opacities: wp.array(dtype=float),  # [B*N] per Gaussian
-    colors: wp.array(dtype=wp.vec3),  # [B*N]
+    order: wp.array(dtype=wp.int64),  # [E] pairs sorted by depth (stable): the pair of each row
+    d_means2d: wp.array(dtype=wp.vec2),  # [E] per row (``gather_pairs_kernel``)
+    d_conics: wp.array(dtype=wp.vec3),
+    d_qmax: wp.array(dtype=float),
+    d_extents: wp.array(dtype=wp.vec2),
+    d_opacities: wp.array(dtype=float),
+    d_colors: wp.array(dtype=wp.vec3),
     e_pair: wp.array(dtype=wp.int64),  # [M] outputs as in gather_entries_kernel
     e_gauss: wp.array(dtype=wp.int64),
     e_means2d: wp.array(dtype=wp.vec2),
@@ -215,18 +255,26 @@ def bin_entries_kernel(
     Emitting, sorting and gathering in one pass; the order inside a tile is the launch order, so
     this is only correct where a launch runs its threads in sequence (Warp on the CPU).
     """
-    pid = int(order[wp.tid()])
-    r = tile_rect(means2d[pid], extents[pid], width, height, tile_size)
-    img = pid // num_gaussians
+    row = int(rows[wp.tid()])
+    pid = int(order[row])
+    m2 = d_means2d[row]
+    ext = d_extents[row]
+    r = tile_rect(m2, ext, width, height, tile_size)
+    img, g = pair_gaussian(pid, num_gaussians, num_cameras)
     for ty in range(r[2], r[3] + 1):
         for tx in range(r[0], r[1] + 1):
             tile = img * tiles_per_image + ty * tiles_x + tx
             if tile < tile_lo or tile >= tile_hi:
                 continue
             e = wp.atomic_add(cursor, tile, 1)  # the old value
-            write_entry(e, pid, num_gaussians, num_cameras, means2d, conics, qmax, extents, opacities,
-                        colors, e_pair, e_gauss, e_means2d, e_conics, e_opacities, e_qmax, e_colors,
-                        e_extents)  # fmt: skip
+            e_pair[e] = wp.int64(pid)
+            e_gauss[e] = wp.int64(g)
+            e_means2d[e] = m2
+            e_conics[e] = d_conics[row]
+            e_opacities[e] = d_opacities[row]
+            e_qmax[e] = d_qmax[row]
+            e_colors[e] = d_colors[row]
+            e_extents[e] = ext
 
 
 @wp.kernel(enable_backward=False)

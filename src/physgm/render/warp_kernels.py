@@ -11,9 +11,9 @@ lists them):
     warp_project_kernels  EWA projection of a pair (``project_kernel``) and its hand-written
                           backward (``project_vjp_kernel``)
     warp_bin_kernels      projection with the pair's box and tile counts
-                          (``project_bounds_kernel``), the entries' ordering (emit + gather, or
-                          one counting-sort pass) and the entries' gradients summed back
-                          (``scatter_entry_grads_kernel``)
+                          (``project_bounds_kernel``), the entries' ordering (emit + gather,
+                          or the pairs copied in depth order and one counting-sort pass) and
+                          the entries' gradients summed back (``scatter_entry_grads_kernel``)
 The raster kernels are in `warp_raster_kernels.py` and `warp_tile_kernels.py`.
 """
 
@@ -21,6 +21,7 @@ from physgm.render.warp_bin_kernels import (
     bin_entries_kernel,
     emit_entries_kernel,
     gather_entries_kernel,
+    gather_pairs_kernel,
     project_bounds_kernel,
     scatter_entry_grads_kernel,
 )
@@ -30,6 +31,7 @@ __all__ = [
     "bin_entries_kernel",
     "emit_entries_kernel",
     "gather_entries_kernel",
+    "gather_pairs_kernel",
     "project_bounds_kernel",
     "project_kernel",
     "project_vjp_kernel",
