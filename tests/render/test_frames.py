@@ -10,7 +10,7 @@ import torch
 from physgm.cameras import orbit_cameras
 from physgm.gaussians import Gaussians
 from physgm.render import Renderer
-from physgm.render.frames import Shot, render_trajectory
+from physgm.render.frames import Shot, front_to_back, render_trajectory
 
 
 @dataclass
@@ -29,6 +29,9 @@ class Falling:
         return Gaussians(
             self.blob.means + shift, self.blob.quats, self.blob.scales, self.blob.opacities, self.blob.colors
         )
+
+    def reordered(self, index: torch.Tensor) -> Falling:
+        return Falling(self.blob[index], self.n, self.rest_frame)
 
 
 def _blob() -> Gaussians:
@@ -63,3 +66,35 @@ def test_non_finite_gaussians_give_a_black_frame_and_say_so():
         Falling(blob, 2, None), Shot(cam, Renderer(backend="torch"), np.ones(3))
     )
     assert not finite and (frames == 0).all()
+
+
+def test_frames_are_drawn_front_to_back_with_the_pixels_of_the_order_given():
+    # render_trajectory hands the rasteriser the Gaussians in depth order from the camera, so
+    # its reads run through memory in order; with no two at one depth the pixels stay the same.
+    gen = torch.Generator().manual_seed(4)
+    n = 400
+    blob = Gaussians(
+        torch.randn(n, 3, generator=gen) * 0.1,
+        torch.nn.functional.normalize(torch.randn(n, 4, generator=gen), dim=-1),
+        torch.rand(n, 3, generator=gen) * 0.03 + 0.005,
+        torch.rand(n, generator=gen) * 0.8 + 0.1,
+        torch.rand(n, 3, generator=gen),
+    )
+    cam = orbit_cameras([20.0], [10.0], 1.0, 40.0, 48, 48)
+    order = front_to_back(blob.means, cam)
+    depth = blob.means @ cam.viewmats[0, 2, :3] + cam.viewmats[0, 2, 3]
+    assert (depth[order].diff() > 0).all() and not torch.equal(order, torch.arange(n))
+    shot = Shot(cam, Renderer(), np.array([0.2, 0.3, 0.4]))
+    asked = []
+
+    class Recorded(Falling):
+        def reordered(self, index: torch.Tensor) -> Falling:
+            asked.append(index)
+            return super().reordered(index)
+
+    traj = Recorded(blob, n=3, rest_frame=None)
+    frames, finite = render_trajectory(traj, shot)
+    assert finite and len(asked) == 1 and torch.equal(asked[0], order)
+    for t in range(3):
+        drawn = np.round(np.clip(shot.draw(traj.gaussians_at(t)), 0.0, 1.0) * 255.0).astype(np.uint8)
+        assert np.array_equal(frames[t], drawn), t

@@ -582,3 +582,19 @@ def test_the_grid_follows_a_body_that_leaves_the_planned_region():
     assert float(np.abs(moved.x - ref.x).max()) < 1e-4  # m
     assert stopped.face_contacts > 0 and stopped.grid_moves == 0
     assert float(ref.x[-1, :, 0].max() - stopped.x[-1, :, 0].max()) > 0.1  # m short of where it slid
+
+
+@pytest.mark.parametrize(("material", "mode"), [("metal", "rigid"), ("jelly", "mpm")])
+def test_a_reordered_trajectory_moves_each_gaussian_as_before(material, mode):
+    # What the renderer draws in depth order (render.frames.front_to_back) must be the same
+    # Gaussians in the same places.
+    traj = simulate(_shell_cube(n=600), PhysicsSpec(material), GROUND, CAMERAS, n_frames=4)
+    assert traj.plan.mode == mode
+    index = torch.randperm(len(traj.gaussians), generator=torch.Generator().manual_seed(2))
+    reordered = traj.reordered(index)
+    for t in (0, 3):
+        a, b = traj.gaussians_at(t)[index], reordered.gaussians_at(t)
+        for name in ("means", "quats", "scales", "opacities", "colors"):
+            assert torch.equal(getattr(a, name), getattr(b, name)), (t, name)
+    assert torch.equal(traj.means()[:, index], reordered.means())
+    assert not torch.equal(traj.gaussians_at(3).means, traj.gaussians_at(0).means)  # it moved

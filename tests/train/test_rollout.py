@@ -51,6 +51,9 @@ class StillTrajectory:
     def gaussians_at(self, t: int) -> Gaussians:
         return self.gaussians
 
+    def reordered(self, index: torch.Tensor) -> StillTrajectory:
+        return StillTrajectory(self.gaussians[index], self.n, self.plan, self.rest_frame)
+
 
 def falling_square(frames: int = 10, size: int = 32) -> np.ndarray:
     rng = np.random.default_rng(0)

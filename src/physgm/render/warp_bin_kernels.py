@@ -209,7 +209,7 @@ def gather_pairs_kernel(
 ):
     """What the raster kernels read about each pair, copied in depth order, so that
     ``bin_entries_kernel`` reads it front to back (read through the order, a large image's pairs
-    are one cache miss each, and binning took twice as long)."""
+    are a cache miss per array each)."""
     r = wp.tid() + offset
     pid = int(order[r])
     img, g = pair_gaussian(pid, num_gaussians, num_cameras)

@@ -99,6 +99,13 @@ class GaussianTrajectory:
             self.gaussians, self.followers, torch.from_numpy(self.x[t]), torch.from_numpy(self.F[t])
         )
 
+    def reordered(self, index: torch.Tensor) -> GaussianTrajectory:
+        """The same motion with the Gaussians in the order ``index`` [N] (a permutation) gives."""
+        followers = self.followers
+        if followers is not None:
+            followers = Followers(followers.index[index], followers.weight[index], followers.offset[index])
+        return replace(self, gaussians=self.gaussians[index], followers=followers)
+
     def frames(self) -> Iterator[Gaussians]:
         for t in range(len(self)):
             yield self.gaussians_at(t)
