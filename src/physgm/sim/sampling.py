@@ -305,7 +305,7 @@ class Followers:
     """Each Gaussian's K nearest particles and weights.
 
     Attributes:
-        index: [N, K] particle indices.
+        index: [N, K] particle indices (int32: a capture's millions of Gaussians hold 8 each).
         weight: [N, K] normalised weights (sum 1 per row).
         offset: [N, K, 3] rest offsets X_g - X_j, m.
     """
@@ -351,7 +351,7 @@ def build_followers(
     device = means.device
     offset = q[:, None, :] - p[idx]
     return Followers(
-        index=torch.from_numpy(idx).long().to(device),
+        index=torch.from_numpy(idx).int().to(device),
         weight=torch.from_numpy(w).float().to(device),
         offset=torch.from_numpy(offset).float().to(device),
     )
