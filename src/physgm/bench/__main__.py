@@ -13,6 +13,7 @@ SUITES = {
     "sim-stability": "physgm.bench.sim_stability",
     "sim-substep": "physgm.bench.sim_substep",
     "e2e": "physgm.bench.e2e",
+    "capture": "physgm.bench.capture",
     "model": "physgm.bench.model_speed",
     "hull": "physgm.bench.hull_speed",
     "dpo-landscape": "physgm.bench.dpo_landscape",
