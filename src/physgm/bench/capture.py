@@ -57,6 +57,7 @@ def run_child(ply: Path, out: Path, material: str, frames: int, res: int) -> dic
     report = run_pipeline(compose_run(overrides)).report
     mean = report["runs"][0]
     npz = out / "gaussians_t.npz"
+    peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
     return {
         "gaussians": report["object"]["gaussians"],
         "material": mean["material"],
@@ -64,7 +65,7 @@ def run_child(ply: Path, out: Path, material: str, frames: int, res: int) -> dic
         "particles": mean["particles"],
         "substeps": mean["substeps"],
         "seconds": report["seconds"],
-        "peak_rss_gb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20, 3),  # KB on Linux
+        "peak_rss_gb": round(peak_kib * 1024 / 1e9, 3),
         "npz_mb": round(npz.stat().st_size / 1e6, 1) if npz.is_file() else None,
     }
 
