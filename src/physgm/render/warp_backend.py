@@ -210,8 +210,9 @@ def _launch_split(
 # costs about what it saves: a CPU handles a few thousand pairs or entries in that time.
 _MIN_SPLIT = 8192
 # The fused projection and bounds (`project_bounds_kernel`) split like the rest, by pairs.
-# Binning one image on two threads: each walks the pairs that touch its tiles (in a busy image about
-# two in three) and writes its share of the entries, so a small image gains nothing from the split.
+# Binning one image on two threads: each walks every pair in depth order, skips those whose tiles
+# are the other's (a read of 8 bytes) and writes its share of the entries, so a small image gains
+# nothing from the split.
 _MIN_SPLIT_BIN = 8192
 # The projection's vector-Jacobian product costs more per pair, so it splits from fewer pairs.
 _MIN_SPLIT_VJP = 2048
@@ -238,23 +239,18 @@ def _project_bounds(args: list, num_pairs: int, num_tiles: int, threads: int, de
     return rows[0]
 
 
-def _pairs_in_order(order: Tensor, pair_in: list, threads: int, device: torch.device) -> list:
-    """``bin_entries_kernel``'s per-row inputs: the pairs ``order`` [E] lists, their data copied
-    in that order by ``gather_pairs_kernel`` (split over threads by rows)."""
+def _pairs_in_order(order: Tensor, pair_in: list, spans: Tensor, threads: int, device: torch.device) -> list:
+    """``bin_entries_kernel``'s per-row inputs: the pairs ``order`` [E] lists, their data and
+    span of tiles copied in that order by ``gather_pairs_kernel`` (split over threads by rows)."""
     num = order.numel()
     copies = [torch.empty(num, k, device=device) for k in (2, 3, 1, 2, 1, 3)]
     dtypes = (wp.vec2, wp.vec3, wp.float32, wp.vec2, wp.float32, wp.vec3)
     out = [_arr(c.squeeze(1) if c.shape[1] == 1 else c, d) for c, d in zip(copies, dtypes, strict=True)]
+    out.append(_arr(torch.empty(num, 2, dtype=torch.int32, device=device), wp.vec2i))
     order_arr = _arr(order, wp.int64)
-    _launch_split(K.gather_pairs_kernel, _cuts(num, 1, threads), [order_arr, *pair_in, *out], device)
+    args = [order_arr, *pair_in, _arr(spans, wp.vec2i), *out]
+    _launch_split(K.gather_pairs_kernel, _cuts(num, 1, threads), args, device)
     return [order_arr, *out]
-
-
-def _rows_meeting(spans: Tensor, tile_ranges: list[tuple[int, int]]) -> list[Tensor]:
-    """For each tile range (first, count), the rows whose span of tiles (first and last global
-    tile id, [E, 2]) meets it, ascending."""
-    first, last = spans[:, 0], spans[:, 1]
-    return [torch.nonzero((first < t0 + n) & (last >= t0))[:, 0] for t0, n in tile_ranges]
 
 
 def _projection_args(means, quats, scales, opacities, viewmats, Ks, num_n, num_c, s) -> list:
@@ -329,23 +325,19 @@ class _RasterizeWarp(torch.autograd.Function):
             # a comparison sort. Stable: equal depths keep pair order.
             emitted = torch.nonzero(counts, as_tuple=True)[0]
             by_depth = emitted[torch.sort(depths[emitted].view(torch.int32), stable=True)[1]]
-            in_order = _pairs_in_order(by_depth, pair_in, threads, device)
+            in_order = _pairs_in_order(by_depth, pair_in, spans, threads, device)
             cursor = _arr(tile_start.clone(), wp.int32)
             head = [s.width, s.height, s.tile_size, s.tiles_x, tiles_per_image]
-            all_tiles = [0, tile_counts.numel()]
             if len(image_cuts) > 2 and by_depth.numel() >= 2 * _MIN_SPLIT:
-                # Each thread appends the pairs of its own images (so to its own tiles), in depth order.
-                part = torch.bucketize(by_depth, torch.tensor(image_cuts[1:-1]), right=True)
-                walks = [(torch.nonzero(part == k)[:, 0], all_tiles) for k in range(len(image_cuts) - 1)]
+                # Each thread appends to the tiles of its own images.
+                first_tiles = [c // num_n * tiles_per_image for c in image_cuts]
+                own = list(itertools.pairwise(first_tiles))
             elif len(tile_ranges) > 1 and by_depth.numel() >= _MIN_SPLIT_BIN:
-                # Each thread appends to the tiles it rasterises, walking the pairs whose span of
-                # tiles meets them (a subsequence of the depth order, so each tile's stays).
-                rows = _rows_meeting(spans[by_depth], tile_ranges)
-                walks = [(r, [t0, t0 + n]) for r, (t0, n) in zip(rows, tile_ranges, strict=True)]
+                own = [(t0, t0 + n) for t0, n in tile_ranges]  # the tiles each thread rasterises
             else:
-                walks = [(torch.arange(by_depth.numel(), device=device), all_tiles)]
+                own = [(0, tile_counts.numel())]
             rest = [cursor, num_n, num_c, *in_order, *entry_out]
-            launches = [(r.numel(), [_arr(r, wp.int64), *head, *own, *rest]) for r, own in walks if r.numel()]
+            launches = [(by_depth.numel(), [*head, lo, hi, *rest]) for lo, hi in own]
             if len(launches) > 1:
                 _run_parallel(K.bin_entries_kernel, launches, device)
             else:

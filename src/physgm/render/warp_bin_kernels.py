@@ -200,12 +200,14 @@ def gather_pairs_kernel(
     extents: wp.array(dtype=wp.vec2),  # [I*N]
     opacities: wp.array(dtype=float),  # [B*N] per Gaussian
     colors: wp.array(dtype=wp.vec3),  # [B*N]
+    spans: wp.array(dtype=wp.vec2i),  # [I*N] per pair (``project_bounds_kernel``)
     d_means2d: wp.array(dtype=wp.vec2),  # [E] row r holds pair order[r], out
     d_conics: wp.array(dtype=wp.vec3),
     d_qmax: wp.array(dtype=float),
     d_extents: wp.array(dtype=wp.vec2),
     d_opacities: wp.array(dtype=float),
     d_colors: wp.array(dtype=wp.vec3),
+    d_spans: wp.array(dtype=wp.vec2i),
 ):
     """What the raster kernels read about each pair, copied in depth order, so that
     ``bin_entries_kernel`` reads it front to back (read through the order, a large image's pairs
@@ -219,18 +221,18 @@ def gather_pairs_kernel(
     d_extents[r] = extents[pid]
     d_opacities[r] = opacities[g]
     d_colors[r] = colors[g]
+    d_spans[r] = spans[pid]
 
 
 @wp.kernel(enable_backward=False)
 def bin_entries_kernel(
-    rows: wp.array(dtype=wp.int64),  # rows of the depth order this launch walks, ascending
     width: int,
     height: int,
     tile_size: int,
     tiles_x: int,
     tiles_per_image: int,
     tile_lo: int,  # this launch appends to global tiles tile_lo .. tile_hi - 1 only (the CPU
-    tile_hi: int,  # splits a launch over threads by tiles)
+    tile_hi: int,  # splits binning over threads by tiles: by images, or within one image)
     cursor: wp.array(dtype=wp.int32),  # [I*tiles] next free entry of each tile; starts at tile_start
     num_gaussians: int,
     num_cameras: int,
@@ -241,6 +243,7 @@ def bin_entries_kernel(
     d_extents: wp.array(dtype=wp.vec2),
     d_opacities: wp.array(dtype=float),
     d_colors: wp.array(dtype=wp.vec3),
+    d_spans: wp.array(dtype=wp.vec2i),
     e_pair: wp.array(dtype=wp.int64),  # [M] outputs as in gather_entries_kernel
     e_gauss: wp.array(dtype=wp.int64),
     e_means2d: wp.array(dtype=wp.vec2),
@@ -253,9 +256,13 @@ def bin_entries_kernel(
     """Counting sort: each pair, in depth order, appends itself to every tile it touches.
 
     Emitting, sorting and gathering in one pass; the order inside a tile is the launch order, so
-    this is only correct where a launch runs its threads in sequence (Warp on the CPU).
+    this is only correct where a launch runs its threads in sequence (Warp on the CPU). A launch
+    walks every row and skips at once the pairs whose span of tiles misses its own.
     """
-    row = int(rows[wp.tid()])
+    row = wp.tid()
+    span = d_spans[row]
+    if span[1] < tile_lo or span[0] >= tile_hi:
+        return
     pid = int(order[row])
     m2 = d_means2d[row]
     ext = d_extents[row]
