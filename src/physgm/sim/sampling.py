@@ -348,10 +348,13 @@ def build_followers(
     logw = -(dist**2 - dist[:, :1] ** 2) / (2 * radius**2)
     w = np.exp(logw)
     w /= w.sum(1, keepdims=True)
-    device = means.device
-    offset = q[:, None, :] - p[idx]
+    index = torch.from_numpy(idx).int().to(means.device)
+    # In the inputs' own precision: a float32 difference is the float64 one rounded to float32,
+    # the same bits at half the memory (a capture's millions of Gaussians hold 8 offsets each).
+    rest = means.detach()
+    offset = rest[:, None, :] - particles.detach().to(rest)[index]
     return Followers(
-        index=torch.from_numpy(idx).int().to(device),
-        weight=torch.from_numpy(w).float().to(device),
-        offset=torch.from_numpy(offset).float().to(device),
+        index=index,
+        weight=torch.from_numpy(w).float().to(means.device),
+        offset=offset.float(),
     )
