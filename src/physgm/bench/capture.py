@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import resource
 import subprocess
 import sys
@@ -23,6 +21,7 @@ from pathlib import Path
 
 import torch
 
+from physgm.bench.e2e import compose_run, machine
 from physgm.gaussians import Gaussians, write_ply
 from physgm.physics.materials import MATERIAL_NAMES
 
@@ -43,7 +42,6 @@ def capture_blob(n: int, seed: int = 0) -> Gaussians:
 
 def run_child(ply: Path, out: Path, material: str, frames: int, res: int) -> dict:
     """The pipeline on ``ply`` in this process (the child's side); its report and peak memory."""
-    from physgm.bench.e2e import compose_run
     from physgm.pipeline import run_pipeline
 
     overrides = [
@@ -116,14 +114,7 @@ def main(argv: list[str] | None = None) -> dict:
         for n in args.gaussians:
             runs.append(bench_size(n, folder, args))
             print(json.dumps(runs[-1]), file=sys.stderr)  # progress while the suite runs
-    result = {
-        "runs": runs,
-        "machine": {
-            "cpus": os.cpu_count(),
-            "loadavg": [round(x, 2) for x in os.getloadavg()],
-            "python": platform.python_version(),
-        },
-    }
+    result = {"runs": runs, "machine": machine()}
     print(json.dumps(result))
     return result
 

@@ -32,6 +32,15 @@ def example_inputs(folder: Path) -> list[Path]:
     return sorted(photos + views)
 
 
+def machine() -> dict:
+    """What a run's wall-clock numbers depend on: cores, load, Python."""
+    return {
+        "cpus": os.cpu_count(),
+        "loadavg": [round(x, 2) for x in os.getloadavg()],
+        "python": platform.python_version(),
+    }
+
+
 def compose_run(overrides: list[str]):
     from hydra import compose, initialize_config_dir
 
@@ -134,11 +143,7 @@ def main(argv: list[str] | None = None) -> dict:
     result = {
         "runs": runs,
         "ckpt": "random-init tiny model (timing only)" if args.random_ckpt else str(ckpt),
-        "machine": {
-            "cpus": os.cpu_count(),
-            "loadavg": [round(x, 2) for x in os.getloadavg()],
-            "python": platform.python_version(),
-        },
+        "machine": machine(),
     }
     print(json.dumps(result))
     return result
