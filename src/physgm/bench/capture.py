@@ -95,9 +95,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument(
         "--out", type=Path, default=None, help="keep the blobs and runs here (default: a temp dir)"
     )
-    parser.add_argument(
-        "--child", type=Path, default=None, help=argparse.SUPPRESS
-    )  # one run, in this process
+    # internal: one run in this process, the PLY given (what bench_size starts)
+    parser.add_argument("--child", type=Path, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child is not None:
         row = run_child(args.child, args.out, args.material, args.frames, args.res)
