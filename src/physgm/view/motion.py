@@ -145,6 +145,31 @@ class FollowedParticles:
         )
         return means.numpy(), covs.numpy()
 
+    def bounds(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """Where the Gaussians go over the stored frames, from the particles alone (no frame
+        computed): lo [3], hi [3], the mean centre [3] (m) and the largest variance along an axis
+        (m^2), as ``GaussianSequence.extent`` gives them.
+
+        The mean centre is exact: it is linear in the particles. lo, hi and the variance are
+        bounds. A centre, sum_k w_k (x_j + F_j o_k), lies within max_j |F_j| max |o| of the
+        particles' box (|.| the Frobenius norm), and F_i = sum_k w_k F_j has |F_i| <= max_j |F_j|,
+        so a diagonal entry of F_i Sigma_i F_i^T is at most max_j |F_j|^2 max_i trace(Sigma_i).
+        """
+        x, F = self.x.astype(np.float64), self.F.astype(np.float64)
+        w, index, p = self.weight.astype(np.float64), self.index.ravel(), self.x.shape[1]
+        # Each particle's share of the sum over Gaussians: its total weight and weighted offset.
+        share = np.bincount(index, w.ravel(), p)  # [P]
+        lever = (w[..., None] * self.offset).reshape(-1, 3)
+        lever = np.stack([np.bincount(index, lever[:, a], p) for a in range(3)], -1)  # [P, 3]
+        total = (share @ x).sum(0) + np.einsum("spab,pb->a", F, lever)
+        centre = total / (self.stored_frames * self.n_gaussians)
+        f_max = np.sqrt((F * F).sum((-2, -1))).max(1)  # [S]
+        reach = f_max * float(np.sqrt((self.offset.astype(np.float64) ** 2).sum(-1)).max())  # [S] m
+        lo = (x.min(1) - reach[:, None]).min(0)
+        hi = (x.max(1) + reach[:, None]).max(0)
+        trace = self.rest_covs[:, 0] + self.rest_covs[:, 3] + self.rest_covs[:, 5]
+        return lo, hi, centre, float(f_max.max() ** 2 * trace.max())
+
     @property
     def stored_bytes(self) -> int:
         """Bytes ``arrays()`` writes (every one a 4-byte number), without making them."""

@@ -75,9 +75,9 @@ class SequenceExtent:
     """Where a clip's Gaussians go over all its frames.
 
     Attributes:
-        lo, hi: [3] lowest and highest centre coordinates over the frames, m.
+        lo, hi: [3] lowest and highest centre coordinates over the frames, or bounds on them, m.
         centre: [3] mean centre over the frames and Gaussians, m.
-        max_variance: the largest variance along an axis over the frames, m^2.
+        max_variance: the largest variance along an axis over the frames, or a bound on it, m^2.
     """
 
     lo: np.ndarray
@@ -147,7 +147,11 @@ class GaussianSequence:
         return self.motion.frame(min(t, self.stored_frames - 1))
 
     def extent(self) -> SequenceExtent:
-        """Where the Gaussians go over the stored frames (each frame computed once)."""
+        """Where the Gaussians go over the stored frames: each frame computed once, or for
+        Gaussians that follow particles, from the particles alone (``FollowedParticles.bounds``:
+        lo, hi and the variance then bound the frames' own)."""
+        if isinstance(self.motion, FollowedParticles):
+            return SequenceExtent(*self.motion.bounds())
         lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
         total, var = np.zeros(3), 0.0
         diag = np.arange(3)

@@ -73,7 +73,7 @@ class SequenceViewer:
         scene = self.server.scene
         scene.set_up_direction("+z")  # physgm's world is +z up
         centers0, covs0 = sequence.frame(0)
-        extent = sequence.extent()  # every frame once: large clips take seconds here
+        extent = sequence.extent()  # a followed clip: from its particles; else every frame once
         variances0 = covs0[:, np.arange(3), np.arange(3)]  # [N, 3] m^2
         # m per display unit (see module doc); the largest variance stays below float16's 65504
         largest = float(np.sqrt(extent.max_variance / 1e4))
