@@ -5,12 +5,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import pytest
 import torch
 
 from physgm.cameras import orbit_cameras
 from physgm.gaussians import Gaussians
 from physgm.render import Renderer
-from physgm.render.frames import Shot, front_to_back, render_trajectory
+from physgm.render.frames import Shot, finite_gaussians, front_to_back, render_trajectory
 
 
 @dataclass
@@ -98,3 +99,12 @@ def test_frames_are_drawn_front_to_back_with_the_pixels_of_the_order_given():
     for t in range(3):
         drawn = np.round(np.clip(shot.draw(traj.gaussians_at(t)), 0.0, 1.0) * 255.0).astype(np.uint8)
         assert np.array_equal(frames[t], drawn), t
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+@pytest.mark.parametrize("field", ["means", "quats", "scales", "opacities", "colors"])
+def test_one_non_finite_number_anywhere_is_found(field, bad):
+    blob = _blob()
+    assert finite_gaussians(blob) and finite_gaussians(blob[:0])
+    getattr(blob, field).view(-1)[7] = bad
+    assert not finite_gaussians(blob)

@@ -6,6 +6,7 @@ scored against them all render here, so a rollout and its reference differ only 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -32,7 +33,11 @@ class Trajectory(Protocol):
 
 
 def finite_gaussians(g: Gaussians) -> bool:
-    return all(bool(torch.isfinite(t).all()) for t in (g.means, g.quats, g.scales, g.opacities, g.colors))
+    """Every number of ``g`` is finite. ``aminmax`` carries a NaN through and shows an infinity at
+    one end, so one reduction a tensor tells it without ``isfinite``'s mask of every element (at
+    1.2 M Gaussians 0.65 ms a tensor instead of 15)."""
+    tensors = (g.means, g.quats, g.scales, g.opacities, g.colors)
+    return all(t.numel() == 0 or all(math.isfinite(float(v)) for v in torch.aminmax(t)) for t in tensors)
 
 
 @dataclass
