@@ -6,7 +6,6 @@ scored against them all render here, so a rollout and its reference differ only 
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -16,6 +15,7 @@ import torch
 from physgm.cameras import Cameras
 from physgm.gaussians import Gaussians
 from physgm.render.api import Renderer
+from physgm.render.validate import all_finite
 
 
 class Trajectory(Protocol):
@@ -33,11 +33,7 @@ class Trajectory(Protocol):
 
 
 def finite_gaussians(g: Gaussians) -> bool:
-    """Every number of ``g`` is finite. ``aminmax`` carries a NaN through and shows an infinity at
-    one end, so one reduction a tensor tells it without ``isfinite``'s mask of every element (at
-    1.2 M Gaussians 0.65 ms a tensor instead of 15)."""
-    tensors = (g.means, g.quats, g.scales, g.opacities, g.colors)
-    return all(t.numel() == 0 or all(math.isfinite(float(v)) for v in torch.aminmax(t)) for t in tensors)
+    return all(all_finite(t) for t in (g.means, g.quats, g.scales, g.opacities, g.colors))
 
 
 @dataclass
