@@ -14,6 +14,10 @@ import os
 import threading
 from collections.abc import Callable, Sequence
 
+import warp as wp
+
+from physgm.warp_runtime import ensure_loaded
+
 
 class HelperThread:
     """One daemon thread that runs one task at a time: ``start(task)``, then ``wait()``."""
@@ -133,3 +137,12 @@ def helpers_for_this_thread(count: int) -> list[HelperThread]:
             helpers.append(HelperThread("physgm-raster"))
         _HELPERS[key] = (threading.current_thread(), helpers)
         return helpers[:count]
+
+
+def run_launches(kernel, launches: Sequence[tuple[int, list]], device) -> None:
+    """Run Warp launches of ``kernel``, one ``(dim, args)`` each, at once: all are packed here, so a
+    helper needs the GIL only for a few microseconds (packing on the helpers made them wait for
+    this thread's Python work), and the calling thread takes the last launch itself."""
+    ensure_loaded(kernel, device)
+    recorded = [wp.launch(kernel, dim, args, device=device, record_cmd=True) for dim, args in launches]
+    run_split([launch.launch for launch in recorded], helpers_for_this_thread(len(recorded) - 1))

@@ -26,7 +26,7 @@ import torch
 import warp as wp
 from torch import Tensor
 
-from physgm.parallel import helpers_for_this_thread, run_split
+from physgm.parallel import run_launches
 from physgm.render import warp_kernels as K
 from physgm.render import warp_raster_kernels as R
 from physgm.render import warp_tile_kernels as T
@@ -168,16 +168,8 @@ def _launch_tiles(kernels, ranges, settings: RasterSettings, args: list, device:
 
 
 def _run_parallel(kernel, launches: list[tuple[int, list]], device: torch.device) -> None:
-    """Runs CPU launches (dim, args) of ``kernel`` at once, one per thread.
-
-    All launches are packed here, so a helper needs the GIL only for a few microseconds
-    (packing on the helpers made them wait for this thread's Python work); the calling thread
-    takes the last launch itself: one thread hand-off fewer.
-    """
-    wp_device = _DEVICES.get(device) or _device(device)
-    ensure_loaded(kernel, wp_device)
-    recorded = [wp.launch(kernel, dim, args, device=wp_device, record_cmd=True) for dim, args in launches]
-    run_split([launch.launch for launch in recorded], helpers_for_this_thread(len(recorded) - 1))
+    """Runs CPU launches (dim, args) of ``kernel`` at once, one per thread (``run_launches``)."""
+    run_launches(kernel, launches, _DEVICES.get(device) or _device(device))
 
 
 def _cuts(total: int, unit: int, parts: int) -> list[int]:

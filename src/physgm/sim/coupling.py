@@ -21,10 +21,9 @@ import warp as wp
 from torch import Tensor
 
 from physgm.gaussians import Gaussians, quat_to_rotmat, rotmat_to_quat
-from physgm.parallel import helpers_for_this_thread, run_split
+from physgm.parallel import run_launches
 from physgm.sim.linalg import sym_eig3
 from physgm.sim.sampling import Followers
-from physgm.warp_runtime import ensure_loaded
 
 # The 6 permutations of three axes, [6, 3]: row k maps rest axis i to eigenvector PERMS[k, i].
 _PERMS = torch.tensor(list(itertools.permutations(range(3))))
@@ -346,12 +345,6 @@ def _launch_ranges(kernel, n: int, args: list, device, num_threads: int) -> None
     """``kernel`` over Gaussians 0..n-1, on the CPU split into ``num_threads`` ranges run at once
     (a Warp CPU launch runs on one core and releases the GIL); each Gaussian is computed alone,
     so the result does not depend on the split."""
-    ensure_loaded(kernel, device)
     parts = num_threads if device.is_cpu and n >= PARALLEL_MIN_GAUSSIANS else 1
     cuts = [n * k // parts for k in range(parts + 1)]
-    launches = [
-        wp.launch(kernel, hi - lo, [lo, *args], device=device, record_cmd=True)
-        for lo, hi in itertools.pairwise(cuts)
-        if hi > lo
-    ]
-    run_split([launch.launch for launch in launches], helpers_for_this_thread(len(launches) - 1))
+    run_launches(kernel, [(hi - lo, [lo, *args]) for lo, hi in itertools.pairwise(cuts) if hi > lo], device)
