@@ -45,6 +45,19 @@ def _check_shapes(owner: str, arrays: dict[str, tuple[np.ndarray, tuple[int, ...
             raise ValueError(f"{owner}.{name} has non-finite values")
 
 
+def _bounds_by_frames(motion) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """``bounds`` exactly: each stored frame of ``motion`` computed once."""
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    total, var = np.zeros(3), 0.0
+    diag = np.arange(3)
+    for s in range(motion.stored_frames):
+        means, covs = motion.frame(s)
+        lo, hi = np.minimum(lo, means.min(0)), np.maximum(hi, means.max(0))
+        total += means.sum(0, dtype=np.float64)
+        var = max(var, float(covs[:, diag, diag].max()))
+    return lo, hi, total / (motion.stored_frames * motion.n_gaussians), var
+
+
 @dataclass
 class StoredFrames:
     """Every stored frame's centres and covariances.
@@ -72,6 +85,11 @@ class StoredFrames:
 
     def frame(self, s: int) -> tuple[np.ndarray, np.ndarray]:  # [N, 3] m, [N, 3, 3] m^2
         return self.means[s], triu_to_matrix(self.covs[s])
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """lo [3], hi [3] and mean [3] of the centres over the stored frames (m), and the largest
+        variance along an axis (m^2): ``GaussianSequence.extent``."""
+        return _bounds_by_frames(self)
 
     def arrays(self) -> dict[str, np.ndarray]:
         return {"means": self.means.astype(np.float32), "covs": self.covs.astype(np.float32)}
@@ -146,9 +164,7 @@ class FollowedParticles:
         return means.numpy(), covs.numpy()
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-        """Where the Gaussians go over the stored frames, from the particles alone (no frame
-        computed): lo [3], hi [3], the mean centre [3] (m) and the largest variance along an axis
-        (m^2), as ``GaussianSequence.extent`` gives them.
+        """As ``StoredFrames.bounds``, from the particles alone (no frame computed).
 
         The mean centre is exact: it is linear in the particles. lo, hi and the variance are
         bounds. A centre, sum_k w_k (x_j + F_j o_k), lies within max_j |F_j| max |o| of the
@@ -232,6 +248,10 @@ class RigidPoses:
         means = (self.rest_means - self.rest_com) @ rot.T + self.coms[s]
         covs = rot @ triu_to_matrix(self.rest_covs.astype(np.float64)) @ rot.T
         return means.astype(np.float32), covs.astype(np.float32)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """As ``StoredFrames.bounds``: each stored frame computed once."""
+        return _bounds_by_frames(self)
 
     def arrays(self) -> dict[str, np.ndarray]:
         return {

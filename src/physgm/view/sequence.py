@@ -147,21 +147,9 @@ class GaussianSequence:
         return self.motion.frame(min(t, self.stored_frames - 1))
 
     def extent(self) -> SequenceExtent:
-        """Where the Gaussians go over the stored frames: each frame computed once, or for
-        Gaussians that follow particles, from the particles alone (``FollowedParticles.bounds``:
-        lo, hi and the variance then bound the frames' own)."""
-        if isinstance(self.motion, FollowedParticles):
-            return SequenceExtent(*self.motion.bounds())
-        lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-        total, var = np.zeros(3), 0.0
-        diag = np.arange(3)
-        for s in range(self.stored_frames):
-            means, covs = self.motion.frame(s)
-            lo, hi = np.minimum(lo, means.min(0)), np.maximum(hi, means.max(0))
-            total += means.sum(0, dtype=np.float64)
-            var = max(var, float(covs[:, diag, diag].max()))
-        centre = total / (self.stored_frames * self.motion.n_gaussians)
-        return SequenceExtent(lo, hi, centre, var)
+        """Where the Gaussians go over the stored frames (``bounds`` of the motion: each frame
+        computed once, or for Gaussians that follow particles, bounds from the particles alone)."""
+        return SequenceExtent(*self.motion.bounds())
 
     def save(self, path: str | os.PathLike) -> Path:
         """Write the .npz atomically: a temporary sibling renamed into place, so an existing file is whole."""
