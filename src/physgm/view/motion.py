@@ -91,9 +91,6 @@ class StoredFrames:
         variance along an axis (m^2): ``GaussianSequence.extent``."""
         return _bounds_by_frames(self)
 
-    def arrays(self) -> dict[str, np.ndarray]:
-        return {"means": self.means.astype(np.float32), "covs": self.covs.astype(np.float32)}
-
 
 @dataclass
 class FollowedParticles:
@@ -188,18 +185,9 @@ class FollowedParticles:
 
     @property
     def stored_bytes(self) -> int:
-        """Bytes ``arrays()`` writes (every one a 4-byte number), without making them."""
-        return 4 * sum(getattr(self, name).size for name in _FIELDS[self.kind][1].values())
-
-    def arrays(self) -> dict[str, np.ndarray]:
-        return {
-            "rest_covs": self.rest_covs.astype(np.float32),
-            "follow_index": self.index.astype(np.int32),
-            "follow_weight": self.weight.astype(np.float32),
-            "follow_offset": self.offset.astype(np.float32),
-            "particle_x": self.x.astype(np.float32),
-            "particle_F": self.F.astype(np.float32),
-        }
+        """Bytes ``motion_arrays`` writes, without making them."""
+        fields = _FIELDS[self.kind][1].values()
+        return sum(getattr(self, name).size * np.dtype(dtype).itemsize for name, dtype in fields)
 
 
 @dataclass
@@ -253,43 +241,40 @@ class RigidPoses:
         """As ``StoredFrames.bounds``: each stored frame computed once."""
         return _bounds_by_frames(self)
 
-    def arrays(self) -> dict[str, np.ndarray]:
-        return {
-            "rest_means": self.rest_means.astype(np.float32),
-            "rest_covs": self.rest_covs.astype(np.float32),
-            "rigid_rotations": self.rotations.astype(np.float64),
-            "rigid_coms": self.coms.astype(np.float64),
-            "rigid_rest_com": self.rest_com.astype(np.float64),
-        }
-
 
 Motion = StoredFrames | FollowedParticles | RigidPoses
 
-# The arrays of each kind in a file, and the field each fills.
-_FIELDS: dict[str, tuple[type, dict[str, str]]] = {
-    "frames": (StoredFrames, {"means": "means", "covs": "covs"}),
+# The arrays of each kind in a file: the field each fills and its type there.
+_FIELDS: dict[str, tuple[type, dict[str, tuple[str, type]]]] = {
+    "frames": (StoredFrames, {"means": ("means", np.float32), "covs": ("covs", np.float32)}),
     "particles": (
         FollowedParticles,
         {
-            "rest_covs": "rest_covs",
-            "follow_index": "index",
-            "follow_weight": "weight",
-            "follow_offset": "offset",
-            "particle_x": "x",
-            "particle_F": "F",
+            "rest_covs": ("rest_covs", np.float32),
+            "follow_index": ("index", np.int32),
+            "follow_weight": ("weight", np.float32),
+            "follow_offset": ("offset", np.float32),
+            "particle_x": ("x", np.float32),
+            "particle_F": ("F", np.float32),
         },
     ),
     "rigid": (
         RigidPoses,
         {
-            "rest_means": "rest_means",
-            "rest_covs": "rest_covs",
-            "rigid_rotations": "rotations",
-            "rigid_coms": "coms",
-            "rigid_rest_com": "rest_com",
+            "rest_means": ("rest_means", np.float32),
+            "rest_covs": ("rest_covs", np.float32),
+            "rigid_rotations": ("rotations", np.float64),
+            "rigid_coms": ("coms", np.float64),
+            "rigid_rest_com": ("rest_com", np.float64),
         },
     ),
 }
+
+
+def motion_arrays(motion: Motion) -> dict[str, np.ndarray]:
+    """The arrays a file stores for ``motion``, by name, in their file types."""
+    fields = _FIELDS[motion.kind][1]
+    return {key: getattr(motion, name).astype(dtype) for key, (name, dtype) in fields.items()}
 
 
 def motion_keys(kind: str) -> set[str]:
@@ -302,4 +287,4 @@ def motion_keys(kind: str) -> set[str]:
 def motion_from_arrays(kind: str, arrays: dict[str, np.ndarray]) -> Motion:
     """The motion of ``kind`` from a file's arrays (``motion_keys(kind)`` must all be there)."""
     cls, fields = _FIELDS[kind]
-    return cls(**{field: arrays[key] for key, field in fields.items()})
+    return cls(**{name: arrays[key] for key, (name, _) in fields.items()})
