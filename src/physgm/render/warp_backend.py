@@ -235,9 +235,9 @@ def _pairs_in_order(order: Tensor, pair_in: list, spans: Tensor, threads: int, d
     """``bin_entries_kernel``'s per-row inputs: the pairs ``order`` [E] lists, their data and
     span of tiles copied in that order by ``gather_pairs_kernel`` (split over threads by rows)."""
     num = order.numel()
-    copies = [torch.empty(num, k, device=device) for k in (2, 3, 1, 2, 1, 3)]
+    shapes = ((2,), (3,), (), (2,), (), (3,))  # means2d, conics, qmax, extents, opacities, colours
     dtypes = (wp.vec2, wp.vec3, wp.float32, wp.vec2, wp.float32, wp.vec3)
-    out = [_arr(c.squeeze(1) if c.shape[1] == 1 else c, d) for c, d in zip(copies, dtypes, strict=True)]
+    out = [_arr(torch.empty(num, *k, device=device), d) for k, d in zip(shapes, dtypes, strict=True)]
     out.append(_arr(torch.empty(num, 2, dtype=torch.int32, device=device), wp.vec2i))
     order_arr = _arr(order, wp.int64)
     args = [order_arr, *pair_in, _arr(spans, wp.vec2i), *out]
